@@ -1,0 +1,357 @@
+"""graph.yaml: the dataflow declaration (modelled on dora's dataflow.yml), loaded and validated.
+
+Every problem is reported as ``file:line: message`` through :class:`GraphError`, before anything
+starts. The command line turns a GraphError into exit status 2.
+
+    name: followbus-demo
+    namespace: fb
+    zenoh: {mode: peer, listen: [tcp/127.0.0.1:7447], connect: [tcp/127.0.0.1:7447]}
+    nodes:
+      detection:
+        run: followbus.nodes.detection          # python module with a NODE class
+        inputs:
+          frame: {from: capture/frame, queue: 1, policy: drop_oldest}
+        outputs: [detections]
+        params: {backend: auto}
+        restart: on-failure                     # or {policy: on-failure, max_restarts: 5, backoff_ms: 500}
+        host: robot
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from followbus.bus.session import ZenohSettings
+
+NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
+TOP_KEYS = {"name", "namespace", "zenoh", "nodes"}
+NODE_KEYS = {"run", "inputs", "outputs", "params", "restart", "host", "sync_timeout_ms", "description"}
+INPUT_KEYS = {"from", "queue", "policy", "sync", "offset", "optional"}
+RESTART_KEYS = {"policy", "max_restarts", "backoff_ms", "max_backoff_ms"}
+POLICIES = ("drop_oldest", "block")
+SYNC_MODES = ("frame", "latest", "none")
+RESTART_POLICIES = ("never", "on-failure", "always")
+
+
+class GraphError(Exception):
+    """A graph.yaml problem, located to a file and line."""
+
+    def __init__(self, path: str | Path, line: int | None, message: str):
+        self.path = str(path)
+        self.line = line
+        self.message = message
+        super().__init__(f"{self.path}:{line if line is not None else '?'}: {message}")
+
+
+@dataclass
+class InputSpec:
+    name: str
+    source_node: str
+    source_output: str
+    queue: int = 4
+    policy: str = "drop_oldest"
+    sync: str = "frame"  # frame: joined by frame_seq; latest: last value kept; none: callback only
+    offset: int = 0  # join the message of frame_seq k+offset into frame k's set (feedback loops: -1)
+    optional: bool = False
+    line: int | None = None
+
+    @property
+    def topic(self) -> str:
+        return f"{self.source_node}/{self.source_output}"
+
+
+@dataclass
+class RestartPolicy:
+    policy: str = "on-failure"
+    max_restarts: int = 5
+    backoff_ms: int = 500
+    max_backoff_ms: int = 10_000
+
+
+@dataclass
+class NodeSpec:
+    name: str
+    run: str
+    inputs: dict[str, InputSpec] = field(default_factory=dict)
+    outputs: list[str] = field(default_factory=list)
+    params: dict[str, Any] = field(default_factory=dict)
+    restart: RestartPolicy = field(default_factory=RestartPolicy)
+    host: str | None = None
+    sync_timeout_ms: float = 100.0
+    line: int | None = None
+    param_lines: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class Graph:
+    name: str
+    namespace: str
+    zenoh: ZenohSettings
+    nodes: dict[str, NodeSpec]
+    path: str = "<memory>"
+    text: str = ""
+
+    def key(self, node: str, output: str) -> str:
+        """The bus key of a node's output: ``<namespace>/<node>/<output>``."""
+        return f"{self.namespace}/{node}/{output}"
+
+    def health_key(self, node: str) -> str:
+        return f"{self.namespace}/@health/{node}"
+
+    def status_key(self, node: str) -> str:
+        return f"{self.namespace}/@status/{node}"
+
+    def error(self, line: int | None, message: str) -> GraphError:
+        return GraphError(self.path, line, message)
+
+
+_SCALARS = yaml.SafeLoader("")  # only used to construct scalar values from composed nodes
+
+
+def _line(node: yaml.Node) -> int:
+    return node.start_mark.line + 1
+
+
+def _plain(node: yaml.Node, path: str) -> Any:
+    """Convert a composed YAML node to Python values, rejecting duplicate keys."""
+    if isinstance(node, yaml.MappingNode):
+        out: dict[Any, Any] = {}
+        for key_node, value_node in node.value:
+            key = _plain(key_node, path)
+            if key in out:
+                raise GraphError(path, _line(key_node), f"duplicate key {key!r}")
+            out[key] = _plain(value_node, path)
+        return out
+    if isinstance(node, yaml.SequenceNode):
+        return [_plain(item, path) for item in node.value]
+    return _SCALARS.construct_object(node, deep=True)
+
+
+def _mapping_items(node: yaml.Node, path: str, what: str) -> list[tuple[str, yaml.Node, yaml.Node]]:
+    if not isinstance(node, yaml.MappingNode):
+        raise GraphError(path, _line(node), f"{what} must be a mapping")
+    items = []
+    for key_node, value_node in node.value:
+        if not isinstance(key_node, yaml.ScalarNode):
+            raise GraphError(path, _line(key_node), f"{what}: keys must be plain names")
+        items.append((key_node.value, key_node, value_node))
+    return items
+
+
+def _expect(value: Any, types: type | tuple[type, ...], path: str, line: int, what: str) -> Any:
+    if isinstance(value, bool) and bool not in (types if isinstance(types, tuple) else (types,)):
+        raise GraphError(path, line, f"{what} must be {_type_names(types)}, not a boolean")
+    if not isinstance(value, types):
+        raise GraphError(path, line, f"{what} must be {_type_names(types)}, not {type(value).__name__}")
+    return value
+
+
+def _type_names(types: type | tuple[type, ...]) -> str:
+    names = {"str": "a string", "int": "an integer", "float": "a number", "list": "a list",
+             "dict": "a mapping", "bool": "true/false"}
+    seq = types if isinstance(types, tuple) else (types,)
+    return " or ".join(names.get(t.__name__, t.__name__) for t in seq)
+
+
+def load_graph(path: str | Path, text: str | None = None) -> Graph:
+    """Load and validate graph.yaml. Raises GraphError (file:line: message)."""
+    path = str(path)
+    if text is None:
+        try:
+            text = Path(path).read_text()
+        except OSError as exc:
+            raise GraphError(path, None, f"cannot read: {exc.strerror}") from exc
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        context = getattr(exc, "context", None)
+        detail = f"{problem} ({context})" if context else problem
+        raise GraphError(path, mark.line + 1 if mark else None, f"invalid YAML: {detail}") from exc
+    if root is None:
+        raise GraphError(path, 1, "empty graph file")
+    seen: dict[str, yaml.Node] = {}
+    for key, key_node, value_node in _mapping_items(root, path, "graph"):
+        if key in seen:
+            raise GraphError(path, _line(key_node), f"duplicate key {key!r}")
+        if key not in TOP_KEYS:
+            raise GraphError(path, _line(key_node), f"unknown key {key!r} (allowed: {', '.join(sorted(TOP_KEYS))})")
+        seen[key] = value_node
+    for required in ("name", "nodes"):
+        if required not in seen:
+            raise GraphError(path, 1, f"missing required key {required!r}")
+
+    name = _expect(_plain(seen["name"], path), str, path, _line(seen["name"]), "name")
+    namespace = "fb"
+    if "namespace" in seen:
+        namespace = _expect(_plain(seen["namespace"], path), str, path, _line(seen["namespace"]), "namespace")
+        if not re.match(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$", namespace):
+            raise GraphError(path, _line(seen["namespace"]), f"namespace {namespace!r} is not a valid key prefix")
+    zenoh_settings = ZenohSettings()
+    if "zenoh" in seen:
+        zdata = _plain(seen["zenoh"], path)
+        try:
+            zenoh_settings = ZenohSettings.from_dict(_expect(zdata, dict, path, _line(seen["zenoh"]), "zenoh"))
+        except (TypeError, ValueError) as exc:
+            raise GraphError(path, _line(seen["zenoh"]), f"zenoh: {exc}") from exc
+
+    nodes: dict[str, NodeSpec] = {}
+    for node_name, key_node, value_node in _mapping_items(seen["nodes"], path, "nodes"):
+        if node_name in nodes:
+            raise GraphError(path, _line(key_node), f"duplicate node name {node_name!r}")
+        if not NAME_RE.match(node_name) or node_name.startswith("@"):
+            raise GraphError(path, _line(key_node), f"node name {node_name!r} is not a valid name")
+        nodes[node_name] = _parse_node(node_name, key_node, value_node, path)
+    if not nodes:
+        raise GraphError(path, _line(seen["nodes"]), "no nodes declared")
+
+    graph = Graph(name=name, namespace=namespace, zenoh=zenoh_settings, nodes=nodes, path=path, text=text)
+    _check_wiring(graph)
+    return graph
+
+
+def _parse_node(name: str, key_node: yaml.Node, node: yaml.Node, path: str) -> NodeSpec:
+    fields: dict[str, tuple[yaml.Node, yaml.Node]] = {}
+    for key, k_node, v_node in _mapping_items(node, path, f"node {name!r}"):
+        if key not in NODE_KEYS:
+            raise GraphError(path, _line(k_node),
+                             f"node {name!r}: unknown key {key!r} (allowed: {', '.join(sorted(NODE_KEYS))})")
+        if key in fields:
+            raise GraphError(path, _line(k_node), f"node {name!r}: duplicate key {key!r}")
+        fields[key] = (k_node, v_node)
+    if "run" not in fields:
+        raise GraphError(path, _line(key_node), f"node {name!r}: missing required key 'run'")
+    run = _expect(_plain(fields["run"][1], path), str, path, _line(fields["run"][1]), f"node {name!r}: run")
+    spec = NodeSpec(name=name, run=run, line=_line(key_node))
+
+    if "outputs" in fields:
+        outputs = _expect(_plain(fields["outputs"][1], path), list, path, _line(fields["outputs"][1]),
+                          f"node {name!r}: outputs")
+        for item_node, out in zip(fields["outputs"][1].value, outputs, strict=True):
+            _expect(out, str, path, _line(item_node), f"node {name!r}: output name")
+            if not NAME_RE.match(out):
+                raise GraphError(path, _line(item_node), f"node {name!r}: output name {out!r} is not valid")
+            if out in spec.outputs:
+                raise GraphError(path, _line(item_node), f"node {name!r}: duplicate output {out!r}")
+            spec.outputs.append(out)
+
+    if "inputs" in fields:
+        for in_name, k_node, v_node in _mapping_items(fields["inputs"][1], path, f"node {name!r}: inputs"):
+            if in_name in spec.inputs:
+                raise GraphError(path, _line(k_node), f"node {name!r}: duplicate input {in_name!r}")
+            spec.inputs[in_name] = _parse_input(name, in_name, k_node, v_node, path)
+
+    if "params" in fields:
+        params_node = fields["params"][1]
+        if not (isinstance(params_node, yaml.ScalarNode) and params_node.value in ("", "~", "null")):
+            for p_name, k_node, v_node in _mapping_items(params_node, path, f"node {name!r}: params"):
+                if p_name in spec.params:
+                    raise GraphError(path, _line(k_node), f"node {name!r}: duplicate param {p_name!r}")
+                spec.params[p_name] = _plain(v_node, path)
+                spec.param_lines[p_name] = _line(k_node)
+
+    if "restart" in fields:
+        spec.restart = _parse_restart(name, fields["restart"][1], path)
+    if "host" in fields:
+        spec.host = _expect(_plain(fields["host"][1], path), str, path, _line(fields["host"][1]),
+                            f"node {name!r}: host")
+    if "sync_timeout_ms" in fields:
+        value = _expect(_plain(fields["sync_timeout_ms"][1], path), (int, float), path,
+                        _line(fields["sync_timeout_ms"][1]), f"node {name!r}: sync_timeout_ms")
+        if value <= 0:
+            raise GraphError(path, _line(fields["sync_timeout_ms"][1]), f"node {name!r}: sync_timeout_ms must be > 0")
+        spec.sync_timeout_ms = float(value)
+    return spec
+
+
+def _parse_input(node: str, name: str, key_node: yaml.Node, value_node: yaml.Node, path: str) -> InputSpec:
+    where = f"node {node!r}: input {name!r}"
+    line = _line(key_node)
+    if not NAME_RE.match(name):
+        raise GraphError(path, line, f"{where}: not a valid input name")
+    value = _plain(value_node, path)
+    options: dict[str, Any] = {}
+    if isinstance(value, str):
+        source = value
+    elif isinstance(value, dict):
+        for opt_name, opt_key, _ in _mapping_items(value_node, path, where):
+            if opt_name not in INPUT_KEYS:
+                raise GraphError(path, _line(opt_key),
+                                 f"{where}: unknown key {opt_name!r} (allowed: {', '.join(sorted(INPUT_KEYS))})")
+        if "from" not in value:
+            raise GraphError(path, line, f"{where}: missing required key 'from'")
+        source = value["from"]
+        options = {k: v for k, v in value.items() if k != "from"}
+    else:
+        raise GraphError(path, line, f"{where}: must be 'node/output' or a mapping with 'from'")
+    if not isinstance(source, str) or source.count("/") != 1:
+        raise GraphError(path, line, f"{where}: source {source!r} must look like 'node/output'")
+    src_node, src_output = source.split("/")
+    spec = InputSpec(name=name, source_node=src_node, source_output=src_output, line=line)
+    if "queue" in options:
+        spec.queue = _expect(options["queue"], int, path, line, f"{where}: queue")
+        if spec.queue < 1:
+            raise GraphError(path, line, f"{where}: queue must be >= 1")
+    if "policy" in options:
+        spec.policy = _expect(options["policy"], str, path, line, f"{where}: policy")
+        if spec.policy not in POLICIES:
+            raise GraphError(path, line, f"{where}: policy must be one of {', '.join(POLICIES)}")
+    if "sync" in options:
+        spec.sync = _expect(options["sync"], str, path, line, f"{where}: sync")
+        if spec.sync not in SYNC_MODES:
+            raise GraphError(path, line, f"{where}: sync must be one of {', '.join(SYNC_MODES)}")
+    if "offset" in options:
+        spec.offset = _expect(options["offset"], int, path, line, f"{where}: offset")
+        if spec.offset > 0:
+            raise GraphError(path, line, f"{where}: offset must be <= 0 (a frame cannot wait for its future)")
+    if "optional" in options:
+        spec.optional = _expect(options["optional"], bool, path, line, f"{where}: optional")
+    return spec
+
+
+def _parse_restart(node: str, value_node: yaml.Node, path: str) -> RestartPolicy:
+    where = f"node {node!r}: restart"
+    line = _line(value_node)
+    value = _plain(value_node, path)
+    if isinstance(value, str):
+        value = {"policy": value}
+    _expect(value, dict, path, line, where)
+    for key in value:
+        if key not in RESTART_KEYS:
+            raise GraphError(path, line, f"{where}: unknown key {key!r} (allowed: {', '.join(sorted(RESTART_KEYS))})")
+    policy = RestartPolicy()
+    if "policy" in value:
+        policy.policy = _expect(value["policy"], str, path, line, f"{where}: policy")
+        if policy.policy not in RESTART_POLICIES:
+            raise GraphError(path, line, f"{where}: policy must be one of {', '.join(RESTART_POLICIES)}")
+    for key in ("max_restarts", "backoff_ms", "max_backoff_ms"):
+        if key in value:
+            setattr(policy, key, _expect(value[key], int, path, line, f"{where}: {key}"))
+            if getattr(policy, key) < 0:
+                raise GraphError(path, line, f"{where}: {key} must be >= 0")
+    return policy
+
+
+def _check_wiring(graph: Graph) -> None:
+    for spec in graph.nodes.values():
+        for inp in spec.inputs.values():
+            producer = graph.nodes.get(inp.source_node)
+            if producer is None:
+                raise graph.error(inp.line, f"node {spec.name!r}: input {inp.name!r} comes from unknown node "
+                                            f"{inp.source_node!r}")
+            if inp.source_output not in producer.outputs:
+                raise graph.error(inp.line, f"node {spec.name!r}: input {inp.name!r}: node {inp.source_node!r} "
+                                            f"has no output {inp.source_output!r} (it has: "
+                                            f"{', '.join(producer.outputs) or 'none'})")
+        if spec.inputs and all(i.sync != "frame" for i in spec.inputs.values()):
+            continue
+        frame_inputs = [i for i in spec.inputs.values() if i.sync == "frame"]
+        if frame_inputs and all(i.optional for i in frame_inputs):
+            raise graph.error(spec.line, f"node {spec.name!r}: at least one frame-synchronised input must be "
+                                         "required (not optional)")

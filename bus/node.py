@@ -1,0 +1,384 @@
+"""Node runtime: parses params, opens the session, declares inputs/outputs, runs callbacks.
+
+A node is a class deriving from :class:`Node`, exported as ``NODE`` by the module named in
+graph.yaml's ``run:``. Its code is single-threaded: Zenoh callbacks only decode and enqueue; the
+main loop hands messages to the node in arrival order:
+
+- ``on_message(name, msg)`` for every input message, as it arrives;
+- ``on_frame(frame_seq, inputs)`` for each set of frame-synchronised inputs (see bus.sync);
+- ``on_timer(now_ns)`` every ``TIMER_PERIOD_MS`` of the node clock;
+- ``poll(now_ns) -> seconds`` for sources that produce on their own schedule.
+
+The node clock is wall time, or with ``clock="stamps"`` (lockstep replay) the newest input stamp,
+so a replayed node never depends on the wall clock.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import itertools
+import logging
+import os
+import signal
+import threading
+import time
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import zenoh
+
+from followbus.bus.graph import Graph, GraphError, NodeSpec
+from followbus.bus.pubsub import InputQueue, Publisher, RateLimitedLog, ShmPool, Subscriber
+from followbus.bus.schemas import Message, NodeStatus
+from followbus.bus.session import open_session
+from followbus.bus.stats import TopicStats
+from followbus.bus.sync import FrameSynchronizer, SyncInput
+
+STATUS_PERIOD_S = 1.0
+
+
+class ParamError(ValueError):
+    """A node parameter problem; ``key`` lets the caller point at the graph.yaml line."""
+
+    def __init__(self, key: str, message: str):
+        self.key = key
+        super().__init__(message)
+
+
+@dataclass
+class NoParams:
+    pass
+
+
+def params_from_dict(cls: type, data: dict[str, Any]) -> Any:
+    """Build a params dataclass from a dict, rejecting unknown keys and wrong types."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    for key in data:
+        if key not in names:
+            raise ParamError(key, f"unknown parameter {key!r} (known: {', '.join(sorted(names)) or 'none'})")
+    kwargs = {}
+    for key, value in data.items():
+        kwargs[key] = _coerce(value, hints[key], key)
+    return cls(**kwargs)
+
+
+def _coerce(value: Any, hint: Any, key: str) -> Any:
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(hint)
+        if value is None and type(None) in args:
+            return None
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(value, arg, key)
+            except ParamError:
+                continue
+        raise ParamError(key, f"parameter {key!r}: {value!r} is not a valid {hint}")
+    if hint is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if hint is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if hint in (str, bool) and isinstance(value, hint):
+        return value
+    if (origin or hint) in (list, tuple) and isinstance(value, (list, tuple)):
+        return list(value) if (origin or hint) is list else tuple(value)
+    if (origin or hint) is dict and isinstance(value, dict):
+        return value
+    if hint is Any:
+        return value
+    expected = getattr(hint, "__name__", str(hint))
+    raise ParamError(key, f"parameter {key!r} must be {expected}, not {type(value).__name__} ({value!r})")
+
+
+class Clock:
+    """Wall clock, or the newest observed message stamp (lockstep replay)."""
+
+    def __init__(self, mode: str = "wall"):
+        if mode not in ("wall", "stamps"):
+            raise ValueError(f"clock must be 'wall' or 'stamps', not {mode!r}")
+        self.mode = mode
+        self._latest = 0
+
+    def observe(self, stamp_ns: int) -> None:
+        self._latest = max(self._latest, stamp_ns)
+
+    def now_ns(self) -> int:
+        return time.time_ns() if self.mode == "wall" else self._latest
+
+
+class Node:
+    INPUTS: ClassVar[dict[str, type[Message]]] = {}
+    REQUIRED_INPUTS: ClassVar[frozenset[str]] = frozenset()
+    OUTPUTS: ClassVar[dict[str, type[Message]]] = {}
+    CONGESTION: ClassVar[dict[str, str]] = {}  # output -> "block" | "drop" (default block)
+    EXPRESS: ClassVar[frozenset[str]] = frozenset()  # outputs sent without batching (control)
+    Params: ClassVar[type] = NoParams
+    TIMER_PERIOD_MS: ClassVar[float | None] = None
+
+    def __init__(self, params: Any, runtime: NodeRuntime):
+        self.params = params
+        self.runtime = runtime
+        self.name = runtime.spec.name
+        self.log = logging.getLogger(f"followbus.{self.name}")
+        self.latest: dict[str, Message] = runtime.latest
+
+    @classmethod
+    def parse_params(cls, raw: dict[str, Any]) -> Any:
+        return params_from_dict(cls.Params, raw)
+
+    # hooks
+    def setup(self) -> None: ...
+    def on_message(self, name: str, msg: Message) -> None: ...
+    def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None: ...
+    def on_timer(self, now_ns: int) -> None: ...
+    def poll(self, now_ns: int) -> float | None:
+        return None
+
+    def teardown(self) -> None: ...
+    def status_extra(self) -> dict[str, Any]:
+        return {}
+
+    # helpers
+    def publish(self, output: str, msg: Message, like: Message | None = None) -> None:
+        """Publish on an output; ``like`` copies the stamp and frame_seq of the input it derives from."""
+        if like is not None:
+            msg.header.stamp_ns = like.header.stamp_ns
+            msg.header.frame_seq = like.header.frame_seq
+        self.runtime.publishers[output].put(msg)
+
+    def has_output(self, output: str) -> bool:
+        return output in self.runtime.publishers
+
+    def now_ns(self) -> int:
+        return self.runtime.clock.now_ns()
+
+    def stop(self) -> None:
+        self.runtime.stop_event.set()
+
+
+def load_node_class(run: str) -> type[Node]:
+    import importlib
+
+    module = importlib.import_module(run)
+    cls = getattr(module, "NODE", None)
+    if not (isinstance(cls, type) and issubclass(cls, Node)):
+        raise ImportError(f"module {run!r} has no NODE class deriving from followbus.bus.node.Node")
+    return cls
+
+
+def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -> tuple[type[Node], Any]:
+    """Check a node spec against its class: inputs, outputs, types and params. Raises GraphError."""
+    if cls is None:
+        try:
+            cls = load_node_class(spec.run)
+        except ImportError as exc:
+            raise graph.error(spec.line, f"node {spec.name!r}: run: {exc}") from exc
+    for inp in spec.inputs.values():
+        if inp.name not in cls.INPUTS:
+            raise graph.error(inp.line, f"node {spec.name!r}: {spec.run} has no input {inp.name!r} "
+                                        f"(it takes: {', '.join(cls.INPUTS) or 'none'})")
+        producer = graph.nodes[inp.source_node]
+        try:
+            producer_cls = load_node_class(producer.run)
+        except ImportError:
+            producer_cls = None
+        if producer_cls is not None:
+            produced = producer_cls.OUTPUTS.get(inp.source_output)
+            if produced is not None and produced is not cls.INPUTS[inp.name]:
+                raise graph.error(inp.line, f"node {spec.name!r}: input {inp.name!r} expects "
+                                            f"{cls.INPUTS[inp.name].TYPE} but {inp.topic} carries {produced.TYPE}")
+    for required in cls.REQUIRED_INPUTS:
+        if required not in spec.inputs:
+            raise graph.error(spec.line, f"node {spec.name!r}: missing required input {required!r}")
+    for out in spec.outputs:
+        if out not in cls.OUTPUTS:
+            raise graph.error(spec.line, f"node {spec.name!r}: {spec.run} has no output {out!r} "
+                                         f"(it produces: {', '.join(cls.OUTPUTS) or 'none'})")
+    try:
+        params = cls.parse_params(spec.params)
+    except ParamError as exc:
+        raise graph.error(spec.param_lines.get(exc.key, spec.line), f"node {spec.name!r}: {exc}") from exc
+    except (TypeError, ValueError) as exc:
+        raise graph.error(spec.line, f"node {spec.name!r}: params: {exc}") from exc
+    return cls, params
+
+
+class NodeRuntime:
+    """Hosts one node in this process."""
+
+    def __init__(self, graph: Graph, name: str, *, clock: str = "wall", session: zenoh.Session | None = None):
+        if name not in graph.nodes:
+            raise GraphError(graph.path, None, f"no node named {name!r} (nodes: {', '.join(graph.nodes)})")
+        self.graph = graph
+        self.spec = graph.nodes[name]
+        self.cls, self.params = validate_node(graph, self.spec)
+        self.clock = Clock(clock)
+        self.stop_event = threading.Event()
+        self.log = logging.getLogger(f"followbus.{name}")
+        self._own_session = session is None
+        self.session = session or open_session(graph.zenoh)
+        self.started_ns = time.time_ns()
+        self.publishers: dict[str, Publisher] = {}
+        self.subscribers: list[Subscriber] = []
+        self.queues: dict[str, InputQueue] = {}
+        self.latest: dict[str, Message] = {}
+        self.handler_errors = 0
+        self._cond = threading.Condition()
+        self._arrival = itertools.count()
+        self._warn = RateLimitedLog(self.log)
+        shm = ShmPool() if graph.zenoh.shm else None
+        for out in self.spec.outputs:
+            key = graph.key(self.spec.name, out)
+            self.publishers[out] = Publisher(
+                self.session, key, self.spec.name, congestion=self.cls.CONGESTION.get(out, "block"),
+                express=out in self.cls.EXPRESS, shm=shm,
+            )
+        frame_inputs = [SyncInput(i.name, i.offset, i.optional) for i in self.spec.inputs.values()
+                        if i.sync == "frame"]
+        self.sync = (FrameSynchronizer(frame_inputs, int(self.spec.sync_timeout_ms * 1e6))
+                     if frame_inputs else None)
+        self.node = self.cls(self.params, self)
+        for inp in self.spec.inputs.values():
+            key = graph.key(inp.source_node, inp.source_output)
+            stats = TopicStats(key, "in")
+            queue = InputQueue(inp.name, inp.queue, inp.policy, stats, self._cond)
+            self.queues[inp.name] = queue
+            self.subscribers.append(Subscriber(
+                self.session, key, self._enqueuer(queue), schema=self.cls.INPUTS[inp.name], stats=stats,
+                logger=self.log,
+            ))
+        self._token = self.session.liveliness().declare_token(graph.health_key(self.spec.name))
+        self._status_pub = Publisher(self.session, graph.status_key(self.spec.name), self.spec.name)
+        self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
+
+    def _enqueuer(self, queue: InputQueue):
+        def push(msg: Message) -> None:
+            # Arrival order across inputs matters (a measurement for frame k-1 before the detections
+            # of frame k), so every message carries a process-wide arrival number.
+            msg._arrival = next(self._arrival)  # type: ignore[attr-defined]
+            queue.push(msg)
+
+        return push
+
+    def status(self) -> NodeStatus:
+        topics = {p.key: p.stats.snapshot() for p in self.publishers.values()}
+        topics.update({q.stats.key: q.stats.snapshot() for q in self.queues.values()})
+        extra = {"handler_errors": self.handler_errors}
+        if self.sync is not None:
+            extra.update(sync_timeouts=self.sync.timeouts, sync_dropped=self.sync.dropped)
+        try:
+            extra.update(self.node.status_extra())
+        except Exception as exc:  # status must never take the node down
+            extra["status_error"] = repr(exc)
+        msg = NodeStatus(node=self.spec.name, pid=os.getpid(), uptime_s=(time.time_ns() - self.started_ns) / 1e9,
+                         topics=topics, extra=extra)
+        msg.header.stamp_ns = time.time_ns()
+        return msg
+
+    def _status_loop(self) -> None:
+        while not self.stop_event.wait(STATUS_PERIOD_S):
+            try:
+                self._status_pub.put(self.status())
+            except Exception as exc:
+                self._warn.warning("status publish failed: %r", exc)
+
+    def _guarded(self, what: str, fn, *args) -> Any:
+        try:
+            return fn(*args)
+        except Exception:
+            # A bug or an unexpected message must not take the robot down: count, log, go on.
+            self.handler_errors += 1
+            if self.handler_errors <= 3 or self.handler_errors % 100 == 0:
+                self.log.exception("%s failed (%d errors so far)", what, self.handler_errors)
+            return None
+
+    def install_signal_handlers(self) -> None:
+        def handler(signum, _frame):
+            self.log.info("received %s, shutting down", signal.Signals(signum).name)
+            self.stop_event.set()
+            with self._cond:
+                self._cond.notify_all()
+
+        signal.signal(signal.SIGTERM, handler)
+        signal.signal(signal.SIGINT, handler)
+
+    def run(self) -> None:
+        node = self.node
+        node.setup()
+        self._status_thread.start()
+        self.log.info("node %s up (%s)", self.spec.name, self.spec.run)
+        timer_ns = int(self.cls.TIMER_PERIOD_MS * 1e6) if self.cls.TIMER_PERIOD_MS else None
+        next_timer = self.clock.now_ns() + timer_ns if timer_ns else None
+        next_poll_wall: float | None = time.monotonic()
+        try:
+            while not self.stop_event.is_set():
+                with self._cond:
+                    wait_s = 0.05
+                    if next_poll_wall is not None:
+                        wait_s = min(wait_s, max(0.0, next_poll_wall - time.monotonic()))
+                    if self.sync is not None and self.clock.mode == "wall":
+                        deadline = self.sync.next_deadline_ns()
+                        if deadline is not None:
+                            wait_s = min(wait_s, max(0.0, (deadline - time.time_ns()) / 1e9))
+                    if not any(len(q) for q in self.queues.values()) and wait_s > 0:
+                        self._cond.wait(wait_s)
+                    items = [(name, m) for name, q in self.queues.items() for m in q.pop_all()]
+                    self._cond.notify_all()  # wake producers blocked on a full queue
+                items.sort(key=lambda item: item[1]._arrival)
+                for name, msg in items:
+                    self._dispatch(name, msg)
+                self._emit_ready()
+                now = self.clock.now_ns()
+                if next_timer is not None and now >= next_timer:
+                    self._guarded("on_timer", node.on_timer, now)
+                    next_timer = max(next_timer + timer_ns, now - timer_ns)
+                if next_poll_wall is not None and time.monotonic() >= next_poll_wall:
+                    delay = self._guarded("poll", node.poll, now)
+                    next_poll_wall = None if delay is None else time.monotonic() + max(0.0, delay)
+        finally:
+            self.close()
+
+    def _dispatch(self, name: str, msg: Message) -> None:
+        self.clock.observe(msg.header.stamp_ns)
+        spec = self.spec.inputs[name]
+        self._guarded(f"on_message({name})", self.node.on_message, name, msg)
+        if spec.sync == "latest":
+            self.latest[name] = msg
+        elif spec.sync == "frame" and self.sync is not None:
+            self.sync.add(name, msg.header.frame_seq, msg, self._sync_now())
+            self._emit_ready()
+
+    def _sync_now(self) -> int:
+        return time.time_ns() if self.clock.mode == "wall" else self.clock.now_ns()
+
+    def _emit_ready(self) -> None:
+        if self.sync is None:
+            return
+        for frame_seq, inputs in self.sync.poll(self._sync_now()):
+            self._guarded("on_frame", self.node.on_frame, frame_seq, inputs)
+
+    def close(self) -> None:
+        self.stop_event.set()
+        self._guarded("teardown", self.node.teardown)
+        with contextlib.suppress(Exception):
+            self._token.undeclare()
+        for sub in self.subscribers:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        if self._own_session:
+            with contextlib.suppress(Exception):
+                self.session.close()
+        self.log.info("node %s stopped", self.spec.name)
+
+
+def run_node(graph: Graph, name: str, *, clock: str = "wall") -> int:
+    runtime = NodeRuntime(graph, name, clock=clock)
+    runtime.install_signal_handlers()
+    runtime.run()
+    return 0

@@ -1,0 +1,188 @@
+"""Publishers and subscribers over Zenoh with typed messages, SHM for large local payloads,
+per-topic congestion control, bounded input queues and decode-error accounting."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from followbus.bus.codec import DecodeError
+from followbus.bus.schemas import Message, decode, encode
+from followbus.bus.stats import TopicStats
+
+log = logging.getLogger(__name__)
+
+SHM_THRESHOLD_BYTES = 64 * 1024
+SHM_POOL_BYTES = 64 * 1024 * 1024
+CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
+
+
+class RateLimitedLog:
+    """Log a recurring problem at most once per period, with the count of suppressed repeats."""
+
+    def __init__(self, logger: logging.Logger, period_s: float = 1.0):
+        self.logger = logger
+        self.period_s = period_s
+        self._last = 0.0
+        self._suppressed = 0
+        self._lock = threading.Lock()
+
+    def warning(self, msg: str, *args: Any) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last < self.period_s:
+                self._suppressed += 1
+                return
+            suppressed, self._suppressed, self._last = self._suppressed, 0, now
+        suffix = f" (+{suppressed} similar in the last {self.period_s:.0f} s)" if suppressed else ""
+        self.logger.warning(msg + suffix, *args)
+
+
+class ShmPool:
+    """Lazily created shared-memory provider shared by a process's publishers."""
+
+    def __init__(self, size_bytes: int = SHM_POOL_BYTES):
+        self.size_bytes = size_bytes
+        self._provider: Any = None
+        self._failed = False
+        self._lock = threading.Lock()
+
+    def buffer_with(self, payload: bytes) -> Any | None:
+        if self._failed:
+            return None
+        with self._lock:
+            try:
+                import zenoh.shm as zshm
+
+                if self._provider is None:
+                    self._provider = zshm.ShmProvider.default_backend(self.size_bytes)
+                buf = self._provider.alloc(len(payload), zshm.GarbageCollect(zshm.Defragment()))
+            except Exception as exc:  # no /dev/shm, pool exhausted, ...: fall back to plain bytes
+                log.warning("shared memory unavailable (%s); publishing large payloads over the network path", exc)
+                self._failed = True
+                return None
+        buf[:] = payload
+        return buf
+
+
+class Publisher:
+    """Publishes typed messages on one key. Fills header.seq, header.source and header.pub_ns."""
+
+    def __init__(self, session: zenoh.Session, key: str, source: str, *, congestion: str = "block",
+                 express: bool = False, shm: ShmPool | None = None, stats: TopicStats | None = None):
+        if congestion not in CONGESTION:
+            raise ValueError(f"congestion must be one of {sorted(CONGESTION)}")
+        self.key = key
+        self.source = source
+        self.shm = shm
+        self.stats = stats or TopicStats(key, "out")
+        self._seq = 0
+        self._pub = session.declare_publisher(key, congestion_control=CONGESTION[congestion], express=express)
+
+    def put(self, msg: Message) -> None:
+        msg.header.seq = self._seq
+        msg.header.source = self.source
+        msg.header.pub_ns = time.time_ns()
+        self._seq += 1
+        self.put_bytes(encode(msg), msg.header.stamp_ns)
+
+    def put_bytes(self, payload: bytes, stamp_ns: int = 0) -> None:
+        """Publish an already encoded payload (recording playback)."""
+        body: Any = payload
+        if self.shm is not None and len(payload) >= SHM_THRESHOLD_BYTES:
+            body = self.shm.buffer_with(payload) or payload
+        self._pub.put(body)
+        self.stats.record(stamp_ns, len(payload))
+
+    def undeclare(self) -> None:
+        self._pub.undeclare()
+
+
+def payload_bytes(sample: zenoh.Sample) -> bytes:
+    payload = sample.payload
+    shm_buf = payload.as_shm()
+    return bytes(shm_buf) if shm_buf is not None else payload.to_bytes()
+
+
+class Subscriber:
+    """Decodes every sample on a key; malformed ones are counted, logged once a second and dropped."""
+
+    def __init__(self, session: zenoh.Session, key: str, on_message: Callable[[Message], None], *,
+                 schema: type[Message] | None = None, stats: TopicStats | None = None,
+                 logger: logging.Logger | None = None):
+        self.key = key
+        self.schema = schema
+        self.on_message = on_message
+        self.stats = stats or TopicStats(key, "in")
+        self._warn = RateLimitedLog(logger or log)
+        self._sub = session.declare_subscriber(key, self._callback)
+
+    def _callback(self, sample: zenoh.Sample) -> None:
+        try:
+            data = payload_bytes(sample)
+            msg = decode(data, self.schema)
+        except DecodeError as exc:
+            self.stats.decode_error()
+            self._warn.warning("dropped malformed message on %s: %s", sample.key_expr, exc)
+            return
+        except Exception as exc:  # never let a bad sample kill zenoh's callback thread
+            self.stats.decode_error()
+            self._warn.warning("dropped unreadable sample on %s: %r", sample.key_expr, exc)
+            return
+        self.stats.record(msg.header.stamp_ns, len(data))
+        self.on_message(msg)
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+
+
+class InputQueue:
+    """A bounded queue between Zenoh's callback thread and a node's main loop.
+
+    ``drop_oldest`` keeps the newest messages (live video); ``block`` makes the producer wait for
+    room (control and recording paths), up to ``block_timeout_s`` so shutdown never deadlocks.
+    """
+
+    def __init__(self, name: str, maxlen: int, policy: str, stats: TopicStats, wakeup: threading.Condition,
+                 block_timeout_s: float = 2.0):
+        if policy not in ("drop_oldest", "block"):
+            raise ValueError(f"unknown queue policy {policy!r}")
+        self.name = name
+        self.maxlen = maxlen
+        self.policy = policy
+        self.stats = stats
+        self.block_timeout_s = block_timeout_s
+        self._items: deque[Message] = deque()
+        self._cond = wakeup
+
+    def push(self, msg: Message) -> None:
+        with self._cond:
+            if len(self._items) >= self.maxlen:
+                if self.policy == "drop_oldest":
+                    self._items.popleft()
+                    self.stats.drop()
+                else:
+                    deadline = time.monotonic() + self.block_timeout_s
+                    while len(self._items) >= self.maxlen:
+                        remaining = deadline - time.monotonic()
+                        if remaining <= 0:
+                            self.stats.drop()
+                            return
+                        self._cond.wait(remaining)
+            self._items.append(msg)
+            self._cond.notify_all()
+
+    def pop_all(self) -> list[Message]:
+        """Take everything queued (caller holds the condition)."""
+        items = list(self._items)
+        self._items.clear()
+        return items
+
+    def __len__(self) -> int:
+        return len(self._items)

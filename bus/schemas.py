@@ -1,0 +1,301 @@
+"""Typed message schemas: the one place where every bus payload is defined.
+
+Every message starts with a :class:`Header`. ``stamp_ns`` is the capture stamp of the camera
+frame the message derives from (so latency = now - stamp_ns, and replays are deterministic),
+``frame_seq`` that frame's sequence number, ``pub_ns`` the wall-clock time of publication
+(per-edge latency; never compared by replay verification).
+
+Boxes are ``[x, y, w, h]`` float pixels, top-left origin.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, TypeVar, Union
+
+import numpy as np
+
+from followbus.bus.codec import DecodeError, pack, unpack
+
+SCHEMA_VERSION = 1
+
+
+@dataclass
+class Header:
+    seq: int = 0
+    stamp_ns: int = 0
+    frame_seq: int = -1
+    source: str = ""
+    pub_ns: int = 0
+
+
+@dataclass
+class Message:
+    """Base of all payloads; subclasses set TYPE and add fields."""
+
+    TYPE: ClassVar[str] = ""
+    header: Header = field(default_factory=Header)
+
+    def encode(self) -> bytes:
+        return encode(self)
+
+
+@dataclass
+class Frame(Message):
+    """A camera image. ``encoding`` is ``bgr8`` (data H×W×3 uint8) or ``jpeg`` (data 1-D uint8)."""
+
+    TYPE: ClassVar[str] = "Frame"
+    width: int = 0
+    height: int = 0
+    encoding: str = "bgr8"
+    data: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), np.uint8))
+
+
+@dataclass
+class GroundTruth(Message):
+    """Ground truth of the followed person for one frame, when the source has it."""
+
+    TYPE: ClassVar[str] = "GroundTruth"
+    box: np.ndarray | None = None  # [x, y, w, h]; None when the target is absent
+    visible_fraction: float = 1.0
+    others: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.float32))
+
+
+@dataclass
+class Detections(Message):
+    TYPE: ClassVar[str] = "Detections"
+    boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))  # x,y,w,h,score
+    backend: str = ""
+    infer_ms: float = 0.0
+
+
+@dataclass
+class Prior(Message):
+    """Kalman prior for a frame (seed 000 Eq. 4-8)."""
+
+    TYPE: ClassVar[str] = "Prior"
+    initialised: bool = False
+    state: np.ndarray = field(default_factory=lambda: np.zeros(4))  # x, y, vx, vy (px, px/s)
+    size: np.ndarray = field(default_factory=lambda: np.zeros(2))  # w, h (px)
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((4, 4)))  # P_k
+    innovation_cov: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))  # S = H P H^T + R
+    gate_chi2: float = 9.488
+    box: np.ndarray | None = None
+
+
+@dataclass
+class Measurement(Message):
+    """Re-identification result for a frame (seed 000 Algorithm 1)."""
+
+    TYPE: ClassVar[str] = "Measurement"
+    state: str = "LOST"  # TRACKING | OCCLUDED | REACQUIRED | LOST | UNINITIALISED
+    accepted: bool = False
+    secure: bool = False
+    box: np.ndarray | None = None
+    m_fuse: float = 0.0
+    s_color: float = 0.0
+    s_geo: float = 0.0
+    omega: float = 0.0
+    c_t: float = 0.0
+    candidates: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))  # x,y,w,h,m_fuse
+    candidate_hist: np.ndarray | None = None
+    init_box: np.ndarray | None = None  # set on the frame the target was initialised
+
+
+@dataclass
+class Track(Message):
+    """Posterior target track published by prediction after each measurement."""
+
+    TYPE: ClassVar[str] = "Track"
+    state: str = "LOST"
+    box: np.ndarray | None = None
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))  # px/s
+    measured: bool = False
+
+
+@dataclass
+class Template(Message):
+    """Reference appearance model M and its learning rate eta_k (seed 000 Eq. 9-10)."""
+
+    TYPE: ClassVar[str] = "Template"
+    initialised: bool = False
+    hist: np.ndarray | None = None  # bins_h x bins_s, sums to 1
+    eta: float = 0.0
+    p_specular: float = 0.0
+
+
+@dataclass
+class MotorCommand(Message):
+    TYPE: ClassVar[str] = "MotorCommand"
+    vx_mps: float = 0.0
+    vy_mps: float = 0.0
+    wz_radps: float = 0.0
+    wheel_radps: np.ndarray = field(default_factory=lambda: np.zeros(4))  # fl, fr, rl, rr
+    range_m: float | None = None
+    bearing_rad: float | None = None
+    reason: str = ""
+
+
+@dataclass
+class Odometry(Message):
+    TYPE: ClassVar[str] = "Odometry"
+    x_m: float = 0.0
+    y_m: float = 0.0
+    theta_rad: float = 0.0
+    vx_mps: float = 0.0
+    vy_mps: float = 0.0
+    wz_radps: float = 0.0
+
+
+@dataclass
+class NodeStatus(Message):
+    """Once-a-second health and per-topic statistics of one node."""
+
+    TYPE: ClassVar[str] = "NodeStatus"
+    node: str = ""
+    pid: int = 0
+    uptime_s: float = 0.0
+    state: str = "running"
+    # topic key -> {"direction": "in"/"out", "count", "rate_hz", "latency_p50_ms", "latency_p99_ms",
+    #               "drops", "decode_errors"}
+    topics: dict[str, dict[str, Any]] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Tick(Message):
+    """Diagnostic message (bus checks, benchmarks): a counter and an optional payload."""
+
+    TYPE: ClassVar[str] = "Tick"
+    value: int = 0
+    payload: np.ndarray | None = None
+
+
+SCHEMAS: dict[str, type[Message]] = {
+    cls.TYPE: cls
+    for cls in (
+        Frame, GroundTruth, Detections, Prior, Measurement, Track, Template, MotorCommand, Odometry,
+        NodeStatus, Tick,
+    )
+}
+
+M = TypeVar("M", bound=Message)
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    cached = _HINTS.get(cls)
+    if cached is None:
+        cached = typing.get_type_hints(cls)
+        _HINTS[cls] = cached
+    return cached
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _check(value: Any, hint: Any, where: str) -> Any:
+    """Validate (and lightly coerce) one decoded field against its annotation."""
+    origin = typing.get_origin(hint)
+    if origin in (Union, types.UnionType):
+        args = typing.get_args(hint)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _check(value, arg, where)
+            except DecodeError as exc:
+                errors.append(str(exc))
+        raise DecodeError("; ".join(errors))
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise DecodeError(f"{where}: expected float, got {type(value).__name__}")
+        return float(value)
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise DecodeError(f"{where}: expected bool, got {type(value).__name__}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise DecodeError(f"{where}: expected int, got {type(value).__name__}")
+        return value
+    if hint is str:
+        if not isinstance(value, str):
+            raise DecodeError(f"{where}: expected str, got {type(value).__name__}")
+        return value
+    if hint is np.ndarray:
+        if not isinstance(value, np.ndarray):
+            raise DecodeError(f"{where}: expected array, got {type(value).__name__}")
+        return value
+    if origin is dict or hint is dict:
+        if not isinstance(value, dict):
+            raise DecodeError(f"{where}: expected map, got {type(value).__name__}")
+        return value
+    if hint is Header:
+        if not isinstance(value, (list, tuple)) or len(value) != 5:
+            raise DecodeError(f"{where}: expected a 5-element header")
+        return Header(
+            seq=_check(value[0], int, "header.seq"),
+            stamp_ns=_check(value[1], int, "header.stamp_ns"),
+            frame_seq=_check(value[2], int, "header.frame_seq"),
+            source=_check(value[3], str, "header.source"),
+            pub_ns=_check(value[4], int, "header.pub_ns"),
+        )
+    return value
+
+
+def encode(msg: Message) -> bytes:
+    """Serialise a message (type tag, version, header, fields) to msgpack bytes."""
+    h = msg.header
+    out: dict[str, Any] = {
+        "_t": msg.TYPE,
+        "_v": SCHEMA_VERSION,
+        "header": [h.seq, h.stamp_ns, h.frame_seq, h.source, h.pub_ns],
+    }
+    for f in dataclasses.fields(msg):
+        if f.name != "header":
+            out[f.name] = getattr(msg, f.name)
+    return pack(out)
+
+
+def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None) -> M:
+    """Parse bytes into the typed message; raise DecodeError on anything that does not fit."""
+    obj = unpack(data)
+    type_name = obj.pop("_t", None)
+    version = obj.pop("_v", None)
+    cls = SCHEMAS.get(type_name) if isinstance(type_name, str) else None
+    if cls is None:
+        raise DecodeError(f"unknown message type {type_name!r}")
+    if version != SCHEMA_VERSION:
+        raise DecodeError(f"{type_name}: schema version {version!r}, this build reads {SCHEMA_VERSION}")
+    if expected is not None and cls is not expected:
+        raise DecodeError(f"expected {expected.TYPE}, got {type_name}")
+    hints = _hints(cls)
+    kwargs: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in obj:
+            raise DecodeError(f"{type_name}: missing field {f.name!r}")
+        kwargs[f.name] = _check(obj.pop(f.name), hints[f.name], f"{type_name}.{f.name}")
+    if obj:
+        raise DecodeError(f"{type_name}: unknown fields {sorted(obj)}")
+    return cls(**kwargs)  # type: ignore[return-value]
+
+
+def to_plain(msg: Message) -> dict[str, Any]:
+    """A JSON-friendly dict of a message (arrays become lists; large images are summarised)."""
+    out: dict[str, Any] = {"type": msg.TYPE, "header": dataclasses.asdict(msg.header)}
+    for f in dataclasses.fields(msg):
+        if f.name == "header":
+            continue
+        value = getattr(msg, f.name)
+        if isinstance(value, np.ndarray):
+            value = (
+                f"<array {value.dtype} {list(value.shape)}>" if value.size > 64 else value.round(4).tolist()
+            )
+        out[f.name] = value
+    return out

@@ -1,0 +1,1 @@
+"""Pure evaluation: datasets, metrics, baselines (no bus imports)."""

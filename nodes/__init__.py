@@ -1,0 +1,1 @@
+"""Graph nodes: thin wiring of the pure algorithm modules onto the bus."""

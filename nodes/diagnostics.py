@@ -1,0 +1,96 @@
+"""Diagnostic nodes for checking a deployment's bus end to end: ``ticker`` produces numbered
+ticks, ``relay`` forwards them (optionally joining two inputs by frame), ``sink`` counts them.
+
+    nodes:
+      ticker: {run: followbus.nodes.diagnostics, outputs: [tick], params: {rate_hz: 30}}
+      relay:  {run: followbus.nodes.diagnostics_relay, inputs: {tick: ticker/tick}, outputs: [tick]}
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from followbus.bus.node import Node
+from followbus.bus.schemas import Message, Tick
+
+
+@dataclass
+class TickerParams:
+    rate_hz: float = 30.0
+    payload_bytes: int = 0
+    count: int = 0  # 0 = forever
+    fail_after_s: float = 0.0  # fault injection: exit with status 3 after this long (checks restart policies)
+
+
+class Ticker(Node):
+    OUTPUTS = {"tick": Tick}
+    Params = TickerParams
+
+    def setup(self) -> None:
+        self.value = 0
+        self.started = time.monotonic()
+        self.payload = np.zeros(self.params.payload_bytes, np.uint8) if self.params.payload_bytes else None
+
+    def poll(self, now_ns: int) -> float | None:
+        if self.params.fail_after_s and time.monotonic() - self.started > self.params.fail_after_s:
+            self.log.error("fault injection: failing on purpose after %.1f s", self.params.fail_after_s)
+            raise SystemExit(3)
+        if self.params.count and self.value >= self.params.count:
+            return None
+        msg = Tick(value=self.value, payload=self.payload)
+        msg.header.stamp_ns = time.time_ns()
+        msg.header.frame_seq = self.value
+        self.publish("tick", msg)
+        self.value += 1
+        return 1.0 / self.params.rate_hz
+
+
+NODE = Ticker
+
+
+@dataclass
+class RelayParams:
+    add: int = 0  # added to the value, so a test can tell relayed ticks from originals
+
+
+class Relay(Node):
+    """Forwards ``tick``; with a second input ``other`` connected, forwards only frame-joined pairs
+    (value = tick + other), which exercises the synchroniser."""
+
+    INPUTS = {"tick": Tick, "other": Tick}
+    REQUIRED_INPUTS = frozenset({"tick"})
+    OUTPUTS = {"tick": Tick}
+    Params = RelayParams
+
+    def setup(self) -> None:
+        self.forwarded = 0
+
+    def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
+        tick = inputs["tick"]
+        other = inputs.get("other")
+        value = tick.value + self.params.add + (other.value if isinstance(other, Tick) else 0)
+        self.publish("tick", Tick(value=value), like=tick)
+        self.forwarded += 1
+
+    def status_extra(self) -> dict[str, Any]:
+        return {"forwarded": self.forwarded}
+
+
+class Sink(Node):
+    INPUTS = {"tick": Tick}
+    REQUIRED_INPUTS = frozenset({"tick"})
+
+    def setup(self) -> None:
+        self.received = 0
+        self.last_value = -1
+
+    def on_message(self, name: str, msg: Message) -> None:
+        self.received += 1
+        self.last_value = msg.value  # type: ignore[attr-defined]
+
+    def status_extra(self) -> dict[str, Any]:
+        return {"received": self.received, "last_value": self.last_value}

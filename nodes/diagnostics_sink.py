@@ -1,0 +1,5 @@
+"""Sink node (see followbus.nodes.diagnostics)."""
+
+from followbus.nodes.diagnostics import Sink
+
+NODE = Sink

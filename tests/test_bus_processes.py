@@ -1,0 +1,143 @@
+"""Real processes, real Zenoh on loopback: every schema round-trips between two processes, and a
+node counts and drops malformed bytes while it keeps working."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from followbus.bus import schemas
+from followbus.bus.pubsub import Publisher, Subscriber, payload_bytes
+from followbus.bus.schemas import NodeStatus, Tick, decode
+from followbus.bus.session import ZenohSettings, open_session
+
+from .conftest import followbus_argv, wait_until
+
+pytestmark = pytest.mark.slow
+
+ECHO_SERVER = """
+import sys, time
+from followbus.bus.schemas import decode
+from followbus.bus.session import ZenohSettings, open_session
+port = int(sys.argv[1])
+s = open_session(ZenohSettings(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+pubs = {}
+def on(sample):
+    from followbus.bus.pubsub import payload_bytes
+    msg = decode(payload_bytes(sample))          # decode in this process...
+    key = "rt/out/" + msg.TYPE
+    if key not in pubs:
+        pubs[key] = s.declare_publisher(key)
+    pubs[key].put(msg.encode())                  # ...and re-encode what was understood
+sub = s.declare_subscriber("rt/in/*", on)
+print("ready", flush=True)
+time.sleep(60)
+"""
+
+
+def _sample_messages() -> list[schemas.Message]:
+    rng = np.random.default_rng(1)
+    box = np.array([10.5, 20.0, 30.0, 60.0])
+    return [
+        schemas.Frame(width=64, height=48, encoding="bgr8", data=rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)),
+        schemas.GroundTruth(box=box, visible_fraction=0.4, others=np.ones((2, 4), np.float32)),
+        schemas.Detections(boxes=rng.random((3, 5)).astype(np.float32), backend="yolox", infer_ms=12.5),
+        schemas.Prior(initialised=True, state=np.arange(4.0), size=np.array([30.0, 60.0]), covariance=np.eye(4) * 2,
+                      innovation_cov=np.eye(2) * 3, gate_chi2=9.488, box=box),
+        schemas.Measurement(state="REACQUIRED", accepted=True, secure=True, box=box, m_fuse=0.8, s_color=0.9,
+                            s_geo=0.7, omega=0.6, c_t=0.9, candidates=np.ones((2, 5), np.float32),
+                            candidate_hist=np.full((16, 8), 1 / 128, np.float32)),
+        schemas.Track(state="TRACKING", box=box, velocity=np.array([1.0, -2.0]), measured=True),
+        schemas.Template(initialised=True, hist=np.full((16, 8), 1 / 128, np.float32), eta=0.019, p_specular=0.05),
+        schemas.MotorCommand(vx_mps=0.4, vy_mps=0.0, wz_radps=-0.2, wheel_radps=np.array([1.0, 2, 3, 4]),
+                             range_m=2.1, bearing_rad=None, reason="follow"),
+        schemas.Odometry(x_m=1.0, y_m=2.0, theta_rad=0.3, vx_mps=0.4, vy_mps=0.1, wz_radps=0.05),
+        schemas.NodeStatus(node="n", pid=42, uptime_s=3.5, topics={"k": {"rate_hz": 30.0}}, extra={"a": 1}),
+        schemas.Tick(value=7, payload=np.arange(5000, dtype=np.uint8)),
+    ]
+
+
+def _assert_same(a, b) -> None:
+    assert type(a) is type(b)
+    for field in a.__dataclass_fields__:
+        va, vb = getattr(a, field), getattr(b, field)
+        if isinstance(va, np.ndarray):
+            assert isinstance(vb, np.ndarray) and va.dtype == vb.dtype and np.array_equal(va, vb), field
+        else:
+            assert va == vb, field
+
+
+def test_every_schema_round_trips_between_two_processes(port):
+    messages = _sample_messages()
+    assert {m.TYPE for m in messages} == set(schemas.SCHEMAS), "add new schemas to this test"
+    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    received: dict[str, schemas.Message] = {}
+    lock = threading.Lock()
+
+    def on_back(msg):
+        with lock:
+            received[msg.TYPE] = msg
+
+    back = Subscriber(session, "rt/out/*", on_back)
+    server = subprocess.Popen([sys.executable, "-c", ECHO_SERVER, str(port)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert server.stdout.readline().strip() == "ready"
+        pubs = {m.TYPE: Publisher(session, f"rt/in/{m.TYPE}", "test") for m in messages}
+        for _ in range(50):  # resend until the peer's subscription has propagated
+            with lock:
+                missing = [m for m in messages if m.TYPE not in received]
+            if not missing:
+                break
+            for m in missing:
+                m.header.stamp_ns = 123
+                m.header.frame_seq = 9
+                pubs[m.TYPE].put(m)
+            time.sleep(0.2)
+        for m in messages:
+            assert m.TYPE in received, f"{m.TYPE} never came back"
+            _assert_same(m, received[m.TYPE])
+    finally:
+        server.kill()
+        server.wait()
+        session.close()
+
+
+def test_node_counts_and_drops_malformed_messages_and_keeps_running(graph_file, port):
+    graph = graph_file(
+        "  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n"
+        "  sink:\n    run: followbus.nodes.diagnostics_sink\n    inputs: {tick: ticker/tick}\n"
+    )
+    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    statuses: list[NodeStatus] = []
+    status_sub = session.declare_subscriber(
+        "t/@status/sink", lambda s: statuses.append(decode(payload_bytes(s), NodeStatus)))
+    node = subprocess.Popen(followbus_argv("node", "sink", "--graph", str(graph)), stdin=subprocess.DEVNULL)
+    try:
+        assert wait_until(lambda: bool(statuses), 20), "sink never published its status"
+        raw = session.declare_publisher("t/ticker/tick")
+        good = Publisher(session, "t/ticker/tick", "ticker")
+        for junk in (b"\x00\x01garbage", b"FB1\x05\x00\x00\x00\xc1\xc1", schemas.Odometry().encode()):
+            raw.put(junk)
+        tick = Tick(value=41)
+        tick.header.stamp_ns = time.time_ns()
+        good.put(tick)
+
+        def counted() -> bool:
+            st = statuses[-1]
+            topic = st.topics.get("t/ticker/tick", {})
+            return topic.get("decode_errors") == 3 and st.extra.get("received") == 1
+
+        assert wait_until(counted, 10), statuses[-1]
+        assert statuses[-1].extra["last_value"] == 41
+        assert node.poll() is None, "the node died on malformed input"
+    finally:
+        status_sub.undeclare()
+        node.terminate()
+        node.wait(10)
+        session.close()
+    assert node.returncode == 0

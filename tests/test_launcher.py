@@ -1,0 +1,92 @@
+"""The launcher: starts a 3-node graph, restarts a node killed with SIGKILL, and shuts everything down
+on SIGINT leaving no process behind."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import threading
+
+import pytest
+
+from followbus.bus.health import HealthWatcher
+from followbus.bus.session import ZenohSettings, open_session
+
+from .conftest import followbus_argv, processes_matching, wait_until
+
+pytestmark = pytest.mark.slow
+
+NODES = """\
+  ticker:
+    run: followbus.nodes.diagnostics
+    outputs: [tick]
+    params: {rate_hz: 50}
+  relay:
+    run: followbus.nodes.diagnostics_relay
+    inputs: {tick: ticker/tick}
+    outputs: [tick]
+    params: {add: 1000}
+    restart: {policy: on-failure, max_restarts: 3, backoff_ms: 200}
+  sink:
+    run: followbus.nodes.diagnostics_sink
+    inputs: {tick: relay/tick}
+"""
+
+
+def test_launch_restart_and_clean_shutdown(graph_file, port):
+    graph = graph_file(NODES)
+    launcher = subprocess.Popen(followbus_argv("launch", str(graph)), stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, stdin=subprocess.DEVNULL)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(iter(launcher.stdout.readline, "")), daemon=True)
+    reader.start()
+    session = open_session(ZenohSettings(mode="client", listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    watcher = HealthWatcher(session, "t")
+    try:
+        assert wait_until(lambda: any("ready: 3 nodes up" in line for line in lines), 60), "".join(lines)
+        assert wait_until(lambda: watcher.alive() == {"ticker", "relay", "sink"}, 10)
+
+        def sink_value() -> int:
+            st = watcher.snapshot().get("sink")
+            return st.status.extra.get("last_value", -1) if st and st.status else -1
+
+        assert wait_until(lambda: sink_value() >= 1000, 15), "relayed ticks never reached the sink"
+        assert wait_until(lambda: watcher.snapshot()["relay"].status is not None, 5)
+        relay_pid = watcher.snapshot()["relay"].status.pid
+        os.kill(relay_pid, signal.SIGKILL)
+
+        def restarted() -> bool:
+            relay = watcher.snapshot()["relay"]
+            return relay.alive and relay.ups >= 2 and relay.status is not None and relay.status.pid != relay_pid
+
+        assert wait_until(restarted, 20), "".join(lines[-20:])
+        before = sink_value()
+        assert wait_until(lambda: sink_value() > before + 10, 10), "ticks did not flow again after the restart"
+        assert any("restarting relay" in line for line in lines)
+    finally:
+        launcher.send_signal(signal.SIGINT)
+        try:
+            code = launcher.wait(30)
+        finally:
+            if launcher.poll() is None:
+                launcher.kill()
+            watcher.close()
+            session.close()
+    assert code == 0, "".join(lines[-30:])
+    assert wait_until(lambda: not processes_matching(str(graph)), 5), processes_matching(str(graph))
+
+
+def test_node_that_keeps_failing_makes_launch_exit_nonzero(graph_file):
+    graph = graph_file(
+        "  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n"
+        "    params: {rate_hz: 10, fail_after_s: 0.5}\n"
+        "    restart: {policy: on-failure, max_restarts: 1, backoff_ms: 100}\n"
+        "  sink:\n    run: followbus.nodes.diagnostics_sink\n    inputs: {tick: ticker/tick}\n"
+    )
+    result = subprocess.run(followbus_argv("launch", str(graph), "--duration", "30"), capture_output=True,
+                            text=True, timeout=60, stdin=subprocess.DEVNULL)
+    output = result.stdout + result.stderr
+    assert result.returncode == 1, output
+    assert "ticker failed for good after 1 restarts" in output
+    assert "restarting ticker" in output

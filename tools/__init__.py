@@ -1,0 +1,1 @@
+"""The followbus command line."""

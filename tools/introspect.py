@@ -1,0 +1,151 @@
+"""Bus introspection: topics, echo, hz, nodes, and a plain router."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import threading
+import time
+from collections import defaultdict
+
+import numpy as np
+import zenoh
+
+from followbus.bus.codec import DecodeError
+from followbus.bus.health import HealthWatcher
+from followbus.bus.pubsub import payload_bytes
+from followbus.bus.schemas import decode, to_plain
+from followbus.bus.session import ZenohSettings, open_session
+
+
+def _wait(seconds: float | None, done: threading.Event | None = None) -> None:
+    deadline = None if seconds is None else time.monotonic() + seconds
+    while deadline is None or time.monotonic() < deadline:
+        if done is not None and done.is_set():
+            return
+        time.sleep(0.05)
+
+
+def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
+    counts: dict[str, list[int]] = defaultdict(list)
+    sizes: dict[str, int] = defaultdict(int)
+    types: dict[str, str] = {}
+    lock = threading.Lock()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        data = payload_bytes(sample)
+        try:
+            msg_type = decode(data).TYPE
+        except DecodeError:
+            msg_type = "?"
+        with lock:
+            counts[key].append(time.monotonic_ns())
+            sizes[key] += len(data)
+            types[key] = msg_type
+
+    session = open_session(settings)
+    sub = session.declare_subscriber(f"{namespace}/**", on_sample)
+    _wait(args.seconds)
+    sub.undeclare()
+    session.close()
+    if not counts:
+        print(f"no messages under {namespace}/** in {args.seconds:.1f} s")
+        return 1
+    print(f"{'key':<40} {'type':<13} {'rate Hz':>8} {'avg bytes':>10}")
+    for key in sorted(counts):
+        stamps = counts[key]
+        span = (stamps[-1] - stamps[0]) / 1e9
+        rate = (len(stamps) - 1) / span if span > 0 else 0.0
+        print(f"{key:<40} {types[key]:<13} {rate:>8.1f} {sizes[key] / len(stamps):>10.0f}")
+    return 0
+
+
+def cmd_echo(args, settings: ZenohSettings, namespace: str) -> int:
+    done = threading.Event()
+    seen = [0]
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        if done.is_set():
+            return
+        try:
+            msg = decode(payload_bytes(sample))
+            text = json.dumps(to_plain(msg), default=str)
+        except DecodeError as exc:
+            text = json.dumps({"key": str(sample.key_expr), "decode_error": str(exc)})
+        print(f"{sample.key_expr}: {text}", flush=True)
+        seen[0] += 1
+        if args.count is not None and seen[0] >= args.count:
+            done.set()
+
+    session = open_session(settings)
+    sub = session.declare_subscriber(args.key, on_sample)
+    _wait(args.seconds, done)
+    sub.undeclare()
+    session.close()
+    return 0 if seen[0] else 1
+
+
+def cmd_hz(args, settings: ZenohSettings, namespace: str) -> int:
+    lock = threading.Lock()
+    arrivals: list[int] = []
+    latencies: list[float] = []
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        now = time.time_ns()
+        try:
+            stamp = decode(payload_bytes(sample)).header.stamp_ns
+        except DecodeError:
+            stamp = 0
+        with lock:
+            arrivals.append(now)
+            if stamp > 0:
+                latencies.append((now - stamp) / 1e6)
+
+    session = open_session(settings)
+    sub = session.declare_subscriber(args.key, on_sample)
+    start = time.monotonic()
+    try:
+        while args.seconds is None or time.monotonic() - start < args.seconds:
+            time.sleep(1.0)
+            with lock:
+                recent = [t for t in arrivals if t > time.time_ns() - 5_000_000_000]
+                lat = np.array(latencies[-300:])
+            rate = (len(recent) - 1) / ((recent[-1] - recent[0]) / 1e9) if len(recent) > 1 else 0.0
+            lat_text = (f"latency p50 {np.percentile(lat, 50):.1f} ms p99 {np.percentile(lat, 99):.1f} ms"
+                        if lat.size else "latency n/a")
+            print(f"{args.key}: {rate:.1f} Hz ({len(arrivals)} msgs), {lat_text}", flush=True)
+    except KeyboardInterrupt:
+        pass
+    sub.undeclare()
+    session.close()
+    return 0 if arrivals else 1
+
+
+def cmd_nodes(args, settings: ZenohSettings, namespace: str) -> int:
+    session = open_session(settings)
+    watcher = HealthWatcher(session, namespace)
+    _wait(args.seconds)
+    snapshot = watcher.snapshot()
+    watcher.close()
+    session.close()
+    if not snapshot:
+        print(f"no nodes under {namespace}/@health")
+        return 1
+    print(f"{'node':<14} {'state':<6} {'pid':>7} {'uptime s':>9} {'handler errs':>12}")
+    for name in sorted(snapshot):
+        h = snapshot[name]
+        st = h.status
+        print(f"{name:<14} {'up' if h.alive else 'down':<6} {st.pid if st else '-':>7} "
+              f"{(f'{st.uptime_s:.0f}' if st else '-'):>9} {(st.extra.get('handler_errors', 0) if st else '-'):>12}")
+    return 0
+
+
+def run_router(listen: list[str], duration_s: float | None) -> int:
+    settings = ZenohSettings(mode="router", listen=listen, connect=[])
+    session = open_session(settings)
+    print(f"zenoh router listening on {', '.join(listen)} (Ctrl-C to stop)", flush=True)
+    with contextlib.suppress(KeyboardInterrupt):
+        _wait(duration_s)
+    session.close()
+    return 0

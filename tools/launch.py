@@ -1,0 +1,209 @@
+"""``followbus launch``: one OS process per node, readiness from liveliness, restart policies,
+prefixed logs, clean shutdown, children that never outlive the launcher."""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from followbus.bus.graph import Graph, NodeSpec
+from followbus.bus.health import HealthWatcher
+from followbus.bus.session import open_session
+
+log = logging.getLogger("followbus.launch")
+
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+@dataclass
+class Child:
+    spec: NodeSpec
+    argv: list[str]
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    next_start: float = 0.0
+    failed: bool = False  # failed for good (restart budget exhausted or policy never)
+    finished: bool = False  # exited cleanly and will not be restarted
+    threads: list[threading.Thread] = field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+
+class Launcher:
+    def __init__(self, graph: Graph, *, only: list[str] | None = None, host: str | None = None,
+                 startup_timeout_s: float = 30.0, grace_s: float = 5.0, extra_env: dict[str, str] | None = None,
+                 extra_children: list[tuple[str, list[str]]] | None = None, quiet: bool = False):
+        self.graph = graph
+        self.grace_s = grace_s
+        self.startup_timeout_s = startup_timeout_s
+        self.quiet = quiet
+        self.stop_event = threading.Event()
+        self.ready_event = threading.Event()
+        self._out_lock = threading.Lock()
+        self.env = dict(os.environ, **(extra_env or {}), PYTHONUNBUFFERED="1")
+        selected = []
+        for name, spec in graph.nodes.items():
+            if only and name not in only:
+                continue
+            if host is not None and spec.host not in (None, host):
+                continue
+            selected.append(spec)
+        if only:
+            unknown = set(only) - set(graph.nodes)
+            if unknown:
+                raise ValueError(f"--only names unknown node(s): {', '.join(sorted(unknown))}")
+        self.children = [Child(spec, self._node_argv(spec.name)) for spec in selected]
+        for name, argv in extra_children or []:
+            self.children.append(Child(NodeSpec(name=name, run="<tool>"), argv))
+        self.health: HealthWatcher | None = None
+        self.session = None
+
+    def _node_argv(self, name: str) -> list[str]:
+        return [sys.executable, "-m", "followbus.tools.cli", "node", name, "--graph", str(Path(self.graph.path))]
+
+    def _print(self, text: str) -> None:
+        if self.quiet:
+            return
+        with self._out_lock:
+            sys.stdout.write(text + "\n")
+            sys.stdout.flush()
+
+    def _pump(self, child: Child, stream) -> None:
+        width = max(len(c.name) for c in self.children)
+        prefix = f"[{child.name:<{width}}] "
+        for raw in iter(stream.readline, b""):
+            self._print(prefix + raw.decode(errors="replace").rstrip())
+        stream.close()
+
+    def _start(self, child: Child) -> None:
+        child.proc = subprocess.Popen(
+            child.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=self.env,
+            preexec_fn=_die_with_parent, stdin=subprocess.DEVNULL,
+        )
+        thread = threading.Thread(target=self._pump, args=(child, child.proc.stdout), daemon=True)
+        thread.start()
+        child.threads.append(thread)
+        log.info("started %s (pid %d)", child.name, child.proc.pid)
+
+    def _on_exit(self, child: Child, code: int) -> None:
+        policy = child.spec.restart
+        log_fn = log.info if code == 0 else log.warning
+        log_fn("%s exited with status %d", child.name, code)
+        wants_restart = policy.policy == "always" or (policy.policy == "on-failure" and code != 0)
+        if child.spec.run == "<tool>" or self.stop_event.is_set() or not wants_restart:
+            child.failed = code != 0
+            child.finished = True
+            if child.failed:
+                log.error("%s failed for good (status %d, restart policy %s)", child.name, code, policy.policy)
+            return
+        if child.restarts >= policy.max_restarts:
+            child.failed = True
+            child.finished = True
+            log.error("%s failed for good after %d restarts", child.name, child.restarts)
+            return
+        backoff_ms = min(policy.backoff_ms * (2 ** child.restarts), policy.max_backoff_ms)
+        child.restarts += 1
+        child.next_start = time.monotonic() + backoff_ms / 1000
+        log.warning("restarting %s in %d ms (restart %d of %d)", child.name, backoff_ms, child.restarts,
+                    policy.max_restarts)
+
+    def request_stop(self, *_args) -> None:
+        self.stop_event.set()
+
+    def run(self, duration_s: float | None = None, on_ready=None) -> int:
+        """Run until duration elapses, Ctrl-C/SIGTERM, or every node has finished. Returns the exit status."""
+        self.session = open_session(self.graph.zenoh)
+        self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=False)
+        for child in self.children:
+            self._start(child)
+        node_names = {c.name for c in self.children if c.spec.run != "<tool>"}
+        started = time.monotonic()
+        ready = False
+        deadline = None if duration_s is None else started + duration_s
+        try:
+            while not self.stop_event.is_set():
+                now = time.monotonic()
+                if deadline is not None and now >= deadline:
+                    break
+                for child in self.children:
+                    if child.proc is not None:
+                        code = child.proc.poll()
+                        if code is not None:
+                            child.proc = None
+                            self._on_exit(child, code)
+                    elif not child.finished and now >= child.next_start:
+                        self._start(child)
+                if not ready:
+                    missing = node_names - self.health.alive()
+                    if not missing:
+                        ready = True
+                        self.ready_event.set()
+                        log.info("graph %r ready: %d nodes up in %.1f s", self.graph.name, len(node_names),
+                                 now - started)
+                        if on_ready is not None:
+                            on_ready()
+                    elif now - started > self.startup_timeout_s:
+                        log.error("startup timeout after %.0f s: no liveliness from %s", self.startup_timeout_s,
+                                  ", ".join(sorted(missing)))
+                        return self._shutdown(1)
+                if all(c.finished for c in self.children):
+                    break
+                time.sleep(0.05)
+        except KeyboardInterrupt:
+            log.info("interrupted")
+        status = 1 if any(c.failed for c in self.children) else 0
+        return self._shutdown(status)
+
+    def _shutdown(self, status: int) -> int:
+        self.stop_event.set()
+        running = [c for c in self.children if c.proc is not None and c.proc.poll() is None]
+        for child in running:
+            with contextlib.suppress(ProcessLookupError):
+                child.proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + self.grace_s
+        for child in running:
+            try:
+                child.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop within %.1f s; killing it", child.name, self.grace_s)
+                child.proc.kill()
+                child.proc.wait()
+        for child in self.children:
+            for thread in child.threads:
+                thread.join(timeout=1.0)
+        failed = sorted(c.name for c in self.children if c.failed)
+        if failed:
+            log.error("node(s) failed for good: %s", ", ".join(failed))
+        if self.health is not None:
+            self.health.close()
+        if self.session is not None:
+            self.session.close()
+        return status
+
+
+def install_stop_signals(launcher: Launcher) -> None:
+    def handler(signum, _frame):
+        log.info("received %s: stopping the graph", signal.Signals(signum).name)
+        launcher.request_stop()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)

@@ -1,0 +1,1 @@
+"""Pure target-tracking algorithms of seed 000 (no bus imports)."""

@@ -1,0 +1,1 @@
+"""Pure vision: detectors, model search path, synthetic scenes, frame sources (no bus imports)."""
