@@ -102,6 +102,7 @@ def test_every_schema_round_trips_between_two_processes(port):
             assert m.TYPE in received, f"{m.TYPE} never came back"
             _assert_same(m, received[m.TYPE])
     finally:
+        back.undeclare()
         server.kill()
         server.wait()
         session.close()
