@@ -59,6 +59,7 @@ class GroundTruth(Message):
     """Ground truth of the followed person for one frame, when the source has it."""
 
     TYPE: ClassVar[str] = "GroundTruth"
+    available: bool = False  # False: this source has no ground truth (published anyway, so joins never wait)
     box: np.ndarray | None = None  # [x, y, w, h]; None when the target is absent
     visible_fraction: float = 1.0
     others: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.float32))
