@@ -1,0 +1,395 @@
+"""Single-target (person-following) metrics: precision/recall/F1, CLE, TSR, stability, switches, re-ID latency.
+
+Definitions follow the follower paper's §3.3 where it is explicit and are pinned down here where it is not:
+
+* Box convention: ``(x, y, w, h)`` float pixels, top-left corner. A tracker output may be ``None`` (no output
+  on that frame) and a ground-truth box may be ``None`` (target absent / not annotated).
+* ``e_t`` = Euclidean distance between output centre and ground-truth centre (defined only when both exist).
+* A frame is *successful* iff gt and output exist and ``e_t < tsr_px`` (strict, as in the paper; τ = 20 px).
+* precision = successful frames / frames with an output (an output on a frame without gt is a false positive);
+  recall = successful frames / frames with gt; F1 = 2·TP / (outputs + gt frames) (= 2PR/(P+R)).
+  With this centre-based notion of "correct", recall coincides with TSR by construction.
+* TSR = successful frames / frames with gt (a missing output is a failure). Frames without gt are excluded:
+  there is nothing to localise.
+* CLE (``cle``) = mean ``e_t`` over frames where both gt and output exist; ``missing_outputs`` reports how many
+  gt frames had no output. ``cle_all`` averages over *all* gt frames, charging a missing output the image
+  diagonal (the worst in-image error); it needs ``image_size`` and is NaN otherwise (unless nothing is missing).
+* stability = population std (1/N_succ) of ``e_t`` over the successful frames (§3.3 formula).
+* target switch: see :func:`_frame_owner` — a transition of the output from the target onto a distractor.
+* re-ID latency: see :func:`_reid_events`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+Box = tuple[float, float, float, float]
+
+__all__ = [
+    "Box",
+    "ReidEvent",
+    "SingleTargetMetrics",
+    "aggregate",
+    "box_center",
+    "box_iou",
+    "evaluate_single_target",
+    "format_markdown_table",
+]
+
+
+def box_center(box: Box) -> tuple[float, float]:
+    x, y, w, h = box
+    return x + w / 2.0, y + h / 2.0
+
+
+def box_iou(a: Box, b: Box) -> float:
+    """Intersection over union of two ``(x, y, w, h)`` boxes (continuous coordinates, no +1)."""
+    ax, ay, aw, ah = a
+    bx, by, bw, bh = b
+    iw = min(ax + aw, bx + bw) - max(ax, bx)
+    ih = min(ay + ah, by + bh) - max(ay, by)
+    if iw <= 0 or ih <= 0:
+        return 0.0
+    inter = iw * ih
+    union = aw * ah + bw * bh - inter
+    return inter / union if union > 0 else 0.0
+
+
+def _center_dist(a: Box, b: Box) -> float:
+    (ax, ay), (bx, by) = box_center(a), box_center(b)
+    return math.hypot(ax - bx, ay - by)
+
+
+def _point_in_box(px: float, py: float, box: Box) -> bool:
+    x, y, w, h = box
+    return x <= px <= x + w and y <= py <= y + h
+
+
+@dataclass(frozen=True)
+class ReidEvent:
+    """One occlusion → reappearance cycle of the target in the ground truth (frame indices are 0-based)."""
+
+    occlusion_start: int  # first frame of the gt-absent run
+    reappear_frame: int  # first gt-visible frame after the run
+    occluded_frames: int
+    latency_frames: int | None  # None = censored: never re-locked before the next occlusion / end
+    latency_ms: float | None
+    observed_frames: int  # length of the window searched for the re-lock
+
+
+@dataclass
+class SingleTargetMetrics:
+    """Per-sequence (or aggregated) single-target metrics. Rates are fractions in [0, 1], errors in px."""
+
+    frames: int
+    frames_with_gt: int
+    outputs: int  # frames with a tracker output (gt or not)
+    successes: int  # frames with gt, output and e_t < tsr_px
+    false_positives: int  # outputs - successes (wrong place, or output while gt absent)
+    missing_outputs: int  # gt frames without output
+    precision: float
+    recall: float
+    f1: float
+    cle: float  # mean e_t over frames with both gt and output
+    cle_frames: int
+    cle_all: float  # mean over gt frames, missing output = image diagonal (NaN if unknown)
+    tsr: float
+    stability: float  # population std of e_t over successful frames
+    mean_iou: float  # over frames with both gt and output
+    iou_success: float  # fraction of gt frames with IoU >= iou_threshold (OTB success @ threshold)
+    iou_hits: int  # numerator of iou_success
+    target_switches: int
+    frames_on_distractor: int
+    reid_events: list[ReidEvent] = field(default_factory=list)
+    center_errors: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per frame, NaN if undefined
+    ious: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per frame, NaN if undefined
+    tsr_px: float = 20.0
+    iou_threshold: float = 0.5
+    fps: float = 30.0
+    image_diagonal: float | None = None
+
+    @property
+    def reid_latencies_frames(self) -> list[int]:
+        return [e.latency_frames for e in self.reid_events if e.latency_frames is not None]
+
+    @property
+    def reid_latency_frames_mean(self) -> float:
+        lat = self.reid_latencies_frames
+        return float(np.mean(lat)) if lat else math.nan
+
+    @property
+    def reid_latency_ms_mean(self) -> float:
+        lat = [e.latency_ms for e in self.reid_events if e.latency_ms is not None]
+        return float(np.mean(lat)) if lat else math.nan
+
+    @property
+    def reid_censored(self) -> int:
+        return sum(1 for e in self.reid_events if e.latency_frames is None)
+
+    def as_dict(self) -> dict[str, float | int]:
+        """Scalar summary (for JSON / CSV); arrays and events are left out."""
+        return {
+            "frames": self.frames, "frames_with_gt": self.frames_with_gt, "outputs": self.outputs,
+            "successes": self.successes, "false_positives": self.false_positives,
+            "missing_outputs": self.missing_outputs, "precision": self.precision, "recall": self.recall,
+            "f1": self.f1, "cle": self.cle, "cle_frames": self.cle_frames, "cle_all": self.cle_all,
+            "tsr": self.tsr, "stability": self.stability, "mean_iou": self.mean_iou,
+            "iou_success": self.iou_success, "target_switches": self.target_switches,
+            "frames_on_distractor": self.frames_on_distractor, "reid_events": len(self.reid_events),
+            "reid_latency_frames_mean": self.reid_latency_frames_mean,
+            "reid_latency_ms_mean": self.reid_latency_ms_mean, "reid_censored": self.reid_censored,
+        }
+
+
+def _ratio(num: float, den: float) -> float:
+    return num / den if den > 0 else math.nan
+
+
+def _frame_owner(pred: Box | None, gt: Box | None, others: Sequence[Box], tsr_px: float,
+                 iou_threshold: float) -> str:
+    """Whom the output is on: 'target', 'distractor' or 'none'.
+
+    'distractor': some other person's box d has IoU(pred, d) > iou_threshold, or contains the output centre,
+    *and* the output centre is closer to d's centre than to the target's (target absent → always closer).
+    The closer-than clause matters because people overlap (joggers side by side): a box on the target may
+    have its centre inside a neighbour's box. 'target': not on a distractor and a successful frame.
+    Anything else (no output, lost in the background) is 'none'.
+    """
+    if pred is None:
+        return "none"
+    d_target = _center_dist(pred, gt) if gt is not None else math.inf
+    cx, cy = box_center(pred)
+    for other in others:
+        on_it = box_iou(pred, other) > iou_threshold or _point_in_box(cx, cy, other)
+        if on_it and _center_dist(pred, other) < d_target:
+            return "distractor"
+    if gt is not None and d_target < tsr_px:
+        return "target"
+    return "none"
+
+
+def _reid_events(gt_present: np.ndarray, success: np.ndarray, min_occlusion_frames: int,
+                 fps: float) -> list[ReidEvent]:
+    """Occlusion spans and re-lock latencies.
+
+    An occlusion span is a run of >= ``min_occlusion_frames`` consecutive gt-absent frames that is preceded
+    by a gt-visible frame (a run at the very start is "not yet seen", not an occlusion) and followed by one
+    (a run at the end never reappears). Latency = (first successful frame at or after the reappearance) -
+    (reappearance frame), in frames and in ms (frames · 1000 / fps); 0 means locked on the reappearance frame.
+    The search stops at the start of the next span; if no success happens before it, the event is censored
+    (``latency_frames is None``) and reported separately instead of being averaged in.
+    """
+    n = len(gt_present)
+    spans: list[tuple[int, int]] = []  # (start, reappear)
+    t = 0
+    while t < n:
+        if gt_present[t]:
+            t += 1
+            continue
+        start = t
+        while t < n and not gt_present[t]:
+            t += 1
+        if start > 0 and t < n and t - start >= min_occlusion_frames:
+            spans.append((start, t))
+    events = []
+    for k, (start, reappear) in enumerate(spans):
+        stop = spans[k + 1][0] if k + 1 < len(spans) else n
+        hits = np.flatnonzero(success[reappear:stop])
+        lat = int(hits[0]) if hits.size else None
+        events.append(ReidEvent(
+            occlusion_start=start, reappear_frame=reappear, occluded_frames=reappear - start,
+            latency_frames=lat, latency_ms=None if lat is None else lat * 1000.0 / fps,
+            observed_frames=stop - reappear))
+    return events
+
+
+def evaluate_single_target(
+    pred_boxes: Sequence[Box | None],
+    gt_boxes: Sequence[Box | None],
+    *,
+    tsr_px: float = 20.0,
+    iou_threshold: float = 0.5,
+    other_gt: Sequence[Sequence[Box]] | None = None,
+    fps: float = 30.0,
+    min_occlusion_frames: int = 5,
+    image_size: tuple[int, int] | None = None,
+) -> SingleTargetMetrics:
+    """Score one follower run against the per-frame target ground truth.
+
+    ``other_gt[t]`` lists the boxes of the *other* people on frame t (needed for target switches; without it
+    the switch count is 0). ``image_size`` = (width, height) enables ``cle_all``.
+    """
+    if len(pred_boxes) != len(gt_boxes):
+        raise ValueError(f"pred has {len(pred_boxes)} frames, gt has {len(gt_boxes)}")
+    if other_gt is not None and len(other_gt) != len(gt_boxes):
+        raise ValueError(f"other_gt has {len(other_gt)} frames, gt has {len(gt_boxes)}")
+    if fps <= 0:
+        raise ValueError("fps must be positive")
+    n = len(gt_boxes)
+    errors = np.full(n, math.nan)
+    ious = np.full(n, math.nan)
+    gt_present = np.array([g is not None for g in gt_boxes], dtype=bool)
+    has_out = np.array([p is not None for p in pred_boxes], dtype=bool)
+    for t, (p, g) in enumerate(zip(pred_boxes, gt_boxes, strict=True)):
+        if p is not None and g is not None:
+            errors[t] = _center_dist(p, g)
+            ious[t] = box_iou(p, g)
+    both = gt_present & has_out
+    # NaN compares False, so frames without an error are never successes.
+    with np.errstate(invalid="ignore"):
+        success = both & (errors < tsr_px)
+    n_gt = int(gt_present.sum())
+    n_out = int(has_out.sum())
+    n_succ = int(success.sum())
+    n_both = int(both.sum())
+    missing = int((gt_present & ~has_out).sum())
+
+    cle = float(errors[both].mean()) if n_both else math.nan
+    diag = math.hypot(*image_size) if image_size is not None else None
+    if missing == 0:
+        cle_all = cle
+    elif diag is not None:
+        cle_all = float((errors[both].sum() + missing * diag) / n_gt)
+    else:
+        cle_all = math.nan
+    stability = float(errors[success].std()) if n_succ else math.nan  # numpy std is 1/N
+    with np.errstate(invalid="ignore"):
+        iou_hits = int((both & (ious >= iou_threshold)).sum())
+
+    switches = 0
+    on_distractor = 0
+    if other_gt is not None:
+        last = "none"
+        for t in range(n):
+            owner = _frame_owner(pred_boxes[t], gt_boxes[t], other_gt[t], tsr_px, iou_threshold)
+            if owner == "distractor":
+                on_distractor += 1
+                if last == "target":
+                    switches += 1
+            if owner != "none":  # a lost/absent frame does not break a target → distractor transition
+                last = owner
+
+    return SingleTargetMetrics(
+        frames=n, frames_with_gt=n_gt, outputs=n_out, successes=n_succ, false_positives=n_out - n_succ,
+        missing_outputs=missing, precision=_ratio(n_succ, n_out), recall=_ratio(n_succ, n_gt),
+        f1=_ratio(2 * n_succ, n_out + n_gt), cle=cle, cle_frames=n_both, cle_all=cle_all,
+        tsr=_ratio(n_succ, n_gt), stability=stability,
+        mean_iou=float(ious[both].mean()) if n_both else math.nan, iou_success=_ratio(iou_hits, n_gt),
+        iou_hits=iou_hits,
+        target_switches=switches, frames_on_distractor=on_distractor,
+        reid_events=_reid_events(gt_present, success, min_occlusion_frames, fps),
+        center_errors=errors, ious=ious, tsr_px=tsr_px, iou_threshold=iou_threshold, fps=fps,
+        image_diagonal=diag,
+    )
+
+
+def aggregate(metrics: Iterable[SingleTargetMetrics]) -> SingleTargetMetrics:
+    """Frame-weighted overall: counts are summed and rates recomputed from them (so long sequences weigh
+    more); CLE / mean IoU pool the per-frame values, stability is the std of the pooled successful errors,
+    re-ID events are concatenated (their frame indices stay per-sequence)."""
+    items = list(metrics)
+    if not items:
+        raise ValueError("aggregate() needs at least one SingleTargetMetrics")
+    taus = {m.tsr_px for m in items}
+    if len(taus) > 1:
+        raise ValueError(f"cannot aggregate runs scored with different tsr_px: {sorted(taus)}")
+    tau = items[0].tsr_px
+    errors = np.concatenate([m.center_errors for m in items])
+    ious = np.concatenate([m.ious for m in items])
+    with np.errstate(invalid="ignore"):
+        succ_err = errors[errors < tau]
+    n_gt = sum(m.frames_with_gt for m in items)
+    n_out = sum(m.outputs for m in items)
+    n_succ = sum(m.successes for m in items)
+    n_both = sum(m.cle_frames for m in items)
+    missing = sum(m.missing_outputs for m in items)
+    iou_hits = sum(m.iou_hits for m in items)
+    # cle_all is the gt-frame-weighted mean of the per-sequence values (each already charges its own diagonal).
+    cle_all_parts = [(m.cle_all, m.frames_with_gt) for m in items if m.frames_with_gt]
+    cle_all = (sum(v * w for v, w in cle_all_parts) / n_gt) if cle_all_parts and n_gt else math.nan
+    finite = errors[np.isfinite(errors)]
+    finite_iou = ious[np.isfinite(ious)]
+    return SingleTargetMetrics(
+        frames=sum(m.frames for m in items), frames_with_gt=n_gt, outputs=n_out, successes=n_succ,
+        false_positives=n_out - n_succ, missing_outputs=missing, precision=_ratio(n_succ, n_out),
+        recall=_ratio(n_succ, n_gt), f1=_ratio(2 * n_succ, n_out + n_gt),
+        cle=float(finite.mean()) if finite.size else math.nan, cle_frames=n_both, cle_all=float(cle_all),
+        tsr=_ratio(n_succ, n_gt), stability=float(succ_err.std()) if succ_err.size else math.nan,
+        mean_iou=float(finite_iou.mean()) if finite_iou.size else math.nan,
+        iou_success=_ratio(iou_hits, n_gt), iou_hits=iou_hits,
+        target_switches=sum(m.target_switches for m in items),
+        frames_on_distractor=sum(m.frames_on_distractor for m in items),
+        reid_events=[e for m in items for e in m.reid_events], center_errors=errors, ious=ious,
+        tsr_px=tau, iou_threshold=items[0].iou_threshold, fps=items[0].fps, image_diagonal=None,
+    )
+
+
+def _pct(v: float) -> str:
+    return "–" if not math.isfinite(v) else f"{100.0 * v:.1f}"
+
+
+def _px(v: float) -> str:
+    return "–" if not math.isfinite(v) else f"{v:.2f}"
+
+
+def _reid(m: SingleTargetMetrics) -> str:
+    if not m.reid_events:
+        return "–"
+    mean = m.reid_latency_ms_mean
+    text = "–" if not math.isfinite(mean) else f"{mean:.1f}"
+    return f"{text} ({len(m.reid_latencies_frames)}/{len(m.reid_events)})"
+
+
+_COLUMNS: list[tuple[str, Callable[[SingleTargetMetrics], str]]] = [
+    ("Prec %", lambda m: _pct(m.precision)),
+    ("Rec %", lambda m: _pct(m.recall)),
+    ("F1 %", lambda m: _pct(m.f1)),
+    ("CLE px", lambda m: _px(m.cle)),
+    ("TSR %", lambda m: _pct(m.tsr)),
+    ("Stab px", lambda m: _px(m.stability)),
+    ("Miss", lambda m: str(m.missing_outputs)),
+    ("Switch", lambda m: str(m.target_switches)),
+    ("Re-ID ms (locked/events)", _reid),
+]
+
+
+def format_markdown_table(rows: dict[str, dict[str, SingleTargetMetrics]], *, overall: bool = True) -> str:
+    """Markdown report: one methods × metrics table per sequence, then an ``overall`` table per method
+    (frame-weighted via :func:`aggregate`). ``rows[method][sequence] -> metrics``; sequences keep first-seen
+    order; a method lacking a sequence shows dashes there and is aggregated over what it has."""
+    seqs: list[str] = []
+    for per_seq in rows.values():
+        for s in per_seq:
+            if s not in seqs:
+                seqs.append(s)
+    header = "| Method | " + " | ".join(name for name, _ in _COLUMNS) + " |"
+    sep = "|---|" + "|".join("---:" for _ in _COLUMNS) + "|"
+
+    def table(title: str, pick: dict[str, SingleTargetMetrics | None]) -> list[str]:
+        lines = [f"### {title}", "", header, sep]
+        for method, m in pick.items():
+            cells = ["–"] * len(_COLUMNS) if m is None else [fn(m) for _, fn in _COLUMNS]
+            lines.append(f"| {method} | " + " | ".join(cells) + " |")
+        return [*lines, ""]
+
+    out: list[str] = []
+    for s in seqs:
+        out += table(s, {method: per_seq.get(s) for method, per_seq in rows.items()})
+    if overall and seqs:
+        out += table("overall (frame-weighted)",
+                     {method: aggregate(per_seq.values()) if per_seq else None for method, per_seq in rows.items()})
+    out.append(f"τ = {_tau_note(rows)} px; Re-ID = mean re-lock latency over re-locked events "
+               "(censored events excluded from the mean, counted in locked/events).")
+    return "\n".join(out) + "\n"
+
+
+def _tau_note(rows: dict[str, dict[str, SingleTargetMetrics]]) -> str:
+    taus = sorted({m.tsr_px for per_seq in rows.values() for m in per_seq.values()})
+    return "/".join(f"{t:g}" for t in taus) or "20"
