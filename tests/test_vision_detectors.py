@@ -1,0 +1,229 @@
+"""Detectors: YOLOX on a real frame, letterbox geometry, YOLOv8 decode, NMS, HOG, factory, search path."""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from followbus.vision.detectors import (
+    Detector,
+    DetectorUnavailable,
+    HogDetector,
+    SimulatedDetector,
+    YoloxDetector,
+    best_iou,
+    decode_yolox,
+    letterbox,
+    make_detector,
+    nms,
+    unletterbox_boxes,
+    yolov8_postprocess,
+)
+from followbus.vision.models import MODELS_ENV, REPO_ROOT, find_model, search_path
+from followbus.vision.scenes import make_scene
+
+DATA_ROOT = Path(os.environ.get("FOLLOWBUS_DATA", REPO_ROOT.parent / "shared" / "data"))
+YOLOX_416 = "yolox_nano_416.onnx"
+
+
+def _yolox_path() -> Path:
+    path = find_model(YOLOX_416)
+    if path is None:
+        pytest.skip(f"{YOLOX_416} not on the model search path ({', '.join(map(str, search_path()))})")
+    return path
+
+
+def _shared_models_dir() -> Path:
+    return _yolox_path().parent
+
+
+# ----------------------------------------------------------------------------- YOLOX
+
+
+def test_yolox_detects_person_on_real_frame() -> None:
+    model = _yolox_path()
+    seq = DATA_ROOT / "sot" / "otb-crossing"
+    img_path = seq / "img" / "000001.jpg"
+    if not img_path.is_file():
+        pytest.skip(f"real data absent: {img_path} (set FOLLOWBUS_DATA)")
+    gt = [float(v) for v in (seq / "groundtruth.txt").read_text().splitlines()[0].split(",")]
+    bgr = cv2.imread(str(img_path))
+    det = YoloxDetector(model)
+    assert det.input_size == 416  # read from the model's input shape
+    dets = det.detect(bgr)
+    assert dets.dtype == np.float32 and dets.ndim == 2 and dets.shape[1] == 5
+    assert best_iou(dets, gt) > 0.5, f"no person box near gt {gt}: {dets}"
+    assert det.last_infer_ms > 0
+    # Boxes are clipped to the image.
+    assert np.all(dets[:, 0] >= 0) and np.all(dets[:, 0] + dets[:, 2] <= bgr.shape[1] + 1e-3)
+
+
+def test_yolox_decode_grid_and_stride() -> None:
+    size = 416
+    n_anchors = sum((size // s) ** 2 for s in (8, 16, 32))
+    raw = np.zeros((1, n_anchors, 85), np.float32)
+    # Stride-16 level starts after the 52x52 stride-8 grid; pick cell (x=5, y=3) on it.
+    a = 52 * 52 + 3 * 26 + 5
+    raw[0, a, :4] = (0.5, 0.25, np.log(2.0), np.log(4.0))
+    raw[0, a, 4] = 0.9  # objectness
+    raw[0, a, 5] = 0.8  # person
+    raw[0, a + 1, 4:7] = (0.9, 0.05, 0.95)  # a confident non-person: must not come out
+    out = decode_yolox(raw, size, score_threshold=0.3)
+    assert out.shape == (1, 5)
+    cx, cy, w, h = (5 + 0.5) * 16, (3 + 0.25) * 16, 2.0 * 16, 4.0 * 16
+    np.testing.assert_allclose(out[0], [cx - w / 2, cy - h / 2, w, h, 0.72], rtol=1e-5)
+
+
+# ----------------------------------------------------------------------------- letterbox
+
+
+@pytest.mark.parametrize("centered", [False, True])
+def test_letterbox_maps_boxes_back(centered: bool) -> None:
+    img = np.zeros((240, 360, 3), np.uint8)
+    box = (100.0, 60.0, 40.0, 120.0)
+    cv2.rectangle(img, (100, 60), (139, 179), (255, 255, 255), -1)
+    canvas, ratio, pad = letterbox(img, 416, centered=centered)
+    assert canvas.shape == (416, 416, 3)
+    assert ratio == pytest.approx(416 / 360)
+    if centered:
+        assert pad[0] == 0 and pad[1] > 0  # padding split top/bottom like ultralytics
+    else:
+        assert pad == (0.0, 0.0)
+        assert np.all(canvas[-10:, :, :] == 114)  # YOLOX pads bottom/right only
+    # The white block in the canvas is where the forward mapping says it is...
+    ys, xs = np.nonzero(canvas[:, :, 0] > 128)
+    found = np.array([[xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1]], np.float32)
+    expected = [box[0] * ratio + pad[0], box[1] * ratio + pad[1], box[2] * ratio, box[3] * ratio]
+    np.testing.assert_allclose(found[0], expected, atol=2.0)
+    # ...and mapping it back recovers the original box.
+    np.testing.assert_allclose(unletterbox_boxes(found, ratio, pad)[0], box, atol=2.0)
+
+
+# ----------------------------------------------------------------------------- YOLOv8 decode + NMS
+
+
+def test_yolov8_decode_hand_made_tensor() -> None:
+    image_shape = (480, 640, 3)
+    _, ratio, pad = letterbox(np.zeros(image_shape, np.uint8), 640, centered=True)
+    assert pad == (0.0, 80.0) and ratio == 1.0
+    raw = np.zeros((1, 84, 5), np.float32)
+    # anchor 0: person at input-pixel centre (320, 300), 60x180 -> image (290, 130, 60, 180)
+    raw[0, :4, 0] = (320, 300, 60, 180)
+    raw[0, 4, 0] = 0.9
+    # anchor 1: near-duplicate of 0 with a lower score: NMS must drop it
+    raw[0, :4, 1] = (322, 302, 60, 176)
+    raw[0, 4, 1] = 0.7
+    # anchor 2: a confident car, weak person: filtered by the person score
+    raw[0, :4, 2] = (100, 200, 80, 40)
+    raw[0, 4, 2], raw[0, 6, 2] = 0.05, 0.95
+    # anchor 3: second person, partly outside the image at the left: clipped
+    raw[0, :4, 3] = (10, 320, 40, 100)
+    raw[0, 4, 3] = 0.6
+    dets = yolov8_postprocess(raw, ratio, pad, image_shape, score_threshold=0.3, nms_iou=0.45)
+    assert dets.shape == (2, 5)
+    np.testing.assert_allclose(dets[0], [290, 130, 60, 180, 0.9], atol=1e-4)
+    np.testing.assert_allclose(dets[1], [0, 190, 30, 100, 0.6], atol=1e-4)
+
+
+def test_nms_removes_duplicate() -> None:
+    dets = np.array([[10, 10, 50, 100, 0.8], [12, 11, 50, 100, 0.9], [200, 50, 40, 90, 0.5]], np.float32)
+    kept = nms(dets, iou_threshold=0.45)
+    assert kept.shape == (2, 5)
+    np.testing.assert_allclose(kept[:, 4], [0.9, 0.5])
+    assert nms(np.zeros((0, 5), np.float32), 0.45).shape == (0, 5)
+
+
+# ----------------------------------------------------------------------------- HOG
+
+
+def test_hog_returns_n_by_5_and_finds_synthetic_walker() -> None:
+    frame = next(iter(make_scene("wall-occlusion").frames()))  # target fully visible, 220 px tall
+    hog = HogDetector()
+    dets = hog.detect(frame.bgr)
+    assert isinstance(hog, Detector)
+    assert dets.dtype == np.float32 and dets.ndim == 2 and dets.shape[1] == 5
+    assert np.all((dets[:, 4] >= 0) & (dets[:, 4] <= 1))
+    assert best_iou(dets, frame.target_box) > 0.3
+    assert hog.detect(np.zeros((120, 160, 3), np.uint8)).shape == (0, 5)
+
+
+# ----------------------------------------------------------------------------- factory / search path
+
+
+def test_make_detector_auto_picks_yolox_when_model_found(caplog: pytest.LogCaptureFixture) -> None:
+    models = _shared_models_dir()
+    with caplog.at_level(logging.WARNING, logger="followbus.vision.detectors"):
+        det = make_detector("auto", model_dir=str(models))
+    assert isinstance(det, YoloxDetector)
+    assert any("auto -> yolox" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records)
+
+
+def test_make_detector_auto_falls_back_to_hog(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.chdir(tmp_path)  # cwd/../shared/models must not rescue it...
+    monkeypatch.setattr("followbus.vision.models.REPO_ROOT", tmp_path / "repo")  # ...nor the repo's
+    monkeypatch.delenv(MODELS_ENV, raising=False)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with caplog.at_level(logging.WARNING, logger="followbus.vision.detectors"):
+        det = make_detector("auto", model_dir=str(empty))
+    assert isinstance(det, HogDetector)
+    msgs = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any("auto -> hog" in m and str(empty) in m for m in msgs), msgs
+    with pytest.raises(DetectorUnavailable) as err:
+        make_detector("yolox", model_dir=str(empty))
+    assert str(empty) in str(err.value) and err.value.search_path[0] == empty.resolve()
+    with pytest.raises(DetectorUnavailable):
+        make_detector("yolov8", model_dir=str(empty))
+    with pytest.raises(ValueError):
+        make_detector("resnet")
+
+
+def test_find_model_honours_env_and_order(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    a, b, explicit = tmp_path / "a", tmp_path / "b", tmp_path / "explicit"
+    for d in (a, b, explicit):
+        d.mkdir()
+    (b / "m.onnx").write_bytes(b"x")
+    monkeypatch.setenv(MODELS_ENV, os.pathsep.join([str(a), str(b)]))
+    assert find_model("m.onnx") == b.resolve() / "m.onnx"
+    path = search_path(str(explicit))
+    assert path[:3] == [explicit.resolve(), a.resolve(), b.resolve()]
+    assert REPO_ROOT / "models" in path and REPO_ROOT.parent / "shared" / "models" in path
+    (explicit / "m.onnx").write_bytes(b"y")
+    assert find_model("m.onnx", str(explicit)) == explicit.resolve() / "m.onnx"  # explicit dir wins
+    assert find_model("m.onnx", str(b / "m.onnx")) == (b / "m.onnx").resolve()  # explicit file
+    assert find_model("followbus-no-such-model.onnx", str(explicit)) is None
+    monkeypatch.delenv(MODELS_ENV)
+    assert find_model("m.onnx") is None  # only the environment pointed at a/ and b/
+
+
+# ----------------------------------------------------------------------------- simulated
+
+
+def test_simulated_detector_noise_model_and_determinism() -> None:
+    img = np.zeros((480, 640, 3), np.uint8)
+    truth = [((100.0, 100.0, 60.0, 160.0), 1.0), ((400.0, 120.0, 50.0, 140.0), 0.2), (None, 0.0)]
+
+    def run(seed: int) -> list[np.ndarray]:
+        det = make_detector("simulated", noise_px=3.0, miss_rate=0.1, false_positive_rate=0.0, seed=seed)
+        return [det.detect(img, truth) for _ in range(200)]
+
+    a, b = run(1), run(1)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    n = np.array([len(d) for d in a])
+    assert n.max() == 1  # the 20 %-visible person is never detected
+    assert 0.8 < n.mean() < 0.97  # about 10 % misses
+    kept = np.concatenate(a)
+    centres = kept[:, :2] + kept[:, 2:4] / 2
+    assert np.std(centres[:, 0]) == pytest.approx(3.0, rel=0.25)
+    assert abs(np.mean(centres[:, 0]) - 130.0) < 1.0
+    sim = SimulatedDetector(false_positive_rate=2.0, seed=0)
+    sim.set_truth([])
+    assert sum(len(sim.detect(img)) for _ in range(50)) > 50  # false positives appear
+    assert "not a detection accuracy" in sim.name

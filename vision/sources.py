@@ -1,0 +1,367 @@
+"""Frame sources: camera, video file, image folder (SOT/MOT layouts), synthetic scene.
+
+Every source iterates :class:`SourceFrame` objects. Files, folders and scenes get synthetic
+stamps ``t_ns = index * 1e9 / fps`` so that runs over recorded data are reproducible; only the
+live camera uses ``time.monotonic_ns()``.
+
+Folder layouts understood (see shared/data/README.md):
+
+* ``sot/<name>/``: ``img/*.jpg`` + ``groundtruth.txt`` (one ``x,y,w,h`` per image, ``NaN`` row =
+  target absent) + ``meta.json`` (``fps``);
+* ``mot/<name>/``: MOTChallenge ``img1/`` + ``gt/gt.txt`` (``frame,id,x,y,w,h,conf,class,vis``) +
+  ``seqinfo.ini`` (``frameRate``); every person box of a frame is in ``extras['gt_all']``;
+* any folder of images (sorted by name), optionally with an explicit ground-truth file.
+"""
+
+from __future__ import annotations
+
+import configparser
+import json
+import logging
+import math
+import os
+import re
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from followbus.vision.scenes import DEFAULT_SCENE, SCENES, make_scene
+
+log = logging.getLogger(__name__)
+
+Box = tuple[float, float, float, float]
+IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp")
+VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg")
+DEFAULT_FPS = 30.0
+# MOTChallenge classes counted as people: 1 = pedestrian; -1 = unlabelled (e.g. TUD-Campus).
+MOT_PERSON_CLASSES = (1, -1)
+
+
+@dataclass(frozen=True)
+class SourceFrame:
+    index: int
+    t_ns: int
+    bgr: np.ndarray
+    gt_box: Box | None
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+def synthetic_stamp_ns(index: int, fps: float) -> int:
+    """Reproducible stamp of frame ``index`` at ``fps``."""
+    return round(index * 1e9 / fps)
+
+
+class _Source:
+    """Shared plumbing: iteration, length, context manager."""
+
+    name: str = ""
+    fps: float = DEFAULT_FPS
+
+    def __iter__(self) -> Iterator[SourceFrame]:
+        return self.frames()
+
+    def frames(self) -> Iterator[SourceFrame]:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release device/file handles (no-op for sources that hold none)."""
+
+    def __enter__(self) -> _Source:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# ----------------------------------------------------------------------------- camera / video
+
+
+class CameraSource(_Source):
+    """Live camera via OpenCV; stamps are ``time.monotonic_ns()`` at capture."""
+
+    def __init__(self, index: int = 0, width: int | None = None, height: int | None = None,
+                 fps: float | None = None) -> None:
+        self.index = int(index)
+        self.name = f"camera:{self.index}"
+        self.cap = cv2.VideoCapture(self.index)
+        if not self.cap.isOpened():
+            raise RuntimeError(f"cannot open camera {self.index} (no device, or it is busy)")
+        if width:
+            self.cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
+        if height:
+            self.cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        if fps:
+            self.cap.set(cv2.CAP_PROP_FPS, fps)
+        self.fps = float(self.cap.get(cv2.CAP_PROP_FPS) or fps or DEFAULT_FPS)
+
+    def frames(self) -> Iterator[SourceFrame]:
+        i = 0
+        while True:
+            ok, bgr = self.cap.read()
+            t_ns = time.monotonic_ns()
+            if not ok:
+                log.warning("camera %d stopped delivering frames after %d", self.index, i)
+                return
+            yield SourceFrame(i, t_ns, bgr, None, {})
+            i += 1
+
+    def close(self) -> None:
+        self.cap.release()
+
+
+class VideoFileSource(_Source):
+    """Video file via OpenCV; stamps synthesised from the container fps (or ``fps``)."""
+
+    def __init__(self, path: str | os.PathLike[str], fps: float | None = None) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"video file not found: {self.path}")
+        self.name = self.path.stem
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            raise RuntimeError(f"OpenCV cannot decode video {self.path}")
+        container_fps = cap.get(cv2.CAP_PROP_FPS)
+        self._n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        cap.release()
+        self.fps = float(fps or (container_fps if container_fps and container_fps > 0 else DEFAULT_FPS))
+
+    def __len__(self) -> int:
+        return self._n
+
+    def frames(self) -> Iterator[SourceFrame]:
+        cap = cv2.VideoCapture(str(self.path))
+        try:
+            i = 0
+            while True:
+                ok, bgr = cap.read()
+                if not ok:
+                    return
+                yield SourceFrame(i, synthetic_stamp_ns(i, self.fps), bgr, None, {"path": str(self.path)})
+                i += 1
+        finally:
+            cap.release()
+
+
+# ----------------------------------------------------------------------------- image folders
+
+
+def read_sot_groundtruth(path: str | os.PathLike[str]) -> list[Box | None]:
+    """One box per line (``,``, tab or space separated); NaN or unparsable rows -> None."""
+    boxes: list[Box | None] = []
+    for line in Path(path).read_text().splitlines():
+        if not line.strip():
+            continue
+        parts = [p for p in re.split(r"[,\s]+", line.strip()) if p]
+        try:
+            vals = [float(p) for p in parts[:4]]
+        except ValueError:
+            boxes.append(None)
+            continue
+        if len(vals) < 4 or any(math.isnan(v) for v in vals) or vals[2] <= 0 or vals[3] <= 0:
+            boxes.append(None)
+        else:
+            boxes.append((vals[0], vals[1], vals[2], vals[3]))
+    return boxes
+
+
+def read_mot_groundtruth(
+    path: str | os.PathLike[str], all_classes: bool = False
+) -> dict[int, list[tuple[int, float, float, float, float]]]:
+    """MOTChallenge gt.txt -> {frame (1-based): [(id, x, y, w, h), ...]}.
+
+    Unless ``all_classes``, rows flagged "ignore" (conf column 0) and non-pedestrian classes
+    (MOT17: vehicles, static people, reflections, ...) are dropped, as the MOT evaluation does.
+    """
+    out: dict[int, list[tuple[int, float, float, float, float]]] = {}
+    for line in Path(path).read_text().splitlines():
+        parts = line.strip().split(",")
+        if len(parts) < 6:
+            continue
+        frame, tid = int(float(parts[0])), int(float(parts[1]))
+        x, y, w, h = (float(p) for p in parts[2:6])
+        if not all_classes:
+            if len(parts) >= 7 and float(parts[6]) == 0:
+                continue
+            if len(parts) >= 8 and int(float(parts[7])) not in MOT_PERSON_CLASSES:
+                continue
+        out.setdefault(frame, []).append((tid, x, y, w, h))
+    return out
+
+
+def _list_images(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS and p.is_file())
+
+
+class ImageFolderSource(_Source):
+    """Images of a folder in name order, with ground truth from the SOT or MOT layout.
+
+    ``path`` may be a ``sot/<name>`` dir, a ``mot/<name>`` dir, or a plain image folder.
+    ``groundtruth`` overrides the ground-truth file (SOT format). ``fps`` overrides
+    meta.json / seqinfo.ini (default 30). For MOT, ``gt_box`` is the box of ``target_id`` when
+    given (None in frames where that id is absent), else None; ``extras['gt_all']`` always
+    lists ``(id, x, y, w, h)`` of every annotated person in the frame.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        groundtruth: str | os.PathLike[str] | None = None,
+        fps: float | None = None,
+        *,
+        target_id: int | None = None,
+        mot_all_classes: bool = False,
+    ) -> None:
+        root = Path(path)
+        if not root.is_dir():
+            raise FileNotFoundError(f"image folder not found: {root}")
+        self.root = root
+        self.name = root.name
+        self.layout = "folder"
+        self.target_id = target_id
+        meta_fps: float | None = None
+        self._sot_gt: list[Box | None] | None = None
+        self._mot_gt: dict[int, list[tuple[int, float, float, float, float]]] | None = None
+
+        if (root / "img1").is_dir() and ((root / "gt" / "gt.txt").is_file() or (root / "seqinfo.ini").is_file()):
+            self.layout = "mot"
+            img_dir = root / "img1"
+            ini = root / "seqinfo.ini"
+            if ini.is_file():
+                cp = configparser.ConfigParser()
+                cp.read(ini)
+                if cp.has_option("Sequence", "frameRate"):
+                    meta_fps = cp.getfloat("Sequence", "frameRate")
+                if cp.has_option("Sequence", "imDir"):
+                    img_dir = root / cp.get("Sequence", "imDir")
+            gt_file = root / "gt" / "gt.txt"
+            if gt_file.is_file():
+                self._mot_gt = read_mot_groundtruth(gt_file, mot_all_classes)
+        elif (root / "img").is_dir():
+            self.layout = "sot"
+            img_dir = root / "img"
+            meta = root / "meta.json"
+            if meta.is_file():
+                meta_fps = json.loads(meta.read_text()).get("fps")
+            if (root / "groundtruth.txt").is_file():
+                self._sot_gt = read_sot_groundtruth(root / "groundtruth.txt")
+        else:
+            img_dir = root
+        if groundtruth is not None:
+            self._sot_gt = read_sot_groundtruth(groundtruth)
+
+        self.images = _list_images(img_dir)
+        if not self.images:
+            raise FileNotFoundError(f"no images ({', '.join(IMAGE_EXTS)}) in {img_dir}")
+        self.fps = float(fps or meta_fps or DEFAULT_FPS)
+        if self._sot_gt is not None and len(self._sot_gt) != len(self.images):
+            log.warning("%s: %d ground-truth rows for %d images (missing rows = absent)",
+                        root, len(self._sot_gt), len(self.images))
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def ground_truth(self, index: int) -> tuple[Box | None, dict[str, Any]]:
+        """(gt_box, extras) of frame ``index`` (0-based) without reading the image."""
+        extras: dict[str, Any] = {"path": str(self.images[index]), "layout": self.layout}
+        gt: Box | None = None
+        if self._sot_gt is not None and index < len(self._sot_gt):
+            gt = self._sot_gt[index]
+        if self._mot_gt is not None:
+            rows = self._mot_gt.get(index + 1, [])  # MOT frames are 1-based
+            extras["gt_all"] = list(rows)
+            if self.target_id is not None:
+                gt = next(((x, y, w, h) for tid, x, y, w, h in rows if tid == self.target_id), None)
+        return gt, extras
+
+    def frames(self) -> Iterator[SourceFrame]:
+        for i, p in enumerate(self.images):
+            bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise OSError(f"cannot read image {p}")
+            gt, extras = self.ground_truth(i)
+            yield SourceFrame(i, synthetic_stamp_ns(i, self.fps), bgr, gt, extras)
+
+
+# ----------------------------------------------------------------------------- synthetic scenes
+
+
+class SceneSource(_Source):
+    """A :mod:`followbus.vision.scenes` scene as a source.
+
+    ``extras``: ``visible_fraction``, ``distractor_boxes``, ``distractor_visible_fractions``,
+    ``ego_velocity_mps``, ``camera_offset_px``, ``people`` (input of the simulated detector)
+    and ``scene``.
+    """
+
+    def __init__(self, name: str = DEFAULT_SCENE, seed: int = 0, width: int = 640, height: int = 480,
+                 fps: float = 30.0) -> None:
+        self.scene = make_scene(name, seed=seed, width=width, height=height, fps=fps)
+        self.name = name
+        self.seed = seed
+        self.fps = self.scene.fps
+
+    def __len__(self) -> int:
+        return self.scene.n_frames
+
+    def frames(self) -> Iterator[SourceFrame]:
+        for f in self.scene.frames():
+            extras = {
+                "scene": self.name,
+                "visible_fraction": f.target_visible_fraction,
+                "distractor_boxes": f.distractor_boxes,
+                "distractor_visible_fractions": f.distractor_visible_fractions,
+                "ego_velocity_mps": f.ego_velocity_mps,
+                "camera_offset_px": f.camera_offset_px,
+                "people": f.people(),
+            }
+            yield SourceFrame(f.index, f.t_ns, f.bgr, f.target_box, extras)
+
+
+# ----------------------------------------------------------------------------- spec parsing
+
+
+def open_source(spec: str, **kw: Any) -> _Source:
+    """Open a source from a spec string.
+
+    ``camera:<index>``, ``scene:<name>`` (keywords: seed, width, height, fps), a video file
+    path, or an image folder path (keywords: groundtruth, fps, target_id). MCAP recordings are
+    replayed by the bus tools, not here. Raises ValueError for anything else.
+    """
+    s = spec.strip()
+    if s.startswith("camera:"):
+        idx = s.split(":", 1)[1] or "0"
+        if not idx.isdigit():
+            raise ValueError(f"camera spec needs a numeric index, got {spec!r}")
+        return CameraSource(int(idx), **kw)
+    if s.startswith("scene:"):
+        name = s.split(":", 1)[1] or DEFAULT_SCENE
+        if name not in SCENES:
+            raise ValueError(f"unknown scene {name!r} in {spec!r}; available: {', '.join(SCENES)}")
+        return SceneSource(name, **kw)
+    p = Path(s).expanduser()
+    if p.suffix.lower() == ".mcap":
+        raise ValueError(f"{spec!r} is an MCAP recording: replay it with the bus tools, not a vision source")
+    if p.is_dir():
+        return ImageFolderSource(p, **kw)
+    if p.is_file() and p.suffix.lower() in VIDEO_EXTS:
+        return VideoFileSource(p, **kw)
+    raise ValueError(
+        f"unknown source spec {spec!r}: expected camera:<index>, scene:<{'|'.join(SCENES)}>, "
+        f"a video file ({', '.join(VIDEO_EXTS)}) or an image folder"
+    )
+
+
+def list_sequences(data_root: str | os.PathLike[str]) -> list[Path]:
+    """Sequence dirs under ``data_root``: ``sot/*`` (with img/) then ``mot/*`` (with img1/), sorted."""
+    root = Path(data_root)
+    out: list[Path] = []
+    for kind, img in (("sot", "img"), ("mot", "img1")):
+        d = root / kind
+        if d.is_dir():
+            out.extend(sorted(p for p in d.iterdir() if (p / img).is_dir()))
+    return out
