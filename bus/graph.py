@@ -56,7 +56,7 @@ class InputSpec:
     queue: int = 4
     policy: str = "drop_oldest"
     sync: str = "frame"  # frame: joined by frame_seq; latest: last value kept; none: callback only
-    offset: int = 0  # join the message of frame_seq k+offset into frame k's set (feedback loops: -1)
+    offset: int = 0  # -1: feedback input, joined from the previous frame this node handled (see bus.sync)
     optional: bool = False
     line: int | None = None
 
@@ -111,6 +111,22 @@ class Graph:
 
 
 _SCALARS = yaml.SafeLoader("")  # only used to construct scalar values from composed nodes
+
+
+def apply_overrides(graph: Graph, assignments: list[str]) -> None:
+    """Apply ``node.param=value`` assignments (value in YAML syntax) on top of graph.yaml's params."""
+    for item in assignments:
+        target, sep, raw = item.partition("=")
+        node, dot, param = target.partition(".")
+        if not sep or not dot or not node or not param:
+            raise GraphError(graph.path, None, f"override {item!r} must look like node.param=value")
+        if node not in graph.nodes:
+            raise GraphError(graph.path, None, f"override {item!r}: no node named {node!r}")
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else ""
+        except yaml.YAMLError as exc:
+            raise GraphError(graph.path, None, f"override {item!r}: value is not valid YAML ({exc})") from exc
+        graph.nodes[node].params[param] = value
 
 
 def _line(node: yaml.Node) -> int:
@@ -308,8 +324,9 @@ def _parse_input(node: str, name: str, key_node: yaml.Node, value_node: yaml.Nod
             raise GraphError(path, line, f"{where}: sync must be one of {', '.join(SYNC_MODES)}")
     if "offset" in options:
         spec.offset = _expect(options["offset"], int, path, line, f"{where}: offset")
-        if spec.offset > 0:
-            raise GraphError(path, line, f"{where}: offset must be <= 0 (a frame cannot wait for its future)")
+        if spec.offset not in (0, -1):
+            raise GraphError(path, line, f"{where}: offset must be 0 or -1 (-1: feedback from the previous frame "
+                                         "this node handled; a frame cannot wait for its future)")
     if "optional" in options:
         spec.optional = _expect(options["optional"], bool, path, line, f"{where}: optional")
     return spec
@@ -352,6 +369,6 @@ def _check_wiring(graph: Graph) -> None:
         if spec.inputs and all(i.sync != "frame" for i in spec.inputs.values()):
             continue
         frame_inputs = [i for i in spec.inputs.values() if i.sync == "frame"]
-        if frame_inputs and all(i.optional for i in frame_inputs):
-            raise graph.error(spec.line, f"node {spec.name!r}: at least one frame-synchronised input must be "
-                                         "required (not optional)")
+        if frame_inputs and all(i.optional or i.offset for i in frame_inputs):
+            raise graph.error(spec.line, f"node {spec.name!r}: at least one same-frame synchronised input must be "
+                                         "required (not optional, offset 0)")

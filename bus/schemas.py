@@ -62,7 +62,8 @@ class GroundTruth(Message):
     available: bool = False  # False: this source has no ground truth (published anyway, so joins never wait)
     box: np.ndarray | None = None  # [x, y, w, h]; None when the target is absent
     visible_fraction: float = 1.0
-    others: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.float32))
+    others: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # other people's boxes
+    others_visible: np.ndarray = field(default_factory=lambda: np.zeros(0))  # their visible fractions
 
 
 @dataclass
@@ -95,13 +96,16 @@ class Measurement(Message):
     state: str = "LOST"  # TRACKING | OCCLUDED | REACQUIRED | LOST | UNINITIALISED
     accepted: bool = False
     secure: bool = False
-    box: np.ndarray | None = None
+    box: np.ndarray | None = None  # the accepted box (Alg. 1 line 11)
+    best_box: np.ndarray | None = None  # argmax M_fuse, even when rejected
+    source: str = ""  # "detection" | "motion" | "init": where the chosen box came from
     m_fuse: float = 0.0
     s_color: float = 0.0
     s_geo: float = 0.0
     omega: float = 0.0
     c_t: float = 0.0
-    candidates: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))  # x,y,w,h,m_fuse
+    candidates: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))  # x,y,w,h,m_fuse
+    candidate_sources: list[str] = field(default_factory=list)
     candidate_hist: np.ndarray | None = None
     init_box: np.ndarray | None = None  # set on the frame the target was initialised
 
@@ -112,7 +116,8 @@ class Track(Message):
 
     TYPE: ClassVar[str] = "Track"
     state: str = "LOST"
-    box: np.ndarray | None = None
+    box: np.ndarray | None = None  # the tracker's output: accepted box, predicted box while OCCLUDED, else None
+    filtered_box: np.ndarray | None = None  # Kalman posterior box
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))  # px/s
     measured: bool = False
 
@@ -232,6 +237,10 @@ def _check(value: Any, hint: Any, where: str) -> Any:
     if hint is np.ndarray:
         if not isinstance(value, np.ndarray):
             raise DecodeError(f"{where}: expected array, got {type(value).__name__}")
+        return value
+    if origin is list or hint is list:
+        if not isinstance(value, list):
+            raise DecodeError(f"{where}: expected list, got {type(value).__name__}")
         return value
     if origin is dict or hint is dict:
         if not isinstance(value, dict):

@@ -18,11 +18,29 @@ def test_joins_inputs_of_the_same_frame():
     assert sync.poll(4 * MS) == [(2, {"frame": "f2", "dets": "d2"})]
 
 
-def test_offset_input_feeds_the_next_frame():
+def test_feedback_input_comes_from_the_previous_handled_frame():
     sync = FrameSynchronizer([SyncInput("dets"), SyncInput("template", offset=-1, optional=True)], 50 * MS)
-    sync.add("dets", 5, "d5", 0)
-    sync.add("template", 4, "t4", 1 * MS)
-    assert sync.poll(1 * MS) == [(5, {"dets": "d5", "template": "t4"})]
+    sync.add("dets", 4, "d4", 0)
+    assert sync.poll(0) == [(4, {"dets": "d4", "template": None})]  # the first frame waits for nothing
+    sync.add("dets", 5, "d5", 1 * MS)
+    assert sync.poll(1 * MS) == []  # waits for the template learnt on frame 4
+    sync.add("template", 4, "t4", 2 * MS)
+    assert sync.poll(2 * MS) == [(5, {"dets": "d5", "template": "t4"})]
+    # The detector skipped frames 6 and 7: frame 8 joins the template of frame 5, not of frame 7.
+    sync.add("dets", 8, "d8", 3 * MS)
+    sync.add("template", 5, "t5", 4 * MS)
+    assert sync.poll(4 * MS) == [(8, {"dets": "d8", "template": "t5"})]
+    assert sync.timeouts == 0 and sync.dropped == 0
+
+
+def test_missing_feedback_times_out_when_optional():
+    sync = FrameSynchronizer([SyncInput("dets"), SyncInput("meas", offset=-1, optional=True)], 10 * MS)
+    sync.add("dets", 1, "d1", 0)
+    sync.poll(0)
+    sync.add("dets", 2, "d2", 1 * MS)
+    assert sync.poll(5 * MS) == []
+    assert sync.poll(11 * MS) == [(2, {"dets": "d2", "meas": None})]
+    assert sync.timeouts == 1
 
 
 def test_timeout_emits_without_optional_and_drops_without_required():

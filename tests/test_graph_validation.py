@@ -43,7 +43,7 @@ CASES = [
     ("no such module", GOOD_NODES.replace("nodes.diagnostics\n", "nodes.nope\n", 1), 7, "No module named"),
     ("input the node does not take", GOOD_NODES.replace("      tick: {", "      tock: {"), 14, "has no input 'tock'"),
     ("bad policy", GOOD_NODES.replace("drop_oldest", "drop_newest"), 14, "policy must be one of"),
-    ("future offset", GOOD_NODES.replace("queue: 2", "offset: 1"), 14, "offset must be <= 0"),
+    ("future offset", GOOD_NODES.replace("queue: 2", "offset: 1"), 14, "offset must be 0 or -1"),
     ("bad restart policy", GOOD_NODES.replace("    outputs: [tick]\n", "    outputs: [tick]\n    restart: sometimes\n"),
      10, "restart: policy must be one of"),
     ("invalid yaml", GOOD_NODES.replace("outputs: [tick]", "outputs: [tick"), 10, "invalid YAML"),

@@ -51,11 +51,14 @@ class Child:
 class Launcher:
     def __init__(self, graph: Graph, *, only: list[str] | None = None, host: str | None = None,
                  startup_timeout_s: float = 30.0, grace_s: float = 5.0, extra_env: dict[str, str] | None = None,
-                 extra_children: list[tuple[str, list[str]]] | None = None, quiet: bool = False):
+                 extra_children: list[tuple[str, list[str]]] | None = None, quiet: bool = False,
+                 overrides: list[str] | None = None, log_file: Path | None = None):
         self.graph = graph
         self.grace_s = grace_s
         self.startup_timeout_s = startup_timeout_s
         self.quiet = quiet
+        self.overrides = list(overrides or [])
+        self.log_file = open(log_file, "a") if log_file is not None else None  # noqa: SIM115 (closed at shutdown)
         self.stop_event = threading.Event()
         self.ready_event = threading.Event()
         self._out_lock = threading.Lock()
@@ -78,14 +81,19 @@ class Launcher:
         self.session = None
 
     def _node_argv(self, name: str) -> list[str]:
-        return [sys.executable, "-m", "followbus.tools.cli", "node", name, "--graph", str(Path(self.graph.path))]
+        argv = [sys.executable, "-m", "followbus.tools.cli", "node", name, "--graph", str(Path(self.graph.path))]
+        for item in self.overrides:
+            if item.split(".", 1)[0] == name:
+                argv += ["--set", item]
+        return argv
 
     def _print(self, text: str) -> None:
         if self.quiet:
             return
         with self._out_lock:
-            sys.stdout.write(text + "\n")
-            sys.stdout.flush()
+            out = self.log_file or sys.stdout
+            out.write(text + "\n")
+            out.flush()
 
     def _pump(self, child: Child, stream) -> None:
         width = max(len(c.name) for c in self.children)
@@ -197,6 +205,8 @@ class Launcher:
             self.health.close()
         if self.session is not None:
             self.session.close()
+        if self.log_file is not None:
+            self.log_file.close()
         return status
 
 

@@ -1,0 +1,172 @@
+"""capture: publishes camera frames (raw, via shared memory locally), a small JPEG preview for
+remote viewers, and ground truth when the source has it.
+
+Sources (``source`` param): ``camera:<index>``, a video file, an image folder (optionally in the
+../shared/data layouts, with ground truth), ``scene:<name>`` (built-in synthetic scenes with exact
+ground truth). ``pace: realtime`` paces to the source rate; ``pace: fast`` publishes as fast as
+the consumers allow: at most ``max_in_flight`` frames ahead of the ``ack`` input (wire it to the
+last node of the chain, e.g. prediction/track).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from followbus.bus.node import Node
+from followbus.bus.schemas import Frame, GroundTruth, Message, Track
+from followbus.vision.sources import open_source
+
+
+@dataclass
+class CaptureParams:
+    source: str = "scene:corridor-occlusion"
+    seed: int = 0  # synthetic scenes
+    fps: float = 0.0  # 0: the source's own rate (30 for folders without one)
+    width_px: int = 640  # synthetic scenes
+    height_px: int = 480
+    groundtruth: str = ""  # image folders: explicit ground-truth file
+    pace: str = "realtime"  # realtime | fast
+    max_in_flight: int = 2  # pace: fast
+    loop: bool = False
+    max_frames: int = 0  # 0: the whole source
+    start_delay_s: float = 1.0  # let subscribers' declarations propagate before frame 0
+    preview_width_px: int = 320
+    jpeg_quality: int = 70
+
+
+class Capture(Node):
+    INPUTS = {"ack": Track}
+    OUTPUTS = {"frame": Frame, "preview": Frame, "ground_truth": GroundTruth}
+    CONGESTION = {"frame": "drop", "preview": "drop", "ground_truth": "block"}
+
+    Params = CaptureParams
+
+    @classmethod
+    def parse_params(cls, raw: dict[str, Any]) -> CaptureParams:
+        params = super().parse_params(raw)
+        if params.pace not in ("realtime", "fast"):
+            from followbus.bus.node import ParamError
+
+            raise ParamError("pace", f"pace must be 'realtime' or 'fast', not {params.pace!r}")
+        return params
+
+    def setup(self) -> None:
+        p = self.params
+        self.source = self._open()
+        self.frames = iter(self.source)
+        self.fps = p.fps or getattr(self.source, "fps", 30.0) or 30.0
+        self.published = 0
+        self.acked = -1
+        self.t0_wall_ns: int | None = None
+        self.first_source_ns = 0
+        self.start_at = time.monotonic() + p.start_delay_s
+        self.done = False
+        if p.pace == "fast" and "ack" not in self.runtime.spec.inputs:
+            self.log.warning("pace: fast without an 'ack' input: publishing at full speed, frames may be dropped")
+        self.log.info("source %s at %.1f fps, pace %s", p.source, self.fps, p.pace)
+
+    def _open(self):
+        p = self.params
+        kw: dict[str, Any] = {}
+        if p.source.startswith("scene:"):
+            kw = {"seed": p.seed, "width": p.width_px, "height": p.height_px}
+            if p.fps:
+                kw["fps"] = p.fps
+        elif not p.source.startswith("camera:"):
+            if p.fps:
+                kw["fps"] = p.fps
+            if p.groundtruth:
+                kw["groundtruth"] = p.groundtruth
+        return open_source(p.source, **kw)
+
+    def on_message(self, name: str, msg: Message) -> None:
+        if name == "ack":
+            self.acked = max(self.acked, msg.header.frame_seq)
+
+    def poll(self, now_ns: int) -> float | None:
+        p = self.params
+        if self.done:
+            return None
+        wait = self.start_at - time.monotonic()
+        if wait > 0:
+            return wait
+        in_flight = self.published - 1 - self.acked
+        if p.pace == "fast" and "ack" in self.runtime.spec.inputs and in_flight >= p.max_in_flight:
+            return 0.002  # consumers are behind: wait for the ack of an earlier frame
+        try:
+            item = next(self.frames)
+        except StopIteration:
+            if p.loop:
+                self.source.close()
+                self.source = self._open()
+                self.frames = iter(self.source)
+                self.first_source_ns -= self.last_source_ns + int(1e9 / self.fps)
+                return 0.0
+            self.log.info("source exhausted after %d frames", self.published)
+            self.done = True
+            return None
+        if self.t0_wall_ns is None:
+            self.t0_wall_ns = time.time_ns()
+            self.first_source_ns = item.t_ns
+        self.last_source_ns = item.t_ns
+        # Stamps keep the source's exact frame spacing (Kalman Δt is deterministic) anchored to
+        # wall time (latency = receive time - stamp is meaningful when paced to real time).
+        stamp = self.t0_wall_ns + (item.t_ns - self.first_source_ns)
+        self._publish(item, stamp)
+        if p.max_frames and self.published >= p.max_frames:
+            self.done = True
+            return None
+        if p.pace == "fast":
+            return 0.0
+        return max(0.0, (stamp + int(1e9 / self.fps) - time.time_ns()) / 1e9)
+
+    def _publish(self, item, stamp_ns: int) -> None:
+        bgr = np.ascontiguousarray(item.bgr)
+        h, w = bgr.shape[:2]
+        seq = self.published
+        frame = Frame(width=w, height=h, encoding="bgr8", data=bgr)
+        frame.header.stamp_ns, frame.header.frame_seq = stamp_ns, seq
+        gt = GroundTruth(available=self._has_truth(item))
+        if item.gt_box is not None:
+            gt.box = np.asarray(item.gt_box, dtype=np.float64)
+        gt.visible_fraction = float(item.extras.get("visible_fraction", 1.0 if item.gt_box is not None else 0.0))
+        others = item.extras.get("distractor_boxes") or []
+        gt.others = np.asarray(others, dtype=np.float64).reshape(-1, 4)
+        vis = item.extras.get("distractor_visible_fractions")
+        if vis is not None:
+            gt.others_visible = np.asarray(vis, dtype=np.float64).reshape(-1)
+        gt.header.stamp_ns, gt.header.frame_seq = stamp_ns, seq
+        # Ground truth first: a detector joining it with the frame never waits.
+        self.publish("ground_truth", gt)
+        self.publish("frame", frame)
+        if self.has_output("preview"):
+            self.publish("preview", self._preview(bgr, stamp_ns, seq))
+        self.published += 1
+
+    def _has_truth(self, item) -> bool:
+        return self.params.source.startswith("scene:") or item.gt_box is not None or "gt_all" in item.extras
+
+    def _preview(self, bgr: np.ndarray, stamp_ns: int, seq: int) -> Frame:
+        p = self.params
+        h, w = bgr.shape[:2]
+        scale = min(1.0, p.preview_width_px / w)
+        small = cv2.resize(bgr, (int(w * scale), int(h * scale)), interpolation=cv2.INTER_AREA) if scale < 1 else bgr
+        ok, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, p.jpeg_quality])
+        msg = Frame(width=small.shape[1], height=small.shape[0], encoding="jpeg",
+                    data=np.frombuffer(jpeg.tobytes() if ok else b"", np.uint8))
+        msg.header.stamp_ns, msg.header.frame_seq = stamp_ns, seq
+        return msg
+
+    def status_extra(self) -> dict[str, Any]:
+        return {"published": self.published, "acked": self.acked, "done": self.done}
+
+    def teardown(self) -> None:
+        self.source.close()
+
+
+NODE = Capture

@@ -1,0 +1,100 @@
+"""detection: person boxes with scores for every frame it keeps up with.
+
+Backends (``backend`` param): ``yolox`` (ONNX, ../shared/models or the model search path),
+``yolov8`` (a user-supplied ultralytics ONNX export), ``hog`` (OpenCV's people detector),
+``simulated`` (synthetic scenes only: ground truth + a documented noise model; never a detection
+accuracy), ``auto`` (yolox if its model is found, else hog, logged loudly).
+The frame input should be a 1-deep drop_oldest queue so the detector always works on the newest frame.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from followbus.bus.node import Node, ParamError
+from followbus.bus.schemas import Detections, Frame, GroundTruth, Message
+from followbus.vision.detectors import BACKENDS, DetectorUnavailable, SimulatedDetector, make_detector
+
+
+@dataclass
+class DetectionParams:
+    backend: str = "auto"
+    model_dir: str = ""  # first place on the model search path
+    model_file: str = ""  # default: yolox_nano_<input_size>.onnx
+    input_size: int = 416
+    score_threshold: float = 0.3
+    nms_iou: float = 0.45
+    threads: int = 0  # onnxruntime intra-op threads; 0 = its default
+    sim_noise_px: float = 4.0
+    sim_miss_rate: float = 0.05
+    sim_false_positive_rate: float = 0.02
+    seed: int = 0
+
+
+class Detection(Node):
+    INPUTS = {"frame": Frame, "ground_truth": GroundTruth}
+    REQUIRED_INPUTS = frozenset({"frame"})
+    OUTPUTS = {"detections": Detections}
+    Params = DetectionParams
+
+    @classmethod
+    def parse_params(cls, raw: dict[str, Any]) -> DetectionParams:
+        params = super().parse_params(raw)
+        if params.backend not in BACKENDS:
+            raise ParamError("backend", f"backend must be one of {', '.join(BACKENDS)}, not {params.backend!r}")
+        return params
+
+    def setup(self) -> None:
+        p = self.params
+        try:
+            self.detector = make_detector(
+                p.backend, model_dir=p.model_dir or None, model_file=p.model_file or None,
+                input_size=p.input_size, score_threshold=p.score_threshold, nms_iou=p.nms_iou,
+                threads=p.threads or None, noise_px=p.sim_noise_px, miss_rate=p.sim_miss_rate,
+                false_positive_rate=p.sim_false_positive_rate, seed=p.seed,
+            )
+        except DetectorUnavailable as exc:
+            self.log.error("%s", exc)
+            raise SystemExit(1) from exc
+        self.simulated = isinstance(self.detector, SimulatedDetector)
+        if self.simulated and "ground_truth" not in self.runtime.spec.inputs:
+            self.log.error("backend 'simulated' needs the ground_truth input wired (capture/ground_truth)")
+            raise SystemExit(1)
+        self.log.info("detector backend: %s", self.detector.name)
+        self.frames = 0
+        self.infer_ms_total = 0.0
+
+    def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
+        frame = inputs["frame"]
+        assert isinstance(frame, Frame)
+        if frame.encoding != "bgr8":
+            self.log.warning("skipping frame %d with encoding %s (need bgr8)", frame_seq, frame.encoding)
+            return
+        t0 = time.perf_counter()
+        if self.simulated:
+            gt = inputs.get("ground_truth")
+            truth = []
+            if isinstance(gt, GroundTruth) and gt.available:
+                if gt.box is not None:
+                    truth.append((gt.box.tolist(), gt.visible_fraction))
+                vis = gt.others_visible if gt.others_visible.size == len(gt.others) else np.ones(len(gt.others))
+                truth.extend((box.tolist(), float(v)) for box, v in zip(gt.others, vis, strict=True))
+            boxes = self.detector.detect(frame.data, truth)
+        else:
+            boxes = self.detector.detect(frame.data)
+        infer_ms = (time.perf_counter() - t0) * 1e3
+        self.frames += 1
+        self.infer_ms_total += infer_ms
+        self.publish("detections", Detections(boxes=np.asarray(boxes, dtype=np.float32).reshape(-1, 5),
+                                              backend=self.detector.name, infer_ms=infer_ms), like=frame)
+
+    def status_extra(self) -> dict[str, Any]:
+        mean = self.infer_ms_total / self.frames if self.frames else 0.0
+        return {"backend": self.detector.name, "frames": self.frames, "infer_ms_mean": round(mean, 2)}
+
+
+NODE = Detection

@@ -1,0 +1,116 @@
+"""motor: follows the target with PID on bearing and width-based range (seed 001 Eq. 1), Mecanum
+inverse kinematics to four wheel speeds, speed and acceleration limits.
+
+Safety: a watchdog ticking at 50 Hz commands zero within 200 ms when tracks stop arriving, and a
+LOST (or uninitialised) target is an immediate zero. Drivers: ``sim`` integrates the robot pose
+and publishes odometry (which feeds prediction's ego-motion-aware noise, Eq. 7 of seed 000);
+``serial`` writes the documented line protocol of control/drivers.py to ``port``.
+
+Each command carries the stamp and frame_seq of the track it answers, so end-to-end latency from
+frame capture to motor command is ``command.pub_ns - command.stamp_ns``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from followbus.bus.node import Node, ParamError
+from followbus.bus.schemas import Message, MotorCommand, Odometry, Track
+from followbus.control.drivers import SerialDriver, SimDriver
+from followbus.control.follow import FollowCommand, FollowController, FollowParams
+from followbus.nodes.common import split_params
+
+
+@dataclass
+class MotorParams:
+    driver: str = "sim"  # sim | serial
+    port: str = ""  # serial device, e.g. /dev/ttyUSB0
+    baud: int = 115200
+
+
+class Motor(Node):
+    INPUTS = {"track": Track}
+    REQUIRED_INPUTS = frozenset({"track"})
+    OUTPUTS = {"command": MotorCommand, "odometry": Odometry}
+    EXPRESS = frozenset({"command"})
+    TIMER_PERIOD_MS = 20.0  # watchdog and odometry tick (50 Hz): a stop lands <= 220 ms after the last track
+
+    @classmethod
+    def parse_params(cls, raw: dict[str, Any]) -> tuple[MotorParams, FollowParams]:
+        motor, follow = split_params(raw, MotorParams, FollowParams)
+        if motor.driver not in ("sim", "serial"):
+            raise ParamError("driver", f"driver must be 'sim' or 'serial', not {motor.driver!r}")
+        if motor.driver == "serial" and not motor.port:
+            raise ParamError("driver", "driver 'serial' needs a port")
+        return motor, follow
+
+    def setup(self) -> None:
+        self.motor_params, follow = self.params
+        self.controller = FollowController(follow)
+        self.sim = None
+        self.serial = None
+        if self.motor_params.driver == "sim":
+            self.sim = SimDriver(follow.half_length_m, follow.half_width_m, follow.wheel_radius_m)
+        else:
+            self.serial = SerialDriver(self.motor_params.port, self.motor_params.baud)
+        self.wheels = np.zeros(4)
+        self.last_cmd: FollowCommand | None = None
+        self.commands = 0
+        self.last_odom_ns = 0
+
+    def on_message(self, name: str, msg: Message) -> None:
+        if not isinstance(msg, Track):
+            return
+        # Controller time is the track stamp (replay-deterministic); the watchdog uses the node clock.
+        cmd = self.controller.on_track(msg.header.stamp_ns, msg.state, msg.box)
+        self._command(cmd, like=msg)
+
+    def on_timer(self, now_ns: int) -> None:
+        cmd = self.controller.on_tick(now_ns)
+        repeated_stop = self.last_cmd is not None and self.last_cmd.is_zero and cmd is not None \
+            and cmd.reason == self.last_cmd.reason
+        if cmd is not None and not repeated_stop:
+            self._command(cmd, like=None)
+        if self.sim is not None:
+            self._odometry(self.sim.apply(self.wheels, now_ns))
+        elif self.serial is not None:
+            sample = self.serial.read_odometry(0.0)
+            if sample is not None:
+                self._odometry(sample)
+
+    def _command(self, cmd: FollowCommand, like: Message | None) -> None:
+        self.wheels = np.asarray(cmd.wheel_radps, dtype=np.float64)  # the sim integrates them on its tick
+        if self.serial is not None:
+            self.serial.write_command(self.wheels)
+        out = MotorCommand(vx_mps=cmd.vx_mps, vy_mps=cmd.vy_mps, wz_radps=cmd.wz_radps, wheel_radps=self.wheels,
+                           range_m=cmd.range_m, bearing_rad=cmd.bearing_rad, reason=cmd.reason)
+        if like is None:
+            out.header.stamp_ns = time.time_ns() if self.runtime.clock.mode == "wall" else self.now_ns()
+        self.publish("command", out, like=like)
+        self.last_cmd = cmd
+        self.commands += 1
+
+    def _odometry(self, sample) -> None:
+        if sample.t_ns <= self.last_odom_ns:
+            return
+        self.last_odom_ns = sample.t_ns
+        odom = Odometry(x_m=sample.x_m, y_m=sample.y_m, theta_rad=sample.theta_rad, vx_mps=sample.vx_mps,
+                        vy_mps=sample.vy_mps, wz_radps=sample.wz_radps)
+        odom.header.stamp_ns = sample.t_ns
+        self.publish("odometry", odom)
+
+    def teardown(self) -> None:
+        if self.serial is not None:
+            self.serial.close()  # sends the stop line
+
+    def status_extra(self) -> dict[str, Any]:
+        last = self.last_cmd
+        return {"commands": self.commands, "reason": last.reason if last else "",
+                "vx_mps": round(last.vx_mps, 3) if last else 0.0, "wz_radps": round(last.wz_radps, 3) if last else 0.0}
+
+
+NODE = Motor

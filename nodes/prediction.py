@@ -1,0 +1,80 @@
+"""prediction: constant-velocity Kalman on the target (seed 000 Eq. 4-8).
+
+For each frame k (ticked by its detections) it publishes the prior: state, P_k, the innovation
+covariance and the χ² gate (Eq. 8). Its measurement input is joined with offset -1, so prior k is
+computed after frame k-1's re-ID result was folded in, in the same order as the in-process tracker.
+Each re-ID result is applied as soon as it arrives (measurement update, or suspension when the
+target is occluded) and the posterior track is published at once, so motor control is not held
+back a frame. Odometry feeds the ego-motion-aware measurement noise R_k = R0 + κ‖v_ego‖² I (Eq. 7).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from followbus.bus.node import Node
+from followbus.bus.schemas import Detections, Measurement, Message, Odometry, Prior, Track
+from followbus.nodes.common import split_params
+from followbus.nodes.convert import make_track, msg_to_reid, prior_to_msg
+from followbus.tracking.kalman import Predictor
+from followbus.tracking.params import TrackerParams
+from followbus.tracking.tracker import output_box
+
+
+@dataclass
+class PredictionParams:
+    use_odometry: bool = True  # False: R_k = R0 (the ablation without ego-motion-aware noise)
+
+
+class Prediction(Node):
+    INPUTS = {"detections": Detections, "measurement": Measurement, "odometry": Odometry}
+    REQUIRED_INPUTS = frozenset({"detections", "measurement"})
+    OUTPUTS = {"prior": Prior, "track": Track}
+
+    @classmethod
+    def parse_params(cls, raw: dict[str, Any]) -> tuple[PredictionParams, TrackerParams]:
+        return split_params(raw, PredictionParams, TrackerParams)
+
+    def setup(self) -> None:
+        self.node_params, tracker_params = self.params
+        self.predictor = Predictor(tracker_params)
+        self.priors: dict[int, Any] = {}  # frame_seq -> pure Prior, until its measurement arrives
+        self.applied_seq = -1
+        self.last_state = "UNINITIALISED"
+
+    def _v_ego(self) -> tuple[float, float]:
+        odom = self.latest.get("odometry")
+        if not self.node_params.use_odometry or not isinstance(odom, Odometry):
+            return (0.0, 0.0)
+        # Eq. 7 needs the ego speed; the filter is in image space, so only its magnitude matters.
+        return (odom.vx_mps, odom.vy_mps) if math.isfinite(odom.vx_mps + odom.vy_mps) else (0.0, 0.0)
+
+    def on_message(self, name: str, msg: Message) -> None:
+        if name != "measurement" or not isinstance(msg, Measurement):
+            return
+        seq = msg.header.frame_seq
+        if seq <= self.applied_seq:
+            return
+        reid = msg_to_reid(msg)
+        prior = self.priors.pop(seq, None)
+        posterior = self.predictor.apply(reid, self._v_ego())
+        self.applied_seq = seq
+        self.last_state = msg.state
+        self.publish("track", make_track(msg.state, output_box(reid, prior), posterior), like=msg)
+        for old in [s for s in self.priors if s < seq]:
+            del self.priors[old]
+
+    def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
+        dets = inputs["detections"]
+        assert dets is not None
+        prior = self.predictor.predict(dets.header.stamp_ns, self._v_ego())
+        self.priors[frame_seq] = prior
+        self.publish("prior", prior_to_msg(prior), like=dets)
+
+    def status_extra(self) -> dict[str, Any]:
+        return {"state": self.last_state, "initialised": self.predictor.initialised}
+
+
+NODE = Prediction

@@ -1,0 +1,72 @@
+"""reid: seed 000 Algorithm 1 for every frame: candidates inside the Mahalanobis gate (detections,
+or frame-difference blobs when the detector gives none), S_color (Eq. 1) and S_geo fused with the
+sigmoid weight of Eq. 3 (Eq. 2), accept above T_reid, else report OCCLUDED; LOST after
+``lost_after_ms``. Initialises the target on the first frame (``init_box`` param, else the
+detection nearest the image centre-bottom, else the frame-difference ROI).
+
+Inputs joined by frame: frame k, detections k, prior k, and the template learnt at frame k-1
+(offset -1). If that template is missing (a dropped frame upstream), the last one received is used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from followbus.bus.node import Node
+from followbus.bus.schemas import Detections, Frame, Measurement, Message, Prior, Template
+from followbus.nodes.common import split_params
+from followbus.nodes.convert import msg_to_prior, reid_to_msg
+from followbus.tracking.params import TrackerParams
+from followbus.tracking.reid import ReIdentifier
+
+
+@dataclass
+class ReidParams:
+    init_box: list[float] = field(default_factory=list)  # [x, y, w, h] of the target on the first frame
+
+
+class Reid(Node):
+    INPUTS = {"frame": Frame, "detections": Detections, "prior": Prior, "template": Template}
+    REQUIRED_INPUTS = frozenset({"frame", "detections", "prior"})
+    OUTPUTS = {"measurement": Measurement}
+
+    @classmethod
+    def parse_params(cls, raw: dict[str, Any]) -> tuple[ReidParams, TrackerParams]:
+        node_params, tracker_params = split_params(raw, ReidParams, TrackerParams)
+        if node_params.init_box and len(node_params.init_box) != 4:
+            from followbus.bus.node import ParamError
+
+            raise ParamError("init_box", "init_box must be [x, y, w, h]")
+        return node_params, tracker_params
+
+    def setup(self) -> None:
+        self.node_params, tracker_params = self.params
+        self.reid = ReIdentifier(tracker_params)
+        self.template_hist: np.ndarray | None = None
+        self.frames = 0
+        self.last: Measurement | None = None
+
+    def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
+        frame, dets, prior = inputs["frame"], inputs["detections"], inputs["prior"]
+        assert isinstance(frame, Frame) and isinstance(dets, Detections) and isinstance(prior, Prior)
+        template = inputs.get("template")
+        if isinstance(template, Template):
+            self.template_hist = None if not template.initialised or template.hist is None else np.array(template.hist)
+        init_box = self.node_params.init_box if (self.node_params.init_box and self.frames == 0) else None
+        result = self.reid.step(frame.data, dets.boxes, msg_to_prior(prior), self.template_hist,
+                                frame.header.stamp_ns, init_box=init_box)
+        self.frames += 1
+        msg = reid_to_msg(result)
+        self.last = msg
+        self.publish("measurement", msg, like=frame)
+
+    def status_extra(self) -> dict[str, Any]:
+        if self.last is None:
+            return {"frames": 0}
+        return {"frames": self.frames, "state": self.last.state, "m_fuse": round(self.last.m_fuse, 3)}
+
+
+NODE = Reid

@@ -1,0 +1,86 @@
+"""template: owns the reference appearance model M (16x8 H-S histogram).
+
+M ← (1-η_k)M + η_k C* (Alg. 1 line 12) with η_k = η_base·exp(-λ P_specular) when the target is
+tracked securely and 0 under occlusion (Eq. 9-10). Publishes M and η_k every frame; saves M to
+``state_file`` (atomically, every ``save_every_s`` and at shutdown) and restores it on restart.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from followbus.bus.node import Node
+from followbus.bus.schemas import Frame, Measurement, Message, Template
+from followbus.nodes.common import split_params
+from followbus.nodes.convert import msg_to_reid
+from followbus.tracking.params import TrackerParams
+from followbus.tracking.template import TemplateUpdater
+
+
+@dataclass
+class TemplateParams:
+    state_file: str = ""  # e.g. state/template.npz; empty: do not persist
+    save_every_s: float = 5.0
+
+
+class TemplateNode(Node):
+    INPUTS = {"frame": Frame, "measurement": Measurement}
+    REQUIRED_INPUTS = frozenset({"frame", "measurement"})
+    OUTPUTS = {"template": Template}
+
+    @classmethod
+    def parse_params(cls, raw: dict[str, Any]) -> tuple[TemplateParams, TrackerParams]:
+        return split_params(raw, TemplateParams, TrackerParams)
+
+    def setup(self) -> None:
+        self.node_params, tracker_params = self.params
+        self.updater = TemplateUpdater(tracker_params)
+        self.last_save = time.monotonic()
+        self.eta = 0.0
+        self.p_specular = 0.0
+        path = self._state_path()
+        if path is not None and path.exists():
+            try:
+                self.updater.load(path)
+                self.log.info("restored template from %s", path)
+            except Exception as exc:  # a corrupt file must not stop the robot: start fresh
+                self.log.warning("could not restore template from %s (%s); starting without one", path, exc)
+
+    def _state_path(self) -> Path | None:
+        return Path(self.node_params.state_file) if self.node_params.state_file else None
+
+    def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
+        frame, meas = inputs["frame"], inputs["measurement"]
+        assert isinstance(frame, Frame) and isinstance(meas, Measurement)
+        hist, self.eta, self.p_specular = self.updater.step(frame.data, msg_to_reid(meas))
+        msg = Template(initialised=hist is not None, hist=None if hist is None else np.asarray(hist),
+                       eta=float(self.eta), p_specular=float(self.p_specular))
+        self.publish("template", msg, like=frame)
+        if time.monotonic() - self.last_save >= self.node_params.save_every_s:
+            self._save()
+
+    def _save(self) -> None:
+        path = self._state_path()
+        self.last_save = time.monotonic()
+        if path is None or not self.updater.initialised:
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.stem + ".tmp.npz")
+        self.updater.save(tmp)
+        os.replace(tmp, path)
+
+    def teardown(self) -> None:
+        self._save()
+
+    def status_extra(self) -> dict[str, Any]:
+        return {"eta": round(self.eta, 5), "p_specular": round(self.p_specular, 4),
+                "initialised": self.updater.initialised}
+
+
+NODE = TemplateNode

@@ -1,0 +1,157 @@
+"""``followbus demo``: launch graph.yaml on a synthetic scene, show a live status line, and end with
+a summary against the scene's exact ground truth (TSR@20px, CLE) and the end-to-end latency from
+frame capture to motor command."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+from followbus.bus.graph import Graph
+from followbus.bus.pubsub import Subscriber
+from followbus.bus.schemas import Detections, GroundTruth, MotorCommand, Template, Track
+from followbus.bus.session import open_session
+from followbus.evaluation.metrics import evaluate_single_target
+from followbus.tools.launch import Launcher, install_stop_signals
+from followbus.vision.models import find_model, format_search_path
+
+log = logging.getLogger("followbus.demo")
+
+
+class DemoWatcher:
+    """Collects what the demo shows: tracks, ground truth, templates, commands."""
+
+    def __init__(self, graph: Graph):
+        self.graph = graph
+        self.lock = threading.Lock()
+        self.tracks: dict[int, Track] = {}
+        self.truth: dict[int, GroundTruth] = {}
+        self.track_times: deque[float] = deque(maxlen=90)
+        self.template: Template | None = None
+        self.command: MotorCommand | None = None
+        self.latencies_ms: list[float] = []
+        self.backend = ""
+        self.session = open_session(graph.zenoh)  # a peer like the nodes: it may start first
+        key = graph.key
+        self.subs = [
+            Subscriber(self.session, key("prediction", "track"), self._on_track, schema=Track),
+            Subscriber(self.session, key("capture", "ground_truth"), self._on_truth, schema=GroundTruth),
+            Subscriber(self.session, key("template", "template"), self._on_template, schema=Template),
+            Subscriber(self.session, key("motor", "command"), self._on_command, schema=MotorCommand),
+            Subscriber(self.session, key("detection", "detections"), self._on_dets, schema=Detections),
+        ]
+
+    def _on_track(self, msg: Track) -> None:
+        with self.lock:
+            self.tracks[msg.header.frame_seq] = msg
+            self.track_times.append(time.monotonic())
+
+    def _on_truth(self, msg: GroundTruth) -> None:
+        with self.lock:
+            self.truth[msg.header.frame_seq] = msg
+
+    def _on_template(self, msg: Template) -> None:
+        with self.lock:
+            self.template = msg
+
+    def _on_dets(self, msg: Detections) -> None:
+        self.backend = msg.backend
+
+    def _on_command(self, msg: MotorCommand) -> None:
+        with self.lock:
+            self.command = msg
+            if msg.header.frame_seq >= 0 and msg.header.stamp_ns > 0:  # answers a track (not a watchdog stop)
+                self.latencies_ms.append((msg.header.pub_ns - msg.header.stamp_ns) / 1e6)
+
+    def status_line(self) -> str:
+        with self.lock:
+            times = list(self.track_times)
+            fps = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else 0.0
+            last = self.tracks[max(self.tracks)] if self.tracks else None
+            eta = self.template.eta if self.template else 0.0
+            cmd = self.command
+        state = last.state if last else "waiting"
+        cmd_text = (f"vx {cmd.vx_mps:+.2f} m/s wz {cmd.wz_radps:+.2f} rad/s ({cmd.reason})" if cmd else "no command")
+        return f"{fps:5.1f} fps | {state:<13} | eta {eta:.4f} | {cmd_text} | {self.backend or '...'}"
+
+    def summary(self) -> dict:
+        with self.lock:
+            frames = sorted(self.truth)
+            preds = [None if (t := self.tracks.get(i)) is None or t.box is None else tuple(t.box) for i in frames]
+            gts = [None if self.truth[i].box is None else tuple(self.truth[i].box) for i in frames]
+            lat = np.array(self.latencies_ms)
+        out: dict = {"frames": len(frames), "tracked_frames": sum(p is not None for p in preds)}
+        if frames and any(g is not None for g in gts):
+            metrics = evaluate_single_target(preds, gts)
+            out.update(tsr=metrics.tsr, cle=metrics.cle, precision=metrics.precision, reid=metrics.reid_events)
+        if lat.size:
+            out.update(latency_p50_ms=float(np.percentile(lat, 50)), latency_p99_ms=float(np.percentile(lat, 99)))
+        return out
+
+    def close(self) -> None:
+        for sub in self.subs:
+            sub.undeclare()
+        self.session.close()
+
+
+def run_demo(graph: Graph, duration_s: float, log_path: Path, overrides: list[str] | None = None) -> int:
+    detection = graph.nodes.get("detection")
+    backend = detection.params.get("backend", "auto") if detection else "auto"
+    if backend in ("auto", "yolox"):
+        size = int(detection.params.get("input_size", 416)) if detection else 416
+        model = find_model(f"yolox_nano_{size}.onnx", detection.params.get("model_dir") if detection else None)
+        if model is None:
+            banner = "!" * 78
+            print(f"{banner}\n!! NO DETECTOR MODEL FOUND (yolox_nano_{size}.onnx).\n"
+                  f"!! Searched: {format_search_path()}\n"
+                  "!! Falling back to OpenCV's HOG people detector: far less accurate.\n"
+                  "!! Put the model in models/ or set FOLLOWBUS_MODELS to its folder.\n"
+                  f"{banner}", flush=True)
+        else:
+            print(f"detector: YOLOX-nano {size} from {model}", flush=True)
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    print(f"launching {len(graph.nodes)} nodes for {duration_s:.0f} s (Ctrl-C to stop); node logs: {log_path}",
+          flush=True)
+    logging.getLogger("followbus.launch").setLevel(logging.WARNING)
+    launcher = Launcher(graph, log_file=log_path, overrides=overrides)
+    install_stop_signals(launcher)
+    watcher = DemoWatcher(graph)
+    stop = threading.Event()
+
+    def show() -> None:
+        tty = sys.stdout.isatty()
+        while not stop.wait(0.5):
+            line = watcher.status_line()
+            if tty:
+                sys.stdout.write("\r\033[K" + line)
+            elif int(time.monotonic() * 2) % 4 == 0:  # a line every 2 s when not a terminal
+                sys.stdout.write(line + "\n")
+            sys.stdout.flush()
+
+    shower = threading.Thread(target=show, daemon=True)
+    shower.start()
+    try:
+        status = launcher.run(duration_s)
+    finally:
+        stop.set()
+        shower.join(1.0)
+    summary = watcher.summary()
+    watcher.close()
+    print()
+    print(f"summary: {summary['frames']} frames with ground truth, {summary['tracked_frames']} with a target box")
+    if "tsr" in summary:
+        print(f"  TSR@20px {summary['tsr'] * 100:.1f} %   CLE {summary['cle']:.1f} px   "
+              f"precision {summary['precision'] * 100:.1f} %")
+        for event in summary["reid"]:
+            lat = f"{event.latency_ms:.0f} ms" if event.latency_ms is not None else "not re-locked"
+            print(f"  occlusion of {event.occluded_frames} frames: re-identified {lat} after reappearance")
+    if "latency_p50_ms" in summary:
+        print(f"  capture -> motor command latency: p50 {summary['latency_p50_ms']:.1f} ms, "
+              f"p99 {summary['latency_p99_ms']:.1f} ms")
+    return status
