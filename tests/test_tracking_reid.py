@@ -1,0 +1,200 @@
+"""Re-identification of seed 000: Eq. 2-3, S_geo, Algorithm 1 and the track state machine."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from followbus.tracking.appearance import hs_histogram
+from followbus.tracking.kalman import Prior
+from followbus.tracking.params import TrackerParams
+from followbus.tracking.reid import ReIdentifier, TrackState, appearance_weight, fuse, geometric_score
+
+W, H = 320, 240
+BG = (40, 90, 40)
+RED = (30, 30, 220)
+BLUE = (220, 60, 30)
+TARGET = (100.0, 100.0, 30.0, 60.0)  # centre (115, 130)
+MS = 1_000_000
+
+
+def draw(*boxes_colours: tuple[tuple[float, float, float, float], tuple[int, int, int]],
+         bg: tuple[int, int, int] = BG) -> np.ndarray:
+    img = np.full((H, W, 3), bg, np.uint8)
+    for (x, y, w, h), colour in boxes_colours:
+        img[int(y):int(y + h), int(x):int(x + w)] = colour
+    return img
+
+
+def dets(*boxes: tuple[float, float, float, float]) -> np.ndarray:
+    return np.array([(*b, 0.9) for b in boxes], np.float32).reshape(-1, 5)
+
+
+def prior_at(box: tuple[float, float, float, float], t_ns: int, var_px2: float = 400.0) -> Prior:
+    """A prior centred on ``box`` with S = var·I: gate radius sqrt(9.488·400) ≈ 61.6 px."""
+    cx, cy = box[0] + box[2] / 2.0, box[1] + box[3] / 2.0
+    return Prior(t_ns=t_ns, state=np.array([cx, cy, 0.0, 0.0]), size=(box[2], box[3]),
+                 covariance=np.diag([var_px2, var_px2, 1.0, 1.0]), innovation_cov=var_px2 * np.eye(2),
+                 gate_chi2=9.488)
+
+
+def started(params: TrackerParams) -> tuple[ReIdentifier, np.ndarray]:
+    reid = ReIdentifier(params)
+    frame = draw((TARGET, RED))
+    res = reid.step(frame, dets(TARGET), None, None, 0, init_box=TARGET)
+    assert res.state is TrackState.TRACKING and res.init_box == TARGET
+    return reid, hs_histogram(frame, TARGET, params.bins_h, params.bins_s)
+
+
+def test_appearance_weight_eq3() -> None:
+    assert appearance_weight(0.6, 0.6, 10.0) == 0.5
+    assert appearance_weight(0.35, 0.35, 3.0) == 0.5
+    ws = [appearance_weight(c, 0.6, 10.0) for c in np.linspace(0.0, 1.0, 21)]
+    assert all(a < b for a, b in zip(ws, ws[1:], strict=False))
+    assert appearance_weight(0.9, 0.6, 10.0) == pytest.approx(1.0 / (1.0 + math.exp(-3.0)))
+    assert appearance_weight(0.0, 0.6, 10.0) == pytest.approx(1.0 / (1.0 + math.exp(6.0)))
+    assert appearance_weight(-1e6, 0.6, 10.0) == 0.0  # no overflow far below τ_occ
+
+
+def test_fuse_eq2() -> None:
+    assert fuse(0.9, 0.5, 0.8) == pytest.approx(0.8 * 0.9 + 0.2 * 0.5)
+    assert fuse(0.9, 0.5, 1.0) == 0.9
+    assert fuse(0.9, 0.5, 0.0) == 0.5
+
+
+def test_geometric_score_formula() -> None:
+    pred = (100.0, 100.0, 30.0, 40.0)  # diagonal 50 px
+    assert geometric_score(pred, pred, 0.0, 9.488) == 1.0
+    assert geometric_score(pred, pred, 9.488, 9.488) == 0.0  # on the gate boundary
+    cand = (110.0, 100.0, 30.0, 40.0)  # 10 px right, same size
+    expected = (1.0 - 2.0 / 9.488) * math.exp(-((10.0 / 25.0) ** 2))
+    assert geometric_score(cand, pred, 2.0, 9.488, geo_scale=0.5) == pytest.approx(expected)
+    half = (100.0, 110.0, 30.0, 20.0)  # same centre, half height
+    assert geometric_score(half, pred, 0.0, 9.488) == pytest.approx(math.sqrt(0.5))
+    assert geometric_score((100.0, 100.0, 0.0, 40.0), pred, 0.0, 9.488) == 0.0
+
+
+def test_accepts_target_and_rejects_distractor() -> None:
+    params = TrackerParams()
+    reid, template = started(params)
+    distractor = (140.0, 100.0, 30.0, 60.0)  # 40 px right of the prediction: inside the gate
+    frame = draw((TARGET, RED), (distractor, BLUE))
+    res = reid.step(frame, dets(distractor, TARGET), prior_at(TARGET, 33 * MS), template, 33 * MS)
+    assert res.accepted and res.state is TrackState.TRACKING
+    assert res.box == TARGET
+    assert res.secure
+    assert len(res.candidates) == 2
+    by_box = {c.box: c for c in res.candidates}
+    assert by_box[TARGET].s_color == pytest.approx(1.0, abs=1e-6)
+    assert by_box[distractor].s_color < 0.1
+    assert by_box[distractor].m_fuse < params.reid_threshold < by_box[TARGET].m_fuse
+    assert res.c_t == pytest.approx(1.0, abs=1e-6)  # C_t = best S_color
+    assert res.omega == pytest.approx(appearance_weight(1.0, 0.6, 10.0), abs=1e-6)
+    arr = res.candidates_array()
+    assert arr.shape == (2, 5) and arr.dtype == np.float32
+    assert res.candidate_hist is not None and res.candidate_hist.shape == (16, 8)
+
+
+def test_distractor_alone_is_rejected_and_state_goes_occluded_then_lost_then_reacquired() -> None:
+    params = TrackerParams(lost_after_ms=100.0, reacquired_hold_frames=2)
+    reid, template = started(params)
+    distractor = (140.0, 100.0, 30.0, 60.0)
+    states, ms = [], [33, 66, 99, 132, 165]
+    for t in ms:
+        frame = draw((distractor, BLUE))
+        res = reid.step(frame, dets(distractor), prior_at(TARGET, t * MS), template, t * MS)
+        assert not res.accepted and res.box is None and not res.secure
+        assert res.best_box == distractor and res.m_fuse < params.reid_threshold
+        states.append(res.state)
+    # Occluded for 33..99 ms since the last accepted frame (t = 0); > 100 ms → LOST.
+    assert states == [TrackState.OCCLUDED] * 3 + [TrackState.LOST] * 2
+
+    results = []
+    for t in (198, 231, 264):
+        frame = draw((TARGET, RED), (distractor, BLUE))
+        results.append(reid.step(frame, dets(TARGET, distractor), prior_at(TARGET, t * MS), template, t * MS))
+    assert [r.state for r in results] == [TrackState.REACQUIRED, TrackState.REACQUIRED, TrackState.TRACKING]
+    assert all(r.accepted and r.box == TARGET for r in results)
+    assert [r.secure for r in results] == [False, False, True]  # template frozen until re-lock confirmed
+
+
+def test_empty_frame_suspends() -> None:
+    params = TrackerParams()
+    reid, template = started(params)
+    res = reid.step(draw(), dets(), prior_at(TARGET, 33 * MS), template, 33 * MS)
+    assert res.state is TrackState.OCCLUDED
+    assert not res.accepted and res.candidates == [] and res.c_t == 0.0 and res.best_box is None
+
+
+def test_geometry_decides_when_appearance_is_unreliable() -> None:
+    # Eq. 3: with C_t far below τ_occ, ω → 0 and a box matching the predicted position and
+    # size is accepted on geometry alone (the paper's behaviour under degraded appearance).
+    params = TrackerParams()
+    reid, template = started(params)
+    frame = draw((TARGET, (90, 90, 90)))  # same place, colour washed out
+    res = reid.step(frame, dets(TARGET), prior_at(TARGET, 33 * MS), template, 33 * MS)
+    assert res.omega < 0.01
+    assert res.s_geo == pytest.approx(1.0)
+    assert res.accepted
+    # Without the geometric cue (ablation) ω = 1 and the washed-out box is rejected.
+    reid2, template2 = started(TrackerParams(use_geometry=False))
+    res2 = reid2.step(frame, dets(TARGET), prior_at(TARGET, 33 * MS), template2, 33 * MS)
+    assert res2.omega == 1.0 and res2.s_geo == 0.0 and not res2.accepted
+
+
+def test_motion_blob_candidates_when_no_detection_in_gate() -> None:
+    params = TrackerParams()
+    reid = ReIdentifier(params)
+    black = (0, 0, 0)
+    f0 = draw((TARGET, RED), bg=black)
+    reid.step(f0, dets(TARGET), None, None, 0, init_box=TARGET)
+    template = hs_histogram(f0, TARGET)
+    moved = (110.0, 100.0, 30.0, 60.0)
+    f1 = draw((moved, RED), bg=black)
+    far = (5.0, 5.0, 30.0, 60.0)  # a detection outside the gate does not count
+    res = reid.step(f1, dets(far), prior_at(moved, 33 * MS), template, 33 * MS)
+    assert res.candidates and all(c.source == "motion" for c in res.candidates)
+    assert res.accepted and res.source == "motion"
+    assert not res.secure  # a motion blob is never a secure template source
+    x, y, w, h = res.box
+    assert x >= 128.0 and x + w <= 141.0 and y == 100.0 and h == 60.0  # the newly covered strip
+
+
+def test_gate_excludes_far_detection_unless_disabled() -> None:
+    far = (250.0, 20.0, 30.0, 60.0)  # ~170 px from the prediction, gate radius ~62 px
+    frame = draw((far, RED))
+    reid, template = started(TrackerParams())
+    res = reid.step(frame, dets(far), prior_at(TARGET, 33 * MS), template, 33 * MS)
+    assert res.candidates == [] or all(c.source == "motion" for c in res.candidates)
+    assert not res.accepted
+    reid, template = started(TrackerParams(use_gate=False))
+    res = reid.step(frame, dets(far), prior_at(TARGET, 33 * MS), template, 33 * MS)
+    assert res.accepted and res.box == far
+    assert res.candidates[0].maha_sq > 9.488
+
+
+def test_two_equal_matches_are_ambiguous() -> None:
+    params = TrackerParams()
+    reid, template = started(params)
+    a = (100.0, 100.0, 30.0, 60.0)
+    b = (100.0, 100.0, 30.0, 60.0)
+    frame = draw((a, RED))
+    res = reid.step(frame, dets(a, b), prior_at(TARGET, 33 * MS), template, 33 * MS)
+    assert res.accepted and not res.secure
+
+
+def test_initialisation_without_init_box() -> None:
+    params = TrackerParams()
+    reid = ReIdentifier(params)
+    low = (150.0, 170.0, 30.0, 60.0)  # bottom-centre nearest the image bottom-centre
+    high = (145.0, 10.0, 30.0, 60.0)
+    res = reid.step(draw((low, RED), (high, BLUE)), dets(high, low), None, None, 0)
+    assert res.state is TrackState.TRACKING and res.init_box == low
+    # No detection: the frame-difference ROI of §2.1 (needs a previous frame and enough contrast).
+    reid = ReIdentifier(params)
+    black = (0, 0, 0)
+    assert reid.step(draw(bg=black), dets(), None, None, 0).state is TrackState.UNINITIALISED
+    res = reid.step(draw((TARGET, RED), bg=black), dets(), None, None, 33 * MS)
+    assert res.state is TrackState.TRACKING and res.init_box == TARGET

@@ -1,0 +1,110 @@
+"""Reference model M of seed 000: Eq. 9-10 learning rate and Alg. 1 line 12 update."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from followbus.tracking.appearance import hs_histogram
+from followbus.tracking.params import TrackerParams
+from followbus.tracking.reid import ReidResult, TrackState
+from followbus.tracking.template import TemplateUpdater
+
+BOX = (10.0, 10.0, 20.0, 20.0)
+
+
+def frame_with(colour: tuple[int, int, int], specular_rows: int = 0) -> np.ndarray:
+    img = np.zeros((40, 40, 3), np.uint8)
+    img[10:30, 10:30] = colour
+    if specular_rows:
+        img[10:10 + specular_rows, 10:30] = (255, 255, 255)  # V > 220, S < 45
+    return img
+
+
+def result(frame: np.ndarray, state: TrackState, accepted: bool, secure: bool) -> ReidResult:
+    return ReidResult(t_ns=0, state=state, accepted=accepted, secure=secure, box=BOX if accepted else None,
+                      best_box=BOX, source="detection", candidate_hist=hs_histogram(frame, BOX))
+
+
+def initialised(params: TrackerParams) -> tuple[TemplateUpdater, np.ndarray]:
+    tu = TemplateUpdater(params)
+    red = frame_with((0, 0, 255))
+    hist, eta, _ = tu.step(red, ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX,
+                                           source="init", init_box=BOX))
+    assert hist is not None and eta == 0.0
+    return tu, hist
+
+
+def test_update_follows_alg1_line12() -> None:
+    tu, m0 = initialised(TrackerParams())
+    blue = frame_with((255, 0, 0))
+    m1, eta, p = tu.step(blue, result(blue, TrackState.TRACKING, True, True))
+    assert p == 0.0 and eta == pytest.approx(0.02)
+    c_star = hs_histogram(blue, BOX)
+    np.testing.assert_allclose(m1, 0.98 * m0 + 0.02 * c_star, atol=1e-7)
+    assert m1[0, 7] == pytest.approx(0.98)  # red bin
+    assert m1[10, 7] == pytest.approx(0.02)  # blue bin
+    assert float(m1.sum()) == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("state", "accepted", "secure"),
+    [(TrackState.OCCLUDED, False, False), (TrackState.LOST, False, False),
+     (TrackState.REACQUIRED, True, False), (TrackState.TRACKING, True, False)],
+)
+def test_eta_zero_when_not_secure(state: TrackState, accepted: bool, secure: bool) -> None:
+    tu, m0 = initialised(TrackerParams())
+    blue = frame_with((255, 0, 0))
+    m1, eta, _ = tu.step(blue, result(blue, state, accepted, secure))
+    assert eta == 0.0
+    np.testing.assert_array_equal(m1, m0)
+
+
+def test_eta_decreases_with_specular_penalty() -> None:
+    etas, ps = [], []
+    for rows in (0, 2, 5, 10, 20):
+        tu, _ = initialised(TrackerParams())
+        frame = frame_with((0, 0, 255), specular_rows=rows)
+        _, eta, p = tu.step(frame, result(frame, TrackState.TRACKING, True, True))
+        etas.append(eta)
+        ps.append(p)
+    assert ps == pytest.approx([0.0, 0.1, 0.25, 0.5, 1.0])
+    assert etas[2] == pytest.approx(0.02 * math.exp(-10.0 * 0.25))
+    assert all(a > b for a, b in zip(etas, etas[1:], strict=False))
+
+
+def test_ablations() -> None:
+    frame = frame_with((0, 0, 255), specular_rows=10)  # P = 0.5
+    tu, _ = initialised(TrackerParams(adaptive_eta=False))
+    _, eta, p = tu.step(frame, result(frame, TrackState.TRACKING, True, True))
+    assert p == pytest.approx(0.5) and eta == pytest.approx(0.02)  # fixed η_base
+    tu, m0 = initialised(TrackerParams(suspend_updates=False))
+    blue = frame_with((255, 0, 0))
+    m1, eta, _ = tu.step(blue, result(blue, TrackState.OCCLUDED, False, False))
+    assert eta == pytest.approx(0.02)  # the rejected best candidate is blended in anyway
+    assert m1[10, 7] == pytest.approx(0.02)
+
+
+def test_save_load_roundtrip(tmp_path: Path) -> None:
+    tu, _ = initialised(TrackerParams())
+    blue = frame_with((255, 0, 0))
+    m1, _, _ = tu.step(blue, result(blue, TrackState.TRACKING, True, True))
+    path = tmp_path / "template.npz"
+    tu.save(path)
+    restored = TemplateUpdater(TrackerParams())
+    assert not restored.initialised
+    np.testing.assert_array_equal(restored.load(path), m1)
+    assert restored.initialised
+    with pytest.raises(ValueError, match="shape"):
+        TemplateUpdater(TrackerParams(bins_h=8)).load(path)
+    with pytest.raises(ValueError):
+        TemplateUpdater(TrackerParams()).save(tmp_path / "x.npz")
+
+
+def test_step_before_initialisation_is_inert() -> None:
+    tu = TemplateUpdater(TrackerParams())
+    frame = frame_with((0, 0, 255))
+    assert tu.step(frame, result(frame, TrackState.TRACKING, True, True)) == (None, 0.0, 0.0)

@@ -1,0 +1,156 @@
+"""End-to-end behaviour of the seed-000 tracker on a synthetic occlusion sequence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from followbus.tracking.init import frame_difference_roi, nearest_to_centre_bottom
+from followbus.tracking.kalman import Predictor
+from followbus.tracking.params import TrackerParams
+from followbus.tracking.reid import ReIdentifier, TrackState
+from followbus.tracking.template import TemplateUpdater
+from followbus.tracking.tracker import TargetTracker
+
+W, H = 480, 270
+BAR_X = (200, 280)  # grey occluder, full height; the target passes behind it
+TW, TH = 30, 60
+FRAME_NS = 33_333_333
+N_FRAMES = 60
+
+
+def scene(k: int) -> tuple[np.ndarray, np.ndarray, tuple[float, float], float]:
+    """Frame k: red target moving right at 5 px/frame behind the bar; a blue distractor walks left
+    in front of the bar, 70 px higher, crossing the target's column while it is hidden.
+    Detections: the distractor always, the target when ≥ 50 % visible (box of its visible part)."""
+    img = np.full((H, W, 3), (40, 90, 40), np.uint8)
+    tx, ty = 40 + 5 * k, 170
+    dx, dy = 380 - 3 * k, 100
+    img[ty:ty + TH, tx:tx + TW] = (30, 30, 220)
+    img[:, BAR_X[0]:BAR_X[1]] = (128, 128, 128)
+    img[dy:dy + TH, dx:dx + TW] = (220, 60, 30)
+    xs = np.arange(tx, tx + TW)
+    visible = (xs < BAR_X[0]) | (xs >= BAR_X[1])
+    rows = []
+    if visible.mean() >= 0.5:
+        vx = xs[visible]
+        rows.append((vx.min(), ty, vx.max() - vx.min() + 1, TH, 0.9))
+    rows.append((dx, dy, TW, TH, 0.8))
+    return img, np.array(rows, np.float32), (tx + TW / 2.0, ty + TH / 2.0), float(visible.mean())
+
+
+def run(tracker: TargetTracker) -> list[tuple]:
+    out = []
+    for k in range(N_FRAMES):
+        img, dets, gt, vis = scene(k)
+        res = tracker.step(img, dets, k * FRAME_NS, v_ego_mps=(0.5, 0.0))
+        out.append((k, vis, gt, res))
+    return out
+
+
+def centre_error(box: tuple[float, float, float, float], gt: tuple[float, float]) -> float:
+    return float(np.hypot(box[0] + box[2] / 2.0 - gt[0], box[1] + box[3] / 2.0 - gt[1]))
+
+
+def test_tracker_through_occlusion_with_distractor() -> None:
+    frames = run(TargetTracker(TrackerParams()))
+    # Initialised on frame 0 from the detection nearest the image bottom-centre (the target).
+    assert frames[0][3].reid.init_box is not None
+    assert centre_error(frames[0][3].reid.init_box, frames[0][2]) == 0.0
+
+    hidden = [f for f in frames if f[1] == 0.0]
+    assert len(hidden) >= 10
+    before = [f for f in frames if f[0] < hidden[0][0] and f[1] >= 0.5]
+    after_start = hidden[-1][0] + 1
+    assert all(f[3].state is TrackState.OCCLUDED for f in hidden)
+    for _, _, gt, res in hidden:  # the predicted box is reported while hidden
+        assert res.box is not None and centre_error(res.box, gt) < 20.0
+        assert res.eta_k == 0.0
+    for _, _, gt, res in before:
+        assert res.state is TrackState.TRACKING
+        assert centre_error(res.box, gt) < 20.0
+
+    after = [f for f in frames if f[0] >= after_start and f[3].reid.accepted]
+    assert after, "target never re-identified"
+    first = after[0]
+    assert first[3].state is TrackState.REACQUIRED
+    assert first[0] <= after_start + 3  # re-identified as soon as it is ≥ 50 % visible
+    for _, _, gt, res in after:
+        assert centre_error(res.box, gt) < 20.0
+        assert res.reid.s_color > 0.9  # the red target, never the blue distractor
+    assert frames[-1][3].state is TrackState.TRACKING
+    # The template only learnt while tracked securely.
+    assert all(f[3].eta_k == 0.0 for f in frames if f[3].state is not TrackState.TRACKING)
+    assert any(f[3].eta_k > 0.0 for f in frames)
+
+
+def test_tracker_is_deterministic_and_equals_separate_processes() -> None:
+    a = run(TargetTracker(TrackerParams()))
+    b = run(TargetTracker(TrackerParams()))
+    # The three parts driven separately, in the process graph's order, with their own state.
+    params = TrackerParams()
+    predictor, reid, template = Predictor(params), ReIdentifier(params), TemplateUpdater(params)
+    hist = None
+    for k in range(N_FRAMES):
+        img, dets, _, _ = scene(k)
+        prior = predictor.predict(k * FRAME_NS, (0.5, 0.0))
+        r = reid.step(img, dets, prior, hist, k * FRAME_NS)
+        predictor.apply(r, (0.5, 0.0))
+        hist, eta, _ = template.step(img, r)
+        ta, tb = a[k][3], b[k][3]
+        assert (ta.state, ta.box, ta.eta_k, ta.reid.m_fuse) == (tb.state, tb.box, tb.eta_k, tb.reid.m_fuse)
+        assert ta.state == r.state and ta.reid.box == r.box and ta.reid.m_fuse == r.m_fuse
+        assert ta.eta_k == eta
+        np.testing.assert_array_equal(ta.template_hist, hist)
+        if prior is not None:
+            np.testing.assert_array_equal(ta.prior.state, prior.state)
+            np.testing.assert_array_equal(ta.prior.innovation_cov, prior.innovation_cov)
+
+
+def test_explicit_init_box_and_lost() -> None:
+    params = TrackerParams(lost_after_ms=200.0)
+    tr = TargetTracker(params)
+    img, dets, _, _ = scene(0)
+    res = tr.step(img, dets, 0, init_box=(40.0, 170.0, 30.0, 60.0))
+    assert res.state is TrackState.TRACKING and res.box == (40.0, 170.0, 30.0, 60.0)
+    empty = np.full((H, W, 3), (40, 90, 40), np.uint8)
+    states = [tr.step(empty, None, k * FRAME_NS).state for k in range(1, 10)]
+    assert states[:6] == [TrackState.OCCLUDED] * 6  # ≤ 200 ms since the last match
+    assert states[6:] == [TrackState.LOST] * 3
+    assert tr.step(empty, None, 10 * FRAME_NS).box is None  # no output box when LOST
+
+
+def test_no_target_before_initialisation() -> None:
+    tr = TargetTracker(TrackerParams())
+    empty = np.full((H, W, 3), (40, 90, 40), np.uint8)
+    res = tr.step(empty, np.zeros((0, 5), np.float32), 0)
+    assert res.state is TrackState.UNINITIALISED and res.box is None and res.prior is None
+
+
+def test_init_helpers() -> None:
+    dets = np.array([[10, 10, 20, 40, 0.9], [300, 200, 20, 40, 0.9], [150, 150, 30, 60, 0.5]], np.float32)
+    # Bottom-centres: (20, 50), (310, 240), (165, 210); image bottom-centre (160, 240).
+    assert nearest_to_centre_bottom(dets, 320, 240) == (150.0, 150.0, 30.0, 60.0)
+    assert nearest_to_centre_bottom(np.zeros((0, 5), np.float32), 320, 240) is None
+    prev = np.zeros((120, 160, 3), np.uint8)
+    cur = prev.copy()
+    cur[40:80, 60:80] = (200, 200, 200)  # big mover
+    cur[5:8, 5:8] = (255, 255, 255)  # 3x3 speck: removed by the 5x5 opening
+    assert frame_difference_roi(prev, cur, 25, 5) == (60.0, 40.0, 20.0, 40.0)
+    assert frame_difference_roi(prev, prev, 25, 5) is None
+    faint = prev.copy()
+    faint[40:80, 60:80] = 20  # below Thresh_diff = 25
+    assert frame_difference_roi(prev, faint, 25, 5) is None
+
+
+def test_params_table1_defaults_and_dict_roundtrip() -> None:
+    p = TrackerParams()
+    assert (p.diff_threshold, p.morph_kernel_px, p.bins_h, p.bins_s) == (25, 5, 16, 8)
+    assert (p.dt_ms, p.gate_chi2, p.reid_threshold, p.tau_occ) == (33.0, 9.488, 0.75, 0.60)
+    assert (p.tau_v, p.tau_s, p.eta_base) == (220, 45, 0.02)
+    assert TrackerParams.from_dict(p.to_dict()) == p
+    assert TrackerParams.from_dict({"gamma": 5.0}).gamma == 5.0
+    with pytest.raises(ValueError, match="gate_chi"):
+        TrackerParams.from_dict({"gate_chi": 9.0})
+    with pytest.raises(ValueError, match="reid_threshold"):
+        TrackerParams(reid_threshold=1.5)

@@ -1,0 +1,326 @@
+"""Constant-velocity Kalman prediction of the target centre (paper §2.3, Eq. 4-8).
+
+State X = [x, y, vx, vy] (px, px/s) of the box centre. The box size (w, h) is not part of the
+Kalman state: it is carried by a separate exponential smoother (constant under prediction,
+w,h ← (1-a)·w,h + a·z_wh on update) because the paper's filter (Eq. 5) only models the centroid
+and a size that lags a little is harmless for gating and drawing.
+
+Time comes only from message stamps (``t_ns``), so replays are bit-identical.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from followbus.tracking.params import TrackerParams
+
+if TYPE_CHECKING:
+    from followbus.tracking.reid import ReidResult
+
+logger = logging.getLogger(__name__)
+
+Box = tuple[float, float, float, float]
+
+# Eq. 5 measurement matrix: only the centre is observed.
+H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
+
+
+def box_centre(box: Sequence[float]) -> tuple[float, float]:
+    return (float(box[0]) + float(box[2]) / 2.0, float(box[1]) + float(box[3]) / 2.0)
+
+
+def centre_size_to_box(cx: float, cy: float, w: float, h: float) -> Box:
+    return (cx - w / 2.0, cy - h / 2.0, w, h)
+
+
+def transition_matrix(dt_s: float) -> np.ndarray:
+    """Eq. 5 state transition A for a constant-velocity model."""
+    return np.array(
+        [[1.0, 0.0, dt_s, 0.0], [0.0, 1.0, 0.0, dt_s], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+    )
+
+
+def process_noise(dt_s: float, accel_std_px_s2: float) -> np.ndarray:
+    """Q of W_k (Eq. 4): discretised white acceleration, independent per axis."""
+    q = accel_std_px_s2**2
+    a, b, c = dt_s**4 / 4.0, dt_s**3 / 2.0, dt_s**2
+    return q * np.array([[a, 0.0, b, 0.0], [0.0, a, 0.0, b], [b, 0.0, c, 0.0], [0.0, b, 0.0, c]])
+
+
+def mahalanobis_sq_from_cov(z: Sequence[float], centre: Sequence[float], S: np.ndarray) -> float:
+    """(Z - Ẑ)ᵀ S⁻¹ (Z - Ẑ) of Eq. 8."""
+    d = np.array([float(z[0]) - float(centre[0]), float(z[1]) - float(centre[1])])
+    return float(d @ np.linalg.solve(S, d))
+
+
+def gate_ellipse_from_cov(
+    centre: Sequence[float], S: np.ndarray, gate_chi2: float
+) -> tuple[float, float, float, float, float]:
+    """The Eq. 8 region dᵀS⁻¹d ≤ χ² as (cx, cy, semi_axis_a, semi_axis_b, angle_deg).
+
+    a ≥ b; angle is the direction of the a axis in image coordinates (x right, y down), in
+    (-90, 90] degrees, as expected by cv2.ellipse (which takes the full axes 2a, 2b).
+    """
+    evals, evecs = np.linalg.eigh(np.asarray(S, dtype=np.float64))  # ascending eigenvalues
+    evals = np.clip(evals, 0.0, None)
+    a = math.sqrt(gate_chi2 * evals[1])
+    b = math.sqrt(gate_chi2 * evals[0])
+    if evals[1] - evals[0] <= 1e-12 * max(float(evals[1]), 1e-300):
+        return (float(centre[0]), float(centre[1]), a, b, 0.0)  # a circle: any angle; report 0
+    vx, vy = float(evecs[0, 1]), float(evecs[1, 1])
+    angle = math.degrees(math.atan2(vy, vx))
+    # An eigenvector's sign is arbitrary; fold to (-90, 90] so the output is unique.
+    if angle <= -90.0:
+        angle += 180.0
+    elif angle > 90.0:
+        angle -= 180.0
+    return (float(centre[0]), float(centre[1]), a, b, angle)
+
+
+@dataclass
+class Prior:
+    """Kalman prior of one frame: what re-identification gates and scores against.
+
+    Field names mirror the bus ``Prior`` message: ``state`` X̂⁻ (x, y, vx, vy), ``covariance`` the
+    4x4 P⁻, ``innovation_cov`` the 2x2 S = H P⁻ Hᵀ + R used by the gate (Eq. 8).
+    """
+
+    t_ns: int
+    state: np.ndarray
+    size: tuple[float, float]
+    covariance: np.ndarray
+    innovation_cov: np.ndarray
+    gate_chi2: float
+
+    @property
+    def centre(self) -> tuple[float, float]:
+        return (float(self.state[0]), float(self.state[1]))
+
+    @property
+    def velocity_px_s(self) -> tuple[float, float]:
+        return (float(self.state[2]), float(self.state[3]))
+
+    @property
+    def box(self) -> Box:
+        return centre_size_to_box(*self.centre, *self.size)
+
+    def mahalanobis_sq(self, z: Sequence[float]) -> float:
+        return mahalanobis_sq_from_cov(z, self.centre, self.innovation_cov)
+
+    def in_gate(self, z: Sequence[float]) -> bool:
+        return self.mahalanobis_sq(z) <= self.gate_chi2  # Eq. 8
+
+    def gate_ellipse(self) -> tuple[float, float, float, float, float]:
+        return gate_ellipse_from_cov(self.centre, self.innovation_cov, self.gate_chi2)
+
+
+class KalmanCV:
+    """Eq. 4-8 constant-velocity filter on the box centre, plus a smoothed box size."""
+
+    def __init__(
+        self,
+        accel_std_px_s2: float = 500.0,
+        r0_px2: float = 64.0,
+        kappa_px2_per_mps2: float = 400.0,
+        init_velocity_std_px_s: float = 300.0,
+        dt_ms: float = 33.0,
+        gate_chi2: float = 9.488,
+        size_smoothing: float = 0.3,
+    ) -> None:
+        self.accel_std_px_s2 = float(accel_std_px_s2)
+        self.r0_px2 = float(r0_px2)
+        self.kappa_px2_per_mps2 = float(kappa_px2_per_mps2)
+        self.init_velocity_std_px_s = float(init_velocity_std_px_s)
+        self.dt_ms = float(dt_ms)
+        self.gate_chi2 = float(gate_chi2)
+        self.size_smoothing = float(size_smoothing)
+        self.x = np.zeros(4)
+        self.P = np.eye(4)
+        self.size = (0.0, 0.0)
+        self.R = self.r0_px2 * np.eye(2)  # last measurement noise used; default for gating
+        self.t_ns: int | None = None  # stamp the state refers to
+        self.initialised = False
+
+    @classmethod
+    def from_params(cls, params: TrackerParams) -> KalmanCV:
+        return cls(
+            accel_std_px_s2=params.accel_std_px_s2,
+            r0_px2=params.r0_px2,
+            kappa_px2_per_mps2=params.kappa_px2_per_mps2,
+            init_velocity_std_px_s=params.init_velocity_std_px_s,
+            dt_ms=params.dt_ms,
+            gate_chi2=params.gate_chi2,
+            size_smoothing=params.size_smoothing,
+        )
+
+    def initialise(self, box: Sequence[float], t_ns: int | None = None) -> None:
+        """Start at the box centre with zero velocity; position variance R0, velocity variance wide."""
+        cx, cy = box_centre(box)
+        self.x = np.array([cx, cy, 0.0, 0.0])
+        v2 = self.init_velocity_std_px_s**2
+        self.P = np.diag([self.r0_px2, self.r0_px2, v2, v2])
+        self.size = (float(box[2]), float(box[3]))
+        self.R = self.r0_px2 * np.eye(2)
+        self.t_ns = None if t_ns is None else int(t_ns)
+        self.initialised = True
+
+    def predict(self, t_ns: int | None = None) -> None:
+        """Time update X⁻ = A X, P⁻ = A P Aᵀ + Q (Eq. 4-5) up to stamp ``t_ns``.
+
+        Δt comes from consecutive stamps; with no previous stamp (or ``t_ns`` None) it falls back
+        to ``dt_ms``. Predicting to the same stamp twice is a no-op (Δt = 0), so a repeated call
+        for one frame is harmless; an older stamp is treated as Δt = 0.
+        """
+        if not self.initialised:
+            raise RuntimeError("KalmanCV.predict() before initialise()")
+        if t_ns is None or self.t_ns is None:
+            dt_s = self.dt_ms / 1000.0
+        else:
+            dt_ns = int(t_ns) - self.t_ns
+            if dt_ns < 0:
+                logger.warning("predict: stamp %d older than state stamp %d; holding state", t_ns, self.t_ns)
+                dt_ns = 0
+            dt_s = dt_ns / 1e9
+        if t_ns is not None:
+            self.t_ns = max(int(t_ns), self.t_ns) if self.t_ns is not None else int(t_ns)
+        elif self.t_ns is not None:
+            self.t_ns += int(round(self.dt_ms * 1e6))
+        if dt_s == 0.0:
+            return
+        A = transition_matrix(dt_s)
+        self.x = A @ self.x
+        P = A @ self.P @ A.T + process_noise(dt_s, self.accel_std_px_s2)
+        self.P = 0.5 * (P + P.T)
+
+    def measurement_noise(self, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> np.ndarray:
+        """Eq. 7: R_k = R0 + κ‖v_ego‖² I — vibration at speed makes the image centre less reliable."""
+        speed2 = float(v_ego_mps[0]) ** 2 + float(v_ego_mps[1]) ** 2
+        return (self.r0_px2 + self.kappa_px2_per_mps2 * speed2) * np.eye(2)
+
+    def innovation_cov(self, R: np.ndarray | None = None) -> np.ndarray:
+        """S = H P⁻ Hᵀ + R.
+
+        The paper writes the gate (Eq. 8) with P_k; the covariance of the innovation Z - ẐK is S,
+        which is the principled form (it also counts measurement noise, so the gate widens with
+        ego speed via Eq. 7).
+        """
+        R = self.R if R is None else np.asarray(R, dtype=np.float64)
+        S = H @ self.P @ H.T + R
+        return 0.5 * (S + S.T)
+
+    def mahalanobis_sq(self, z: Sequence[float], R: np.ndarray | None = None) -> float:
+        return mahalanobis_sq_from_cov(z, self.x[:2], self.innovation_cov(R))
+
+    def in_gate(self, z: Sequence[float], R: np.ndarray | None = None) -> bool:
+        return self.mahalanobis_sq(z, R) <= self.gate_chi2  # Eq. 8
+
+    def gate_ellipse(self, R: np.ndarray | None = None) -> tuple[float, float, float, float, float]:
+        return gate_ellipse_from_cov(self.x[:2], self.innovation_cov(R), self.gate_chi2)
+
+    def update(
+        self,
+        z_xy: Sequence[float],
+        wh: Sequence[float] | None = None,
+        R: np.ndarray | None = None,
+    ) -> None:
+        """Measurement update with Z = H X + V (Eq. 6); ``wh`` None keeps the size unchanged."""
+        if not self.initialised:
+            raise RuntimeError("KalmanCV.update() before initialise()")
+        if R is not None:
+            self.R = np.asarray(R, dtype=np.float64)
+        z = np.array([float(z_xy[0]), float(z_xy[1])])
+        S = self.innovation_cov(self.R)
+        K = np.linalg.solve(S, H @ self.P).T  # P Hᵀ S⁻¹ (S and P symmetric)
+        self.x = self.x + K @ (z - H @ self.x)
+        # Joseph form keeps P symmetric positive definite under rounding.
+        IKH = np.eye(4) - K @ H
+        P = IKH @ self.P @ IKH.T + K @ self.R @ K.T
+        self.P = 0.5 * (P + P.T)
+        if wh is not None:
+            a = self.size_smoothing
+            self.size = (
+                (1.0 - a) * self.size[0] + a * float(wh[0]),
+                (1.0 - a) * self.size[1] + a * float(wh[1]),
+            )
+
+    @property
+    def box(self) -> Box:
+        return centre_size_to_box(float(self.x[0]), float(self.x[1]), *self.size)
+
+
+@dataclass
+class Posterior:
+    """Track estimate after a frame's measurement step (mirrors the bus ``Track`` message)."""
+
+    t_ns: int
+    box: Box
+    velocity_px_s: tuple[float, float]
+    measured: bool
+
+
+class Predictor:
+    """The prediction process: owns the Kalman filter and the Eq. 7 noise, consumes re-ID results.
+
+    Per frame k the graph calls ``predict(t_k, v_ego)`` → Prior (published to re-ID), then
+    ``apply(reid_k, v_ego)`` once the measurement of frame k arrives. Suspension of the
+    measurement update (§2.3, Alg. 1 line 17) is simply not updating when nothing was accepted.
+    """
+
+    def __init__(self, params: TrackerParams | None = None) -> None:
+        self.params = params or TrackerParams()
+        self.kf = KalmanCV.from_params(self.params)
+
+    @property
+    def initialised(self) -> bool:
+        return self.kf.initialised
+
+    def reset(self) -> None:
+        self.kf = KalmanCV.from_params(self.params)
+
+    def predict(self, t_ns: int, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> Prior | None:
+        """Prior of frame ``t_ns``; None before initialisation."""
+        if not self.kf.initialised:
+            return None
+        self.kf.predict(t_ns)
+        R = self.kf.measurement_noise(v_ego_mps)  # Eq. 7 with the current ego speed
+        return Prior(
+            t_ns=int(t_ns),
+            state=self.kf.x.copy(),
+            size=self.kf.size,
+            covariance=self.kf.P.copy(),
+            innovation_cov=self.kf.innovation_cov(R),
+            gate_chi2=self.kf.gate_chi2,
+        )
+
+    def apply(self, reid: ReidResult, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> Posterior | None:
+        """Fold frame k's re-ID result into the filter (Alg. 1 lines 11/13 and 16/17)."""
+        if reid.init_box is not None:
+            self.kf.initialise(reid.init_box, reid.t_ns)
+            logger.info("predictor initialised at %s", tuple(round(v, 1) for v in reid.init_box))
+            return self._posterior(reid.t_ns, measured=True)
+        if not self.kf.initialised:
+            return None
+        box = reid.box if reid.accepted else None
+        if box is None and not self.params.suspend_updates:
+            box = reid.best_box  # ablation "w/o update suspension": trust the best candidate anyway
+        if box is None:
+            return self._posterior(reid.t_ns, measured=False)
+        # Motion-blob boxes cover only the moving part of the target, so they locate it but do
+        # not measure its extent: only detector boxes update the size.
+        wh = (box[2], box[3]) if reid.source == "detection" else None
+        self.kf.update(box_centre(box), wh, self.kf.measurement_noise(v_ego_mps))
+        return self._posterior(reid.t_ns, measured=True)
+
+    def _posterior(self, t_ns: int, measured: bool) -> Posterior:
+        return Posterior(
+            t_ns=int(t_ns),
+            box=self.kf.box,
+            velocity_px_s=(float(self.kf.x[2]), float(self.kf.x[3])),
+            measured=measured,
+        )

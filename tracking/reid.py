@@ -1,0 +1,302 @@
+"""Adaptive multi-factor re-identification, one frame at a time (paper §2.2, §2.4, Algorithm 1).
+
+Per frame: gate candidates with the Kalman prior (Eq. 8), score each by appearance S_color
+(Eq. 1) and geometry S_geo, fuse them with the visibility-driven weight ω(t) (Eq. 2-3), accept
+the best one if M_fuse > Thresh_reid (Alg. 1 line 9), and run the track state machine.
+
+Definitions this module fixes (the paper leaves them open):
+
+* Visibility confidence C_t = the highest S_color among this frame's candidates (0 with no
+  candidate): "how well can the target's appearance be seen in the search region right now".
+  ω(t) is therefore one number per frame, as Eq. 3 writes it.
+* S_geo = s_gate · s_dist · s_size (see :func:`geometric_score`).
+* Candidates are the detections whose centre is in the gate; only when there is none, the
+  frame-difference blobs in the gate (Alg. 1 line 2, background subtraction).
+* ``secure`` (Eq. 10 "tracked securely") = accepted, state TRACKING (not within the first
+  ``reacquired_hold_frames`` after a re-lock), not ambiguous (no other candidate's M_fuse within
+  ``ambiguity_margin`` of the best) and a detector box (a motion blob covers only the moving
+  part of the target, so its patch mixes in background).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+
+from followbus.tracking.appearance import bhattacharyya, hs_histogram
+from followbus.tracking.init import motion_blobs, nearest_to_centre_bottom, to_grey
+from followbus.tracking.kalman import Box, Prior, box_centre
+from followbus.tracking.params import TrackerParams
+
+logger = logging.getLogger(__name__)
+
+
+class TrackState(str, Enum):
+    UNINITIALISED = "UNINITIALISED"  # no target chosen yet
+    TRACKING = "TRACKING"
+    OCCLUDED = "OCCLUDED"  # no acceptable match: Kalman update suspended, template frozen
+    REACQUIRED = "REACQUIRED"  # first accepted frame(s) after OCCLUDED/LOST
+    LOST = "LOST"  # occluded for longer than lost_after_ms; still searching
+
+
+def geometric_score(
+    candidate_box: Sequence[float],
+    predicted_box: Sequence[float],
+    maha_sq: float,
+    gate_chi2: float,
+    geo_scale: float = 0.5,
+) -> float:
+    """S_geo in [0, 1] of §2.2.2: agreement of a candidate with the predicted centre and size.
+
+    S_geo = s_gate · s_dist · s_size with
+      s_gate = max(0, 1 - d²_M / χ²)                  1 at the prediction, 0 on the gate boundary
+      s_dist = exp(-(d_px / (geo_scale · diag))²)      diag = predicted box diagonal (px)
+      s_size = sqrt(r_w · r_h),  r_w = min(w, ŵ)/max(w, ŵ), r_h likewise
+    s_gate normalises the centre distance by the prior uncertainty (the gate). s_dist is the
+    paper's Euclidean centroid distance, scaled by the target size: when appearance is weak
+    (ω → 0) geometry alone decides, and after a long occlusion the gate is so wide that s_gate
+    alone would accept any person-sized object near it. s_size rejects partial or wrong-size
+    boxes.
+    """
+    s_gate = min(max(1.0 - float(maha_sq) / float(gate_chi2), 0.0), 1.0)
+    cx, cy = box_centre(candidate_box)
+    px, py = box_centre(predicted_box)
+    w, h = max(float(candidate_box[2]), 0.0), max(float(candidate_box[3]), 0.0)
+    pw, ph = max(float(predicted_box[2]), 0.0), max(float(predicted_box[3]), 0.0)
+    diag = math.hypot(pw, ph)
+    if geo_scale > 0.0 and diag > 0.0:
+        s_dist = math.exp(-((math.hypot(cx - px, cy - py) / (geo_scale * diag)) ** 2))
+    else:
+        s_dist = 1.0
+    if min(w, h, pw, ph) <= 0.0:
+        return 0.0
+    s_size = math.sqrt((min(w, pw) / max(w, pw)) * (min(h, ph) / max(h, ph)))
+    return s_gate * s_dist * s_size
+
+
+def appearance_weight(c_t: float, tau_occ: float = 0.60, gamma: float = 10.0) -> float:
+    """Eq. 3: ω(t) = 1 / (1 + exp(-γ (C_t - τ_occ))); exactly 0.5 at C_t = τ_occ."""
+    z = gamma * (float(c_t) - tau_occ)
+    if z >= 0.0:
+        return 1.0 / (1.0 + math.exp(-z))
+    e = math.exp(z)  # same value, no overflow for very negative z
+    return e / (1.0 + e)
+
+
+def fuse(s_color: float, s_geo: float, omega: float) -> float:
+    """Eq. 2 with α = ω and β = 1 - ω."""
+    return omega * s_color + (1.0 - omega) * s_geo
+
+
+@dataclass
+class Candidate:
+    box: Box
+    source: str  # "detection" or "motion"
+    maha_sq: float
+    s_color: float
+    s_geo: float
+    m_fuse: float = 0.0
+    hist: np.ndarray | None = field(default=None, repr=False)
+
+
+@dataclass
+class ReidResult:
+    """Outcome of Algorithm 1 for one frame (mirrors the bus ``Measurement`` message)."""
+
+    t_ns: int
+    state: TrackState
+    accepted: bool = False
+    secure: bool = False
+    box: Box | None = None  # the accepted box (Alg. 1 line 11), else None
+    best_box: Box | None = None  # argmax M_fuse even when rejected (ablation without suspension)
+    source: str = ""  # "detection", "motion" or "init" for the chosen box
+    m_fuse: float = 0.0
+    s_color: float = 0.0
+    s_geo: float = 0.0
+    omega: float = 0.0
+    c_t: float = 0.0
+    candidates: list[Candidate] = field(default_factory=list)
+    candidate_hist: np.ndarray | None = None  # H-S histogram C* of the chosen candidate
+    init_box: Box | None = None  # set on the frame the target was (re)initialised
+
+    def candidates_array(self) -> np.ndarray:
+        """(N, 5) float32 rows x, y, w, h, M_fuse (the bus ``Measurement.candidates`` layout)."""
+        rows = [(*c.box, c.m_fuse) for c in self.candidates]
+        return np.array(rows, dtype=np.float32).reshape(-1, 5)
+
+
+def _valid_boxes(detections: np.ndarray | None) -> list[Box]:
+    if detections is None:
+        return []
+    dets = np.asarray(detections, dtype=np.float64)
+    if dets.size == 0:
+        return []
+    dets = dets.reshape(-1, dets.shape[-1])
+    boxes = []
+    for row in dets:
+        x, y, w, h = (float(v) for v in row[:4])
+        if all(math.isfinite(v) for v in (x, y, w, h)) and w >= 1.0 and h >= 1.0:
+            boxes.append((x, y, w, h))
+    return boxes
+
+
+class ReIdentifier:
+    """Stateful Algorithm 1: keeps the previous grey frame (for motion blobs) and the track state."""
+
+    def __init__(self, params: TrackerParams | None = None) -> None:
+        self.params = params or TrackerParams()
+        self.reset()
+
+    def reset(self) -> None:
+        self.state = TrackState.UNINITIALISED
+        self._prev_grey: np.ndarray | None = None
+        self._t_last_accept_ns = 0
+        self._reacquired_count = 0
+
+    def step(
+        self,
+        frame_bgr: np.ndarray,
+        detections: np.ndarray | None,
+        prior: Prior | None,
+        template_hist: np.ndarray | None,
+        t_ns: int,
+        init_box: Sequence[float] | None = None,
+    ) -> ReidResult:
+        """Run one frame. Without a prior or a template (or with an explicit ``init_box``) this
+        initialises the target instead: ``init_box``, else the detection nearest the image
+        bottom-centre, else the frame-difference ROI (§2.1)."""
+        t_ns = int(t_ns)
+        grey = to_grey(frame_bgr)
+        prev_grey, self._prev_grey = self._prev_grey, grey
+        boxes = _valid_boxes(detections)
+        if init_box is not None or prior is None or template_hist is None:
+            return self._initialise(frame_bgr, boxes, prev_grey, grey, t_ns, init_box)
+
+        p = self.params
+        candidates = self._gate_candidates(boxes, prior, "detection")
+        if not candidates and prev_grey is not None:
+            # Alg. 1 line 2: nothing detected in R, look for moving regions inside it instead.
+            roi = self._search_window(prior, grey.shape) if p.use_gate else None
+            blobs = motion_blobs(prev_grey, grey, p.diff_threshold, p.morph_kernel_px, p.min_blob_area_px, roi)
+            candidates = self._gate_candidates([b for b, _ in blobs], prior, "motion")
+
+        for c in candidates:
+            c.hist = hs_histogram(frame_bgr, c.box, p.bins_h, p.bins_s)
+            c.s_color = bhattacharyya(c.hist, template_hist)  # Eq. 1, Alg. 1 line 4
+            c.s_geo = (
+                geometric_score(c.box, prior.box, c.maha_sq, prior.gate_chi2, p.geo_scale)
+                if p.use_geometry
+                else 0.0
+            )  # Alg. 1 line 5
+        c_t = max((c.s_color for c in candidates), default=0.0)
+        omega = appearance_weight(c_t, p.tau_occ, p.gamma) if p.use_geometry else 1.0  # Eq. 3
+        for c in candidates:
+            c.m_fuse = fuse(c.s_color, c.s_geo, omega)  # Eq. 2, Alg. 1 line 6
+
+        best = max(candidates, key=lambda c: c.m_fuse) if candidates else None  # first on ties
+        accepted = best is not None and best.m_fuse > p.reid_threshold  # Alg. 1 line 9
+        self._advance_state(accepted, t_ns)
+
+        result = ReidResult(t_ns=t_ns, state=self.state, accepted=accepted, omega=omega, c_t=c_t,
+                            candidates=candidates)
+        if best is not None:
+            ambiguous = any(
+                c is not best and c.m_fuse >= best.m_fuse - p.ambiguity_margin for c in candidates
+            )
+            result.best_box = best.box
+            result.source = best.source
+            result.m_fuse, result.s_color, result.s_geo = best.m_fuse, best.s_color, best.s_geo
+            result.candidate_hist = best.hist
+            if accepted:
+                result.box = best.box
+                result.secure = self.state is TrackState.TRACKING and not ambiguous and best.source == "detection"
+        logger.debug(
+            "reid t=%d state=%s n=%d C_t=%.3f ω=%.3f M=%.3f", t_ns, self.state.value, len(candidates), c_t,
+            omega, result.m_fuse,
+        )
+        return result
+
+    def _initialise(
+        self,
+        frame_bgr: np.ndarray,
+        boxes: list[Box],
+        prev_grey: np.ndarray | None,
+        grey: np.ndarray,
+        t_ns: int,
+        init_box: Sequence[float] | None,
+    ) -> ReidResult:
+        p = self.params
+        height, width = grey.shape[:2]
+        box: Box | None = None
+        if init_box is not None:
+            box = (float(init_box[0]), float(init_box[1]), float(init_box[2]), float(init_box[3]))
+        elif boxes:
+            box = nearest_to_centre_bottom(np.array(boxes), width, height)
+        elif prev_grey is not None:
+            blobs = motion_blobs(prev_grey, grey, p.diff_threshold, p.morph_kernel_px, p.min_blob_area_px)
+            box = blobs[0][0] if blobs else None
+        if box is None:
+            self.state = TrackState.UNINITIALISED
+            return ReidResult(t_ns=t_ns, state=self.state)
+        self.state = TrackState.TRACKING
+        self._t_last_accept_ns = t_ns
+        self._reacquired_count = 0
+        logger.info("target initialised at %s", tuple(round(v, 1) for v in box))
+        return ReidResult(
+            t_ns=t_ns,
+            state=self.state,
+            accepted=True,
+            box=box,
+            best_box=box,
+            source="init",
+            candidate_hist=hs_histogram(frame_bgr, box, p.bins_h, p.bins_s),
+            init_box=box,
+        )
+
+    def _gate_candidates(self, boxes: list[Box], prior: Prior, source: str) -> list[Candidate]:
+        out = []
+        for box in boxes:
+            d2 = prior.mahalanobis_sq(box_centre(box))
+            if self.params.use_gate and not d2 <= prior.gate_chi2:  # Eq. 8 (also drops NaN)
+                continue
+            out.append(Candidate(box=box, source=source, maha_sq=d2, s_color=0.0, s_geo=0.0))
+        return out
+
+    @staticmethod
+    def _search_window(prior: Prior, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
+        """Bounding rectangle of the gate ellipse, padded by half the predicted box so blobs of a
+        target centred near the boundary are not cut; the motion search costs O(w·h) (§2.3)."""
+        S = prior.innovation_cov
+        cx, cy = prior.centre
+        rx = math.sqrt(max(prior.gate_chi2 * float(S[0, 0]), 0.0)) + prior.size[0] / 2.0
+        ry = math.sqrt(max(prior.gate_chi2 * float(S[1, 1]), 0.0)) + prior.size[1] / 2.0
+        height, width = shape[:2]
+
+        def clamp(v: float, hi: int) -> int:
+            return int(min(max(v, 0.0), float(hi)))
+
+        return (clamp(math.floor(cx - rx), width), clamp(math.floor(cy - ry), height),
+                clamp(math.ceil(cx + rx), width), clamp(math.ceil(cy + ry), height))
+
+    def _advance_state(self, accepted: bool, t_ns: int) -> None:
+        previous = self.state
+        if accepted:
+            if previous in (TrackState.OCCLUDED, TrackState.LOST):
+                self.state, self._reacquired_count = TrackState.REACQUIRED, 1
+            elif previous is TrackState.REACQUIRED and self._reacquired_count < self.params.reacquired_hold_frames:
+                self._reacquired_count += 1
+            else:
+                self.state = TrackState.TRACKING
+            self._t_last_accept_ns = t_ns
+        else:
+            lost_after_ns = int(round(self.params.lost_after_ms * 1e6))
+            occluded_ns = t_ns - self._t_last_accept_ns
+            self.state = TrackState.LOST if occluded_ns > lost_after_ns else TrackState.OCCLUDED
+        if self.state is not previous:
+            logger.info("track state %s -> %s at t=%d", previous.value, self.state.value, t_ns)
+
