@@ -1,0 +1,113 @@
+"""The tracking graph launched for real (six processes over Zenoh on loopback): the target is
+re-acquired after a complete occlusion, and the motor stops when the target is lost."""
+
+from __future__ import annotations
+
+import subprocess
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from followbus.bus.pubsub import Subscriber
+from followbus.bus.schemas import GroundTruth, MotorCommand, Track
+from followbus.bus.session import ZenohSettings, open_session
+
+from .conftest import REPO, followbus_argv, processes_matching
+
+pytestmark = pytest.mark.slow
+
+
+def _graph_copy(tmp_path: Path, port: int) -> Path:
+    text = (REPO / "graph.yaml").read_text().replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}")
+    text = text.replace("namespace: fb", "namespace: t")
+    path = tmp_path / "graph.yaml"
+    path.write_text(text)
+    return path
+
+
+class Collector:
+    def __init__(self, port: int):
+        self.session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+        self.lock = threading.Lock()
+        self.tracks: dict[int, Track] = {}
+        self.truth: dict[int, GroundTruth] = {}
+        self.commands: list[MotorCommand] = []
+        self.subs = [
+            Subscriber(self.session, "t/prediction/track", self._put(self.tracks), schema=Track),
+            Subscriber(self.session, "t/capture/ground_truth", self._put(self.truth), schema=GroundTruth),
+            Subscriber(self.session, "t/motor/command", self._append, schema=MotorCommand),
+        ]
+
+    def _put(self, store):
+        def put(msg):
+            with self.lock:
+                store[msg.header.frame_seq] = msg
+        return put
+
+    def _append(self, msg):
+        with self.lock:
+            self.commands.append(msg)
+
+    def close(self) -> None:
+        for sub in self.subs:
+            sub.undeclare()
+        self.session.close()
+
+
+def _launch(graph: Path, scene: str, duration_s: float, tmp_path: Path, *extra: str) -> subprocess.CompletedProcess:
+    argv = followbus_argv("launch", str(graph), "--duration", str(duration_s),
+                          "--set", f"capture.source=scene:{scene}", "--set", "detection.backend=simulated",
+                          "--set", f"template.state_file={tmp_path / 'template.npz'}", *extra)
+    return subprocess.run(argv, capture_output=True, text=True, timeout=duration_s + 60, stdin=subprocess.DEVNULL)
+
+
+def _centre_error(track: Track, truth: GroundTruth) -> float:
+    a, b = np.asarray(track.box), np.asarray(truth.box)
+    return float(np.hypot(a[0] + a[2] / 2 - b[0] - b[2] / 2, a[1] + a[3] / 2 - b[1] - b[3] / 2))
+
+
+def test_target_is_reacquired_after_a_complete_occlusion(tmp_path, port):
+    graph = _graph_copy(tmp_path, port)
+    collector = Collector(port)
+    try:
+        result = _launch(graph, "wall-occlusion", 10.5, tmp_path)
+    finally:
+        collector.close()
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    hidden = sorted(i for i, gt in collector.truth.items() if gt.box is None)
+    assert hidden, "the scene should hide the target completely for a while"
+    start, end = hidden[0], hidden[-1]
+    states = {i: t.state for i, t in collector.tracks.items()}
+    assert any(states.get(i) == "OCCLUDED" for i in range(start, end + 1)), "occlusion was not reported"
+    after = [i for i in sorted(states) if i > end]
+    reacquired = [i for i in after if states[i] == "REACQUIRED"]
+    assert reacquired, f"never REACQUIRED after frame {end}: {[states[i] for i in after][:40]}"
+    # Once re-acquired, the output follows the real person again.
+    locked = [i for i in after if i > reacquired[0] and states[i] in ("TRACKING", "REACQUIRED")
+              and collector.truth.get(i) is not None and collector.truth[i].box is not None]
+    assert len(locked) > 20
+    errors = [_centre_error(collector.tracks[i], collector.truth[i]) for i in locked]
+    assert np.median(errors) < 20, errors
+    assert not processes_matching(str(graph))
+
+
+def test_motor_stops_when_the_target_is_lost(tmp_path, port):
+    graph = _graph_copy(tmp_path, port)
+    collector = Collector(port)
+    try:
+        result = _launch(graph, "lost-target", 9.0, tmp_path, "--set", "reid.lost_after_ms=1000")
+    finally:
+        collector.close()
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    moving = [c for c in collector.commands if c.reason == "tracking" and abs(c.vx_mps) + abs(c.wz_radps) > 0]
+    assert moving, "the robot never followed the target before it left"
+    lost_frames = sorted(i for i, t in collector.tracks.items() if t.state == "LOST")
+    assert lost_frames, "the target was never declared LOST"
+    after_lost = [c for c in collector.commands if c.header.frame_seq >= lost_frames[0]]
+    assert after_lost, "no command answered the LOST track"
+    assert after_lost[0].reason == "target-lost"
+    for cmd in after_lost:
+        assert cmd.vx_mps == 0 and cmd.vy_mps == 0 and cmd.wz_radps == 0, cmd
+        assert not np.any(cmd.wheel_radps)
