@@ -157,3 +157,27 @@ def test_predictor_without_suspension_updates_on_best_candidate() -> None:
                                  source="detection"))
     assert post is not None and post.measured
     assert pred.kf.x[0] > 110.0
+
+
+def test_predictor_uses_stamp_gaps_and_learns_size_only_from_detections() -> None:
+    params = TrackerParams()
+    pred = Predictor(params)
+    box = (90.0, 40.0, 20.0, 40.0)
+    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=box, source="init", init_box=box))
+    prior = pred.predict(500_000_000)  # a 0.5 s gap (dropped frames), not dt_ms
+    assert prior is not None
+    dt = 0.5
+    expected = params.r0_px2 + params.init_velocity_std_px_s**2 * dt**2 + params.accel_std_px_s2**2 * dt**4 / 4
+    assert prior.covariance[0, 0] == pytest.approx(expected)
+
+    blob = (92.0, 40.0, 6.0, 40.0)  # a motion blob: a sliver of the target
+    pred.apply(ReidResult(t_ns=500_000_000, state=TrackState.TRACKING, accepted=True, box=blob,
+                          best_box=blob, source="motion"))
+    assert pred.kf.size == (20.0, 40.0)
+    assert pred.kf.x[0] < 100.0  # the centre was still measured
+    pred.predict(533_000_000)
+    det = (90.0, 40.0, 30.0, 40.0)
+    pred.apply(ReidResult(t_ns=533_000_000, state=TrackState.TRACKING, accepted=True, box=det,
+                          best_box=det, source="detection"))
+    a = params.size_smoothing
+    assert pred.kf.size == pytest.approx(((1 - a) * 20.0 + a * 30.0, 40.0))

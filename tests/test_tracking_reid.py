@@ -198,3 +198,17 @@ def test_initialisation_without_init_box() -> None:
     assert reid.step(draw(bg=black), dets(), None, None, 0).state is TrackState.UNINITIALISED
     res = reid.step(draw((TARGET, RED), bg=black), dets(), None, None, 33 * MS)
     assert res.state is TrackState.TRACKING and res.init_box == TARGET
+
+
+def test_restored_template_relocks_onto_matching_detection() -> None:
+    # Prediction restarted (no prior) but the template was restored: the red target is chosen
+    # although the blue person is nearer the image bottom-centre.
+    params = TrackerParams()
+    template = hs_histogram(draw((TARGET, RED)), TARGET)
+    near = (145.0, 175.0, 30.0, 60.0)
+    reid = ReIdentifier(params)
+    res = reid.step(draw((TARGET, RED), (near, BLUE)), dets(near, TARGET), None, template, 0)
+    assert res.init_box == TARGET and res.source == "template"
+    # Nobody matches the template: fall back to the §2.1 rule (nearest bottom-centre).
+    res = ReIdentifier(params).step(draw((near, BLUE)), dets(near), None, template, 0)
+    assert res.init_box == near and res.source == "init"

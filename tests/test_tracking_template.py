@@ -108,3 +108,14 @@ def test_step_before_initialisation_is_inert() -> None:
     tu = TemplateUpdater(TrackerParams())
     frame = frame_with((0, 0, 255))
     assert tu.step(frame, result(frame, TrackState.TRACKING, True, True)) == (None, 0.0, 0.0)
+
+
+def test_relock_with_existing_template_keeps_it() -> None:
+    tu, m0 = initialised(TrackerParams())
+    blue = frame_with((255, 0, 0))
+    relock = ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX, source="template", init_box=BOX)
+    m1, eta, _ = tu.step(blue, relock)
+    np.testing.assert_array_equal(m1, m0)
+    fresh = ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX, source="init", init_box=BOX)
+    m2, _, _ = tu.step(blue, fresh)
+    assert m2[10, 7] == pytest.approx(1.0)  # a new target restarts the model

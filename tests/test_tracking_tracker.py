@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from followbus.tracking.init import frame_difference_roi, nearest_to_centre_bottom
+from followbus.tracking.init import frame_difference_roi, motion_blobs, nearest_to_centre_bottom, to_grey
 from followbus.tracking.kalman import Predictor
 from followbus.tracking.params import TrackerParams
 from followbus.tracking.reid import ReIdentifier, TrackState
@@ -138,6 +138,8 @@ def test_init_helpers() -> None:
     cur[5:8, 5:8] = (255, 255, 255)  # 3x3 speck: removed by the 5x5 opening
     assert frame_difference_roi(prev, cur, 25, 5) == (60.0, 40.0, 20.0, 40.0)
     assert frame_difference_roi(prev, prev, 25, 5) is None
+    blobs = motion_blobs(to_grey(prev), to_grey(cur), 25, 5, min_area_px=0)
+    assert [b for b, _ in blobs] == [(60.0, 40.0, 20.0, 40.0)]  # the speck did not survive the opening
     faint = prev.copy()
     faint[40:80, 60:80] = 20  # below Thresh_diff = 25
     assert frame_difference_roi(prev, faint, 25, 5) is None

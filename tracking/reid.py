@@ -114,7 +114,9 @@ class ReidResult:
     secure: bool = False
     box: Box | None = None  # the accepted box (Alg. 1 line 11), else None
     best_box: Box | None = None  # argmax M_fuse even when rejected (ablation without suspension)
-    source: str = ""  # "detection", "motion" or "init" for the chosen box
+    # Origin of the chosen box: "detection", "motion", or on an initialisation frame "init" (new
+    # target: the template restarts from it) or "template" (re-lock with an existing template).
+    source: str = ""
     m_fuse: float = 0.0
     s_color: float = 0.0
     s_geo: float = 0.0
@@ -168,14 +170,15 @@ class ReIdentifier:
         init_box: Sequence[float] | None = None,
     ) -> ReidResult:
         """Run one frame. Without a prior or a template (or with an explicit ``init_box``) this
-        initialises the target instead: ``init_box``, else the detection nearest the image
-        bottom-centre, else the frame-difference ROI (§2.1)."""
+        initialises the target instead: ``init_box``, else (when a template exists, e.g. restored
+        after a restart) the detection best matching it if above Thresh_reid, else the detection
+        nearest the image bottom-centre, else the frame-difference ROI (§2.1)."""
         t_ns = int(t_ns)
         grey = to_grey(frame_bgr)
         prev_grey, self._prev_grey = self._prev_grey, grey
         boxes = _valid_boxes(detections)
         if init_box is not None or prior is None or template_hist is None:
-            return self._initialise(frame_bgr, boxes, prev_grey, grey, t_ns, init_box)
+            return self._initialise(frame_bgr, boxes, prev_grey, grey, t_ns, init_box, template_hist)
 
         p = self.params
         candidates = self._gate_candidates(boxes, prior, "detection")
@@ -229,12 +232,16 @@ class ReIdentifier:
         grey: np.ndarray,
         t_ns: int,
         init_box: Sequence[float] | None,
+        template_hist: np.ndarray | None,
     ) -> ReidResult:
         p = self.params
         height, width = grey.shape[:2]
         box: Box | None = None
+        source = "init"
         if init_box is not None:
             box = (float(init_box[0]), float(init_box[1]), float(init_box[2]), float(init_box[3]))
+        elif template_hist is not None and (match := self._template_match(frame_bgr, boxes, template_hist)):
+            box, source = match, "template"
         elif boxes:
             box = nearest_to_centre_bottom(np.array(boxes), width, height)
         elif prev_grey is not None:
@@ -246,17 +253,27 @@ class ReIdentifier:
         self.state = TrackState.TRACKING
         self._t_last_accept_ns = t_ns
         self._reacquired_count = 0
-        logger.info("target initialised at %s", tuple(round(v, 1) for v in box))
+        logger.info("target initialised at %s (%s)", tuple(round(v, 1) for v in box), source)
         return ReidResult(
             t_ns=t_ns,
             state=self.state,
             accepted=True,
             box=box,
             best_box=box,
-            source="init",
+            source=source,
             candidate_hist=hs_histogram(frame_bgr, box, p.bins_h, p.bins_s),
             init_box=box,
         )
+
+    def _template_match(self, frame_bgr: np.ndarray, boxes: list[Box], template_hist: np.ndarray) -> Box | None:
+        """A template survived a restart of the prediction side: re-lock onto the detection that
+        looks like it (if any clears Thresh_reid) rather than onto whoever is nearest."""
+        p = self.params
+        scores = [bhattacharyya(hs_histogram(frame_bgr, b, p.bins_h, p.bins_s), template_hist) for b in boxes]
+        if not scores:
+            return None
+        i = int(np.argmax(scores))
+        return boxes[i] if scores[i] > p.reid_threshold else None
 
     def _gate_candidates(self, boxes: list[Box], prior: Prior, source: str) -> list[Candidate]:
         out = []

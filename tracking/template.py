@@ -43,9 +43,10 @@ class TemplateUpdater:
         """Apply frame k's re-ID result; returns (M_k, η_k, P_specular)."""
         p = self.params
         if reid_result.init_box is not None:
-            self.initialise(frame_bgr, reid_result.init_box)
-            assert self.hist is not None
-            return self.hist.copy(), 0.0, specular_penalty(frame_bgr, reid_result.init_box, p.tau_v, p.tau_s)
+            p_specular = specular_penalty(frame_bgr, reid_result.init_box, p.tau_v, p.tau_s)
+            if reid_result.source == "template" and self.hist is not None:
+                return self.hist.copy(), 0.0, p_specular  # re-locked with this very template: keep it
+            return self.initialise(frame_bgr, reid_result.init_box), 0.0, p_specular
         if self.hist is None:
             return None, 0.0, 0.0
         if reid_result.accepted and reid_result.box is not None:
