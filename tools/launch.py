@@ -175,6 +175,10 @@ class Launcher:
                         return self._shutdown(1)
                 if all(c.finished for c in self.children):
                     break
+                if any(c.failed for c in self.children):
+                    # A graph missing a node for good (its motor, say) must not limp on.
+                    log.error("stopping the graph: a node failed for good")
+                    break
                 time.sleep(0.05)
         except KeyboardInterrupt:
             log.info("interrupted")
