@@ -66,6 +66,8 @@ class Capture(Node):
         self.first_source_ns = 0
         self.start_at = time.monotonic() + p.start_delay_s
         self.done = False
+        # Published every frame either way (available=False without), so joins never wait for it.
+        self.has_truth = p.source.startswith("scene:") or bool(getattr(self.source, "has_ground_truth", False))
         if p.pace == "fast" and "ack" not in self.runtime.spec.inputs:
             self.log.warning("pace: fast without an 'ack' input: publishing at full speed, frames may be dropped")
         self.log.info("source %s at %.1f fps, pace %s", p.source, self.fps, p.pace)
@@ -131,11 +133,14 @@ class Capture(Node):
         seq = self.published
         frame = Frame(width=w, height=h, encoding="bgr8", data=bgr)
         frame.header.stamp_ns, frame.header.frame_seq = stamp_ns, seq
-        gt = GroundTruth(available=self._has_truth(item))
+        gt = GroundTruth(available=self.has_truth)
         if item.gt_box is not None:
             gt.box = np.asarray(item.gt_box, dtype=np.float64)
         gt.visible_fraction = float(item.extras.get("visible_fraction", 1.0 if item.gt_box is not None else 0.0))
-        others = item.extras.get("distractor_boxes") or []
+        others = item.extras.get("distractor_boxes")
+        if others is None:  # MOT layout: everyone annotated except the followed person
+            target = tuple(item.gt_box) if item.gt_box is not None else None
+            others = [row[1:5] for row in item.extras.get("gt_all", []) if tuple(row[1:5]) != target]
         gt.others = np.asarray(others, dtype=np.float64).reshape(-1, 4)
         vis = item.extras.get("distractor_visible_fractions")
         if vis is not None:
@@ -147,9 +152,6 @@ class Capture(Node):
         if self.has_output("preview"):
             self.publish("preview", self._preview(bgr, stamp_ns, seq))
         self.published += 1
-
-    def _has_truth(self, item) -> bool:
-        return self.params.source.startswith("scene:") or item.gt_box is not None or "gt_all" in item.extras
 
     def _preview(self, bgr: np.ndarray, stamp_ns: int, seq: int) -> Frame:
         p = self.params

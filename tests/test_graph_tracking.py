@@ -91,6 +91,13 @@ def test_target_is_reacquired_after_a_complete_occlusion(tmp_path, port):
     errors = [_centre_error(collector.tracks[i], collector.truth[i]) for i in locked]
     assert np.median(errors) < 20, errors
     assert not processes_matching(str(graph))
+    # The template node saved the reference model at shutdown, in a form it can restore.
+    from followbus.tracking.params import TrackerParams
+    from followbus.tracking.template import TemplateUpdater
+
+    restored = TemplateUpdater(TrackerParams())
+    restored.load(tmp_path / "template.npz")
+    assert restored.initialised and abs(float(restored.hist.sum()) - 1.0) < 1e-5
 
 
 def test_motor_stops_when_the_target_is_lost(tmp_path, port):

@@ -265,6 +265,10 @@ class ImageFolderSource(_Source):
     def __len__(self) -> int:
         return len(self.images)
 
+    @property
+    def has_ground_truth(self) -> bool:
+        return self._sot_gt is not None or self._mot_gt is not None
+
     def ground_truth(self, index: int) -> tuple[Box | None, dict[str, Any]]:
         """(gt_box, extras) of frame ``index`` (0-based) without reading the image."""
         extras: dict[str, Any] = {"path": str(self.images[index]), "layout": self.layout}
