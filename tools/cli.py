@@ -23,6 +23,8 @@ examples:
   followbus hz fb/capture/frame           rate and latency of one key
   followbus nodes                         node health from liveliness tokens
   followbus bench bus                     bus latency/throughput vs raw zenoh
+  followbus eval all --ablations         score followers on ../shared/data (results/results.md)
+  followbus bench pipeline                capture -> motor command latency through the graph
 
 Every command that talks to the bus reads the zenoh settings of --graph (default ./graph.yaml);
 --connect tcp/HOST:7447 joins another machine's graph as a client instead.
@@ -127,6 +129,38 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--rate", type=float, default=100.0, help="messages per second (default 100)")
     b.add_argument("--port", type=int, default=7461, help="loopback port to use (default 7461)")
     b.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    b = bench.add_parser("pipeline", help="end-to-end latency capture -> motor command through the launched graph",
+                         description="Launch graph.yaml at 30 Hz on a synthetic scene and measure per-edge latency "
+                                     "p50/p99 from the message headers, CPU per node and dropped frames.",
+                         epilog="example: followbus bench pipeline --duration 20 --detector yolox")
+    b.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds of measurement (default 20)")
+    b.add_argument("--detector", default="yolox", choices=("yolox", "yolox640", "hog", "simulated"),
+                   help="detection backend (default yolox = YOLOX-nano@416; falls back to hog without the model)")
+    b.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
+    b.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
+    b.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
+    p = sub.add_parser("eval", help="score followers on sequences (paper metrics, baselines, ablations, plots)",
+                       description="Run followbus, the Kalman baseline, ablations and optional peer trackers "
+                                   "in-process over SOT/MOT sequences and synthetic scenes on the same cached "
+                                   "detections; write results.md, results.json and PNG plots.",
+                       epilog="examples:\n  followbus eval all --ablations --detector yolox640\n"
+                              "  followbus eval ../shared/data/sot/otb-jogging scene:wall-occlusion --method followbus\n"
+                              "  followbus eval scene:wall-occlusion --graph-check",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("sequences", nargs="+", metavar="SEQ",
+                   help="sequence dir (sot/<name>, mot/<name>), scene:<name>, or 'all' (every sequence of the data)")
+    p.add_argument("--method", action="append", metavar="M",
+                   help="followbus | kalman | peer:bytetrack|ocsort|botsort; repeatable (default followbus + kalman)")
+    p.add_argument("--ablations", action="store_true", help="also run the paper's Table 6 ablations of followbus")
+    p.add_argument("--detector", default="yolox", choices=("yolox", "yolox640", "hog", "simulated"),
+                   help="detections for every method (default yolox = YOLOX-nano@416)")
+    p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default results/)")
+    p.add_argument("--max-frames", type=int, default=0, metavar="N", help="only the first N frames per sequence")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated detector (default 0)")
+    p.add_argument("--graph-check", action="store_true",
+                   help="instead: run the scene(s) through the launched graph and in-process, require identical boxes")
+    p.set_defaults(argv=None)
     return parser
 
 
@@ -211,6 +245,14 @@ def dispatch(args) -> int:
         from followbus.tools.bench_bus import run_bench_bus
 
         return run_bench_bus(args)
+    if cmd == "bench" and args.bench == "pipeline":
+        from followbus.tools.bench_pipeline import run_bench_pipeline
+
+        return run_bench_pipeline(args)
+    if cmd == "eval":
+        from followbus.tools.eval import cmd_eval
+
+        return cmd_eval(args)
     raise AssertionError(f"unhandled command {cmd!r}")
 
 
@@ -224,9 +266,30 @@ def cmd_demo(args) -> int:
     if args.scene:
         overrides.insert(0, f"capture.source=scene:{args.scene}")
     apply_overrides(graph, overrides)
+    init = _first_truth_box(graph)
+    if init is not None and "init_box" not in graph.nodes["reid"].params:
+        # A follower is told whom to follow: on recorded sequences that is the first annotated box.
+        overrides.append(f"reid.init_box=[{', '.join(f'{v:.2f}' for v in init)}]")
+        apply_overrides(graph, overrides[-1:])
+        print(f"target: the first ground-truth box {tuple(round(v, 1) for v in init)}")
     for spec in graph.nodes.values():
         validate_node(graph, spec)
     return run_demo(graph, args.duration, Path(args.log), overrides)
+
+
+def _first_truth_box(graph) -> tuple[float, ...] | None:
+    """The ground-truth box of frame 0 when the capture source is an annotated image folder."""
+    capture = graph.nodes.get("capture")
+    source = str(capture.params.get("source", "")) if capture else ""
+    if not source or source.startswith(("scene:", "camera:")) or not Path(source).is_dir():
+        return None
+    from followbus.vision.sources import ImageFolderSource
+
+    folder = ImageFolderSource(Path(source))
+    if not folder.has_ground_truth:
+        return None
+    box, _ = folder.ground_truth(0)
+    return None if box is None else tuple(float(v) for v in box)
 
 
 def cmd_launch(args) -> int:
