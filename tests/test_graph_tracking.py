@@ -3,8 +3,11 @@ re-acquired after a complete occlusion, and the motor stops when the target is l
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +17,7 @@ from followbus.bus.pubsub import Subscriber
 from followbus.bus.schemas import GroundTruth, MotorCommand, Track
 from followbus.bus.session import ZenohSettings, open_session
 
-from .conftest import REPO, followbus_argv, processes_matching
+from .conftest import REPO, followbus_argv, processes_matching, wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -118,3 +121,36 @@ def test_motor_stops_when_the_target_is_lost(tmp_path, port):
     for cmd in after_lost:
         assert cmd.vx_mps == 0 and cmd.vy_mps == 0 and cmd.wz_radps == 0, cmd
         assert not np.any(cmd.wheel_radps)
+
+
+def test_watchdog_stops_the_motor_when_tracks_stop(tmp_path, port):
+    from followbus.bus.health import HealthWatcher
+
+    graph = _graph_copy(tmp_path, port)
+    collector = Collector(port)
+    watcher = HealthWatcher(collector.session, "t")
+    argv = followbus_argv("launch", str(graph), "--duration", "12", "--set", "capture.source=scene:corridor-occlusion",
+                          "--set", "detection.backend=simulated",
+                          "--set", f"template.state_file={tmp_path / 'template.npz'}")
+    launcher = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL)
+    try:
+        def following() -> bool:
+            with collector.lock:
+                return sum(c.reason == "tracking" for c in collector.commands) > 30
+
+        assert wait_until(following, 30), "the robot never started following"
+        assert wait_until(lambda: (h := watcher.snapshot().get("prediction")) is not None and h.status, 5)
+        os.kill(watcher.snapshot()["prediction"].status.pid, signal.SIGKILL)
+        killed_ns = time.time_ns()
+        assert wait_until(lambda: any(c.reason == "watchdog" for c in collector.commands), 5)
+        with collector.lock:
+            last_track_pub = max(t.header.pub_ns for t in collector.tracks.values() if t.header.pub_ns < killed_ns)
+            stop = next(c for c in collector.commands if c.reason == "watchdog")
+        assert stop.vx_mps == 0 and stop.wz_radps == 0 and not np.any(stop.wheel_radps)
+        # 200 ms watchdog + one 20 ms tick, plus scheduling slack on a loaded 2-core machine.
+        assert (stop.header.pub_ns - last_track_pub) / 1e6 < 300
+    finally:
+        launcher.send_signal(signal.SIGINT)
+        launcher.wait(30)
+        watcher.close()
+        collector.close()
