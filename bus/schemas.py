@@ -52,6 +52,10 @@ class Frame(Message):
     height: int = 0
     encoding: str = "bgr8"
     data: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), np.uint8))
+    # Size of the camera frame this image was scaled from (previews); 0: the image's own size.
+    # Boxes on the bus are in camera-frame pixels, so a viewer scales them by width / source_width.
+    source_width: int = 0
+    source_height: int = 0
 
 
 @dataclass

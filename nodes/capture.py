@@ -160,7 +160,7 @@ class Capture(Node):
         small = cv2.resize(bgr, (int(w * scale), int(h * scale)), interpolation=cv2.INTER_AREA) if scale < 1 else bgr
         ok, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, p.jpeg_quality])
         msg = Frame(width=small.shape[1], height=small.shape[0], encoding="jpeg",
-                    data=np.frombuffer(jpeg.tobytes() if ok else b"", np.uint8))
+                    data=np.frombuffer(jpeg.tobytes() if ok else b"", np.uint8), source_width=w, source_height=h)
         msg.header.stamp_ns, msg.header.frame_seq = stamp_ns, seq
         return msg
 

@@ -44,7 +44,8 @@ def _sample_messages() -> list[schemas.Message]:
     rng = np.random.default_rng(1)
     box = np.array([10.5, 20.0, 30.0, 60.0])
     return [
-        schemas.Frame(width=64, height=48, encoding="bgr8", data=rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)),
+        schemas.Frame(width=64, height=48, encoding="bgr8", data=rng.integers(0, 255, (48, 64, 3), dtype=np.uint8),
+                      source_width=128, source_height=96),
         schemas.GroundTruth(available=True, box=box, visible_fraction=0.4, others=np.ones((2, 4), np.float32)),
         schemas.Detections(boxes=rng.random((3, 5)).astype(np.float32), backend="yolox", infer_ms=12.5),
         schemas.Prior(initialised=True, state=np.arange(4.0), size=np.array([30.0, 60.0]), covariance=np.eye(4) * 2,

@@ -23,6 +23,8 @@ examples:
   followbus hz fb/capture/frame           rate and latency of one key
   followbus nodes                         node health from liveliness tokens
   followbus bench bus                     bus latency/throughput vs raw zenoh
+  followbus record -o recordings/run.mcap  record the bus (opens in Foxglove)
+  followbus replay recordings/run.mcap --node reid --verify   lockstep regression replay
   followbus eval all --ablations         score followers on ../shared/data (results/results.md)
   followbus bench pipeline                capture -> motor command latency through the graph
 
@@ -122,6 +124,36 @@ def build_parser() -> argparse.ArgumentParser:
     _connect_arg(p)
     p.add_argument("--seconds", type=float, default=1.5, help="how long to listen (default 1.5)")
 
+    p = sub.add_parser("foxglove", help="serve the live bus to the Foxglove app (foxglove-sdk WebSocket server)",
+                       description="Preview as foxglove.CompressedImage, target/gate/candidates as "
+                                   "foxglove.ImageAnnotations, motor command and node status as JSON. Read-only.",
+                       epilog="example: followbus foxglove --connect tcp/192.0.2.10:7447 --user monitor --port 8765")
+    _connect_arg(p)
+    p.add_argument("--user", help="zenoh user name (transport/auth/usrpwd), e.g. monitor")
+    p.add_argument("--password", help="zenoh password (default: $FOLLOWBUS_ZENOH_PASSWORD)")
+    p.add_argument("--ca", metavar="FILE", help="CA certificate for a tls/ endpoint")
+    p.add_argument("--namespace", help="bus namespace (default: the graph's, else fb)")
+    p.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765)")
+    p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--seconds", type=float, help="stop after S seconds")
+
+    p = sub.add_parser("monitor", help="live, read-only dashboard of a running graph (terminal or --web)",
+                       description="Join the robot's bus as a client and show node health, per-topic rates, the "
+                                   "target, eta_k and the motor command; --web serves a page with the preview "
+                                   "stream, plots and the health table. Reconnects by itself.",
+                       epilog="example: followbus monitor --connect tcp/192.0.2.10:7447 --user monitor --web 8080")
+    _connect_arg(p)
+    p.add_argument("--user", help="zenoh user name (transport/auth/usrpwd), e.g. monitor")
+    p.add_argument("--password", help="zenoh password (default: $FOLLOWBUS_ZENOH_PASSWORD)")
+    p.add_argument("--ca", metavar="FILE", help="CA certificate for a tls/ endpoint")
+    p.add_argument("--namespace", help="bus namespace (default: the graph's, else fb)")
+    p.add_argument("--once", action="store_true", help="print one snapshot once every node is up (or --seconds) "
+                                                       "and exit: 0 when all are up")
+    p.add_argument("--seconds", type=float, help="stop after S seconds (--once: wait at most S, default 5)")
+    p.add_argument("--web", type=int, nargs="?", const=8080, metavar="PORT",
+                   help="serve the web view on PORT (default 8080) instead of the terminal dashboard")
+    p.add_argument("--bind", default="127.0.0.1", help="address the web view listens on (default 127.0.0.1)")
+
     p = sub.add_parser("bench", help="benchmarks that write figures (see BENCHMARKS.md)")
     bench = p.add_subparsers(dest="bench", metavar="WHAT")
     b = bench.add_parser("bus", help="one-way latency and throughput through bus/ vs raw zenoh")
@@ -145,7 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "in-process over SOT/MOT sequences and synthetic scenes on the same cached "
                                    "detections; write results.md, results.json and PNG plots.",
                        epilog="examples:\n  followbus eval all --ablations --detector yolox640\n"
-                              "  followbus eval ../shared/data/sot/otb-jogging scene:wall-occlusion --method followbus\n"
+                              "  followbus eval ../shared/data/sot/otb-jogging scene:wall-occlusion "
+                              "--method followbus\n"
                               "  followbus eval scene:wall-occlusion --graph-check",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("sequences", nargs="+", metavar="SEQ",
@@ -161,7 +194,119 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--graph-check", action="store_true",
                    help="instead: run the scene(s) through the launched graph and in-process, require identical boxes")
     p.set_defaults(argv=None)
+    _add_recording_parsers(sub)
     return parser
+
+
+def _add_recording_parsers(sub) -> None:
+    """record, play, replay, info, recover (MCAP recordings)."""
+    fmt = argparse.RawDescriptionHelpFormatter
+    p = sub.add_parser(
+        "record", help="record the bus to an MCAP file that opens in Foxglove", formatter_class=fmt,
+        description="Join the bus as a client and store every message losslessly (its msgpack bytes, one channel per "
+                    "key) in an MCAP file, plus Foxglove views: frames as foxglove.CompressedImage, detections, the "
+                    "Kalman gate and the target as foxglove.ImageAnnotations. Ctrl-C/SIGTERM finalise the file; a "
+                    "killed recorder leaves one that `followbus recover` repairs. Ends with received/written/dropped "
+                    "counts and the messages lost upstream (header.seq gaps).",
+        epilog="examples:\n  followbus record -o recordings/run1.mcap --duration 60\n"
+               "  followbus record --topics 'fb/capture/**' 'fb/prediction/**' --status")
+    p.add_argument("-o", "--output", metavar="FILE", help="output file (default recordings/<graph>-<time>.mcap)")
+    p.add_argument("--topics", nargs="+", metavar="PATTERN", help="key expressions to record (default <ns>/**)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--status", action="store_true", help="also record the @status keys (node statistics)")
+    p.add_argument("--compression", choices=("lz4", "zstd", "none"), default="lz4",
+                   help="chunk compression (default lz4: keeps up with 720p bgr8 at 30 Hz)")
+    p.add_argument("--chunk-mb", type=float, default=4.0, metavar="MB", help="close a chunk at this size (default 4)")
+    p.add_argument("--chunk-seconds", type=float, default=1.0, metavar="S",
+                   help="close and flush a chunk at least this often: all a SIGKILL can lose (default 1)")
+    p.add_argument("--jpeg-quality", type=int, default=80, metavar="Q",
+                   help="JPEG quality of the Foxglove copies of bgr8 frames (default 80)")
+    p.add_argument("--no-foxglove", action="store_true", help="store the bus messages only")
+    p.add_argument("--max-queue-mb", type=float, default=1024.0, metavar="MB",
+                   help="memory the writer queue may hold before the recorder drops (default 1024)")
+    p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
+                   help="parameter overrides the graph runs with (as given to launch), stored in the metadata")
+    _connect_arg(p)
+
+    p = sub.add_parser(
+        "play", help="publish a recording's bus messages again", formatter_class=fmt,
+        description="Publish the stored bus messages (their exact bytes) on their keys, or remapped ones, paced by "
+                    "their stamps. In a terminal: space pauses/resumes, s steps one message while paused, q quits.",
+        epilog="examples:\n  followbus play recordings/run1.mcap --topics 'fb/capture/**' --rate 0.5\n"
+               "  followbus play recordings/run1.mcap --remap fb=fb2 --fast --loop")
+    p.add_argument("file", help="MCAP recording")
+    p.add_argument("--topics", nargs="+", metavar="PATTERN", help="only keys matching these key expressions")
+    p.add_argument("--remap", action="append", metavar="FROM=TO", help="key prefix remap, e.g. fb=fb2; repeatable")
+    speed = p.add_mutually_exclusive_group()
+    speed.add_argument("--rate", type=float, default=1.0, metavar="R", help="speed factor (default 1)")
+    speed.add_argument("--fast", action="store_true", help="as fast as the bus takes them")
+    p.add_argument("--loop", action="store_true", help="start again at the end")
+    p.add_argument("--start-paused", action="store_true", help="wait for space (or s) before the first message")
+    p.add_argument("--status", action="store_true", help="also publish recorded @status messages")
+    _connect_arg(p)
+
+    p = sub.add_parser(
+        "replay", help="lockstep replay of a recording into one node (regression test with --verify)",
+        formatter_class=fmt,
+        description="Start one node in a private graph (its spec and params as recorded, --param overrides) with its "
+                    "clock driven by message stamps; feed it its recorded inputs frame by frame, waiting for its "
+                    "outputs of each frame before the next. --verify diffs its outputs with the recorded ones "
+                    "(exact for integers and strings, --rtol/--atol for floats) and exits 1 on a difference.",
+        epilog="examples:\n  followbus replay recordings/run1.mcap --node reid --verify\n"
+               "  followbus replay recordings/run1.mcap --node prediction --param gate_chi2=5.99 --report out.json")
+    p.add_argument("file", help="MCAP recording")
+    p.add_argument("--node", required=True, help="node to replay")
+    p.add_argument("--graph", default=None, help="graph file (default: the graph.yaml stored in the recording)")
+    p.add_argument("--param", action="append", metavar="KEY=VALUE", help="override a parameter (YAML value)")
+    p.add_argument("--verify", action="store_true", help="compare outputs with the recording; exit 1 on a mismatch")
+    p.add_argument("--report", metavar="FILE", help="write a JSON summary")
+    p.add_argument("--rtol", type=float, default=1e-6, help="relative tolerance for floats (default 1e-6)")
+    p.add_argument("--atol", type=float, default=1e-6, help="absolute tolerance for floats (default 1e-6)")
+    p.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                   help="seconds to wait for a frame's outputs (default 5)")
+    p.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
+                   help="seconds to wait for the node to come up (default 60)")
+    p.add_argument("--max-frames", type=int, default=0, metavar="N", help="only the first N frames")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("info", help="topics, counts, rates, duration and metadata of a recording",
+                       epilog="example: followbus info recordings/run1.mcap")
+    p.add_argument("file", help="MCAP recording")
+
+    p = sub.add_parser("recover", help="rewrite a killed recorder's file into a valid MCAP",
+                       description="Copy every complete chunk and metadata record of a truncated MCAP file (a "
+                                   "recorder killed with SIGKILL, a full disk) into a new, finalised file.",
+                       epilog="example: followbus recover recordings/run1.mcap -o recordings/run1-fixed.mcap")
+    p.add_argument("file", help="truncated MCAP file")
+    p.add_argument("-o", "--output", metavar="FILE", help="output (default: FILE with .recovered.mcap)")
+    p.add_argument("--compression", choices=("lz4", "zstd", "none"), help="default: the input's")
+
+
+def _dispatch_recording(args) -> int:
+    cmd = args.command
+    if cmd == "record":
+        from followbus.bus.graph import apply_overrides
+        from followbus.tools.record import cmd_record
+
+        graph = _load_graph(args.graph) if Path(args.graph).exists() else None
+        if graph is not None:
+            apply_overrides(graph, args.overrides)
+        return cmd_record(args, _settings(args), graph)
+    if cmd == "play":
+        from followbus.tools.play import cmd_play
+
+        return cmd_play(args, _settings(args))
+    if cmd == "replay":
+        from followbus.tools.replay import cmd_replay
+
+        return cmd_replay(args)
+    if cmd == "info":
+        from followbus.tools.mcap_io import cmd_info
+
+        return cmd_info(args)
+    from followbus.tools.mcap_io import cmd_recover
+
+    return cmd_recover(args)
 
 
 def _setup_logging(verbose: int) -> None:
@@ -233,10 +378,20 @@ def dispatch(args) -> int:
         return cmd_demo(args)
     if cmd == "launch":
         return cmd_launch(args)
+    if cmd in ("record", "play", "replay", "info", "recover"):
+        return _dispatch_recording(args)
     if cmd == "router":
         from followbus.tools.introspect import run_router
 
         return run_router(args.listen or ["tcp/127.0.0.1:7447"], args.duration)
+    if cmd == "foxglove":
+        from followbus.tools.foxglove_bridge import run_foxglove
+
+        return run_foxglove(args)
+    if cmd == "monitor":
+        from followbus.tools.monitor import run_monitor
+
+        return run_monitor(args)
     if cmd in ("topics", "echo", "hz", "nodes"):
         from followbus.tools import introspect
 
@@ -305,7 +460,7 @@ def cmd_launch(args) -> int:
     extra = []
     if args.record:
         extra.append(("recorder", [sys.executable, "-m", "followbus.tools.cli", "record", "--graph", args.graph,
-                                   "-o", args.record]))
+                                   "-o", args.record, *(f"--set={o}" for o in args.overrides)]))
     try:
         launcher = Launcher(graph, only=only, host=args.host, startup_timeout_s=args.startup_timeout,
                             grace_s=args.grace, extra_children=extra, overrides=args.overrides)

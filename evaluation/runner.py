@@ -1,0 +1,314 @@
+"""Run followers in-process over an evaluation sequence, all on the same (cached) detections.
+
+One pass per sequence: each frame is read (or rendered) once, detections come from the cache or are
+computed once, and every method is stepped on that frame in turn, so methods can never see different
+inputs. Methods are initialised with the first ground-truth box (a follower is told whom to follow) on
+the first frame that has one; before it they output nothing.
+
+Sequences: ``sot/<name>`` and ``mot/<name>`` directories (see :mod:`followbus.evaluation.datasets`;
+for MOT the follow target is chosen there) and ``scene:<name>`` synthetic scenes (exact ground truth,
+visible fractions, the other people's boxes and the robot's ego velocity).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from followbus.evaluation import detcache
+from followbus.evaluation.baselines import KalmanFollower, PeerFollower
+from followbus.evaluation.datasets import load_sequence
+from followbus.evaluation.metrics import Box, SingleTargetMetrics, evaluate_single_target
+from followbus.tracking.params import TrackerParams
+from followbus.tracking.tracker import TargetTracker
+
+log = logging.getLogger(__name__)
+
+DETECTORS = ("yolox", "yolox640", "hog", "simulated")
+# Table 6 of the paper: one switch off at a time.
+ABLATIONS: dict[str, dict[str, bool]] = {
+    "followbus w/o geometric cue": {"use_geometry": False},
+    "followbus w/o gate": {"use_gate": False},
+    "followbus w/o update suspension": {"suspend_updates": False},
+    "followbus w/o adaptive η": {"adaptive_eta": False},
+}
+LOW_VISIBILITY = 0.5  # scene frames with less of the target visible are shaded as (partial) occlusion
+
+
+class Follower(Protocol):
+    def step(self, frame_bgr: np.ndarray, detections: np.ndarray, t_ns: int, v_ego_mps: Sequence[float],
+             init_box: Sequence[float] | None) -> tuple[Box | None, dict[str, Any]]: ...
+
+
+class FollowbusFollower:
+    """:class:`TargetTracker` (the graph's pure modules) behind the follower interface."""
+
+    def __init__(self, params: TrackerParams | None = None) -> None:
+        self.tracker = TargetTracker(params)
+
+    def step(self, frame_bgr, detections, t_ns, v_ego_mps, init_box):
+        r = self.tracker.step(frame_bgr, detections, t_ns, v_ego_mps, init_box=init_box)
+        box = None if r.box is None else tuple(float(v) for v in r.box)
+        return box, {"state": r.state.name, "eta": float(r.eta_k)}
+
+
+class _NoEgo:
+    """Adapter for followers that take no ego velocity."""
+
+    def __init__(self, inner) -> None:
+        self.inner = inner
+
+    def step(self, frame_bgr, detections, t_ns, v_ego_mps, init_box):
+        return self.inner.step(frame_bgr, detections, t_ns, init_box=init_box)
+
+
+def method_factories(methods: Sequence[str], ablations: bool = False,
+                     base: TrackerParams | None = None) -> dict[str, Callable[[float], Follower]]:
+    """Method name → factory(fps) of a fresh follower. Unknown names raise ValueError."""
+    base = base or TrackerParams()
+    out: dict[str, Callable[[float], Follower]] = {}
+    for m in methods:
+        if m == "followbus":
+            out[m] = lambda fps, p=base: FollowbusFollower(p)
+        elif m == "kalman":
+            out[m] = lambda fps, p=base: _NoEgo(KalmanFollower(accel_std_px_s2=p.accel_std_px_s2, r_px2=p.r0_px2,
+                                                               init_velocity_std_px_s=p.init_velocity_std_px_s,
+                                                               size_smoothing=p.size_smoothing,
+                                                               lost_after_ms=p.lost_after_ms))
+        elif m.startswith("peer:"):
+            kind = m.split(":", 1)[1]
+            out[m] = lambda fps, k=kind: _NoEgo(PeerFollower(k, fps))
+        else:
+            raise ValueError(f"unknown method {m!r} (followbus, kalman, peer:bytetrack|ocsort|botsort)")
+    if ablations:
+        for name, switches in ABLATIONS.items():
+            params = TrackerParams.from_dict({**base.to_dict(), **switches})
+            out[name] = lambda fps, p=params: FollowbusFollower(p)
+    return out
+
+
+# --------------------------------------------------------------------------- sequences
+
+
+@dataclass
+class FrameItem:
+    bgr: np.ndarray
+    t_ns: int
+    gt_box: Box | None
+    others: list[Box]
+    visible_fraction: float | None  # scenes only
+    truth: list[tuple[list[float], float]]  # simulated-detector input (mirrors nodes/detection.py)
+    v_ego_mps: tuple[float, float] = (0.0, 0.0)
+
+
+@dataclass
+class EvalSequence:
+    name: str
+    kind: str  # sot | mot | scene
+    key: str  # identity for the detection cache
+    fps: float
+    width: int
+    height: int
+    n_frames: int
+    frames: Callable[[], Iterator[FrameItem]]
+
+
+def scene_truth(gt_box: Any, visible_fraction: float, others: Any,
+                others_visible: Any) -> list[tuple[list[float], float]]:
+    """The simulated detector's truth list exactly as nodes/detection.py builds it from a GroundTruth
+    message (float64 arrays → lists; the target only when its box exists; others' visibility 1 when the
+    counts disagree)."""
+    truth: list[tuple[list[float], float]] = []
+    if gt_box is not None:
+        truth.append((np.asarray(gt_box, dtype=np.float64).tolist(), float(visible_fraction)))
+    o = np.asarray(others if others is not None else [], dtype=np.float64).reshape(-1, 4)
+    vis = np.asarray(others_visible if others_visible is not None else [], dtype=np.float64).reshape(-1)
+    if vis.size != len(o):
+        vis = np.ones(len(o))
+    truth.extend((box.tolist(), float(v)) for box, v in zip(o, vis, strict=True))
+    return truth
+
+
+def open_sequence(spec: str, *, seed: int = 0, width: int = 640, height: int = 480,
+                  max_frames: int = 0) -> EvalSequence:
+    """``scene:<name>`` or a sot/mot directory."""
+    if spec.startswith("scene:"):
+        from followbus.vision.sources import SceneSource
+
+        name = spec.split(":", 1)[1]
+        probe = SceneSource(name, seed=seed, width=width, height=height)
+        n = len(probe) if not max_frames else min(max_frames, len(probe))
+
+        def scene_frames() -> Iterator[FrameItem]:
+            src = SceneSource(name, seed=seed, width=width, height=height)
+            for i, f in enumerate(src):
+                if i >= n:
+                    break
+                vf = float(f.extras.get("visible_fraction", 1.0 if f.gt_box is not None else 0.0))
+                others = [tuple(float(v) for v in b) for b in (f.extras.get("distractor_boxes") or [])]
+                gt = None if f.gt_box is None else tuple(float(v) for v in f.gt_box)
+                truth = scene_truth(f.gt_box, vf, others, f.extras.get("distractor_visible_fractions"))
+                ego = f.extras.get("ego_velocity_mps") or (0.0, 0.0)
+                yield FrameItem(f.bgr, f.t_ns, gt, others, vf, truth, (float(ego[0]), float(ego[1])))
+            src.close()
+
+        return EvalSequence(f"scene:{name}", "scene", f"scene:{name}:seed{seed}:{width}x{height}", probe.fps,
+                            width, height, n, scene_frames)
+
+    import cv2
+
+    from followbus.vision.sources import synthetic_stamp_ns
+
+    seq = load_sequence(spec)
+    others_all = seq.other_boxes()
+    n = seq.frames if not max_frames else min(max_frames, seq.frames)
+
+    def disk_frames() -> Iterator[FrameItem]:
+        for i in range(n):
+            bgr = cv2.imread(str(seq.image_paths[i]), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise OSError(f"cannot read {seq.image_paths[i]}")
+            gt = seq.gt_boxes[i]
+            truth = [(list(b), 1.0) for _, b in seq.all_gt[i]]
+            yield FrameItem(bgr, synthetic_stamp_ns(i, seq.fps), gt, list(others_all[i]), None, truth)
+
+    label = f"{seq.kind}/{Path(spec).name}"
+    return EvalSequence(label, seq.kind, str(Path(spec).resolve()), seq.fps, seq.width, seq.height, n, disk_frames)
+
+
+# --------------------------------------------------------------------------- detectors
+
+
+def make_eval_detector(name: str, seed: int = 0):
+    from followbus.vision.detectors import make_detector
+
+    if name not in DETECTORS:
+        raise ValueError(f"unknown detector {name!r}; choose one of {', '.join(DETECTORS)}")
+    if name == "simulated":
+        return make_detector("simulated", seed=seed)
+    if name.startswith("yolox"):
+        return make_detector("yolox", input_size=640 if name == "yolox640" else 416)
+    return make_detector(name)
+
+
+# --------------------------------------------------------------------------- running
+
+
+@dataclass
+class MethodRun:
+    boxes: list[Box | None]
+    infos: list[dict[str, Any]]
+    tracker_ms: list[float]
+    metrics: SingleTargetMetrics | None = None
+
+    @property
+    def tracker_ms_mean(self) -> float:
+        return float(np.mean(self.tracker_ms)) if self.tracker_ms else math.nan
+
+    def series(self, key: str) -> np.ndarray:
+        return np.array([float(i.get(key, math.nan)) for i in self.infos])
+
+
+@dataclass
+class SequenceRun:
+    sequence: EvalSequence
+    detector: str
+    gt_boxes: list[Box | None]
+    other_gt: list[list[Box]]
+    visible: list[float | None]
+    detector_ms: np.ndarray
+    detections_cached: bool
+    runs: dict[str, MethodRun] = field(default_factory=dict)
+
+    @property
+    def detector_ms_mean(self) -> float:
+        return float(np.mean(self.detector_ms)) if self.detector_ms.size else math.nan
+
+    def occlusion_spans(self) -> list[tuple[int, int]]:
+        """Inclusive frame ranges where the target is absent from gt or (scenes) mostly hidden."""
+        hidden = [g is None or (v is not None and v < LOW_VISIBILITY) for g, v in zip(self.gt_boxes, self.visible,
+                                                                                      strict=True)]
+        spans, start = [], None
+        for i, h in enumerate(hidden):
+            if h and start is None:
+                start = i
+            elif not h and start is not None:
+                spans.append((start, i - 1))
+                start = None
+        if start is not None:
+            spans.append((start, len(hidden) - 1))
+        return spans
+
+
+def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follower]], detector: str, *,
+                 cache_dir: Path | None = None, seed: int = 0, progress: bool = False,
+                 use_ego_velocity: bool = True) -> SequenceRun:
+    """Detect once (or load the cache), then step every method on every frame; score each method."""
+    cached = None
+    path = None
+    if cache_dir is not None:
+        # simulated detections depend on the seed: it is part of the key
+        det_key = f"{detector}-seed{seed}" if detector == "simulated" else detector
+        path = detcache.cache_path(cache_dir, seq.key, det_key, seq.n_frames)
+        cached = detcache.load(path, seq.n_frames)
+    from_cache = cached is not None
+    det = None if from_cache else make_eval_detector(detector, seed)
+    if cached is not None:
+        log.info("%s: detections from cache %s", seq.name, path)
+    followers = {name: make(seq.fps) for name, make in factories.items()}
+    runs = {name: MethodRun([], [], []) for name in factories}
+    gts: list[Box | None] = []
+    others: list[list[Box]] = []
+    visible: list[float | None] = []
+    det_frames: list[np.ndarray] = []
+    det_ms: list[float] = []
+    initialised = False
+    frames = seq.frames()
+    if progress:
+        from tqdm import tqdm
+
+        frames = tqdm(frames, total=seq.n_frames, desc=seq.name, unit="fr", leave=False)
+    for k, item in enumerate(frames):
+        if cached is not None:
+            dets = cached.per_frame[k]
+        else:
+            t0 = time.perf_counter()
+            dets = det.detect(item.bgr, item.truth) if detector == "simulated" else det.detect(item.bgr)
+            det_ms.append((time.perf_counter() - t0) * 1e3)
+            dets = np.asarray(dets, dtype=np.float32).reshape(-1, 5)
+            det_frames.append(dets)
+        gts.append(item.gt_box)
+        others.append(item.others)
+        visible.append(item.visible_fraction)
+        init_box = None
+        if not initialised:
+            if item.gt_box is None:
+                for run in runs.values():  # not yet told whom to follow
+                    run.boxes.append(None)
+                    run.infos.append({"state": "WAITING"})
+                    run.tracker_ms.append(0.0)
+                continue
+            init_box, initialised = item.gt_box, True
+        v_ego = item.v_ego_mps if use_ego_velocity else (0.0, 0.0)
+        for name, follower in followers.items():
+            t0 = time.perf_counter()
+            box, info = follower.step(item.bgr, dets, item.t_ns, v_ego, init_box)
+            runs[name].tracker_ms.append((time.perf_counter() - t0) * 1e3)
+            runs[name].boxes.append(box)
+            runs[name].infos.append(info)
+    if not from_cache:
+        cached = detcache.CachedDetections(det_frames, np.asarray(det_ms))
+        if path is not None:
+            detcache.save(path, cached)
+    result = SequenceRun(seq, detector, gts, others, visible, cached.ms, from_cache, runs)
+    for run in runs.values():
+        run.metrics = evaluate_single_target(run.boxes, gts, other_gt=others, fps=seq.fps,
+                                             image_size=(seq.width, seq.height))
+    return result

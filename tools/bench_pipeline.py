@@ -1,0 +1,173 @@
+"""``followbus bench pipeline``: end-to-end latency through the launched graph at 30 Hz.
+
+Every message header carries ``stamp_ns`` (the capture stamp of its frame) and ``pub_ns`` (when it was
+published). Per frame_seq the edges are: capture→detection, detection→prediction prior, prior→reid
+measurement, measurement→prediction track, track→motor command (differences of pub_ns), and the total
+capture stamp→command. CPU per node comes from /proc/<pid>/stat (pids from the NodeStatus messages);
+dropped frames = frames published by capture that never produced a track.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger("followbus.bench")
+
+REPO = Path(__file__).resolve().parents[1]
+STAGES = [("capture", "frame"), ("detection", "detections"), ("prediction", "prior"), ("reid", "measurement"),
+          ("prediction", "track"), ("motor", "command")]
+EDGES = ["capture→detection", "detection→prior", "prior→measurement", "measurement→track", "track→command"]
+
+
+def _cpu_ticks(pid: int) -> int | None:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])  # utime + stime (fields 14, 15 of stat)
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def _graph_text(scene: str, port: int, namespace: str, detector: str) -> str:
+    import yaml
+
+    g = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))
+    g["namespace"] = namespace
+    g["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
+    g["zenoh"]["connect"] = [f"tcp/127.0.0.1:{port}"]
+    g["nodes"]["capture"]["params"].update(source=f"scene:{scene}", pace="realtime", fps=30.0, loop=True)
+    det = g["nodes"]["detection"]["params"]
+    if detector.startswith("yolox"):
+        det.update(backend="yolox", input_size=640 if detector == "yolox640" else 416)
+    else:
+        det["backend"] = detector
+    g["nodes"]["template"]["params"]["state_file"] = ""
+    return yaml.safe_dump(g, sort_keys=False)
+
+
+def run_bench_pipeline(args) -> int:
+    from followbus.bus.graph import load_graph
+    from followbus.bus.pubsub import payload_bytes
+    from followbus.bus.schemas import NodeStatus, decode
+    from followbus.bus.session import open_session
+    from followbus.tools.launch import Launcher
+    from followbus.vision.models import find_model
+
+    detector = args.detector
+    if detector.startswith("yolox") and find_model(f"yolox_nano_{640 if detector == 'yolox640' else 416}.onnx") is None:
+        print("bench pipeline: YOLOX model not found; using hog (figures are not comparable)", flush=True)
+        detector = "hog"
+    port = args.port
+    if not port:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+    ns = f"bench{port}"
+    pub: dict[tuple[str, str], dict[int, tuple[int, int]]] = {st: {} for st in STAGES}
+    pids: dict[str, int] = {}
+    lock = threading.Lock()
+    recording = threading.Event()
+    with tempfile.TemporaryDirectory(prefix="followbus-bench-") as tmp:
+        path = Path(tmp) / "graph.yaml"
+        path.write_text(_graph_text(args.scene, port, ns, detector))
+        graph = load_graph(path)
+        session = open_session(graph.zenoh)
+        subs = []
+
+        def header_cb(stage: tuple[str, str], schema):
+            def cb(sample) -> None:
+                if not recording.is_set():
+                    return
+                try:
+                    msg = decode(payload_bytes(sample), schema)
+                except Exception:  # a malformed sample is not a latency figure
+                    return
+                h = msg.header
+                if h.frame_seq >= 0:
+                    with lock:
+                        pub[stage].setdefault(h.frame_seq, (h.stamp_ns, h.pub_ns))
+            return cb
+
+        from followbus.bus.schemas import Detections, Frame, Measurement, MotorCommand, Prior, Track
+
+        schemas = {("capture", "frame"): Frame, ("detection", "detections"): Detections,
+                   ("prediction", "prior"): Prior, ("reid", "measurement"): Measurement,
+                   ("prediction", "track"): Track, ("motor", "command"): MotorCommand}
+        for st in STAGES:
+            subs.append(session.declare_subscriber(graph.key(*st), header_cb(st, schemas[st])))
+
+        def on_status(sample) -> None:
+            try:
+                st = decode(payload_bytes(sample), NodeStatus)
+            except Exception:
+                return
+            with lock:
+                pids[st.node] = st.pid
+
+        subs.append(session.declare_subscriber(f"{ns}/@status/*", on_status))
+        launcher = Launcher(graph, quiet=True, startup_timeout_s=60.0)
+        ready = threading.Event()
+        runner = threading.Thread(target=launcher.run, kwargs={"duration_s": args.duration + 120,
+                                                               "on_ready": ready.set}, daemon=True)
+        runner.start()
+        try:
+            if not ready.wait(90):
+                print("bench pipeline: the graph did not come up", flush=True)
+                return 1
+            time.sleep(4.0)  # warm-up: model load, first frames, status messages with pids
+            with lock:
+                cpu0 = {n: _cpu_ticks(p) for n, p in pids.items()}
+            t0 = time.monotonic()
+            recording.set()
+            time.sleep(args.duration)
+            recording.clear()
+            wall = time.monotonic() - t0
+            with lock:
+                cpu1 = {n: _cpu_ticks(p) for n, p in pids.items()}
+        finally:
+            launcher.request_stop()
+            runner.join(30)
+            for s in subs:
+                s.undeclare()
+            session.close()
+    hz = os.sysconf("SC_CLK_TCK")
+    cpu = {n: 100.0 * (cpu1[n] - cpu0[n]) / hz / wall for n in cpu1
+           if cpu0.get(n) is not None and cpu1[n] is not None}
+    frames = pub[("capture", "frame")]
+    result: dict[str, Any] = {"detector": detector, "scene": args.scene, "duration_s": round(wall, 2),
+                              "frames_published": len(frames), "tracks": 0, "edges_ms": {}, "cpu_percent": {}}
+    chains = [(STAGES[i], STAGES[i + 1], EDGES[i]) for i in range(len(EDGES))]
+    for a, b, name in chains:
+        d = [(pub[b][k][1] - pub[a][k][1]) / 1e6 for k in pub[b] if k in pub[a]]
+        result["edges_ms"][name] = _pct(d)
+    total = [(v[1] - v[0]) / 1e6 for v in pub[("motor", "command")].values() if v[0] > 0]
+    result["edges_ms"]["total capture→command"] = _pct(total)
+    tracks = pub[("prediction", "track")]
+    result["tracks"] = sum(1 for k in frames if k in tracks)
+    result["dropped_frames"] = len(frames) - result["tracks"]
+    result["cpu_percent"] = {n: round(v, 1) for n, v in sorted(cpu.items())}
+    print(f"bench pipeline: {detector} on scene:{args.scene}, 30 Hz, {wall:.1f} s")
+    print("| edge | n | p50 ms | p99 ms |\n|---|---:|---:|---:|")
+    for name, v in result["edges_ms"].items():
+        print(f"| {name} | {v['n']} | {v['p50']:.2f} | {v['p99']:.2f} |")
+    print(f"frames published {len(frames)}, tracks {result['tracks']}, dropped {result['dropped_frames']}")
+    print("CPU per node (% of one core): " + ", ".join(f"{n} {v:.1f}" for n, v in result["cpu_percent"].items()))
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1, ensure_ascii=False))
+    return 0
+
+
+def _pct(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {"n": 0, "p50": float("nan"), "p99": float("nan")}
+    a = np.asarray(values)
+    return {"n": int(a.size), "p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99))}

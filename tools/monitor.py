@@ -1,0 +1,519 @@
+"""``followbus monitor``: a read-only view of a running graph from another machine.
+
+:class:`BusMonitor` joins the robot's bus as a Zenoh *client* and keeps the latest state: node health from
+liveliness tokens and NodeStatus, the target (Track/Prior/Measurement), eta_k (Template), the motor command,
+and one minute of history (eta_k, end-to-end latency, centre error against ground truth). It only ever
+subscribes, never to raw frames, and its callbacks only copy small objects under a lock, so the robot never
+waits on the laptop. When the robot disappears it says since when, and it reopens the session until the robot
+is back. The terminal dashboard (this module) and the web view (``webview.py``) render its snapshots.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from followbus.bus.codec import DecodeError
+from followbus.bus.health import HealthWatcher
+from followbus.bus.pubsub import payload_bytes
+from followbus.bus.schemas import (
+    Frame,
+    GroundTruth,
+    Measurement,
+    Message,
+    MotorCommand,
+    NodeStatus,
+    Prior,
+    Template,
+    Track,
+    decode,
+)
+from followbus.bus.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
+
+log = logging.getLogger("followbus.monitor")
+
+HISTORY_S = 60.0
+REOPEN_AFTER_S = 5.0  # unreachable this long: close the session and open a fresh one
+# Which output carries what, and the node that publishes it in graph.yaml (overridden from --graph).
+WATCHED = {"track": ("prediction", Track), "prior": ("prediction", Prior), "measurement": ("reid", Measurement),
+           "template": ("template", Template), "command": ("motor", MotorCommand),
+           "ground_truth": ("capture", GroundTruth)}
+PREVIEW = ("capture", "preview")
+DEFAULT_SOURCE_WIDTH = 640
+RATE_SETTLE_S = 2.0
+SEPARATOR = "=" * 72  # between snapshots when stdout is not a terminal
+
+
+def _client_config(base: dict[str, Any], user: str | None, password: str | None, ca: str | None) -> dict[str, Any]:
+    # The robot's identity and ACL must not leak into the laptop's session: keep only link settings (TLS).
+    config = {k: v for k, v in base.items() if not k.startswith(("access_control", "transport/auth"))}
+    if user:
+        config["transport/auth/usrpwd"] = {"user": user, "password": password or ""}
+    if ca:
+        config["transport/link/tls/root_ca_certificate"] = ca
+    return config
+
+
+def monitor_settings(graph_path: str | None, connect: list[str] | None, user: str | None = None,
+                     password: str | None = None, ca: str | None = None) -> ZenohSettings:
+    """Client settings for the laptop: --connect wins, else the graph's listen endpoints."""
+    base: dict[str, Any] = {}
+    endpoints = list(connect or [])
+    if graph_path and Path(graph_path).exists():
+        from followbus.bus.graph import load_graph
+
+        graph = load_graph(graph_path)
+        base = dict(graph.zenoh.config)
+        if not endpoints:
+            endpoints = list(graph.zenoh.listen or graph.zenoh.connect)
+    password = password if password is not None else os.environ.get("FOLLOWBUS_ZENOH_PASSWORD")
+    return ZenohSettings(mode="client", listen=[], connect=endpoints or [DEFAULT_ENDPOINT], multicast_scouting=False,
+                         shm=False, connect_timeout_ms=3000, config=_client_config(base, user, password, ca))
+
+
+@dataclass
+class GraphInfo:
+    """What the monitor takes from the graph file (if any): namespace, node names, keys, the source width."""
+
+    namespace: str = "fb"
+    nodes: list[str] = field(default_factory=list)
+    keys: dict[str, str] = field(default_factory=dict)  # watched output name -> bus key
+    preview_key: str = ""
+    source_width: int = DEFAULT_SOURCE_WIDTH
+
+    @classmethod
+    def load(cls, graph_path: str | None, namespace: str | None = None) -> GraphInfo:
+        info = cls()
+        owners = {out: node for out, (node, _) in WATCHED.items()}
+        preview_owner = PREVIEW[0]
+        if graph_path and Path(graph_path).exists():
+            from followbus.bus.graph import load_graph
+
+            graph = load_graph(graph_path)
+            info.namespace = graph.namespace
+            info.nodes = list(graph.nodes)
+            for name, spec in graph.nodes.items():
+                outputs = list(spec.outputs)
+                for out in owners:
+                    if out in outputs:
+                        owners[out] = name
+                if "preview" in outputs:
+                    preview_owner = name
+                # The motor controller's image width is the frame width the boxes live in.
+                width = (spec.params or {}).get("image_width_px")
+                if isinstance(width, (int, float)) and width > 0:
+                    info.source_width = int(width)
+        if namespace:
+            info.namespace = namespace
+        info.keys = {out: f"{info.namespace}/{node}/{out}" for out, node in owners.items()}
+        info.preview_key = f"{info.namespace}/{preview_owner}/preview"
+        return info
+
+
+@dataclass
+class NodeView:
+    name: str
+    alive: bool = False
+    since_ns: int = 0
+    ups: int = 0
+    pids: list[int] = field(default_factory=list)
+    status: NodeStatus | None = None
+    status_ns: int = 0
+
+    @property
+    def restarts(self) -> int:
+        # Distinct pids are the honest count across our own reconnects (a re-subscription replays tokens).
+        return max(len(self.pids) - 1, 0) if self.pids else max(self.ups - 1, 0)
+
+
+def _box(value: Any) -> list[float] | None:
+    return None if value is None else [round(float(v), 1) for v in np.asarray(value).reshape(-1)[:4]]
+
+
+def _centre(box: Any) -> tuple[float, float]:
+    b = np.asarray(box, dtype=float).reshape(-1)
+    return float(b[0] + b[2] / 2), float(b[1] + b[3] / 2)
+
+
+class BusMonitor:
+    """Subscribes to the robot's bus (reopening the session as needed) and keeps a bounded state."""
+
+    def __init__(self, settings: ZenohSettings, info: GraphInfo, *, preview: bool = False,
+                 history_s: float = HISTORY_S, reopen_after_s: float = REOPEN_AFTER_S,
+                 on_preview: Callable[[], None] | None = None):
+        self.settings = settings
+        self.info = info
+        self.want_preview = preview
+        self.history_s = history_s
+        self.reopen_after_s = reopen_after_s
+        self.on_preview = on_preview
+        self.lock = threading.Lock()
+        self.stop_event = threading.Event()
+        self.nodes: dict[str, NodeView] = {n: NodeView(n) for n in info.nodes}
+        self.latest: dict[str, Message] = {}
+        self.received: dict[str, int] = {}
+        self.decode_errors = 0
+        self.preview: Frame | None = None
+        self.preview_jpeg = b""
+        self.preview_count = 0
+        self.connected = False
+        self.ever_connected = False
+        self.unreachable_since_ns = time.time_ns()
+        self.sessions_opened = 0
+        self.last_error = ""
+        self._tracks: dict[int, Track] = {}
+        self._truth: dict[int, GroundTruth] = {}
+        self.history: dict[str, deque[tuple[float, float]]] = {
+            "eta": deque(maxlen=4000), "latency_ms": deque(maxlen=4000), "centre_error_px": deque(maxlen=4000)}
+        self._session: zenoh.Session | None = None
+        self._watcher: HealthWatcher | None = None
+        self._subs: list[Any] = []
+        self._thread = threading.Thread(target=self._run, name="monitor-session", daemon=True)
+
+    # -- session lifecycle -------------------------------------------------------------------------
+    def start(self) -> BusMonitor:
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self.stop_event.set()
+        self._thread.join(timeout=10)
+        self._close_session()
+
+    def _open(self) -> None:
+        session = open_session(self.settings)
+        self.sessions_opened += 1
+        self._session = session
+        self._watcher = HealthWatcher(session, self.info.namespace, on_change=self._on_health)
+        for name, key in self.info.keys.items():
+            self._subs.append(session.declare_subscriber(key, self._make_handler(name)))
+        if self.want_preview:
+            self._subs.append(session.declare_subscriber(self.info.preview_key, self._on_preview))
+
+    def _close_session(self) -> None:
+        for sub in self._subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        self._subs = []
+        if self._watcher is not None:
+            self._watcher.close()
+            self._watcher = None
+        if self._session is not None:
+            with contextlib.suppress(Exception):
+                self._session.close()
+            self._session = None
+
+    def _reachable(self) -> bool:
+        if self._session is None:
+            return False
+        try:
+            info = self._session.info
+            return bool(list(info.routers_zid()) or list(info.peers_zid()))
+        except Exception:  # a closed or broken session
+            return False
+
+    def _set_connected(self, connected: bool) -> None:
+        with self.lock:
+            if connected == self.connected:
+                return
+            self.connected = connected
+            if connected:
+                self.ever_connected = True
+                log.info("connected to %s", ", ".join(self.settings.connect))
+            else:
+                self.unreachable_since_ns = time.time_ns()
+                # Liveliness cannot be trusted through a broken link: show every node as down since now.
+                for node in self.nodes.values():
+                    if node.alive:
+                        node.alive = False
+                        node.since_ns = self.unreachable_since_ns
+                log.warning("robot unreachable (%s)", ", ".join(self.settings.connect))
+
+    def _run(self) -> None:
+        lost_at: float | None = None
+        while not self.stop_event.is_set():
+            if self._session is None:
+                try:
+                    self._open()
+                    lost_at = None
+                except Exception as exc:  # router not up yet, refused credentials, ...
+                    self.last_error = str(exc).split(" at ")[0]
+                    log.debug("open failed: %s", exc)
+                    self._close_session()
+                    self._set_connected(False)
+                    self.stop_event.wait(0.5)
+                    continue
+            reachable = self._reachable()
+            self._set_connected(reachable)
+            if reachable:
+                lost_at = None
+            else:
+                lost_at = lost_at or time.monotonic()
+                # Zenoh clients reconnect by themselves; reopening is the fallback if that never happens.
+                if time.monotonic() - lost_at > self.reopen_after_s:
+                    log.info("reopening the session")
+                    self._close_session()
+                    continue
+            self.stop_event.wait(0.25)
+
+    # -- callbacks (zenoh threads: copy and return) ------------------------------------------------
+    def _on_health(self, name: str, alive: bool) -> None:
+        with self.lock:
+            node = self.nodes.setdefault(name, NodeView(name))
+            if node.alive != alive or not node.since_ns:
+                node.alive = alive
+                node.since_ns = time.time_ns()
+                if alive:
+                    node.ups += 1
+
+    def _make_handler(self, name: str) -> Callable[[zenoh.Sample], None]:
+        def handler(sample: zenoh.Sample) -> None:
+            try:
+                msg = decode(payload_bytes(sample), WATCHED[name][1])
+            except DecodeError as exc:
+                with self.lock:
+                    self.decode_errors += 1
+                log.debug("decode error on %s: %s", sample.key_expr, exc)
+                return
+            self._on_message(name, msg)
+
+        return handler
+
+    def _on_message(self, name: str, msg: Message) -> None:
+        now = time.time()
+        with self.lock:
+            self.latest[name] = msg
+            self.received[name] = self.received.get(name, 0) + 1
+            if isinstance(msg, Template) and msg.initialised:
+                self.history["eta"].append((now, float(msg.eta)))
+            elif isinstance(msg, MotorCommand) and msg.header.stamp_ns > 0 and msg.header.pub_ns > 0:
+                self.history["latency_ms"].append((now, (msg.header.pub_ns - msg.header.stamp_ns) / 1e6))
+            elif isinstance(msg, Track):
+                self._tracks[msg.header.frame_seq] = msg
+                self._centre_error(msg.header.frame_seq, now)
+            elif isinstance(msg, GroundTruth) and msg.available:
+                self._truth[msg.header.frame_seq] = msg
+                self._centre_error(msg.header.frame_seq, now)
+            for cache in (self._tracks, self._truth):
+                while len(cache) > 256:
+                    cache.pop(next(iter(cache)))
+            self._trim(now)
+
+    def _centre_error(self, seq: int, now: float) -> None:
+        track, truth = self._tracks.get(seq), self._truth.get(seq)
+        if track is None or truth is None or track.box is None or truth.box is None:
+            return
+        (tx, ty), (gx, gy) = _centre(track.box), _centre(truth.box)
+        self.history["centre_error_px"].append((now, math.hypot(tx - gx, ty - gy)))
+
+    def _trim(self, now: float) -> None:
+        horizon = now - self.history_s
+        for series in self.history.values():
+            while series and series[0][0] < horizon:
+                series.popleft()
+
+    def _on_preview(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = decode(payload_bytes(sample), Frame)
+        except DecodeError:
+            with self.lock:
+                self.decode_errors += 1
+            return
+        if msg.encoding != "jpeg":  # never accept raw frames on this path
+            return
+        with self.lock:
+            self.preview = msg
+            self.preview_jpeg = msg.data.tobytes()
+            self.preview_count += 1
+        if self.on_preview is not None:
+            self.on_preview()
+
+    # -- snapshot ---------------------------------------------------------------------------------
+    def _merge_status(self) -> None:
+        watcher = self._watcher
+        if watcher is None:
+            return
+        for name, health in watcher.snapshot().items():
+            if health.status is None:
+                continue
+            with self.lock:
+                node = self.nodes.setdefault(name, NodeView(name))
+                if health.status_ns > node.status_ns:
+                    node.status, node.status_ns = health.status, health.status_ns
+                    if health.status.pid and health.status.pid not in node.pids:
+                        node.pids.append(health.status.pid)
+
+    def snapshot(self) -> dict[str, Any]:
+        """A JSON-friendly picture of everything the monitor knows."""
+        self._merge_status()
+        now_ns = time.time_ns()
+        with self.lock:
+            self._trim(time.time())
+            nodes = []
+            for name in sorted(self.nodes):
+                n = self.nodes[name]
+                st = n.status
+                fresh = st is not None and now_ns - n.status_ns < 3_000_000_000
+                nodes.append({
+                    "name": name, "alive": n.alive, "since_ns": n.since_ns, "restarts": n.restarts, "ups": n.ups,
+                    "pid": st.pid if st else None, "uptime_s": st.uptime_s if st else None,
+                    "status_age_s": (now_ns - n.status_ns) / 1e9 if st else None,
+                    "topics": (st.topics if st and fresh else {}),
+                    "handler_errors": st.extra.get("handler_errors", 0) if st else 0,
+                })
+            track, prior = self.latest.get("track"), self.latest.get("prior")
+            meas, template = self.latest.get("measurement"), self.latest.get("template")
+            command = self.latest.get("command")
+            out: dict[str, Any] = {
+                "now_ns": now_ns, "connected": self.connected, "ever_connected": self.ever_connected,
+                "unreachable_since_ns": None if self.connected else self.unreachable_since_ns,
+                "endpoints": list(self.settings.connect), "namespace": self.info.namespace,
+                "last_error": self.last_error, "sessions_opened": self.sessions_opened,
+                "decode_errors": self.decode_errors, "received": dict(self.received), "nodes": nodes,
+                "source_width": (self.preview.source_width if self.preview is not None and self.preview.source_width
+                                 else self.info.source_width),
+                "history": {k: [[round(t, 3), round(v, 4)] for t, v in series] for k, series in self.history.items()},
+            }
+            if isinstance(track, Track):
+                out["target"] = {"state": track.state, "box": _box(track.box), "filtered_box": _box(track.filtered_box),
+                                 "velocity": [round(float(v), 1) for v in track.velocity], "measured": track.measured,
+                                 "frame_seq": track.header.frame_seq, "stamp_ns": track.header.stamp_ns}
+            if isinstance(prior, Prior):
+                out["prior"] = {"initialised": prior.initialised, "centre": [float(v) for v in prior.state[:2]],
+                                "innovation_cov": np.asarray(prior.innovation_cov, float).tolist(),
+                                "gate_chi2": prior.gate_chi2, "box": _box(prior.box),
+                                "frame_seq": prior.header.frame_seq}
+            if isinstance(meas, Measurement):
+                cands = np.asarray(meas.candidates, float).reshape(-1, 5) if np.size(meas.candidates) else []
+                out["measurement"] = {"state": meas.state, "accepted": meas.accepted, "box": _box(meas.box),
+                                      "m_fuse": meas.m_fuse, "candidates": [[round(float(v), 2) for v in c]
+                                                                            for c in cands],
+                                      "frame_seq": meas.header.frame_seq}
+            if isinstance(template, Template):
+                out["eta"] = template.eta if template.initialised else None
+                out["p_specular"] = template.p_specular
+            if isinstance(command, MotorCommand):
+                out["command"] = {"vx_mps": command.vx_mps, "vy_mps": command.vy_mps, "wz_radps": command.wz_radps,
+                                  "range_m": command.range_m, "bearing_rad": command.bearing_rad,
+                                  "reason": command.reason, "frame_seq": command.header.frame_seq,
+                                  "latency_ms": ((command.header.pub_ns - command.header.stamp_ns) / 1e6
+                                                 if command.header.stamp_ns > 0 else None)}
+            err = self.history["centre_error_px"]
+            out["centre_error_px"] = err[-1][1] if err else None
+            if self.preview is not None:
+                out["preview"] = {"count": self.preview_count, "width": self.preview.width,
+                                  "height": self.preview.height, "frame_seq": self.preview.header.frame_seq,
+                                  "stamp_ns": self.preview.header.stamp_ns}
+            return out
+
+
+# -- terminal rendering ----------------------------------------------------------------------------
+def _clock(ns: int) -> str:
+    return time.strftime("%H:%M:%S", time.localtime(ns / 1e9))
+
+
+def _num(value: Any, fmt: str = ".1f", missing: str = "-") -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return missing
+    return format(value, fmt)
+
+
+def render(snap: dict[str, Any]) -> list[str]:
+    """The dashboard as plain lines (the caller adds ANSI in-place refresh on a TTY)."""
+    ends = ", ".join(snap["endpoints"])
+    if snap["connected"]:
+        link = "connected"
+    else:
+        link = f"robot unreachable since {_clock(snap['unreachable_since_ns'])}"
+        if snap.get("last_error"):
+            link += f" ({snap['last_error'][:80]})"
+    lines = [f"followbus monitor  {ends}  ns={snap['namespace']}  {_clock(snap['now_ns'])}  {link}", ""]
+    lines.append(f"{'node':<14} {'state':<5} {'for s':>7} {'restarts':>8} {'pid':>7} {'uptime s':>9} {'errs':>5}")
+    for n in snap["nodes"]:
+        for_s = (snap["now_ns"] - n["since_ns"]) / 1e9 if n["since_ns"] else None
+        lines.append(f"{n['name']:<14} {'up' if n['alive'] else 'DOWN':<5} {_num(for_s, '.0f'):>7} "
+                     f"{n['restarts']:>8} {_num(n['pid'], 'd'):>7} {_num(n['uptime_s'], '.0f'):>9} "
+                     f"{n['handler_errors']:>5}")
+    lines += ["", f"{'topic (as seen by node)':<40} {'dir':<3} {'rate Hz':>7} {'p50 ms':>7} {'p99 ms':>7} "
+                  f"{'drops':>6} {'dec err':>7}"]
+    for n in snap["nodes"]:
+        for key in sorted(n["topics"]):
+            t = n["topics"][key]
+            label = f"{key} @{n['name']}"
+            lines.append(f"{label:<40} {t.get('direction', '?'):<3} {_num(t.get('rate_hz')):>7} "
+                         f"{_num(t.get('latency_p50_ms')):>7} {_num(t.get('latency_p99_ms')):>7} "
+                         f"{t.get('drops', 0):>6} {t.get('decode_errors', 0):>7}")
+    lines.append("")
+    target = snap.get("target")
+    if target:
+        lines.append(f"target   {target['state']:<12} box {target['box']} v {target['velocity']} px/s  "
+                     f"frame {target['frame_seq']}  centre err {_num(snap.get('centre_error_px'))} px")
+    else:
+        lines.append("target   (no track yet)")
+    lines.append(f"eta_k    {_num(snap.get('eta'), '.4f')}")
+    cmd = snap.get("command")
+    if cmd:
+        lines.append(f"motor    vx {cmd['vx_mps']:+.2f} m/s  vy {cmd['vy_mps']:+.2f} m/s  "
+                     f"wz {cmd['wz_radps']:+.2f} rad/s  [{cmd['reason']}]  "
+                     f"capture->command {_num(cmd['latency_ms'])} ms")
+    else:
+        lines.append("motor    (no command yet)")
+    if snap["decode_errors"]:
+        lines.append(f"monitor decode errors: {snap['decode_errors']}")
+    return lines
+
+
+def _all_up(snap: dict[str, Any], expected: list[str]) -> bool:
+    by_name = {n["name"]: n for n in snap["nodes"]}
+    names = expected or list(by_name)
+    # Rates are over a window: a node up for less than RATE_SETTLE_S would show misleadingly low ones.
+    return bool(names) and all(by_name.get(n, {}).get("alive") and by_name[n]["topics"]
+                               and (by_name[n]["uptime_s"] or 0.0) >= RATE_SETTLE_S for n in names)
+
+
+def run_monitor(args: Any) -> int:
+    """``followbus monitor``: terminal dashboard, one snapshot (--once), or the web view (--web)."""
+    settings = monitor_settings(args.graph, args.connect, args.user, args.password, args.ca)
+    info = GraphInfo.load(args.graph, args.namespace)
+    if args.web is not None:
+        from followbus.tools.webview import serve
+
+        return serve(settings, info, args.bind, args.web, args.seconds)
+    monitor = BusMonitor(settings, info).start()
+    try:
+        if args.once:
+            # Wait for every node's token and a status message (topic rates), or the time limit.
+            deadline = time.monotonic() + (args.seconds or 5.0)
+            while time.monotonic() < deadline and not _all_up(monitor.snapshot(), info.nodes):
+                time.sleep(0.1)
+            snap = monitor.snapshot()
+            print("\n".join(render(snap)), flush=True)
+            return 0 if snap["connected"] and _all_up(snap, info.nodes) else 1
+        tty = sys.stdout.isatty()
+        deadline = None if args.seconds is None else time.monotonic() + args.seconds
+        while deadline is None or time.monotonic() < deadline:
+            lines = render(monitor.snapshot())
+            if tty:  # home, redraw, clear the rest: refresh in place without flicker
+                sys.stdout.write("\x1b[H" + "\n".join(line + "\x1b[K" for line in lines) + "\n\x1b[J")
+            else:
+                sys.stdout.write(SEPARATOR + "\n" + "\n".join(lines) + "\n")
+            sys.stdout.flush()
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        monitor.close()
+    return 0
