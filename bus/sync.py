@@ -47,6 +47,7 @@ class FrameSynchronizer:
         self._slots: dict[int, _Slot] = {}
         self._feedback: dict[str, dict[int, Any]] = {i.name: {} for i in inputs if i.offset}
         self._last_emitted: int | None = None
+        self._last_emit_ns = 0
         self.timeouts = 0  # sets emitted without an optional input
         self.dropped = 0  # sets dropped: required input missing at timeout, stale, or overflow
 
@@ -89,19 +90,18 @@ class FrameSynchronizer:
         """Sets ready to be handled, in frame order."""
         ready: list[tuple[int, dict[str, Any]]] = []
         for seq in sorted(self._slots):
-            if seq not in self._slots:
-                continue
             slot = self._slots[seq]
             msgs, complete, required = self._gather(slot)
-            expired = now_ns - slot.first_ns >= self.timeout_ns
+            expired = now_ns >= self._deadline(slot)
             if complete:
                 pass
             elif expired and required:
                 self.timeouts += 1
-            elif expired or self._newer_complete(seq):
-                # Dropped: a required input never came, or a newer frame is already complete (this
-                # one lost an input upstream, e.g. a detector that skipped it): waiting would only
-                # add latency to the live path.
+            elif expired or (self._missing_same_frame(slot) and self._newer_complete(seq)):
+                # Dropped: a required input never came, or this frame lost an input upstream (a
+                # detector that skipped it) while a newer frame is complete: waiting would only add
+                # latency. A frame missing only its feedback is not dropped this way: every newer
+                # frame waits for the same feedback.
                 del self._slots[seq]
                 self.dropped += 1
                 continue
@@ -110,18 +110,23 @@ class FrameSynchronizer:
             del self._slots[seq]
             ready.append((seq, {name: msgs.get(name) for name in self.inputs}))
             self._last_emitted = seq
+            self._last_emit_ns = now_ns
         return ready
 
+    def _deadline(self, slot: _Slot) -> int:
+        # A set cannot be handled before its predecessor went out, so its wait starts then.
+        return max(slot.first_ns, self._last_emit_ns) + self.timeout_ns
+
+    def _missing_same_frame(self, slot: _Slot) -> bool:
+        return any(name not in slot.msgs for name, spec in self.inputs.items() if not spec.offset)
+
     def _newer_complete(self, seq: int) -> bool:
-        return any(
-            all(name in self._slots[later].msgs for name, spec in self.inputs.items() if not spec.offset)
-            for later in self._slots if later > seq
-        )
+        return any(not self._missing_same_frame(self._slots[later]) for later in self._slots if later > seq)
 
     def next_deadline_ns(self) -> int | None:
         if not self._slots:
             return None
-        return min(s.first_ns for s in self._slots.values()) + self.timeout_ns
+        return min(self._deadline(s) for s in self._slots.values())
 
     @property
     def pending(self) -> int:

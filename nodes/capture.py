@@ -17,6 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from followbus.bus.health import HealthWatcher
 from followbus.bus.node import Node
 from followbus.bus.schemas import Frame, GroundTruth, Message, Track
 from followbus.vision.sources import open_source
@@ -34,7 +35,8 @@ class CaptureParams:
     max_in_flight: int = 2  # pace: fast
     loop: bool = False
     max_frames: int = 0  # 0: the whole source
-    start_delay_s: float = 1.0  # let subscribers' declarations propagate before frame 0
+    wait_for_consumers_s: float = 15.0  # before frame 0, wait this long at most for the consuming nodes
+    start_delay_s: float = 0.2  # then this much more, for their subscriptions to settle
     preview_width_px: int = 320
     jpeg_quality: int = 70
 
@@ -64,8 +66,16 @@ class Capture(Node):
         self.acked = -1
         self.t0_wall_ns: int | None = None
         self.first_source_ns = 0
-        self.start_at = time.monotonic() + p.start_delay_s
         self.done = False
+        # Frame 0 must not be published before the nodes that consume it are listening (a lost first
+        # frame means no target initialisation, and a lockstep run that never starts). Nodes declare
+        # their liveliness token after their subscribers, so a visible token means they listen.
+        graph = self.runtime.graph
+        self.consumers = {name for name, spec in graph.nodes.items()
+                          if any(i.source_node == self.name for i in spec.inputs.values())}
+        self.health = HealthWatcher(self.runtime.session, graph.namespace, watch_status=False)
+        self.consumers_deadline = time.monotonic() + p.wait_for_consumers_s
+        self.start_at: float | None = None
         # Published every frame either way (available=False without), so joins never wait for it.
         self.has_truth = p.source.startswith("scene:") or bool(getattr(self.source, "has_ground_truth", False))
         if p.pace == "fast" and "ack" not in self.runtime.spec.inputs:
@@ -94,6 +104,14 @@ class Capture(Node):
         p = self.params
         if self.done:
             return None
+        if self.start_at is None:
+            missing = self.consumers - self.health.alive()
+            if missing and time.monotonic() < self.consumers_deadline:
+                return 0.05
+            if missing:
+                self.log.warning("starting without %s (not up after %.0f s)", ", ".join(sorted(missing)),
+                                 p.wait_for_consumers_s)
+            self.start_at = time.monotonic() + p.start_delay_s
         wait = self.start_at - time.monotonic()
         if wait > 0:
             return wait
@@ -168,6 +186,7 @@ class Capture(Node):
         return {"published": self.published, "acked": self.acked, "done": self.done}
 
     def teardown(self) -> None:
+        self.health.close()
         self.source.close()
 
 

@@ -65,3 +65,19 @@ def test_newer_complete_frame_supersedes_an_incomplete_one_and_late_data_is_stal
     assert sync.dropped == 1
     sync.add("dets", 1, "d1", 3 * MS)  # too late: frame 2 was already handled
     assert sync.poll(3 * MS) == [] and sync.pending == 0
+
+
+def test_missing_feedback_does_not_cascade_into_dropping_newer_frames():
+    sync = FrameSynchronizer([SyncInput("dets"), SyncInput("meas", offset=-1, optional=True)], 10 * MS)
+    sync.add("dets", 1, "d1", 0)
+    assert [seq for seq, _ in sync.poll(0)] == [1]
+    for seq in (2, 3, 4):  # the measurement of frame 1 is lost; detections keep coming
+        sync.add("dets", seq, f"d{seq}", seq * MS)
+    assert sync.poll(5 * MS) == [] and sync.dropped == 0
+    # Frame 2 goes on without it after the timeout; frame 3 then waits for frame 2's measurement.
+    assert sync.poll(12 * MS) == [(2, {"dets": "d2", "meas": None})]
+    sync.add("meas", 2, "m2", 13 * MS)
+    assert sync.poll(13 * MS) == [(3, {"dets": "d3", "meas": "m2"})]
+    sync.add("meas", 3, "m3", 14 * MS)
+    assert sync.poll(14 * MS) == [(4, {"dets": "d4", "meas": "m3"})]
+    assert sync.dropped == 0 and sync.timeouts == 1

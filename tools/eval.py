@@ -220,8 +220,7 @@ def derived_graph(scene: str, port: int, namespace: str, init_box: list[float], 
     g["zenoh"]["connect"] = [f"tcp/127.0.0.1:{port}"]
     cap = g["nodes"]["capture"]
     cap.setdefault("inputs", {})["ack"] = {"from": "prediction/track", "sync": "none"}
-    cap["params"].update(source=f"scene:{scene}", pace="fast", max_frames=max_frames, max_in_flight=max_in_flight,
-                         start_delay_s=2.0)
+    cap["params"].update(source=f"scene:{scene}", pace="fast", max_frames=max_frames, max_in_flight=max_in_flight)
     g["nodes"]["detection"]["params"]["backend"] = "simulated"
     g["nodes"]["template"]["params"]["state_file"] = ""
     g["nodes"]["reid"]["params"]["init_box"] = [float(v) for v in init_box]
@@ -261,17 +260,7 @@ def graph_check(scene: str, *, max_frames: int = 0, port: int | None = None, see
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
-    tracks: dict[int, Any] = {}
-    attempts = 0
-    # Zenoh peers discover each other by gossip after the liveliness tokens are up; if the capture->detection
-    # route is not there yet, frame 0 is lost and the lockstep never starts (capture waits for its ack).
-    # That is a start-up race, not a tracking difference: retry the launch (at most 3 times).
-    while not tracks and attempts < 3:
-        attempts += 1
-        tracks = _run_graph_once(scene, port, init_box, n, max_in_flight, timeout_s, log_file,
-                                 first_track_timeout_s=20.0 + 10.0 * attempts)
-        if not tracks:
-            log.warning("graph check %s: no track from the graph (attempt %d); relaunching", scene, attempts)
+    tracks = _run_graph_once(scene, port, init_box, n, max_in_flight, timeout_s, log_file)
     mismatches, missing, first = 0, 0, None
     for k in range(n):
         if k not in tracks:
@@ -284,12 +273,13 @@ def graph_check(scene: str, *, max_frames: int = 0, port: int | None = None, see
             mismatches += 1
             first = k if first is None else first
     return {"compared": n - missing, "mismatches": mismatches, "missing": missing, "first_mismatch": first,
-            "attempts": attempts, "graph": [tracks.get(k) for k in range(n)], "inproc": inproc}
+            "graph": [tracks.get(k) for k in range(n)], "inproc": inproc}
 
 
 def _run_graph_once(scene: str, port: int, init_box: list[float], n: int, max_in_flight: int, timeout_s: float,
-                    log_file: Path | None, first_track_timeout_s: float) -> dict[int, Any]:
-    """Launch the derived graph once and collect Track boxes by frame_seq ({} if frame 0 never came)."""
+                    log_file: Path | None) -> dict[int, Any]:
+    """Launch the derived graph once (motor omitted) and collect Track boxes by frame_seq. Capture publishes
+    frame 0 only once every consuming node is listening (nodes/capture.py), so the lockstep always starts."""
     from followbus.bus.graph import load_graph
     from followbus.bus.pubsub import Subscriber
     from followbus.bus.schemas import Track
@@ -298,7 +288,6 @@ def _run_graph_once(scene: str, port: int, init_box: list[float], n: int, max_in
 
     tracks: dict[int, Any] = {}
     done = threading.Event()
-    first = threading.Event()
     with tempfile.TemporaryDirectory(prefix="followbus-graphcheck-") as tmp:
         path = Path(tmp) / "graph.yaml"
         path.write_text(derived_graph(scene, port, f"gc{port}", init_box, n, max_in_flight=max_in_flight))
@@ -307,30 +296,20 @@ def _run_graph_once(scene: str, port: int, init_box: list[float], n: int, max_in
 
         def on_track(msg: Track) -> None:
             tracks[msg.header.frame_seq] = None if msg.box is None else tuple(float(v) for v in msg.box)
-            first.set()
             if len(tracks) >= n:
                 done.set()
 
         sub = Subscriber(session, graph.key("prediction", "track"), on_track, schema=Track)
-        # Capture starts only once the rest of the chain is up: in lockstep a lost frame 0 is never acked.
-        chain = Launcher(graph, only=[m for m in graph.nodes if m not in ("motor", "capture")],
-                         quiet=log_file is None, log_file=log_file, startup_timeout_s=60.0, grace_s=5.0)
-        capture = Launcher(graph, only=["capture"], quiet=log_file is None, log_file=log_file,
-                           startup_timeout_s=60.0, grace_s=5.0)
-        cap_thread = threading.Thread(target=capture.run, kwargs={"duration_s": timeout_s}, daemon=True)
-        chain_thread = threading.Thread(target=chain.run, kwargs={"duration_s": timeout_s,
-                                                                  "on_ready": cap_thread.start}, daemon=True)
+        launcher = Launcher(graph, only=[m for m in graph.nodes if m != "motor"], quiet=log_file is None,
+                            log_file=log_file, startup_timeout_s=60.0, grace_s=5.0)
+        runner = threading.Thread(target=launcher.run, kwargs={"duration_s": timeout_s}, daemon=True)
         t0 = time.monotonic()
-        chain_thread.start()
+        runner.start()
         try:
-            if first.wait(first_track_timeout_s):
-                done.wait(max(1.0, timeout_s - (time.monotonic() - t0)))
+            done.wait(timeout_s)
         finally:
-            capture.request_stop()
-            chain.request_stop()
-            if cap_thread.is_alive():
-                cap_thread.join(30)
-            chain_thread.join(30)
+            launcher.request_stop()
+            runner.join(30)
             sub.undeclare()
             session.close()
         log.info("graph check %s: %d/%d tracks in %.1f s", scene, len(tracks), n, time.monotonic() - t0)
