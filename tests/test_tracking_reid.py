@@ -212,3 +212,18 @@ def test_restored_template_relocks_onto_matching_detection() -> None:
     # Nobody matches the template: fall back to the §2.1 rule (nearest bottom-centre).
     res = ReIdentifier(params).step(draw((near, BLUE)), dets(near), None, template, 0)
     assert res.init_box == near and res.source == "init"
+
+
+@pytest.mark.parametrize("global_search", [True, False])
+def test_lost_target_is_re_detected_outside_the_gate_only_with_global_search(global_search: bool) -> None:
+    params = TrackerParams(lost_after_ms=100.0, global_search_when_lost=global_search)
+    reid, template = started(params)
+    for t in (33, 66, 99, 132):  # nothing visible: OCCLUDED, then LOST after 100 ms
+        res = reid.step(draw(), dets(), prior_at(TARGET, t * MS), template, t * MS)
+    assert res.state is TrackState.LOST
+    far = (250.0, 20.0, 30.0, 60.0)  # reappears ~170 px away (a panning camera), gate radius ~62 px
+    res = reid.step(draw((far, RED)), dets(far), prior_at(TARGET, 165 * MS), template, 165 * MS)
+    if global_search:
+        assert res.accepted and res.box == far and res.state is TrackState.REACQUIRED
+    else:
+        assert not res.accepted and res.state is TrackState.LOST

@@ -59,6 +59,11 @@ class TrackerParams:
     # template is not updated during them (the re-lock is not yet confirmed).
     reacquired_hold_frames: int = 3
 
+    # Once LOST the prior no longer says where the target is (a panning camera, a long occlusion):
+    # re-detect over the whole image instead of inside the gate. Candidates outside the gate get
+    # S_geo = 0, so only a strong appearance match (ω → 1 by Eq. 3) can pass T_reid.
+    global_search_when_lost: bool = True
+
     # --- ablation switches (paper Table 6) ------------------------------------------------
     use_geometry: bool = True  # False: S_geo off, ω = 1 (M_fuse = S_color)
     use_gate: bool = True  # False: no Mahalanobis gate, every detection/blob is a candidate

@@ -279,7 +279,8 @@ class ReIdentifier:
         out = []
         for box in boxes:
             d2 = prior.mahalanobis_sq(box_centre(box))
-            if self.params.use_gate and not d2 <= prior.gate_chi2:  # Eq. 8 (also drops NaN)
+            gated = self.params.use_gate and not (self.params.global_search_when_lost and self.state is TrackState.LOST)
+            if gated and not d2 <= prior.gate_chi2:  # Eq. 8 (also drops NaN)
                 continue
             out.append(Candidate(box=box, source=source, maha_sq=d2, s_color=0.0, s_geo=0.0))
         return out
