@@ -163,8 +163,12 @@ def test_web_view_streams_previews_and_state(tracking_robot, tmp_path):
         status, jpeg2, h2 = _get(base + f"/preview.jpg?after={h1['X-Preview-Count']}&client=t")
         assert h2["X-Frame-Seq"] != h1["X-Frame-Seq"]
         assert wait_until(lambda: state().get("target", {}).get("frame_seq", -1) != s1["target"]["frame_seq"], 5)
-        assert s1["nodes"] and all(n["alive"] for n in s1["nodes"])
-        assert s1["history"]["latency_ms"], "no end-to-end latency samples"
+        def all_alive() -> bool:
+            nodes = state().get("nodes") or []
+            return bool(nodes) and all(n["alive"] for n in nodes)
+
+        assert wait_until(all_alive, 10), (state().get("nodes"), "".join(_launch.lines[-30:]))
+        assert wait_until(lambda: bool(state().get("history", {}).get("latency_ms")), 5), "no latency samples"
 
         if not CHROMIUM.exists():
             pytest.skip(f"{CHROMIUM} not installed: page checked over HTTP only, not rendered in a browser")
