@@ -205,12 +205,11 @@ def _static_square_size(shape: Sequence[Any]) -> int | None:
     return None
 
 
-class YoloxDetector:
-    """YOLOX (e.g. YOLOX-nano) ONNX model with raw ``[1, A, 85]`` output; see models/README.md.
+class _OnnxDetector:
+    """Shared set-up of the ONNX person detectors: session, input name and side, thresholds."""
 
-    Pre-processing as YOLOX: top-left letterbox padded with 114, BGR 0-255 float, NCHW, no
-    normalisation. The input side is read from the model (416 or 640 for the shipped files).
-    """
+    kind = ""
+    default_size = 416
 
     def __init__(
         self,
@@ -228,11 +227,28 @@ class YoloxDetector:
         if model_size is not None and input_size is not None and input_size != model_size:
             log.warning("%s has fixed input %d; ignoring requested input_size=%d",
                         self.model_path.name, model_size, input_size)
-        self.input_size = model_size or input_size or 416
+        self.input_size = model_size or input_size or self.default_size
         self.score_threshold = float(score_threshold)
         self.nms_iou = float(nms_iou)
-        self.name = f"yolox:{self.model_path.name}@{self.input_size}"
+        self.name = f"{self.kind}:{self.model_path.name}@{self.input_size}"
         self.last_infer_ms = 0.0
+
+    def _infer(self, blob: np.ndarray) -> np.ndarray:
+        t0 = time.perf_counter()
+        raw = self.session.run(None, {self.input_name: blob})[0]
+        self.last_infer_ms = (time.perf_counter() - t0) * 1e3
+        return raw
+
+
+class YoloxDetector(_OnnxDetector):
+    """YOLOX (e.g. YOLOX-nano) ONNX model with raw ``[1, A, 85]`` output; see models/README.md.
+
+    Pre-processing as YOLOX: top-left letterbox padded with 114, BGR 0-255 float, NCHW, no
+    normalisation. The input side is read from the model (416 or 640 for the shipped files).
+    """
+
+    kind = "yolox"
+    default_size = 416
 
     def preprocess(self, bgr: np.ndarray) -> tuple[np.ndarray, float]:
         canvas, ratio, _ = letterbox(bgr, self.input_size, centered=False)
@@ -241,9 +257,7 @@ class YoloxDetector:
 
     def detect(self, bgr: np.ndarray) -> np.ndarray:
         blob, ratio = self.preprocess(bgr)
-        t0 = time.perf_counter()
-        raw = self.session.run(None, {self.input_name: blob})[0]
-        self.last_infer_ms = (time.perf_counter() - t0) * 1e3
+        raw = self._infer(blob)
         return yolox_postprocess(raw, self.input_size, ratio, bgr.shape, self.score_threshold, self.nms_iou)
 
 
@@ -281,33 +295,16 @@ def yolov8_postprocess(
     return clip_detections(dets, image_shape[1], image_shape[0])
 
 
-class YoloV8Detector:
+class YoloV8Detector(_OnnxDetector):
     """ultralytics YOLOv8 ONNX export (``yolo export format=onnx``): centred letterbox, RGB / 255."""
 
-    def __init__(
-        self,
-        model_path: str | os.PathLike[str],
-        input_size: int | None = None,
-        score_threshold: float = 0.3,
-        nms_iou: float = 0.45,
-        threads: int | None = None,
-    ) -> None:
-        self.model_path = Path(model_path)
-        self.session = _ort_session(self.model_path, threads)
-        inp = self.session.get_inputs()[0]
-        self.input_name = inp.name
-        self.input_size = _static_square_size(inp.shape) or input_size or 640
-        self.score_threshold = float(score_threshold)
-        self.nms_iou = float(nms_iou)
-        self.name = f"yolov8:{self.model_path.name}@{self.input_size}"
-        self.last_infer_ms = 0.0
+    kind = "yolov8"
+    default_size = 640
 
     def detect(self, bgr: np.ndarray) -> np.ndarray:
         canvas, ratio, pad = letterbox(bgr, self.input_size, centered=True)
         blob = np.ascontiguousarray(canvas[:, :, ::-1].transpose(2, 0, 1)[None], dtype=np.float32) / 255.0
-        t0 = time.perf_counter()
-        raw = self.session.run(None, {self.input_name: blob})[0]
-        self.last_infer_ms = (time.perf_counter() - t0) * 1e3
+        raw = self._infer(blob)
         return yolov8_postprocess(raw, ratio, pad, bgr.shape, self.score_threshold, self.nms_iou)
 
 
