@@ -3,23 +3,26 @@ remote viewers, and ground truth when the source has it.
 
 Sources (``source`` param): ``camera:<index>``, a video file, an image folder (optionally in the
 ../shared/data layouts, with ground truth), ``scene:<name>`` (built-in synthetic scenes with exact
-ground truth). ``pace: realtime`` paces to the source rate; ``pace: fast`` publishes as fast as
-the consumers allow: at most ``max_in_flight`` frames ahead of the ``ack`` input (wire it to the
-last node of the chain, e.g. prediction/track).
+ground truth), or an MCAP recording (``*.mcap``: its raw frames, and its ground truth when recorded,
+re-published with their original spacing). ``pace: realtime`` paces to the source rate;
+``pace: fast`` publishes as fast as the consumers allow: at most ``max_in_flight`` frames ahead of
+the ``ack`` input (wire it to the last node of the chain, e.g. prediction/track).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from followbus.bus.codec import DecodeError
 from followbus.bus.health import HealthWatcher
 from followbus.bus.node import Node
-from followbus.bus.schemas import Frame, GroundTruth, Message, Track
+from followbus.bus.schemas import Frame, GroundTruth, Message, Track, decode
 from followbus.vision.sources import open_source
 
 
@@ -31,6 +34,7 @@ class CaptureParams:
     width_px: int = 640  # synthetic scenes
     height_px: int = 480
     groundtruth: str = ""  # image folders: explicit ground-truth file
+    mcap_frame_key: str = ""  # MCAP sources: the recorded frame key (default: the one ending in /frame)
     pace: str = "realtime"  # realtime | fast
     max_in_flight: int = 2  # pace: fast
     loop: bool = False
@@ -84,6 +88,8 @@ class Capture(Node):
 
     def _open(self):
         p = self.params
+        if p.source.endswith(".mcap"):
+            return McapFrameSource(p.source, p.mcap_frame_key)
         kw: dict[str, Any] = {}
         if p.source.startswith("scene:"):
             kw = {"seed": p.seed, "width": p.width_px, "height": p.height_px}
@@ -188,6 +194,70 @@ class Capture(Node):
     def teardown(self) -> None:
         self.health.close()
         self.source.close()
+
+
+class McapFrameSource:
+    """Raw frames (and ground truth, when recorded) of a followbus MCAP recording, in log-time order."""
+
+    def __init__(self, path: str, frame_key: str = ""):
+        from mcap.reader import make_reader
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ValueError(f"MCAP source {path!r}: no such file")
+        with self.path.open("rb") as f:
+            summary = make_reader(f).get_summary()
+        if summary is None:
+            raise ValueError(f"MCAP source {path!r} has no summary: run `followbus recover` on it first")
+        topics = sorted({ch.topic for ch in summary.channels.values()})
+        frame_keys = [frame_key] if frame_key else [t for t in topics if t.endswith("/frame")]
+        if not frame_keys or frame_keys[0] not in topics:
+            raise ValueError(f"MCAP source {path!r}: no frame channel (topics: {', '.join(topics)})")
+        self.frame_key = frame_keys[0]
+        self.truth_key = self.frame_key.rsplit("/", 1)[0] + "/ground_truth"
+        self.has_ground_truth = self.truth_key in topics
+        self.name = self.path.name
+        stats = summary.statistics
+        duration_s = ((stats.message_end_time - stats.message_start_time) / 1e9) if stats else 0.0
+        count = next((stats.channel_message_counts.get(cid, 0) for cid, ch in summary.channels.items()
+                      if ch.topic == self.frame_key), 0) if stats else 0
+        self.fps = (count - 1) / duration_s if count > 1 and duration_s > 0 else 30.0
+
+    def __iter__(self):
+        return self.frames()
+
+    def frames(self):
+        from mcap.reader import make_reader
+
+        from followbus.vision.sources import SourceFrame
+
+        truth: dict[int, GroundTruth] = {}
+        first_stamp: int | None = None
+        index = 0
+        topics = [self.frame_key] + ([self.truth_key] if self.has_ground_truth else [])
+        with self.path.open("rb") as f:
+            for _schema, _channel, record in make_reader(f).iter_messages(topics=topics, log_time_order=True):
+                try:
+                    msg = decode(record.data)
+                except DecodeError:
+                    continue  # not a bus message (e.g. a Foxglove channel of the same name)
+                if isinstance(msg, GroundTruth):
+                    truth[msg.header.frame_seq] = msg
+                    continue
+                if not isinstance(msg, Frame) or msg.encoding != "bgr8":
+                    continue
+                first_stamp = msg.header.stamp_ns if first_stamp is None else first_stamp
+                gt = truth.pop(msg.header.frame_seq, None)
+                extras: dict[str, Any] = {"recorded_frame_seq": msg.header.frame_seq}
+                if gt is not None and gt.available:
+                    extras.update(visible_fraction=gt.visible_fraction, distractor_boxes=gt.others.tolist(),
+                                  distractor_visible_fractions=gt.others_visible.tolist())
+                box = None if gt is None or gt.box is None else tuple(float(v) for v in gt.box)
+                yield SourceFrame(index, msg.header.stamp_ns - first_stamp, np.array(msg.data), box, extras)
+                index += 1
+
+    def close(self) -> None:
+        pass
 
 
 NODE = Capture
