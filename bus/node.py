@@ -38,6 +38,8 @@ from followbus.bus.stats import TopicStats
 from followbus.bus.sync import FrameSynchronizer, SyncInput
 
 STATUS_PERIOD_S = 1.0
+# Set by the launcher for its children: the comma-separated names of the nodes it started.
+LAUNCHED_NODES_ENV = "FOLLOWBUS_LAUNCHED_NODES"
 
 
 class ParamError(ValueError):

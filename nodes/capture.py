@@ -11,6 +11,7 @@ the ``ack`` input (wire it to the last node of the chain, e.g. prediction/track)
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,9 +22,11 @@ import numpy as np
 
 from followbus.bus.codec import DecodeError
 from followbus.bus.health import HealthWatcher
-from followbus.bus.node import Node
+from followbus.bus.node import LAUNCHED_NODES_ENV, Node
 from followbus.bus.schemas import Frame, GroundTruth, Message, Track, decode
 from followbus.vision.sources import open_source
+
+RECORDER = "recorder"  # the liveliness name of `followbus record` (tools/record.py)
 
 
 @dataclass
@@ -40,7 +43,7 @@ class CaptureParams:
     loop: bool = False
     max_frames: int = 0  # 0: the whole source
     wait_for_consumers_s: float = 15.0  # before frame 0, wait this long at most for the consuming nodes
-    start_delay_s: float = 0.2  # then this much more, for their subscriptions to settle
+    start_delay_s: float = 0.5  # then this much more, for the routes between them to settle
     preview_width_px: int = 320
     jpeg_quality: int = 70
 
@@ -74,10 +77,8 @@ class Capture(Node):
         # Frame 0 must not be published before the nodes that consume it are listening (a lost first
         # frame means no target initialisation, and a lockstep run that never starts). Nodes declare
         # their liveliness token after their subscribers, so a visible token means they listen.
-        graph = self.runtime.graph
-        self.consumers = {name for name, spec in graph.nodes.items()
-                          if any(i.source_node == self.name for i in spec.inputs.values())}
-        self.health = HealthWatcher(self.runtime.session, graph.namespace, watch_status=False)
+        self.consumers = self._downstream_nodes()
+        self.health = HealthWatcher(self.runtime.session, self.runtime.graph.namespace, watch_status=False)
         self.consumers_deadline = time.monotonic() + p.wait_for_consumers_s
         self.start_at: float | None = None
         # Published every frame either way (available=False without), so joins never wait for it.
@@ -85,6 +86,28 @@ class Capture(Node):
         if p.pace == "fast" and "ack" not in self.runtime.spec.inputs:
             self.log.warning("pace: fast without an 'ack' input: publishing at full speed, frames may be dropped")
         self.log.info("source %s at %.1f fps, pace %s", p.source, self.fps, p.pace)
+
+    def _downstream_nodes(self) -> set[str]:
+        """Nodes fed by this one, directly or through others; limited to the ones the launcher started
+        (FOLLOWBUS_LAUNCHED_NODES) when it says, else only the direct consumers. Waiting for the whole
+        chain, not just the first hop, keeps frame 0's results from racing the routes between later nodes."""
+        graph = self.runtime.graph
+        launched = os.environ.get(LAUNCHED_NODES_ENV)
+        if not launched:
+            return {name for name, spec in graph.nodes.items()
+                    if any(i.source_node == self.name for i in spec.inputs.values())}
+        started = set(launched.split(","))
+        found: set[str] = set()
+        frontier = {self.name}
+        while frontier:
+            fed = {name for name, spec in graph.nodes.items() if name in started and name not in found
+                   and any(i.source_node in frontier for i in spec.inputs.values())}
+            found |= fed
+            frontier = fed
+        found.discard(self.name)
+        if RECORDER in started:
+            found.add(RECORDER)  # `launch --record`: the recording must hold frame 0 too
+        return found
 
     def _open(self):
         p = self.params

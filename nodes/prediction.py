@@ -5,12 +5,15 @@ covariance and the χ² gate (Eq. 8). Its measurement input is joined with offse
 computed after frame k-1's re-ID result was folded in, in the same order as the in-process tracker.
 Each re-ID result is applied as soon as it arrives (measurement update, or suspension when the
 target is occluded) and the posterior track is published at once, so motor control is not held
-back a frame. Odometry feeds the ego-motion-aware measurement noise R_k = R0 + κ‖v_ego‖² I (Eq. 7).
+back a frame. Odometry feeds the ego-motion-aware measurement noise R_k = R0 + κ‖v_ego‖² I (Eq. 7):
+for frame k the newest odometry sample stamped at or before frame k's capture is used, never "whatever
+arrived last", so a live run and its lockstep replay compute the same R_k.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,15 +46,24 @@ class Prediction(Node):
         self.priors: dict[int, Any] = {}  # frame_seq -> pure Prior, until its measurement arrives
         self.applied_seq = -1
         self.last_state = "UNINITIALISED"
+        self.odometry: deque[Odometry] = deque(maxlen=512)  # ~10 s at 50 Hz, in stamp order
 
-    def _v_ego(self) -> tuple[float, float]:
-        odom = self.latest.get("odometry")
-        if not self.node_params.use_odometry or not isinstance(odom, Odometry):
+    def _v_ego(self, stamp_ns: int) -> tuple[float, float]:
+        """Ego velocity at a frame's capture stamp: the newest odometry sample not after it."""
+        if not self.node_params.use_odometry:
             return (0.0, 0.0)
-        # Eq. 7 needs the ego speed; the filter is in image space, so only its magnitude matters.
-        return (odom.vx_mps, odom.vy_mps) if math.isfinite(odom.vx_mps + odom.vy_mps) else (0.0, 0.0)
+        for odom in reversed(self.odometry):
+            if odom.header.stamp_ns <= stamp_ns:
+                # Eq. 7 needs the ego speed; the filter is in image space, so only its magnitude matters.
+                ok = math.isfinite(odom.vx_mps + odom.vy_mps)
+                return (odom.vx_mps, odom.vy_mps) if ok else (0.0, 0.0)
+        return (0.0, 0.0)
 
     def on_message(self, name: str, msg: Message) -> None:
+        if name == "odometry" and isinstance(msg, Odometry):
+            if not self.odometry or msg.header.stamp_ns >= self.odometry[-1].header.stamp_ns:
+                self.odometry.append(msg)
+            return
         if name != "measurement" or not isinstance(msg, Measurement):
             return
         seq = msg.header.frame_seq
@@ -59,7 +71,7 @@ class Prediction(Node):
             return
         reid = msg_to_reid(msg)
         prior = self.priors.pop(seq, None)
-        posterior = self.predictor.apply(reid, self._v_ego())
+        posterior = self.predictor.apply(reid, self._v_ego(msg.header.stamp_ns))
         self.applied_seq = seq
         self.last_state = msg.state
         self.publish("track", make_track(msg.state, output_box(reid, prior), posterior), like=msg)
@@ -69,7 +81,7 @@ class Prediction(Node):
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         dets = inputs["detections"]
         assert dets is not None
-        prior = self.predictor.predict(dets.header.stamp_ns, self._v_ego())
+        prior = self.predictor.predict(dets.header.stamp_ns, self._v_ego(dets.header.stamp_ns))
         self.priors[frame_seq] = prior
         self.publish("prior", prior_to_msg(prior), like=dets)
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from followbus.bus.graph import Graph, NodeSpec
 from followbus.bus.health import HealthWatcher
+from followbus.bus.node import LAUNCHED_NODES_ENV
 from followbus.bus.session import open_session
 
 log = logging.getLogger("followbus.launch")
@@ -75,6 +76,9 @@ class Launcher:
             if unknown:
                 raise ValueError(f"--only names unknown node(s): {', '.join(sorted(unknown))}")
         self.children = [Child(spec, self._node_argv(spec.name)) for spec in selected]
+        # Nodes may wait for each other at start-up (capture holds frame 0 until its chain listens).
+        self.env[LAUNCHED_NODES_ENV] = ",".join([spec.name for spec in selected]
+                                                + [name for name, _ in extra_children or []])
         for name, argv in extra_children or []:
             self.children.append(Child(NodeSpec(name=name, run="<tool>"), argv))
         self.health: HealthWatcher | None = None

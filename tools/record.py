@@ -1,0 +1,457 @@
+"""``followbus record``: store every bus message, losslessly, in an MCAP file that opens in Foxglove.
+
+A plain Zenoh subscriber on ``<namespace>/**`` (or the given key expressions). Zenoh's callback
+only copies the payload into a queue; a writer thread does everything else (channel lookup,
+Foxglove conversion, chunk compression, disk), so a slow disk never stalls the callbacks and
+publishers keep the congestion control they chose. The queue is bounded in bytes
+(``--max-queue-mb``): past that, messages are dropped and counted rather than growing memory
+without bound.
+
+Every chunk is closed and flushed at least every ``--chunk-seconds`` (and whenever it reaches
+``--chunk-mb``), so a recorder killed with SIGKILL loses at most that much: ``followbus recover``
+rewrites the complete chunks into a valid file. SIGINT/SIGTERM finalise the file (summary, index).
+
+Compression (measured, 2 cores, capture node looping sot/uav-person11 1280x720 bgr8 at 30 Hz plus
+its JPEG preview and ground truth, 20 s per run, ``followbus record --compression X``):
+
+    =========  ==========  ===========  =================  ===========  =======
+    chunks     writer busy  queue max    MB/s to disk       ratio        dropped
+    =========  ==========  ===========  =================  ===========  =======
+    lz4        see BENCH_RESULTS below
+    =========  ==========  ===========  =================  ===========  =======
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import zenoh
+
+from followbus import __version__
+from followbus.bus.codec import DecodeError, unpack
+from followbus.bus.pubsub import RateLimitedLog, payload_bytes
+from followbus.bus.schemas import Frame, decode
+from followbus.tools import foxglove_schemas as fox
+from followbus.tools.mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, RecordingWriter
+
+log = logging.getLogger("followbus.record")
+
+STATUS_SEGMENTS = ("@status", "@health")
+RECORDER_NAME = "recorder"  # liveliness name, and the launcher's name for the child it starts with --record
+
+
+@dataclass
+class RecordOptions:
+    output: Path
+    patterns: list[str]
+    include_status: bool = False
+    compression: str = DEFAULT_COMPRESSION
+    chunk_bytes: int = DEFAULT_CHUNK_BYTES
+    chunk_seconds: float = 1.0
+    jpeg_quality: int = 80
+    foxglove: bool = True
+    max_queue_bytes: int = 1024 * 1024 * 1024
+
+
+@dataclass
+class KeyStats:
+    type_name: str = ""
+    received: int = 0
+    written: int = 0
+    dropped: int = 0  # recorder queue full
+    seq_gaps: int = 0  # messages missing between two received header.seq of one publisher
+    restarts: int = 0  # header.seq went back: the publisher restarted
+
+
+@dataclass
+class RecordReport:
+    path: Path
+    duration_s: float = 0.0
+    keys: dict[str, KeyStats] = field(default_factory=dict)
+    foxglove_messages: int = 0
+    foxglove_errors: int = 0
+    undecodable: int = 0
+    writer_busy_s: float = 0.0
+    convert_busy_s: float = 0.0
+    max_queue_bytes: int = 0
+    file_bytes: int = 0
+
+    @property
+    def received(self) -> int:
+        return sum(k.received for k in self.keys.values())
+
+    @property
+    def written(self) -> int:
+        return sum(k.written for k in self.keys.values())
+
+    @property
+    def dropped(self) -> int:
+        return sum(k.dropped for k in self.keys.values())
+
+    @property
+    def seq_gaps(self) -> int:
+        return sum(k.seq_gaps for k in self.keys.values())
+
+    def as_metadata(self) -> dict[str, str]:
+        return {
+            "received": str(self.received), "written": str(self.written), "dropped": str(self.dropped),
+            "seq_gaps": str(self.seq_gaps), "undecodable": str(self.undecodable),
+            "foxglove_messages": str(self.foxglove_messages), "foxglove_errors": str(self.foxglove_errors),
+            "duration_s": f"{self.duration_s:.3f}", "writer_busy_s": f"{self.writer_busy_s:.3f}",
+            "convert_busy_s": f"{self.convert_busy_s:.3f}",
+            "max_queue_bytes": str(self.max_queue_bytes),
+            "keys": json.dumps({k: vars(v) for k, v in sorted(self.keys.items())}),
+        }
+
+
+def is_status_key(key: str) -> bool:
+    return any(seg in STATUS_SEGMENTS for seg in key.split("/"))
+
+
+@dataclass
+class _Item:
+    key: str
+    data: bytes
+    recv_ns: int
+    type_name: str | None = None
+    header: list[Any] | None = None
+    log_time: int = 0
+    views: list[tuple[str, str, bytes]] = field(default_factory=list)  # Foxglove (topic, schema, payload)
+
+
+class Recorder:
+    """Subscribes, queues, converts and writes from threads. ``start()``, then ``stop()`` returns the report.
+
+    Two threads form a pipeline so JPEG encoding and chunk compression (both release the GIL) overlap:
+    ``convert`` parses headers and builds the Foxglove views, ``write`` feeds the MCAP writer.
+    """
+
+    def __init__(self, session: zenoh.Session, options: RecordOptions, metadata: dict[str, dict[str, str]]):
+        self.session = session
+        self.opts = options
+        self.writer = RecordingWriter(options.output, options.compression, options.chunk_bytes)
+        for name, data in metadata.items():
+            self.writer.metadata(name, data)
+        self.writer.flush()
+        self.report = RecordReport(options.output)
+        self._key_exprs = [zenoh.KeyExpr(p) for p in options.patterns]
+        self._subs: list[Any] = []
+        self._raw: deque[_Item] = deque()
+        self._ready: deque[_Item] = deque()
+        self._queued_bytes = 0  # from the callback until written
+        self._cond = threading.Condition()
+        self._closing = False
+        self._converted_all = False
+        self._last_seq: dict[tuple[str, str], int] = {}
+        self._warn = RateLimitedLog(log, 5.0)
+        self._threads = [threading.Thread(target=self._convert_loop, name="record-convert", daemon=True),
+                         threading.Thread(target=self._write_loop, name="record-write", daemon=True)]
+        self._started = 0.0
+
+    # --- zenoh side (must stay cheap) -------------------------------------------------------------
+    def start(self) -> None:
+        self._started = time.monotonic()
+        for thread in self._threads:
+            thread.start()
+        for i, pattern in enumerate(self.opts.patterns):
+            self._subs.append(self.session.declare_subscriber(pattern, self._callback_for(i)))
+
+    def _callback_for(self, index: int):
+        def callback(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            if len(self._key_exprs) > 1:
+                # Overlapping patterns deliver a sample once per subscriber: only the first that matches keeps it.
+                first = next(i for i, k in enumerate(self._key_exprs) if k.intersects(sample.key_expr))
+                if first != index:
+                    return
+            try:
+                data = payload_bytes(sample)
+            except Exception as exc:  # never let one sample kill zenoh's callback thread
+                self._warn.warning("unreadable sample on %s: %r", key, exc)
+                return
+            self._enqueue(key, data)
+
+        return callback
+
+    def _enqueue(self, key: str, data: bytes) -> None:
+        now = time.time_ns()
+        with self._cond:
+            stats = self.report.keys.get(key)
+            if stats is None:
+                stats = self.report.keys[key] = KeyStats()
+            stats.received += 1
+            if self._queued_bytes + len(data) > self.opts.max_queue_bytes:
+                stats.dropped += 1
+                self._warn.warning("writer queue full (%d MB): dropping on %s", self._queued_bytes >> 20, key)
+                return
+            self._raw.append(_Item(key, data, now))
+            self._queued_bytes += len(data)
+            self.report.max_queue_bytes = max(self.report.max_queue_bytes, self._queued_bytes)
+            self._cond.notify_all()
+
+    # --- convert thread ---------------------------------------------------------------------------
+    def _convert_loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._raw and not self._closing:
+                    self._cond.wait()
+                if not self._raw:
+                    self._converted_all = True
+                    self._cond.notify_all()
+                    return
+                item = self._raw.popleft()
+            busy_from = time.perf_counter()
+            try:
+                self._convert(item)
+            except Exception:
+                log.exception("failed to convert a message on %s", item.key)
+            self.report.convert_busy_s += time.perf_counter() - busy_from
+            with self._cond:
+                self._ready.append(item)
+                self._cond.notify_all()
+
+    def _convert(self, item: _Item) -> None:
+        try:
+            obj = unpack(item.data)
+            item.type_name = obj.get("_t") if isinstance(obj.get("_t"), str) else None
+            raw_header = obj.get("header")
+            if isinstance(raw_header, list) and len(raw_header) == 5:
+                item.header = raw_header
+        except DecodeError:
+            pass
+        stamp = item.header[1] if item.header and isinstance(item.header[1], int) else 0
+        item.log_time = stamp if stamp > 0 else item.recv_ns  # the bus stamp; receive time only without one
+        if self.opts.foxglove and item.type_name in ("Frame", *fox.ANNOTATORS):
+            try:
+                self._foxglove_views(item)
+            except Exception as exc:  # a view that cannot be drawn must not cost the bus message
+                self.report.foxglove_errors += 1
+                self._warn.warning("no Foxglove view of %s: %r", item.key, exc)
+
+    def _foxglove_views(self, item: _Item) -> None:
+        msg = decode(item.data)
+        if isinstance(msg, Frame):
+            jpeg = self._jpeg(msg)
+            if jpeg is not None:
+                item.views.append((f"{item.key}/image", fox.COMPRESSED_IMAGE,
+                                   fox.compressed_image(msg.header.stamp_ns or item.log_time, item.key, jpeg)))
+        elif item.type_name is not None:
+            item.views.append((f"{item.key}/annotations", fox.IMAGE_ANNOTATIONS,
+                               fox.ANNOTATORS[item.type_name](msg)))
+
+    def _jpeg(self, frame: Frame) -> bytes | None:
+        if frame.encoding == "jpeg":
+            return np.asarray(frame.data, np.uint8).tobytes()
+        if frame.encoding == "bgr8" and frame.data.size:
+            ok, buf = cv2.imencode(".jpg", frame.data, [cv2.IMWRITE_JPEG_QUALITY, self.opts.jpeg_quality])
+            return buf.tobytes() if ok else None
+        return None
+
+    # --- write thread -----------------------------------------------------------------------------
+    def _write_loop(self) -> None:
+        last_flush = time.monotonic()
+        while True:
+            with self._cond:
+                while not self._ready and not self._converted_all:
+                    remaining = self.opts.chunk_seconds - (time.monotonic() - last_flush)
+                    if remaining <= 0:
+                        break
+                    self._cond.wait(remaining)
+                item = self._ready.popleft() if self._ready else None
+                if item is None and self._converted_all:
+                    return
+            busy_from = time.perf_counter()
+            if item is not None:
+                try:
+                    self._write(item)
+                except Exception:
+                    log.exception("failed to write a message on %s", item.key)
+                with self._cond:
+                    self._queued_bytes -= len(item.data)
+            if time.monotonic() - last_flush >= self.opts.chunk_seconds:
+                self.writer.flush()  # a closed chunk survives a SIGKILL
+                last_flush = time.monotonic()
+            self.report.writer_busy_s += time.perf_counter() - busy_from
+
+    def _write(self, item: _Item) -> None:
+        header = item.header
+        if item.type_name is None:
+            self.report.undecodable += 1
+        seq = header[0] if header and isinstance(header[0], int) else 0
+        self.writer.write(self.writer.bus_channel(item.key, item.type_name), item.log_time, item.data, sequence=seq)
+        stats = self.report.keys[item.key]
+        stats.written += 1
+        stats.type_name = item.type_name or "?"
+        if header is not None:
+            self._track_seq(stats, item.key, str(header[3]), seq)
+        for topic, schema, payload in item.views:
+            self.writer.write(self.writer.foxglove_channel(topic, schema, item.key), item.log_time, payload,
+                              sequence=seq)
+            self.report.foxglove_messages += 1
+
+    def _track_seq(self, stats: KeyStats, key: str, source: str, seq: int) -> None:
+        last = self._last_seq.get((key, source))
+        if last is not None:
+            if seq > last + 1:
+                stats.seq_gaps += seq - last - 1
+            elif seq <= last:
+                stats.restarts += 1
+        self._last_seq[(key, source)] = seq
+
+    # --- shutdown ---------------------------------------------------------------------------------
+    def queued_bytes(self) -> int:
+        with self._cond:
+            return self._queued_bytes
+
+    def stop(self) -> RecordReport:
+        for sub in self._subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        with self._cond:
+            self._closing = True
+            self._cond.notify_all()
+        for thread in self._threads:
+            thread.join()
+        self.report.duration_s = time.monotonic() - self._started
+        self.writer.metadata("recording_stats", self.report.as_metadata())
+        self.writer.finish()
+        self.report.file_bytes = self.opts.output.stat().st_size
+        return self.report
+
+
+# --- metadata --------------------------------------------------------------------------------------
+
+def git_info() -> tuple[str, bool]:
+    """(commit, dirty) of the followbus source tree, ("unknown", False) when it is not a git checkout."""
+    import followbus.bus
+
+    root = Path(followbus.bus.__file__).resolve().parents[1]
+    try:
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=5, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=5).stdout.strip() != ""
+        return commit or "unknown", dirty
+    except (OSError, subprocess.SubprocessError):
+        return "unknown", False
+
+
+def build_metadata(graph: Any | None, options: RecordOptions, namespace: str,
+                   argv: list[str] | None = None) -> dict[str, dict[str, str]]:
+    commit, dirty = git_info()
+    now_ns = time.time_ns()
+    info = {
+        "version": __version__,
+        "git_commit": commit,
+        "git_dirty": "true" if dirty else "false",
+        "host": socket.gethostname(),
+        "start_time": datetime.fromtimestamp(now_ns / 1e9, tz=timezone.utc).isoformat(timespec="milliseconds"),
+        "start_time_ns": str(now_ns),
+        "namespace": namespace,
+        "graph_name": graph.name if graph is not None else "",
+        "graph_path": str(Path(graph.path).resolve()) if graph is not None else "",
+        "topics": json.dumps(options.patterns),
+        "include_status": "true" if options.include_status else "false",
+        "compression": options.compression,
+        "jpeg_quality": str(options.jpeg_quality),
+        "argv": json.dumps(argv if argv is not None else sys.argv),
+    }
+    meta = {"followbus": info}
+    if graph is not None:
+        meta["graph"] = {"path": info["graph_path"], "yaml": graph.text}
+        meta["params"] = {name: json.dumps(spec.params, default=str) for name, spec in graph.nodes.items()}
+    return meta
+
+
+# --- command ---------------------------------------------------------------------------------------
+
+def default_output(graph_name: str) -> Path:
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    return Path("recordings") / f"{graph_name or 'followbus'}-{stamp}.mcap"
+
+
+def print_report(report: RecordReport, out=sys.stdout) -> None:
+    rows = sorted(report.keys.items())
+    width = max([len(k) for k, _ in rows] + [3])
+    print(f"{'key':<{width}}  {'type':<12} {'received':>8} {'written':>8} {'dropped':>7} {'lost':>5}", file=out)
+    for key, s in rows:
+        print(f"{key:<{width}}  {s.type_name:<12} {s.received:>8} {s.written:>8} {s.dropped:>7} {s.seq_gaps:>5}",
+              file=out)
+    busy = 100 * report.writer_busy_s / report.duration_s if report.duration_s else 0.0
+    conv = 100 * report.convert_busy_s / report.duration_s if report.duration_s else 0.0
+    print(f"recorded {report.written} of {report.received} messages received in {report.duration_s:.1f} s to "
+          f"{report.path} ({report.file_bytes / 1e6:.1f} MB, {report.foxglove_messages} Foxglove messages); "
+          f"dropped by the recorder: {report.dropped}; lost on the way (header.seq gaps): {report.seq_gaps}; "
+          f"threads busy: convert {conv:.0f}%, write {busy:.0f}%; queue max {report.max_queue_bytes / 1e6:.1f} MB",
+          file=out, flush=True)
+
+
+def cmd_record(args, settings, graph) -> int:
+    """``followbus record``; ``graph`` is the loaded --graph (with --set applied) or None."""
+    namespace = graph.namespace if graph is not None else "fb"
+    patterns = list(args.topics or [f"{namespace}/**"])
+    if args.status and f"{namespace}/@status/*" not in patterns:
+        # '@' chunks are verbatim in Zenoh: no wildcard matches them, so status is only ever recorded on request.
+        patterns.append(f"{namespace}/@status/*")
+    output = Path(args.output) if args.output else default_output(graph.name if graph is not None else "")
+    options = RecordOptions(
+        output=output, patterns=patterns, include_status=args.status, compression=args.compression,
+        chunk_bytes=int(args.chunk_mb * 1024 * 1024), chunk_seconds=args.chunk_seconds,
+        jpeg_quality=args.jpeg_quality, foxglove=not args.no_foxglove,
+        max_queue_bytes=int(args.max_queue_mb * 1024 * 1024),
+    )
+    stop = threading.Event()
+
+    def on_signal(signum, _frame):
+        log.info("received %s: finalising %s", signal.Signals(signum).name, output)
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    from followbus.bus.session import open_session
+
+    try:
+        session = open_session(settings)
+    except zenoh.ZError as exc:
+        print(f"followbus: cannot join the bus via {', '.join(settings.connect)}: {exc}", file=sys.stderr)
+        return 2
+    recorder = Recorder(session, options, build_metadata(graph, options, namespace))
+    recorder.start()
+    # Declared after the subscribers: a capture node launched with --record waits for it before frame 0,
+    # so a recording holds the run from its first frame (a replayed node must start where the live one did).
+    token = session.liveliness().declare_token(f"{namespace}/@health/{RECORDER_NAME}")
+    print(f"recording {' '.join(patterns)} to {output} ({options.compression} chunks); Ctrl-C to stop", flush=True)
+    started = time.monotonic()
+    next_status = started + 10.0
+    try:
+        while not stop.is_set():
+            if args.duration is not None and time.monotonic() - started >= args.duration:
+                break
+            stop.wait(0.1)
+            if time.monotonic() >= next_status:
+                next_status += 10.0
+                log.info("%d messages received, queue %.1f MB", recorder.report.received,
+                         recorder.queued_bytes() / 1e6)
+    finally:
+        report = recorder.stop()
+        with contextlib.suppress(Exception):
+            token.undeclare()
+        with contextlib.suppress(Exception):
+            session.close()
+    print_report(report)
+    return 0
