@@ -1,0 +1,52 @@
+"""A recording of the tracking graph is a regression test: lockstep replay of the re-ID and prediction
+nodes reproduces every recorded output, and a changed parameter is reported as a mismatch."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+
+import pytest
+
+from .conftest import REPO, followbus_argv, run_followbus
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    from .conftest import free_port
+
+    tmp = tmp_path_factory.mktemp("rec")
+    port = free_port()
+    text = (REPO / "graph.yaml").read_text().replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}")
+    graph = tmp / "graph.yaml"
+    graph.write_text(text.replace("namespace: fb", "namespace: rt"))
+    path = tmp / "run.mcap"
+    result = subprocess.run(
+        followbus_argv("launch", str(graph), "--duration", "7", "--record", str(path),
+                       "--set", "capture.source=scene:wall-occlusion", "--set", "detection.backend=simulated",
+                       "--set", "template.state_file="),
+        capture_output=True, text=True, timeout=90, stdin=subprocess.DEVNULL)
+    assert result.returncode == 0 and path.exists(), result.stdout[-3000:] + result.stderr[-2000:]
+    return path
+
+
+@pytest.mark.parametrize("node", ["reid", "prediction"])
+def test_replay_verifies_with_zero_mismatches(recording, node, tmp_path):
+    report_path = tmp_path / "report.json"
+    result = run_followbus("replay", str(recording), "--node", node, "--verify", "--report", str(report_path),
+                           timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr[-2000:]
+    report = json.loads(report_path.read_text())
+    assert report["frames"] > 100
+    assert report["outputs_compared"] > 100 and report["mismatch_count"] == 0
+    assert not report["missing"] and not report["extra"] and not report["timeouts"]
+
+
+def test_changed_parameter_is_reported_as_a_mismatch(recording, tmp_path):
+    result = run_followbus("replay", str(recording), "--node", "reid", "--verify", "--param", "gamma=3.0",
+                           timeout=120)
+    assert result.returncode == 1, result.stdout
+    first = result.stdout.split("first mismatch: frame", 1)[1].splitlines()[0]
+    assert "rt/reid/measurement" in first and "field" in first, first
