@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import heapq
 import json
 import logging
 import math
@@ -37,6 +38,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+import zenoh
 
 from followbus.bus.codec import DecodeError, unpack
 from followbus.bus.graph import Graph, GraphError, NodeSpec, load_graph
@@ -55,6 +57,9 @@ log = logging.getLogger("followbus.replay")
 IGNORED_HEADER_FIELDS = ("seq", "source", "pub_ns")
 LOCKSTEP_QUEUE = 64  # inputs queue deep and block: lockstep never drops, whatever the live policy was
 MAX_REPORTED = 1000  # mismatch details kept in the report (the count is always exact)
+REPLAY_SHM_BYTES = 256 * 1024 * 1024
+QUIET_S = 0.3  # no output and no CPU for this long: the node waits for input (or is done)
+IDLE_CPU_TICKS = 3  # clock ticks (10 ms) a waiting node may still spend in that time (zenoh, status thread)
 
 
 # --- field-by-field comparison ---------------------------------------------------------------------
@@ -280,19 +285,22 @@ def _pub_ns(data: bytes) -> int:
 
 
 def causal_order(messages: Iterable[BusMessage]) -> Iterator[BusMessage]:
-    """Messages in log-time order with ties broken by publication time.
+    """Messages in the order they were published (header.pub_ns, one host's clock).
 
-    Every message derived from camera frame k carries frame k's capture stamp as its log time, so a
-    frame's detections, prior and measurement all tie; the MCAP reader does not keep write order across
-    channels on ties. Their publication wall clock (header.pub_ns, one host) is the order the node saw.
+    The recording is in log-time order, log time being the capture stamp of the frame a message derives
+    from; the order a node saw its inputs is the order they were published (the odometry sample sent
+    5 ms after frame k's capture comes before the measurement of frame k sent 22 ms after it). A message
+    is published after its capture (pub_ns >= log_time), so once the stream reaches log time L every
+    buffered message published before L is final: the reorder buffer holds only the in-flight window.
     """
-    tie: list[BusMessage] = []
-    for msg in messages:
-        if tie and msg.log_time != tie[0].log_time:
-            yield from sorted(tie, key=lambda m: (_pub_ns(m.data), m.sequence))
-            tie = []
-        tie.append(msg)
-    yield from sorted(tie, key=lambda m: (_pub_ns(m.data), m.sequence))
+    heap: list[tuple[int, int, int, BusMessage]] = []
+    for counter, msg in enumerate(messages):
+        while heap and heap[0][0] < msg.log_time:
+            yield heapq.heappop(heap)[3]
+        pub = _pub_ns(msg.data) or msg.log_time
+        heapq.heappush(heap, (max(pub, msg.log_time), msg.sequence, counter, msg))
+    while heap:
+        yield heapq.heappop(heap)[3]
 
 
 class Replayer:
@@ -339,6 +347,7 @@ class Replayer:
         self._expected: dict[tuple[str, int], list[bytes]] = defaultdict(list)
         self._compared: dict[tuple[str, int], int] = defaultdict(int)
         self._newest: dict[str, int] = {}  # newest frame_seq produced on each output
+        self._last_output = 0.0
         self.proc: subprocess.Popen | None = None
 
     # --- bus side ---------------------------------------------------------------------------------
@@ -351,6 +360,7 @@ class Replayer:
             with self._cond:
                 self._produced[(out, frame_seq)].append(data)
                 self._newest[out] = max(self._newest.get(out, -1), frame_seq)
+                self._last_output = time.monotonic()
                 self.report.outputs_received += 1
                 self._cond.notify_all()
 
@@ -423,6 +433,49 @@ class Replayer:
                 self._cond.wait(min(remaining, 0.05))
         return True
 
+    def _cpu_ticks(self) -> int | None:
+        """utime + stime of the node process (Linux), None where /proc is not available."""
+        if self.proc is None:
+            return None
+        try:
+            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            return int(fields[11]) + int(fields[12])
+        except (OSError, IndexError, ValueError):
+            return None
+
+    def _node_idle(self, since: float, ticks: int | None) -> bool:
+        """True when, since ``since``, the node produced nothing and spent (almost) no CPU."""
+        now_ticks = self._cpu_ticks()
+        return (ticks is not None and now_ticks is not None and now_ticks - ticks < IDLE_CPU_TICKS
+                and self._last_output < since)
+
+    def _await_frame(self, frame_seq: int, timeout_s: float) -> str:
+        """'ready', 'idle' (the node waits for later input: a set held until a later stamp times it out)
+        or 'timeout'."""
+        deadline = time.monotonic() + timeout_s
+        window, ticks = time.monotonic(), self._cpu_ticks()
+        with self._cond:
+            while not self._outputs_ready(frame_seq):
+                now = time.monotonic()
+                if now >= deadline or (self.proc is not None and self.proc.poll() is not None):
+                    return "timeout"
+                if now - window >= QUIET_S:
+                    if self._node_idle(window, ticks):
+                        return "idle"
+                    window, ticks = now, self._cpu_ticks()
+                self._cond.wait(min(deadline - now, 0.05))
+        return "ready"
+
+    def _wait_quiet(self, quiet_s: float, timeout_s: float) -> None:
+        """Wait until the node has been idle for ``quiet_s`` (at most ``timeout_s``)."""
+        deadline = time.monotonic() + timeout_s
+        window, ticks = time.monotonic(), self._cpu_ticks()
+        while time.monotonic() < deadline:
+            time.sleep(quiet_s)
+            if ticks is None and self._last_output < window or self._node_idle(window, ticks):
+                return
+            window, ticks = time.monotonic(), self._cpu_ticks()
+
     def _wait_outputs(self, frame_seq: int, timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
         with self._cond:
@@ -452,8 +505,12 @@ class Replayer:
             log_path = Path(tmp) / "node.log"
             try:
                 for key, out in self.output_keys.items():
-                    subs.append(session.declare_subscriber(self._private_key(key), self._on_output(out)))
-                shm = ShmPool() if private.zenoh.shm else None
+                    # Direct callbacks: zenoh-python's default runs each subscriber's callback on its own
+                    # thread, which loses the order of samples across keys.
+                    subs.append(session.declare_subscriber(
+                        self._private_key(key), zenoh.handlers.Callback(self._on_output(out), indirect=False)))
+                # Deferred frames keep a few dozen frames in flight: room for them in shared memory.
+                shm = ShmPool(REPLAY_SHM_BYTES) if private.zenoh.shm else None
                 for key in self.input_keys:
                     pubs[key] = Publisher(session, self._private_key(key), "replay", shm=shm)
                 watcher = HealthWatcher(session, self.private_ns, watch_status=False)
@@ -576,7 +633,14 @@ class Replayer:
                 pending.append(group_seq)
                 self.report.deferred_frames += 1
                 return
-            if not self._wait_outputs(group_seq, self.opts.frame_timeout_s):
+            state = self._await_frame(group_seq, self.opts.frame_timeout_s)
+            if state == "idle":
+                # The node needs a later stamp before it emits this set (it waits for an optional input
+                # that the recording does not have): go on, the set comes out with a later frame.
+                pending.append(group_seq)
+                self.report.deferred_frames += 1
+                return
+            if state == "timeout":
                 self.report.timeouts.append(group_seq)
                 check_node()
             self._finish_frame(group_seq)
@@ -605,7 +669,7 @@ class Replayer:
                 send_group()
             resolve_pending(deadline=time.monotonic() + self.opts.frame_timeout_s)
             self.report.wall_s = time.perf_counter() - started
-            time.sleep(0.2)  # stragglers: outputs nobody recorded show up as extra
+            self._wait_quiet(QUIET_S, self.opts.frame_timeout_s)  # stragglers: outputs nobody recorded are extra
         except RuntimeError as exc:
             self.report.error = str(exc)
             self.report.wall_s = time.perf_counter() - started
