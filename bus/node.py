@@ -114,6 +114,60 @@ class Clock:
         return time.time_ns() if self.mode == "wall" else self._latest
 
 
+RECORDER_NAME = "recorder"  # liveliness name of `followbus record`, and the launcher's name for it
+
+
+class DownstreamBarrier:
+    """Start-up barrier for source nodes: is everyone who should hear our first message listening?
+
+    Waits for the liveliness of the node's direct consumers (graph.yaml), of every node downstream of it
+    that the launcher started (FOLLOWBUS_LAUNCHED_NODES: waiting for the whole chain keeps frame 0's
+    results from racing the routes between later nodes), and of a recorder the launcher started. Nodes
+    declare their token after their subscribers, so a visible token means they listen. Gives up after
+    ``timeout_s`` with a warning naming who is missing, then lets ``settle_s`` pass for routes to settle.
+    """
+
+    def __init__(self, runtime: NodeRuntime, timeout_s: float, settle_s: float):
+        from followbus.bus.health import HealthWatcher
+
+        graph, name = runtime.graph, runtime.spec.name
+        self.log = runtime.log
+        self.waiting_for = {n for n, spec in graph.nodes.items()
+                            if any(i.source_node == name for i in spec.inputs.values())}
+        launched = os.environ.get(LAUNCHED_NODES_ENV)
+        if launched:
+            started = set(launched.split(","))
+            frontier = {name}
+            while frontier:
+                fed = {n for n, spec in graph.nodes.items() if n in started and n not in self.waiting_for | {name}
+                       and any(i.source_node in frontier for i in spec.inputs.values())}
+                self.waiting_for |= fed
+                frontier = fed
+            if RECORDER_NAME in started:
+                self.waiting_for.add(RECORDER_NAME)
+        self.waiting_for.discard(name)
+        self.timeout_s = timeout_s
+        self.settle_s = settle_s
+        self._health = HealthWatcher(runtime.session, graph.namespace, watch_status=False)
+        self._deadline = time.monotonic() + timeout_s
+        self._open_at: float | None = None
+
+    def wait_s(self) -> float:
+        """Seconds to wait before the first message (0: go)."""
+        if self._open_at is None:
+            missing = self.waiting_for - self._health.alive()
+            if missing and time.monotonic() < self._deadline:
+                return 0.05
+            if missing:
+                self.log.warning("starting without %s (not up after %.0f s)", ", ".join(sorted(missing)),
+                                 self.timeout_s)
+            self._open_at = time.monotonic() + self.settle_s
+        return max(0.0, self._open_at - time.monotonic())
+
+    def close(self) -> None:
+        self._health.close()
+
+
 class Node:
     INPUTS: ClassVar[dict[str, type[Message]]] = {}
     REQUIRED_INPUTS: ClassVar[frozenset[str]] = frozenset()
@@ -324,6 +378,8 @@ class NodeRuntime:
                     wait_s = 0.05
                     if next_poll_wall is not None:
                         wait_s = min(wait_s, max(0.0, next_poll_wall - time.monotonic()))
+                    if next_timer is not None and self.clock.mode == "wall":
+                        wait_s = min(wait_s, max(0.0, (next_timer - time.time_ns()) / 1e9))
                     if self.sync is not None and self.clock.mode == "wall":
                         deadline = self.sync.next_deadline_ns()
                         if deadline is not None:

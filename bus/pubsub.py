@@ -121,7 +121,10 @@ class Subscriber:
         self.on_message = on_message
         self.stats = stats or TopicStats(key, "in")
         self._warn = RateLimitedLog(logger or log)
-        self._sub = session.declare_subscriber(key, self._callback)
+        # A direct callback runs on Zenoh's receive thread, so messages on different keys reach the node
+        # in the order they arrived (the default indirect callbacks run one thread per subscriber and
+        # reorder them: a lockstep replay then diverges). The work here is a decode and an enqueue.
+        self._sub = session.declare_subscriber(key, zenoh.handlers.Callback(self._callback, indirect=False))
 
     def _callback(self, sample: zenoh.Sample) -> None:
         try:

@@ -11,7 +11,6 @@ the ``ack`` input (wire it to the last node of the chain, e.g. prediction/track)
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,12 +20,9 @@ import cv2
 import numpy as np
 
 from followbus.bus.codec import DecodeError
-from followbus.bus.health import HealthWatcher
-from followbus.bus.node import LAUNCHED_NODES_ENV, Node
+from followbus.bus.node import DownstreamBarrier, Node
 from followbus.bus.schemas import Frame, GroundTruth, Message, Track, decode
 from followbus.vision.sources import open_source
-
-RECORDER = "recorder"  # the liveliness name of `followbus record` (tools/record.py)
 
 
 @dataclass
@@ -75,39 +71,13 @@ class Capture(Node):
         self.first_source_ns = 0
         self.done = False
         # Frame 0 must not be published before the nodes that consume it are listening (a lost first
-        # frame means no target initialisation, and a lockstep run that never starts). Nodes declare
-        # their liveliness token after their subscribers, so a visible token means they listen.
-        self.consumers = self._downstream_nodes()
-        self.health = HealthWatcher(self.runtime.session, self.runtime.graph.namespace, watch_status=False)
-        self.consumers_deadline = time.monotonic() + p.wait_for_consumers_s
-        self.start_at: float | None = None
+        # frame means no target initialisation, and a lockstep run that never starts).
+        self.barrier = DownstreamBarrier(self.runtime, p.wait_for_consumers_s, p.start_delay_s)
         # Published every frame either way (available=False without), so joins never wait for it.
         self.has_truth = p.source.startswith("scene:") or bool(getattr(self.source, "has_ground_truth", False))
         if p.pace == "fast" and "ack" not in self.runtime.spec.inputs:
             self.log.warning("pace: fast without an 'ack' input: publishing at full speed, frames may be dropped")
         self.log.info("source %s at %.1f fps, pace %s", p.source, self.fps, p.pace)
-
-    def _downstream_nodes(self) -> set[str]:
-        """Nodes fed by this one, directly or through others; limited to the ones the launcher started
-        (FOLLOWBUS_LAUNCHED_NODES) when it says, else only the direct consumers. Waiting for the whole
-        chain, not just the first hop, keeps frame 0's results from racing the routes between later nodes."""
-        graph = self.runtime.graph
-        launched = os.environ.get(LAUNCHED_NODES_ENV)
-        if not launched:
-            return {name for name, spec in graph.nodes.items()
-                    if any(i.source_node == self.name for i in spec.inputs.values())}
-        started = set(launched.split(","))
-        found: set[str] = set()
-        frontier = {self.name}
-        while frontier:
-            fed = {name for name, spec in graph.nodes.items() if name in started and name not in found
-                   and any(i.source_node in frontier for i in spec.inputs.values())}
-            found |= fed
-            frontier = fed
-        found.discard(self.name)
-        if RECORDER in started:
-            found.add(RECORDER)  # `launch --record`: the recording must hold frame 0 too
-        return found
 
     def _open(self):
         p = self.params
@@ -133,15 +103,7 @@ class Capture(Node):
         p = self.params
         if self.done:
             return None
-        if self.start_at is None:
-            missing = self.consumers - self.health.alive()
-            if missing and time.monotonic() < self.consumers_deadline:
-                return 0.05
-            if missing:
-                self.log.warning("starting without %s (not up after %.0f s)", ", ".join(sorted(missing)),
-                                 p.wait_for_consumers_s)
-            self.start_at = time.monotonic() + p.start_delay_s
-        wait = self.start_at - time.monotonic()
+        wait = self.barrier.wait_s()
         if wait > 0:
             return wait
         in_flight = self.published - 1 - self.acked
@@ -215,7 +177,7 @@ class Capture(Node):
         return {"published": self.published, "acked": self.acked, "done": self.done}
 
     def teardown(self) -> None:
-        self.health.close()
+        self.barrier.close()
         self.source.close()
 
 

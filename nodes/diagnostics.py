@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from followbus.bus.node import Node
+from followbus.bus.node import DownstreamBarrier, Node
 from followbus.bus.schemas import Message, Tick
 
 
@@ -24,6 +24,7 @@ class TickerParams:
     payload_bytes: int = 0
     count: int = 0  # 0 = forever
     fail_after_s: float = 0.0  # fault injection: exit with status 3 after this long (checks restart policies)
+    wait_for_consumers_s: float = 15.0  # before the first tick, wait this long at most for the consumers
 
 
 class Ticker(Node):
@@ -33,6 +34,7 @@ class Ticker(Node):
     def setup(self) -> None:
         self.value = 0
         self.started = time.monotonic()
+        self.barrier = DownstreamBarrier(self.runtime, self.params.wait_for_consumers_s, 0.2)
         self.payload = np.zeros(self.params.payload_bytes, np.uint8) if self.params.payload_bytes else None
 
     def poll(self, now_ns: int) -> float | None:
@@ -41,12 +43,19 @@ class Ticker(Node):
             raise SystemExit(3)
         if self.params.count and self.value >= self.params.count:
             return None
+        wait = self.barrier.wait_s()
+        if wait > 0:
+            return wait
         msg = Tick(value=self.value, payload=self.payload)
         msg.header.stamp_ns = time.time_ns()
         msg.header.frame_seq = self.value
         self.publish("tick", msg)
         self.value += 1
         return 1.0 / self.params.rate_hz
+
+
+    def teardown(self) -> None:
+        self.barrier.close()
 
 
 NODE = Ticker

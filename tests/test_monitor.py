@@ -163,6 +163,7 @@ def test_web_view_streams_previews_and_state(tracking_robot, tmp_path):
         status, jpeg2, h2 = _get(base + f"/preview.jpg?after={h1['X-Preview-Count']}&client=t")
         assert h2["X-Frame-Seq"] != h1["X-Frame-Seq"]
         assert wait_until(lambda: state().get("target", {}).get("frame_seq", -1) != s1["target"]["frame_seq"], 5)
+
         def all_alive() -> bool:
             nodes = state().get("nodes") or []
             return bool(nodes) and all(n["alive"] for n in nodes)
@@ -172,13 +173,22 @@ def test_web_view_streams_previews_and_state(tracking_robot, tmp_path):
 
         if not CHROMIUM.exists():
             pytest.skip(f"{CHROMIUM} not installed: page checked over HTTP only, not rendered in a browser")
-        dom = _chromium_dom(base + "/", tmp_path, budget_ms=4000)
-        frames = int(dom.split('id="frames">frames: ')[1].split(" ")[0].split("<")[0])
-        assert frames >= 3, dom[:2000]
-        assert "target " in dom.split('id="state">')[1][:200]
-        dom2 = _chromium_dom(base + "/", tmp_path, budget_ms=5000)
-        frame_of = [d.split('id="state">target ')[1].split(" frame ")[1].split(" ")[0] for d in (dom, dom2)]
-        assert frame_of[0] != frame_of[1], "state text did not update"
+        def frames_drawn(dom: str) -> int:
+            return int(dom.split('id="frames">frames: ')[1].split(" ")[0].split("<")[0])
+
+        def frame_shown(dom: str) -> str:
+            return dom.split('id="state">target ')[1].split(" frame ")[1].split(" ")[0]
+
+        # Virtual-time budgets are not wall time: on a loaded 2-core machine a render may catch fewer
+        # frames, so take up to three renders before judging.
+        doms = []
+        for _ in range(3):
+            doms.append(_chromium_dom(base + "/", tmp_path, budget_ms=5000))
+            if len(doms) >= 2 and frames_drawn(doms[-1]) >= 3 and frame_shown(doms[-1]) != frame_shown(doms[0]):
+                break
+        assert frames_drawn(doms[-1]) >= 3, doms[-1][:2000]
+        assert "target " in doms[-1].split('id="state">')[1][:200]
+        assert frame_shown(doms[-1]) != frame_shown(doms[0]), "state text did not update"
     finally:
         proc.send_signal(signal.SIGINT)
         try:

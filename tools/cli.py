@@ -449,7 +449,7 @@ def _first_truth_box(graph) -> tuple[float, ...] | None:
 
 def cmd_launch(args) -> int:
     from followbus.bus.graph import apply_overrides
-    from followbus.bus.node import validate_node
+    from followbus.bus.node import RECORDER_NAME, validate_node
     from followbus.tools.launch import Launcher, install_stop_signals
 
     graph = _load_graph(args.graph)
@@ -459,7 +459,7 @@ def cmd_launch(args) -> int:
     only = [n.strip() for n in args.only.split(",")] if args.only else None
     extra = []
     if args.record:
-        extra.append(("recorder", [sys.executable, "-m", "followbus.tools.cli", "record", "--graph", args.graph,
+        extra.append((RECORDER_NAME, [sys.executable, "-m", "followbus.tools.cli", "record", "--graph", args.graph,
                                    "-o", args.record, *(f"--set={o}" for o in args.overrides)]))
     try:
         launcher = Launcher(graph, only=only, host=args.host, startup_timeout_s=args.startup_timeout,

@@ -47,8 +47,8 @@ BUS_SCHEMA_ENCODING = "followbus-msgpack"
 BUS_SCHEMA_PREFIX = "followbus."
 PROFILE = ""  # no ROS profile: our own channels plus Foxglove's JSON ones
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-# lz4 keeps up with 720p bgr8 at 30 Hz with a third of a core to spare; zstd (level 3, what the
-# mcap writer uses) needs ~23 ms per frame. Measured figures: tools/record.py docstring.
+# lz4 keeps up with 720p bgr8 at 30 Hz (write thread 46% busy); zstd level 3, the mcap writer's, saturates
+# its thread. Figures and command: tools/record.py docstring.
 DEFAULT_COMPRESSION = "lz4"
 DEFAULT_CHUNK_BYTES = 4 * 1024 * 1024
 

@@ -1,9 +1,9 @@
 """``followbus record``: store every bus message, losslessly, in an MCAP file that opens in Foxglove.
 
 A plain Zenoh subscriber on ``<namespace>/**`` (or the given key expressions). Zenoh's callback
-only copies the payload into a queue; a writer thread does everything else (channel lookup,
-Foxglove conversion, chunk compression, disk), so a slow disk never stalls the callbacks and
-publishers keep the congestion control they chose. The queue is bounded in bytes
+only copies the payload into a queue; two threads do everything else (``convert``: header parsing
+and the Foxglove views; ``write``: MCAP records, chunk compression, disk), so a slow disk never stalls
+the callbacks and publishers keep the congestion control they chose. The queue is bounded in bytes
 (``--max-queue-mb``): past that, messages are dropped and counted rather than growing memory
 without bound.
 
@@ -11,14 +11,17 @@ Every chunk is closed and flushed at least every ``--chunk-seconds`` (and whenev
 ``--chunk-mb``), so a recorder killed with SIGKILL loses at most that much: ``followbus recover``
 rewrites the complete chunks into a valid file. SIGINT/SIGTERM finalise the file (summary, index).
 
-Compression (measured, 2 cores, capture node looping sot/uav-person11 1280x720 bgr8 at 30 Hz plus
-its JPEG preview and ground truth, 20 s per run, ``followbus record --compression X``):
+Compression: lz4. Measured on this 2-core VM with a capture node looping ../shared/data/sot/uav-person11
+(1280x720 bgr8) at 30 Hz plus its JPEG preview and ground truth, 20 s per run (600 frames; every frame
+also JPEG-encoded for Foxglove), ``followbus launch cap.yaml`` then
+``followbus record --graph cap.yaml --compression X --duration 20``:
 
-    =========  ==========  ===========  =================  ===========  =======
-    chunks     writer busy  queue max    MB/s to disk       ratio        dropped
-    =========  ==========  ===========  =================  ===========  =======
-    lz4        see BENCH_RESULTS below
-    =========  ==========  ===========  =================  ===========  =======
+    chunks  write thread  convert thread  queue max  to disk    ratio  recorder CPU      dropped
+    lz4     46% busy      14% busy        8.3 MB     86 MB/s    1.03   0.55 core         0
+    zstd    97% busy      18% busy        130 MB     64 MB/s    1.39   1.0 core          0 (queue growing)
+
+zstd (level 3, the mcap writer's) saturates its thread and its queue grows without bound at this rate,
+so lz4 is the default; ``--compression zstd`` suits lower rates or smaller frames.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ import zenoh
 
 from followbus import __version__
 from followbus.bus.codec import DecodeError, unpack
+from followbus.bus.node import RECORDER_NAME
 from followbus.bus.pubsub import RateLimitedLog, payload_bytes
 from followbus.bus.schemas import Frame, decode
 from followbus.tools import foxglove_schemas as fox
@@ -52,7 +56,7 @@ from followbus.tools.mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, Re
 log = logging.getLogger("followbus.record")
 
 STATUS_SEGMENTS = ("@status", "@health")
-RECORDER_NAME = "recorder"  # liveliness name, and the launcher's name for the child it starts with --record
+
 
 
 @dataclass
@@ -169,7 +173,10 @@ class Recorder:
         for thread in self._threads:
             thread.start()
         for i, pattern in enumerate(self.opts.patterns):
-            self._subs.append(self.session.declare_subscriber(pattern, self._callback_for(i)))
+            # Direct: the callback runs on zenoh's receive thread (it only copies and enqueues), which
+            # keeps the order samples arrived in; zenoh-python's default hands each subscriber a thread.
+            self._subs.append(self.session.declare_subscriber(
+                pattern, zenoh.handlers.Callback(self._callback_for(i), indirect=False)))
 
     def _callback_for(self, index: int):
         def callback(sample: zenoh.Sample) -> None:

@@ -22,6 +22,7 @@ import json
 import logging
 import math
 import os
+import queue
 import secrets
 import signal
 import socket
@@ -36,11 +37,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import numpy as np
 import yaml
 import zenoh
 
-from followbus.bus.codec import DecodeError, unpack
+from followbus.bus.codec import MAGIC, DecodeError
 from followbus.bus.graph import Graph, GraphError, NodeSpec, load_graph
 from followbus.bus.schemas import Message, decode
 from followbus.tools.mcap_io import (
@@ -56,6 +58,7 @@ log = logging.getLogger("followbus.replay")
 
 IGNORED_HEADER_FIELDS = ("seq", "source", "pub_ns")
 LOCKSTEP_QUEUE = 64  # inputs queue deep and block: lockstep never drops, whatever the live policy was
+PREFETCH = 64  # recorded messages read ahead
 MAX_REPORTED = 1000  # mismatch details kept in the report (the count is always exact)
 REPLAY_SHM_BYTES = 256 * 1024 * 1024
 QUIET_S = 0.3  # no output and no CPU for this long: the node waits for input (or is done)
@@ -265,23 +268,37 @@ class ReplayReport:
         return not verify or not (self.mismatch_count or self.missing or self.extra)
 
 
+def _peek_header(data: bytes) -> list[Any] | None:
+    """The header list of a stored bus message without decoding its fields: ``encode`` writes the type,
+    the version and the header first, and the large arrays live after the msgpack map anyway."""
+    view = memoryview(data)
+    if len(view) < 7 or bytes(view[:3]) != MAGIC:
+        return None
+    head_len = int.from_bytes(view[3:7], "little")
+    unpacker = msgpack.Unpacker(raw=False, ext_hook=lambda _code, _data: None)
+    unpacker.feed(view[7:7 + head_len])
+    try:
+        for _ in range(unpacker.read_map_header()):
+            if unpacker.unpack() == "header":
+                head = unpacker.unpack()
+                return head if isinstance(head, list) and len(head) == 5 else None
+            unpacker.skip()
+    except (ValueError, msgpack.UnpackException, msgpack.OutOfData):
+        return None
+    return None
+
+
 def _header(data: bytes) -> tuple[int, int]:
     """(frame_seq, stamp_ns) of a stored bus message."""
-    try:
-        head = unpack(data).get("header")
-    except DecodeError:
-        return -1, 0
-    if isinstance(head, list) and len(head) == 5 and isinstance(head[2], int) and isinstance(head[1], int):
+    head = _peek_header(data)
+    if head is not None and isinstance(head[2], int) and isinstance(head[1], int):
         return head[2], head[1]
     return -1, 0
 
 
 def _pub_ns(data: bytes) -> int:
-    try:
-        head = unpack(data).get("header")
-    except DecodeError:
-        return 0
-    return head[4] if isinstance(head, list) and len(head) == 5 and isinstance(head[4], int) else 0
+    head = _peek_header(data)
+    return head[4] if head is not None and isinstance(head[4], int) else 0
 
 
 def causal_order(messages: Iterable[BusMessage]) -> Iterator[BusMessage]:
@@ -301,6 +318,42 @@ def causal_order(messages: Iterable[BusMessage]) -> Iterator[BusMessage]:
         heapq.heappush(heap, (max(pub, msg.log_time), msg.sequence, counter, msg))
     while heap:
         yield heapq.heappop(heap)[3]
+
+
+def prefetch(items: Iterable[Any], depth: int) -> Iterator[Any]:
+    """Iterate in a thread ``depth`` items ahead: reading and decompressing the recording overlaps with
+    the node's work on the frame in flight."""
+    box: queue.Queue[Any] = queue.Queue(maxsize=depth)
+    done = object()
+    stop = threading.Event()
+
+    def run() -> None:
+        try:
+            for item in items:
+                while not stop.is_set():
+                    try:
+                        box.put(item, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+        except BaseException as exc:  # handed to the consumer
+            box.put(exc)
+        box.put(done)
+
+    thread = threading.Thread(target=run, name="replay-read", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = box.get()
+            if item is done:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
 
 
 class Replayer:
@@ -646,7 +699,8 @@ class Replayer:
             self._finish_frame(group_seq)
 
         try:
-            for msg in causal_order(iter_bus_messages(self.path, set(self.input_keys) | set(self.output_keys))):
+            stream = causal_order(iter_bus_messages(self.path, set(self.input_keys) | set(self.output_keys)))
+            for msg in prefetch(stream, PREFETCH):
                 frame_seq, stamp = _header(msg.data)
                 if msg.key in self.output_keys:
                     self._expected[(self.output_keys[msg.key], frame_seq)].append(msg.data)
