@@ -222,6 +222,10 @@ def derived_graph(scene: str, port: int, namespace: str, init_box: list[float], 
     cap.setdefault("inputs", {})["ack"] = {"from": "prediction/track", "sync": "none"}
     cap["params"].update(source=f"scene:{scene}", pace="fast", max_frames=max_frames, max_in_flight=max_in_flight)
     g["nodes"]["detection"]["params"]["backend"] = "simulated"
+    for node in g["nodes"].values():
+        # Lockstep loses nothing, so a timeout could only mean a slow (cold, loaded) node, and a set
+        # emitted without its feedback would make the graph diverge from the in-process run.
+        node["sync_timeout_ms"] = 10_000
     g["nodes"]["template"]["params"]["state_file"] = ""
     g["nodes"]["reid"]["params"]["init_box"] = [float(v) for v in init_box]
     return yaml.safe_dump(g, sort_keys=False)
