@@ -190,11 +190,16 @@ def test_web_view_streams_previews_and_state(tracking_robot, tmp_path):
         assert "target " in doms[-1].split('id="state">')[1][:200]
         assert frame_shown(doms[-1]) != frame_shown(doms[0]), "state text did not update"
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        _interrupt(proc)
+
+
+def _interrupt(proc: subprocess.Popen) -> None:
+    """Ctrl-C a tool and wait for it; kill it if it does not stop within 10 s."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
 
 
 def _chromium_dom(url: str, tmp: Path, budget_ms: int) -> str:
@@ -328,11 +333,7 @@ def test_foxglove_bridge_serves_previews_and_annotations(tracking_robot):
         assert got == 3, "no preview messages through the Foxglove server"
         ws.close()
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        _interrupt(proc)
 
 
 def _port_open(port: int) -> bool:

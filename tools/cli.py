@@ -44,6 +44,14 @@ def _connect_arg(p: argparse.ArgumentParser) -> None:
                         "zenoh settings; repeatable")
 
 
+def _viewer_args(p: argparse.ArgumentParser) -> None:
+    """How a read-only viewer (monitor, foxglove) authenticates and which namespace it watches."""
+    p.add_argument("--user", help="zenoh user name (transport/auth/usrpwd), e.g. monitor")
+    p.add_argument("--password", help="zenoh password (default: $FOLLOWBUS_ZENOH_PASSWORD)")
+    p.add_argument("--ca", metavar="FILE", help="CA certificate for a tls/ endpoint")
+    p.add_argument("--namespace", help="bus namespace (default: the graph's, else fb)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="followbus", description="Perception and control of a person-following robot over Eclipse Zenoh.",
@@ -129,10 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "foxglove.ImageAnnotations, motor command and node status as JSON. Read-only.",
                        epilog="example: followbus foxglove --connect tcp/192.0.2.10:7447 --user monitor --port 8765")
     _connect_arg(p)
-    p.add_argument("--user", help="zenoh user name (transport/auth/usrpwd), e.g. monitor")
-    p.add_argument("--password", help="zenoh password (default: $FOLLOWBUS_ZENOH_PASSWORD)")
-    p.add_argument("--ca", metavar="FILE", help="CA certificate for a tls/ endpoint")
-    p.add_argument("--namespace", help="bus namespace (default: the graph's, else fb)")
+    _viewer_args(p)
     p.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765)")
     p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--seconds", type=float, help="stop after S seconds")
@@ -143,10 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "stream, plots and the health table. Reconnects by itself.",
                        epilog="example: followbus monitor --connect tcp/192.0.2.10:7447 --user monitor --web 8080")
     _connect_arg(p)
-    p.add_argument("--user", help="zenoh user name (transport/auth/usrpwd), e.g. monitor")
-    p.add_argument("--password", help="zenoh password (default: $FOLLOWBUS_ZENOH_PASSWORD)")
-    p.add_argument("--ca", metavar="FILE", help="CA certificate for a tls/ endpoint")
-    p.add_argument("--namespace", help="bus namespace (default: the graph's, else fb)")
+    _viewer_args(p)
     p.add_argument("--once", action="store_true", help="print one snapshot once every node is up (or --seconds) "
                                                        "and exit: 0 when all are up")
     p.add_argument("--seconds", type=float, help="stop after S seconds (--once: wait at most S, default 5)")

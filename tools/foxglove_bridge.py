@@ -15,7 +15,6 @@ from __future__ import annotations
 import logging
 import math
 import threading
-import time
 from typing import Any
 
 import numpy as np
@@ -25,6 +24,7 @@ from followbus.bus.codec import DecodeError
 from followbus.bus.pubsub import payload_bytes
 from followbus.bus.schemas import Frame, Measurement, Message, MotorCommand, NodeStatus, Prior, Track, decode, to_plain
 from followbus.bus.session import ZenohSettings, open_session
+from followbus.tools.introspect import wait_for
 from followbus.tools.monitor import GraphInfo
 
 log = logging.getLogger("followbus.foxglove")
@@ -169,9 +169,7 @@ def run_foxglove(args: Any) -> int:
     print(f"followbus foxglove: ws://{args.bind}:{bridge.port} (watching {', '.join(settings.connect)}; "
           "Ctrl-C to stop)", flush=True)
     try:
-        deadline = None if args.seconds is None else time.monotonic() + args.seconds
-        while deadline is None or time.monotonic() < deadline:
-            time.sleep(0.2)
+        wait_for(args.seconds)
     except KeyboardInterrupt:
         pass
     finally:

@@ -18,7 +18,8 @@ from followbus.bus.schemas import decode, to_plain
 from followbus.bus.session import ZenohSettings, open_session
 
 
-def _wait(seconds: float | None, done: threading.Event | None = None) -> None:
+def wait_for(seconds: float | None, done: threading.Event | None = None) -> None:
+    """Block for ``seconds`` (None: until Ctrl-C), or until ``done`` is set."""
     deadline = None if seconds is None else time.monotonic() + seconds
     while deadline is None or time.monotonic() < deadline:
         if done is not None and done.is_set():
@@ -46,7 +47,7 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
 
     session = open_session(settings)
     sub = session.declare_subscriber(f"{namespace}/**", on_sample)
-    _wait(args.seconds)
+    wait_for(args.seconds)
     sub.undeclare()
     session.close()
     if not counts:
@@ -80,7 +81,7 @@ def cmd_echo(args, settings: ZenohSettings, namespace: str) -> int:
 
     session = open_session(settings)
     sub = session.declare_subscriber(args.key, on_sample)
-    _wait(args.seconds, done)
+    wait_for(args.seconds, done)
     sub.undeclare()
     session.close()
     return 0 if seen[0] else 1
@@ -125,7 +126,7 @@ def cmd_hz(args, settings: ZenohSettings, namespace: str) -> int:
 def cmd_nodes(args, settings: ZenohSettings, namespace: str) -> int:
     session = open_session(settings)
     watcher = HealthWatcher(session, namespace)
-    _wait(args.seconds)
+    wait_for(args.seconds)
     snapshot = watcher.snapshot()
     watcher.close()
     session.close()
@@ -146,6 +147,6 @@ def run_router(listen: list[str], duration_s: float | None) -> int:
     session = open_session(settings)
     print(f"zenoh router listening on {', '.join(listen)} (Ctrl-C to stop)", flush=True)
     with contextlib.suppress(KeyboardInterrupt):
-        _wait(duration_s)
+        wait_for(duration_s)
     session.close()
     return 0

@@ -21,6 +21,7 @@ from typing import Any
 from urllib.parse import parse_qs, urlparse
 
 from followbus.bus.session import ZenohSettings
+from followbus.tools.introspect import wait_for
 from followbus.tools.monitor import BusMonitor, GraphInfo
 
 log = logging.getLogger("followbus.webview")
@@ -125,9 +126,7 @@ def serve(settings: ZenohSettings, info: GraphInfo, bind: str, port: int, second
     print(f"followbus monitor: web view on http://{host}:{real_port}/ (watching {', '.join(settings.connect)}; "
           "Ctrl-C to stop)", flush=True)
     try:
-        deadline = None if seconds is None else time.monotonic() + seconds
-        while deadline is None or time.monotonic() < deadline:
-            time.sleep(0.2)
+        wait_for(seconds)
     except KeyboardInterrupt:
         pass
     finally:
