@@ -111,7 +111,14 @@ def peer_available() -> str | None:
 
 
 class PeerFollower:
-    """A Roboflow ``trackers`` MOT tracker as a follower of the track that overlaps the init box."""
+    """A Roboflow ``trackers`` MOT tracker, run as shipped, as a follower of one of its track ids.
+
+    On the init frame the confirmed track overlapping the init box best is chosen; while no confirmed track
+    overlaps it (trackers confirm after a few frames), later frames keep trying against that box with
+    IoU > 0.3. From then on the output is the box the tracker reports for that id, or None when it reports
+    none (the id was lost: a MOT tracker that re-identifies the person under a new id has lost the target).
+    ``info["mot"]`` carries the tracker's whole confirmed output ``(ids, boxes)`` for MOT scoring.
+    """
 
     def __init__(self, kind: str, fps: float = 30.0) -> None:
         kind = kind.lower().replace("-", "").replace("_", "")
@@ -127,39 +134,41 @@ class PeerFollower:
         cls = {"bytetrack": "ByteTrackTracker", "ocsort": "OCSORTTracker", "botsort": "BoTSORTTracker"}[kind]
         if not hasattr(trackers, cls):
             raise RuntimeError(f"trackers {getattr(trackers, '__version__', '?')} has no {cls}")
-        self.tracker = getattr(trackers, cls)()
+        self.tracker = getattr(trackers, cls)(frame_rate=fps)
+        self.uses_frame = kind == "botsort"  # camera-motion compensation; the others warn when given a frame
         self.name = f"peer:{kind}"
         self.target_id: int | None = None
+        self._ref: Box | None = None
+
+    def _pick(self, ids: list[int], boxes: list[Box], min_iou: float) -> None:
+        assert self._ref is not None
+        scored = [(box_iou(b, self._ref), i) for i, b in zip(ids, boxes, strict=True)]
+        scored = [s for s in scored if s[0] > min_iou]
+        if scored:
+            self.target_id = max(scored)[1]
 
     def step(self, frame_bgr: np.ndarray | None, detections: np.ndarray | None, t_ns: int,
              init_box: Sequence[float] | None = None) -> tuple[Box | None, dict[str, Any]]:
         d = np.asarray(detections if detections is not None else [], dtype=np.float32).reshape(-1, 5)
-        xyxy = np.column_stack([d[:, 0], d[:, 1], d[:, 0] + d[:, 2], d[:, 1] + d[:, 3]]).astype(np.float32)
-        sv_dets = self._sv.Detections(xyxy=xyxy.reshape(-1, 4), confidence=d[:, 4].astype(np.float32),
+        xyxy = np.column_stack([d[:, 0], d[:, 1], d[:, 0] + d[:, 2], d[:, 1] + d[:, 3]]).reshape(-1, 4)
+        sv_dets = self._sv.Detections(xyxy=xyxy.astype(np.float32), confidence=d[:, 4].astype(np.float32),
                                       class_id=np.zeros(len(d), dtype=int))
-        try:
-            out = self.tracker.update(sv_dets, frame_bgr)
-        except TypeError:  # trackers without a frame argument (no appearance)
-            out = self.tracker.update(sv_dets)
-        ids = out.tracker_id if out.tracker_id is not None else np.zeros(0, int)
-        boxes = [(float(a), float(b), float(c - a), float(e - b)) for a, b, c, e in out.xyxy]
-        if init_box is not None or self.target_id is None:
-            ref = tuple(float(v) for v in init_box) if init_box is not None else None
-            if ref is not None:
-                scored = [(box_iou(b, ref), int(i), b) for b, i in zip(boxes, ids, strict=True) if int(i) >= 0]
-                scored = [s for s in scored if s[0] > 0.0]
-                if scored:
-                    self.target_id = max(scored)[1]
-                self._ref = ref
-            elif getattr(self, "_ref", None) is not None:
-                # the id may appear only once the MOT tracker confirms a track: keep trying against the ref
-                scored = [(box_iou(b, self._ref), int(i), b) for b, i in zip(boxes, ids, strict=True) if int(i) >= 0]
-                scored = [s for s in scored if s[0] > 0.3]
-                if scored:
-                    self.target_id = max(scored)[1]
+        out = self.tracker.update(sv_dets, frame_bgr) if self.uses_frame else self.tracker.update(sv_dets)
+        all_ids = out.tracker_id if out.tracker_id is not None else np.full(len(out), -1)
+        confirmed = [k for k, i in enumerate(all_ids) if int(i) >= 0]  # -1: a track not yet confirmed
+        ids = [int(all_ids[k]) for k in confirmed]
+        boxes: list[Box] = [(float(a), float(b), float(c - a), float(e - b))
+                            for a, b, c, e in (out.xyxy[k] for k in confirmed)]
+        info: dict[str, Any] = {"mot": (ids, boxes)}
+        if init_box is not None:
+            self._ref = tuple(float(v) for v in init_box)
+            self.target_id = None
+            self._pick(ids, boxes, 0.0)
+        elif self.target_id is None and self._ref is not None:
+            self._pick(ids, boxes, 0.3)
         if self.target_id is None:
-            return None, {"state": "UNASSIGNED", "mot": list(zip(ids.tolist(), boxes, strict=True))}
-        for b, i in zip(boxes, ids, strict=True):
-            if int(i) == self.target_id:
-                return b, {"state": "TRACKING", "mot": list(zip(ids.tolist(), boxes, strict=True))}
-        return None, {"state": "ID_MISSING", "mot": list(zip(ids.tolist(), boxes, strict=True))}
+            return None, {**info, "state": "UNASSIGNED"}
+        for i, b in zip(ids, boxes, strict=True):
+            if i == self.target_id:
+                return b, {**info, "state": "TRACKING"}
+        return None, {**info, "state": "ID_MISSING"}

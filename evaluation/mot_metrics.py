@@ -38,6 +38,7 @@ __all__ = [
     "align_frames",
     "clear_mot",
     "evaluate_mot",
+    "evaluate_mot_combined",
     "hota",
     "identity_scores",
     "iou_matrix",
@@ -347,6 +348,25 @@ def evaluate_mot(gt_frames: Sequence, pred_frames: Sequence, *, iou_threshold: f
     return MotMetrics(clear=clear_mot(gt_frames, pred_frames, iou_threshold=iou_threshold),
                       identity=identity_scores(gt_frames, pred_frames, iou_threshold=iou_threshold),
                       hota=hota(gt_frames, pred_frames))
+
+
+def evaluate_mot_combined(sequences: Iterable[tuple[Sequence, Sequence]], *,
+                          iou_threshold: float = 0.5) -> MotMetrics:
+    """Several sequences as one benchmark, as TrackEval combines them: counts summed, AssA and LocA weighted
+    by true positives. Computed on the concatenated frames with ids made disjoint per sequence, which is
+    exactly that: every id pair lives within one sequence, so matching and alignment never cross them."""
+    gt_all: list[FrameTracks] = []
+    pred_all: list[FrameTracks] = []
+    offset = 0
+    for gt_frames, pred_frames in sequences:
+        gts, preds = _prepare(gt_frames, pred_frames)
+        top = max([int(f[0].max()) for f in gts + preds if len(f[0])] + [0])
+        low = min([int(f[0].min()) for f in gts + preds if len(f[0])] + [0])
+        shift = offset - low
+        gt_all += [(ids + shift, boxes) for ids, boxes in gts]
+        pred_all += [(ids + shift, boxes) for ids, boxes in preds]
+        offset += top - low + 1
+    return evaluate_mot(gt_all, pred_all, iou_threshold=iou_threshold)
 
 
 # --------------------------------------------------------------------------- MOTChallenge text files

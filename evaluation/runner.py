@@ -26,6 +26,7 @@ from followbus.evaluation import detcache
 from followbus.evaluation.baselines import KalmanFollower, PeerFollower
 from followbus.evaluation.datasets import load_sequence
 from followbus.evaluation.metrics import Box, SingleTargetMetrics, evaluate_single_target
+from followbus.evaluation.mot_metrics import MotMetrics, evaluate_mot
 from followbus.tracking.params import TrackerParams
 from followbus.tracking.tracker import TargetTracker
 
@@ -106,6 +107,7 @@ class FrameItem:
     visible_fraction: float | None  # scenes only
     truth: list[tuple[list[float], float]]  # simulated-detector input (mirrors nodes/detection.py)
     v_ego_mps: tuple[float, float] = (0.0, 0.0)
+    people: list[tuple[int, Box]] = field(default_factory=list)  # every annotated person (id, box); MOT scoring
 
 
 @dataclass
@@ -177,7 +179,8 @@ def open_sequence(spec: str, *, seed: int = 0, width: int = 640, height: int = 4
                 raise OSError(f"cannot read {seq.image_paths[i]}")
             gt = seq.gt_boxes[i]
             truth = [(list(b), 1.0) for _, b in seq.all_gt[i]]
-            yield FrameItem(bgr, synthetic_stamp_ns(i, seq.fps), gt, list(others_all[i]), None, truth)
+            yield FrameItem(bgr, synthetic_stamp_ns(i, seq.fps), gt, list(others_all[i]), None, truth,
+                            people=list(seq.all_gt[i]))
 
     label = f"{seq.kind}/{Path(spec).name}"
     return EvalSequence(label, seq.kind, str(Path(spec).resolve()), seq.fps, seq.width, seq.height, n, disk_frames)
@@ -207,6 +210,7 @@ class MethodRun:
     infos: list[dict[str, Any]]
     tracker_ms: list[float]
     metrics: SingleTargetMetrics | None = None
+    mot: MotMetrics | None = None  # multi-object trackers on MOT sequences: their whole output vs every person
 
     @property
     def tracker_ms_mean(self) -> float:
@@ -226,6 +230,7 @@ class SequenceRun:
     detector_ms: np.ndarray
     detections_cached: bool
     runs: dict[str, MethodRun] = field(default_factory=dict)
+    gt_people: list[list[tuple[int, Box]]] = field(default_factory=list)
 
     @property
     def detector_ms_mean(self) -> float:
@@ -266,6 +271,7 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
     runs = {name: MethodRun([], [], []) for name in factories}
     gts: list[Box | None] = []
     others: list[list[Box]] = []
+    people: list[list[tuple[int, Box]]] = []
     visible: list[float | None] = []
     det_frames: list[np.ndarray] = []
     det_ms: list[float] = []
@@ -286,6 +292,7 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
             det_frames.append(dets)
         gts.append(item.gt_box)
         others.append(item.others)
+        people.append(item.people)
         visible.append(item.visible_fraction)
         init_box = None
         if not initialised:
@@ -307,8 +314,15 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
         cached = detcache.CachedDetections(det_frames, np.asarray(det_ms))
         if path is not None:
             detcache.save(path, cached)
-    result = SequenceRun(seq, detector, gts, others, visible, cached.ms, from_cache, runs)
+    result = SequenceRun(seq, detector, gts, others, visible, cached.ms, from_cache, runs, people)
     for run in runs.values():
         run.metrics = evaluate_single_target(run.boxes, gts, other_gt=others, fps=seq.fps,
                                              image_size=(seq.width, seq.height))
+        if seq.kind == "mot" and any("mot" in info for info in run.infos):
+            run.mot = evaluate_mot(gt_mot_frames(people), [info.get("mot") for info in run.infos])
     return result
+
+
+def gt_mot_frames(people: Sequence[Sequence[tuple[int, Box]]]) -> list[tuple[list[int], list[Box]]]:
+    """Per-frame ``(ids, boxes)`` of every annotated person, the layout :mod:`mot_metrics` takes."""
+    return [([int(i) for i, _ in frame], [tuple(b) for _, b in frame]) for frame in people]

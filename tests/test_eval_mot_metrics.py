@@ -223,3 +223,31 @@ def test_align_frames_fills_gaps() -> None:
     assert len(g) == len(p) == 4 and len(g[1][0]) == 0 and len(p[0][0]) == 0
     with pytest.raises(ValueError):
         clear_mot(g, p[:2])
+
+
+def test_combined_sequences_sum_counts_like_trackeval() -> None:
+    from followbus.evaluation.mot_metrics import evaluate_mot_combined
+
+    a_gt = [([1, 2], [[0, 0, 10, 20], [50, 0, 10, 20]]), ([1, 2], [[1, 0, 10, 20], [51, 0, 10, 20]])]
+    a_pr = [([7, 8], [[0, 0, 10, 20], [50, 0, 10, 20]]), ([8], [[1, 0, 10, 20]])]  # a switch and a miss
+    b_gt = [([1], [[0, 0, 10, 20]]), ([1], [[0, 0, 10, 20]]), ([1], [[0, 0, 10, 20]])]
+    b_pr = [([7], [[0, 0, 10, 20]]), ([7], [[200, 0, 10, 20]]), ([], [])]  # same ids as in a, other people
+    one = evaluate_mot_combined([(a_gt, a_pr)])
+    assert one.as_dict() == evaluate_mot(a_gt, a_pr).as_dict()
+    both = evaluate_mot_combined([(a_gt, a_pr), (b_gt, b_pr)])
+    ea, eb = evaluate_mot(a_gt, a_pr), evaluate_mot(b_gt, b_pr)
+    for key in ("gt_dets", "pred_dets", "tp", "fp", "fn", "idsw", "idtp", "idfp", "idfn"):
+        assert both.as_dict()[key] == ea.as_dict()[key] + eb.as_dict()[key], key
+    # ids 1 and 7 exist in both sequences: were they shared, sequence b would add an id switch or IDTP
+    assert both.clear.num_switches == 1 and both.identity.idtp == ea.identity.idtp + eb.identity.idtp
+    # HOTA: DetA from summed counts, AssA weighted by true positives (per α). TP_α follows from
+    # DetA_α = TP / (TP + FN + FP) = TP / (#gt + #pred - TP).
+    def tp(m):
+        n = m.clear.num_objects + m.clear.num_predictions
+        return m.hota.deta_alpha * n / (1 + m.hota.deta_alpha)
+
+    tpa, tpb = tp(ea), tp(eb)
+    n_all = both.clear.num_objects + both.clear.num_predictions
+    np.testing.assert_allclose(both.hota.deta_alpha, (tpa + tpb) / (n_all - tpa - tpb), atol=1e-9)
+    np.testing.assert_allclose(both.hota.assa_alpha,
+                               (ea.hota.assa_alpha * tpa + eb.hota.assa_alpha * tpb) / (tpa + tpb), atol=1e-9)

@@ -102,6 +102,39 @@ def timing_table(runs: list[SequenceRun], methods: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def mot_table(runs: list[SequenceRun], methods: list[str]) -> str:
+    """MOTA/IDF1/HOTA of the multi-object trackers' whole output on the MOT sequences; "" when none ran."""
+    from followbus.evaluation.mot_metrics import evaluate_mot_combined
+    from followbus.evaluation.runner import gt_mot_frames
+
+    mot_runs = [r for r in runs if any(mr.mot is not None for mr in r.runs.values())]
+    if not mot_runs:
+        return ""
+    lines = ["### Multi-object metrics (MOT sequences, every annotated person)", "",
+             "| Sequence | Frames | Method | MOTA % | IDF1 % | HOTA % | DetA % | AssA % | IDSW | FP | FN |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+
+    def row(name: str, frames: int, m: str, mm) -> str:
+        c = mm.clear
+        return (f"| {name} | {frames} | {m} | {_fmt(100 * c.mota, '.1f')} | {_fmt(100 * mm.idf1, '.1f')} | "
+                f"{_fmt(100 * mm.hota.hota, '.1f')} | {_fmt(100 * mm.hota.deta, '.1f')} | "
+                f"{_fmt(100 * mm.hota.assa, '.1f')} | {c.num_switches} | {c.num_false_positives} | {c.num_misses} |")
+
+    for r in mot_runs:
+        lines += [row(r.sequence.name, r.sequence.n_frames, m, r.runs[m].mot) for m in methods
+                  if m in r.runs and r.runs[m].mot is not None]
+    for m in methods:
+        pairs = [(gt_mot_frames(r.gt_people), [i.get("mot") for i in r.runs[m].infos])
+                 for r in mot_runs if m in r.runs and r.runs[m].mot is not None]
+        if pairs:
+            frames = sum(len(g) for g, _ in pairs)
+            lines.append(row("**combined**", frames, m, evaluate_mot_combined(pairs)))
+    lines += ["", "Scored as MOTChallenge does (IoU ≥ 0.5 for CLEAR/identity; HOTA over α = 0.05…0.95), but without "
+              "its ignore-region preprocessing: gt rows flagged 0 are dropped and a tracker box on such a person "
+              "counts as a false positive. Combined = all MOT sequences as one benchmark (counts summed).", ""]
+    return "\n".join(lines) + "\n"
+
+
 def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command: str, detector: str,
                  notes: list[str]) -> tuple[Path, Path]:
     out.mkdir(parents=True, exist_ok=True)
@@ -115,6 +148,7 @@ def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command
           f"Detector: {detector} (the same cached detections for every method); "
           f"methods initialised with the first ground-truth box.", ""]
     md.append(format_markdown_table(rows))
+    md.append(mot_table(runs, methods))
     md.append(timing_table(runs, methods))
     md += ["### Notes", ""] + [f"- {n}" for n in notes] + [""]
     md_path = out / "results.md"
@@ -126,7 +160,8 @@ def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command
             "kind": r.sequence.kind, "frames": r.sequence.n_frames, "fps": r.sequence.fps,
             "size": [r.sequence.width, r.sequence.height], "detector_ms": _num(r.detector_ms_mean),
             "detections_cached": r.detections_cached,
-            "methods": {m: {**_metrics_json(mr.metrics), "tracker_ms": _num(mr.tracker_ms_mean)}
+            "methods": {m: {**_metrics_json(mr.metrics), "tracker_ms": _num(mr.tracker_ms_mean),
+                            **({"mot": {k: _num(v) for k, v in mr.mot.as_dict().items()}} if mr.mot else {})}
                         for m, mr in r.runs.items() if mr.metrics is not None},
         }
     for m, per_seq in rows.items():
@@ -167,7 +202,8 @@ def cmd_eval(args) -> int:
     notes: list[str] = []
     peers = [m for m in methods if m.startswith("peer:")]
     if peers and (reason := peer_available()):
-        print(f"followbus: skipping {', '.join(peers)}: {reason} (pip install 'followbus[peers]')", file=sys.stderr)
+        print(f"followbus: skipping {', '.join(peers)}: {reason} (make installs it; by hand: "
+              "pip install -e '.[peers]' && pip install --no-deps -r requirements-peers.txt)", file=sys.stderr)
         notes.append(f"peer trackers {', '.join(peers)} skipped: {reason}")
         methods = [m for m in methods if m not in peers]
     try:
@@ -191,8 +227,8 @@ def cmd_eval(args) -> int:
     if any(r.sequence.kind == "mot" for r in runs):
         notes.append("MOT sequences are scored as single-target following of the target chosen by "
                      "evaluation/datasets.py (feet nearest the image bottom-centre on the first annotated frame); "
-                     "MOTA/IDF1/HOTA are multi-object metrics and are not reported for single-target followers"
-                     + ("" if not peers else "; peer MOT trackers are likewise scored as followers here") + ".")
+                     "MOTA/IDF1/HOTA are multi-object metrics: reported only for the peer MOT trackers (their "
+                     "whole output), never for single-target followers.")
     if args.detector == "simulated":
         notes.append("simulated detector = ground truth + noise: tracking numbers only, never detection accuracy.")
     if any(r.detections_cached for r in runs):
