@@ -102,6 +102,26 @@ def timing_table(runs: list[SequenceRun], methods: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def summary_matrix(runs: list[SequenceRun], methods: list[str]) -> str:
+    """Sequences × methods, each cell "TSR % / CLE px", with the frame-weighted overall row."""
+    lines = ["### TSR@20px % / CLE px, sequences × methods", "",
+             "| Sequence | Frames | " + " | ".join(methods) + " |",
+             "|---|---:|" + "---:|" * len(methods)]
+
+    def cell(m: SingleTargetMetrics | None) -> str:
+        return "–" if m is None else f"{_fmt(100 * m.tsr, '.1f')} / {_fmt(m.cle, '.0f')}"
+
+    for r in runs:
+        cells = [cell(r.runs[m].metrics if m in r.runs else None) for m in methods]
+        lines.append(f"| {r.sequence.name} | {r.sequence.n_frames} | " + " | ".join(cells) + " |")
+    scored = [[r.runs[m].metrics for r in runs if m in r.runs and r.runs[m].metrics is not None] for m in methods]
+    overall = [aggregate(ms) if ms else None for ms in scored]
+    total = sum(r.sequence.n_frames for r in runs)
+    lines.append(f"| **overall (frame-weighted)** | {total} | "
+                 + " | ".join(f"**{cell(m)}**" for m in overall) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def mot_table(runs: list[SequenceRun], methods: list[str]) -> str:
     """MOTA/IDF1/HOTA of the multi-object trackers' whole output on the MOT sequences; "" when none ran."""
     from followbus.evaluation.mot_metrics import evaluate_mot_combined
@@ -147,6 +167,7 @@ def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command
     md = [f"# followbus eval — {stamp}", "", f"Command: `{command}`", "",
           f"Detector: {detector} (the same cached detections for every method); "
           f"methods initialised with the first ground-truth box.", ""]
+    md.append(summary_matrix(runs, methods))
     md.append(format_markdown_table(rows))
     md.append(mot_table(runs, methods))
     md.append(timing_table(runs, methods))
