@@ -54,7 +54,8 @@ def plot_sequence(run: SequenceRun, out_dir: Path, tsr_px: float = 20.0) -> list
         if np.isfinite(err).any():
             finite_max = max(finite_max, float(np.nanmax(err)))
         lw = 1.6 if method in ("followbus", "kalman") else 0.9
-        (line,) = ax.plot(frames, err, lw=lw, label=method)
+        ls = "--" if " w/o " in method else "-"  # ablations dashed, peers solid
+        (line,) = ax.plot(frames, err, lw=lw, ls=ls, label=method)
         missing = gt_present & np.array([b is None for b in mrun.boxes])
         if missing.any():
             ax.plot(frames[missing], np.full(missing.sum(), 1.0), "|", color=line.get_color(), ms=6,

@@ -175,12 +175,17 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
 
     p = sub.add_parser("eval", help="score followers on sequences (paper metrics, baselines, ablations, plots)",
-                       description="Run followbus, the Kalman baseline, ablations and optional peer trackers "
-                                   "in-process over SOT/MOT sequences and synthetic scenes on the same cached "
-                                   "detections; write results.md, results.json and PNG plots.",
+                       description="Run followbus, the Kalman baseline, ablations and peer trackers in-process "
+                                   "over SOT/MOT sequences and synthetic scenes on the same cached detections; "
+                                   "write results.md, results.json and PNG plots. Peers (Roboflow trackers: "
+                                   "ByteTrack, OC-SORT, BoT-SORT) follow the id of the track overlapping the "
+                                   "first ground-truth box; on MOT sequences they also get MOTA/IDF1/HOTA of "
+                                   "their whole output. `make` installs them (requirements-peers.txt).",
                        epilog="examples:\n  followbus eval all --ablations --detector yolox640\n"
                               "  followbus eval ../shared/data/sot/otb-jogging scene:wall-occlusion "
                               "--method followbus\n"
+                              "  followbus eval ../shared/data/mot/tud-campus --method followbus "
+                              "--method peer:bytetrack --method peer:botsort\n"
                               "  followbus eval scene:wall-occlusion --graph-check",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("sequences", nargs="+", metavar="SEQ",
