@@ -231,6 +231,10 @@ class SequenceRun:
     detections_cached: bool
     runs: dict[str, MethodRun] = field(default_factory=dict)
     gt_people: list[list[tuple[int, Box]]] = field(default_factory=list)
+    # An oracle that outputs, on every frame with a target, the detection nearest to it: the best a follower
+    # that only ever outputs one of these detections can score (the peers). A follower that coasts on its
+    # prediction through missed detections (followbus, kalman) can beat it on such frames.
+    ceiling: SingleTargetMetrics | None = None
 
     @property
     def detector_ms_mean(self) -> float:
@@ -315,12 +319,28 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
         if path is not None:
             detcache.save(path, cached)
     result = SequenceRun(seq, detector, gts, others, visible, cached.ms, from_cache, runs, people)
+    result.ceiling = evaluate_single_target(nearest_detections(cached.per_frame, gts), gts, other_gt=others,
+                                            fps=seq.fps, image_size=(seq.width, seq.height))
     for run in runs.values():
         run.metrics = evaluate_single_target(run.boxes, gts, other_gt=others, fps=seq.fps,
                                              image_size=(seq.width, seq.height))
         if seq.kind == "mot" and any("mot" in info for info in run.infos):
             run.mot = evaluate_mot(gt_mot_frames(people), [info.get("mot") for info in run.infos])
     return result
+
+
+def nearest_detections(per_frame: Sequence[np.ndarray], gts: Sequence[Box | None]) -> list[Box | None]:
+    """Per frame, the detection whose centre is nearest the target's (None without target or detections)."""
+    out: list[Box | None] = []
+    for dets, gt in zip(per_frame, gts, strict=True):
+        d = np.asarray(dets, dtype=np.float64).reshape(-1, 5)
+        if gt is None or not len(d):
+            out.append(None)
+            continue
+        gx, gy = gt[0] + gt[2] / 2, gt[1] + gt[3] / 2
+        k = int(np.argmin(np.hypot(d[:, 0] + d[:, 2] / 2 - gx, d[:, 1] + d[:, 3] / 2 - gy)))
+        out.append(tuple(float(v) for v in d[k, :4]))
+    return out
 
 
 def gt_mot_frames(people: Sequence[Sequence[tuple[int, Box]]]) -> list[tuple[list[int], list[Box]]]:

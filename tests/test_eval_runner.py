@@ -77,6 +77,7 @@ def test_eval_cli_on_a_real_sequence(tmp_path):
     data2 = json.loads((out / "results.json").read_text())
     assert data2["sequences"]["sot/otb-crossing"]["detections_cached"] is True
     assert data2["sequences"]["sot/otb-crossing"]["methods"]["followbus"]["tsr"] == seq["methods"]["followbus"]["tsr"]
+    assert "detector ceiling" in md and 0.5 < seq["detector_ceiling"]["tsr"] <= 1.0
 
 
 @pytest.mark.slow

@@ -102,19 +102,25 @@ def timing_table(runs: list[SequenceRun], methods: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+CEILING = "detector ceiling"
+
+
 def summary_matrix(runs: list[SequenceRun], methods: list[str]) -> str:
-    """Sequences × methods, each cell "TSR % / CLE px", with the frame-weighted overall row."""
+    """Sequences × methods, each cell "TSR % / CLE px", with the frame-weighted overall row and, last, the
+    detector ceiling (the detection nearest the target on every frame: the bound of any follower that
+    outputs detections; one that coasts on a prediction through misses can exceed it)."""
     lines = ["### TSR@20px % / CLE px, sequences × methods", "",
-             "| Sequence | Frames | " + " | ".join(methods) + " |",
-             "|---|---:|" + "---:|" * len(methods)]
+             "| Sequence | Frames | " + " | ".join(methods) + f" | {CEILING} |",
+             "|---|---:|" + "---:|" * (len(methods) + 1)]
 
     def cell(m: SingleTargetMetrics | None) -> str:
         return "–" if m is None else f"{_fmt(100 * m.tsr, '.1f')} / {_fmt(m.cle, '.0f')}"
 
     for r in runs:
-        cells = [cell(r.runs[m].metrics if m in r.runs else None) for m in methods]
+        cells = [cell(r.runs[m].metrics if m in r.runs else None) for m in methods] + [cell(r.ceiling)]
         lines.append(f"| {r.sequence.name} | {r.sequence.n_frames} | " + " | ".join(cells) + " |")
     scored = [[r.runs[m].metrics for r in runs if m in r.runs and r.runs[m].metrics is not None] for m in methods]
+    scored.append([r.ceiling for r in runs if r.ceiling is not None])
     overall = [aggregate(ms) if ms else None for ms in scored]
     total = sum(r.sequence.n_frames for r in runs)
     lines.append(f"| **overall (frame-weighted)** | {total} | "
@@ -181,6 +187,7 @@ def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command
             "kind": r.sequence.kind, "frames": r.sequence.n_frames, "fps": r.sequence.fps,
             "size": [r.sequence.width, r.sequence.height], "detector_ms": _num(r.detector_ms_mean),
             "detections_cached": r.detections_cached,
+            "detector_ceiling": _metrics_json(r.ceiling) if r.ceiling is not None else None,
             "methods": {m: {**_metrics_json(mr.metrics), "tracker_ms": _num(mr.tracker_ms_mean),
                             **({"mot": {k: _num(v) for k, v in mr.mot.as_dict().items()}} if mr.mot else {})}
                         for m, mr in r.runs.items() if mr.metrics is not None},
@@ -188,6 +195,9 @@ def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command
     for m, per_seq in rows.items():
         if per_seq:
             data["overall"][m] = _metrics_json(aggregate(per_seq.values()))
+    ceilings = [r.ceiling for r in runs if r.ceiling is not None]
+    if ceilings:
+        data["overall"][CEILING] = _metrics_json(aggregate(ceilings))
     json_path = out / "results.json"
     json_path.write_text(json.dumps(data, indent=1, ensure_ascii=False), encoding="utf-8")
     return md_path, json_path
@@ -254,6 +264,9 @@ def cmd_eval(args) -> int:
         notes.append("simulated detector = ground truth + noise: tracking numbers only, never detection accuracy.")
     if any(r.detections_cached for r in runs):
         notes.append("detector ms/frame of cached sequences is the time measured when the cache was filled.")
+    notes.append("detector ceiling = the detection nearest the target on every frame (an oracle): the best a "
+                 "follower that outputs detections can do; followbus and kalman coast on their prediction "
+                 "through missed detections and can exceed it there.")
     notes.append("Miss = gt frames without an output; Switch = output moved from the target onto another "
                  "annotated person (SOT sequences annotate only the target, so switches there are always 0).")
     md, js = write_report(runs, methods, out, command, args.detector, notes)
