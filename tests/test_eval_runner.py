@@ -84,9 +84,33 @@ def test_eval_cli_on_a_real_sequence(tmp_path):
 def test_launched_graph_matches_in_process_tracker(port):
     from followbus.tools.eval import graph_check
 
-    res = graph_check("wall-occlusion", max_frames=120, port=port, timeout_s=90)
+    res = graph_check("scene:wall-occlusion", max_frames=120, port=port, timeout_s=90)
     assert res["compared"] == 120 and res["missing"] == 0, {k: res[k] for k in ("compared", "missing")}
     assert res["mismatches"] == 0, (res["first_mismatch"], res["graph"][res["first_mismatch"]],
                                     res["inproc"][res["first_mismatch"]])
     assert sum(b is not None for b in res["graph"]) > 100  # not trivially equal (all None)
     assert wait_until(lambda: not processes_matching("followbus-graphcheck-"), 10)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not SOT_SEQ.is_dir(), reason=f"evaluation data absent ({SOT_SEQ})")
+@pytest.mark.skipif(find_model("yolox_nano_416.onnx") is None, reason="YOLOX-nano 416 model not found")
+def test_launched_graph_matches_in_process_on_a_real_sequence_with_real_inference(port):
+    """The detection node runs YOLOX on the frames it receives over the bus; in-process runs it on the
+    frames read from disk: the tracks must still agree bit for bit."""
+    from followbus.tools.eval import graph_check
+
+    res = graph_check(str(SOT_SEQ), detector="yolox", max_frames=60, port=port, timeout_s=90)
+    assert res["detector"] == "yolox" and res["compared"] == 60 and res["missing"] == 0, res["missing"]
+    assert res["mismatches"] == 0, (res["first_mismatch"], res["graph"][res["first_mismatch"]],
+                                    res["inproc"][res["first_mismatch"]])
+    assert sum(b is not None for b in res["graph"]) == 60
+
+
+def test_graph_check_refuses_what_it_cannot_reproduce(tmp_path):
+    res = run_followbus("eval", "all", "--graph-check", "--out", str(tmp_path), timeout=60)
+    assert res.returncode == 2 and "not 'all'" in res.stderr, res.stderr
+    if SOT_SEQ.is_dir():
+        res = run_followbus("eval", str(SOT_SEQ), "--graph-check", "--detector", "simulated",
+                            "--out", str(tmp_path), timeout=60)
+        assert res.returncode == 2 and "scenes only" in res.stderr, res.stderr

@@ -186,15 +186,17 @@ def build_parser() -> argparse.ArgumentParser:
                               "--method followbus\n"
                               "  followbus eval ../shared/data/mot/tud-campus --method followbus "
                               "--method peer:bytetrack --method peer:botsort\n"
-                              "  followbus eval scene:wall-occlusion --graph-check",
+                              "  followbus eval scene:wall-occlusion --graph-check\n"
+                              "  followbus eval ../shared/data/sot/otb-crossing --graph-check --detector yolox",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("sequences", nargs="+", metavar="SEQ",
                    help="sequence dir (sot/<name>, mot/<name>), scene:<name>, or 'all' (every sequence of the data)")
     p.add_argument("--method", action="append", metavar="M",
                    help="followbus | kalman | peer:bytetrack|ocsort|botsort; repeatable (default followbus + kalman)")
     p.add_argument("--ablations", action="store_true", help="also run the paper's Table 6 ablations of followbus")
-    p.add_argument("--detector", default="yolox", choices=("yolox", "yolox640", "hog", "simulated"),
-                   help="detections for every method (default yolox = YOLOX-nano@416)")
+    p.add_argument("--detector", default=None, choices=("yolox", "yolox640", "hog", "simulated"),
+                   help="detections for every method (default yolox = YOLOX-nano@416; with --graph-check: "
+                        "simulated for scenes, yolox for sequence dirs)")
     p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default results/)")
     p.add_argument("--max-frames", type=int, default=0, metavar="N", help="only the first N frames per sequence")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated detector (default 0)")

@@ -213,17 +213,25 @@ def cmd_eval(args) -> int:
 
     command = "followbus " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if args.argv is None else args.argv
     if args.graph_check:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
         status = 0
-        for scene in args.sequences:
-            if not scene.startswith("scene:"):
-                print(f"followbus: --graph-check needs scene:<name> sequences, not {scene!r}", file=sys.stderr)
+        for spec in args.sequences:
+            if spec == "all":
+                print("followbus: --graph-check takes named sequences (scene:<name> or a sequence dir), not 'all'",
+                      file=sys.stderr)
                 return 2
-            res = graph_check(scene.split(":", 1)[1], max_frames=args.max_frames or 0, log_file=args.out / "graph.log")
-            print(f"{scene}: {res['compared']} frames compared, {res['mismatches']} mismatches, "
-                  f"{res['missing']} frames without a track from the graph"
+            try:
+                res = graph_check(spec, detector=args.detector, max_frames=args.max_frames or 0,
+                                  log_file=Path(args.out) / "graph.log")
+            except (FileNotFoundError, ValueError) as exc:
+                print(f"followbus: {exc}", file=sys.stderr)
+                return 2
+            print(f"{spec} ({res['detector']} detections): {res['compared']} frames compared, "
+                  f"{res['mismatches']} mismatches, {res['missing']} frames without a track from the graph"
                   + (f"; first mismatch at frame {res['first_mismatch']}" if res["mismatches"] else ""))
             status |= 0 if res["mismatches"] == 0 and res["missing"] == 0 and res["compared"] > 0 else 1
         return status
+    args.detector = args.detector or "yolox"
     try:
         seqs = expand_sequences(args.sequences)
     except (FileNotFoundError, ValueError) as exc:
@@ -278,10 +286,11 @@ def cmd_eval(args) -> int:
 # --------------------------------------------------------------------------- graph check
 
 
-def derived_graph(scene: str, port: int, namespace: str, init_box: list[float], max_frames: int,
-                  base: Path = REPO / "graph.yaml", max_in_flight: int = 1) -> str:
-    """graph.yaml adapted for a lockstep run: private port/namespace, scene source, fast pace with capture
-    acked by prediction/track, simulated detector, no persisted template, the target given by init_box."""
+def derived_graph(source: str, port: int, namespace: str, init_box: list[float], max_frames: int,
+                  base: Path = REPO / "graph.yaml", max_in_flight: int = 1, detector: str = "simulated") -> str:
+    """graph.yaml adapted for a lockstep run: private port/namespace, ``source`` (scene:<name> or a sequence
+    dir), fast pace with capture acked by prediction/track, ``detector`` as in ``followbus eval``, no
+    persisted template, the target given by init_box."""
     import yaml
 
     g = yaml.safe_load(base.read_text(encoding="utf-8"))
@@ -290,8 +299,12 @@ def derived_graph(scene: str, port: int, namespace: str, init_box: list[float], 
     g["zenoh"]["connect"] = [f"tcp/127.0.0.1:{port}"]
     cap = g["nodes"]["capture"]
     cap.setdefault("inputs", {})["ack"] = {"from": "prediction/track", "sync": "none"}
-    cap["params"].update(source=f"scene:{scene}", pace="fast", max_frames=max_frames, max_in_flight=max_in_flight)
-    g["nodes"]["detection"]["params"]["backend"] = "simulated"
+    cap["params"].update(source=source, pace="fast", max_frames=max_frames, max_in_flight=max_in_flight)
+    det = g["nodes"]["detection"]["params"]
+    if detector.startswith("yolox"):
+        det.update(backend="yolox", input_size=640 if detector == "yolox640" else 416)
+    else:
+        det["backend"] = detector
     for node in g["nodes"].values():
         # Lockstep loses nothing, so a timeout could only mean a slow (cold, loaded) node, and a set
         # emitted without its feedback would make the graph diverge from the in-process run.
@@ -301,30 +314,52 @@ def derived_graph(scene: str, port: int, namespace: str, init_box: list[float], 
     return yaml.safe_dump(g, sort_keys=False)
 
 
-def graph_check(scene: str, *, max_frames: int = 0, port: int | None = None, seed: int = 0,
-                max_in_flight: int = 1, timeout_s: float = 120.0, log_file: Path | None = None) -> dict[str, Any]:
-    """Run ``scene`` through the launched graph (motor omitted: v_ego = 0) and in-process; compare boxes.
+def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, port: int | None = None,
+                seed: int = 0, max_in_flight: int = 1, timeout_s: float = 120.0,
+                log_file: Path | None = None) -> dict[str, Any]:
+    """Run ``spec`` (scene:<name> or a sot/mot sequence dir) through the launched graph (motor omitted:
+    v_ego = 0) and in-process, on the same detector; compare the track boxes frame by frame.
 
-    Returns {"compared", "mismatches", "missing", "first_mismatch", "graph", "inproc"}.
+    ``detector``: simulated (scenes only: the graph's detection node rebuilds its input from the capture's
+    ground truth) or a real one, yolox / yolox640 / hog, run by the detection node on the frames it receives
+    and in-process on the frames read here. Default: simulated for scenes, yolox otherwise.
+
+    Returns {"compared", "mismatches", "missing", "first_mismatch", "graph", "inproc", "detector"}.
     """
-    from followbus.evaluation.runner import FollowbusFollower, open_sequence
+    from followbus.evaluation.runner import FollowbusFollower, make_eval_detector, open_sequence
     from followbus.vision.detectors import SimulatedDetector
 
-    seq = open_sequence(f"scene:{scene}", seed=seed, max_frames=max_frames)
+    is_scene = spec.startswith("scene:")
+    detector = detector or ("simulated" if is_scene else "yolox")
+    if detector == "simulated" and not is_scene:
+        raise ValueError(f"{spec}: simulated detections are reproduced by the graph for scenes only; "
+                         "use --detector yolox|yolox640|hog")
+    seq = open_sequence(spec, seed=seed, max_frames=max_frames)
+    source = spec if is_scene else str(Path(spec).resolve())
     n = seq.n_frames
-    # in-process: the same frames, the same detector stream, the same init box, v_ego = 0
-    det = SimulatedDetector(seed=0)  # detection node defaults: noise 4 px, miss 0.05, fp 0.02, seed 0
+    # in-process: the same frames, the same detector, the same init box, v_ego = 0
+    if detector == "simulated":
+        sim = SimulatedDetector(seed=0)  # detection node defaults: noise 4 px, miss 0.05, fp 0.02, seed 0
+
+        def detect(item):
+            return sim.detect(item.bgr, item.truth)
+    else:
+        real = make_eval_detector(detector)
+
+        def detect(item):
+            return real.detect(item.bgr)
     follower = FollowbusFollower()
     inproc: list[Any] = []
     init_box: list[float] | None = None
     for item in seq.frames():
         if init_box is None:
             if item.gt_box is None:
-                raise ValueError(f"scene {scene}: target not visible on frame 0")
+                raise ValueError(f"{spec}: the target has no ground-truth box on frame 0 (the graph is told "
+                                 "whom to follow on its first frame)")
             init_box = list(item.gt_box)
-            box, _ = follower.step(item.bgr, det.detect(item.bgr, item.truth), item.t_ns, (0.0, 0.0), init_box)
+            box, _ = follower.step(item.bgr, detect(item), item.t_ns, (0.0, 0.0), init_box)
         else:
-            box, _ = follower.step(item.bgr, det.detect(item.bgr, item.truth), item.t_ns, (0.0, 0.0), None)
+            box, _ = follower.step(item.bgr, detect(item), item.t_ns, (0.0, 0.0), None)
         inproc.append(box)
     assert init_box is not None
 
@@ -334,7 +369,7 @@ def graph_check(scene: str, *, max_frames: int = 0, port: int | None = None, see
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
-    tracks = _run_graph_once(scene, port, init_box, n, max_in_flight, timeout_s, log_file)
+    tracks = _run_graph_once(source, port, init_box, n, max_in_flight, timeout_s, log_file, detector)
     mismatches, missing, first = 0, 0, None
     for k in range(n):
         if k not in tracks:
@@ -347,11 +382,11 @@ def graph_check(scene: str, *, max_frames: int = 0, port: int | None = None, see
             mismatches += 1
             first = k if first is None else first
     return {"compared": n - missing, "mismatches": mismatches, "missing": missing, "first_mismatch": first,
-            "graph": [tracks.get(k) for k in range(n)], "inproc": inproc}
+            "graph": [tracks.get(k) for k in range(n)], "inproc": inproc, "detector": detector}
 
 
-def _run_graph_once(scene: str, port: int, init_box: list[float], n: int, max_in_flight: int, timeout_s: float,
-                    log_file: Path | None) -> dict[int, Any]:
+def _run_graph_once(source: str, port: int, init_box: list[float], n: int, max_in_flight: int, timeout_s: float,
+                    log_file: Path | None, detector: str) -> dict[int, Any]:
     """Launch the derived graph once (motor omitted) and collect Track boxes by frame_seq. Capture publishes
     frame 0 only once every consuming node is listening (nodes/capture.py), so the lockstep always starts."""
     from followbus.bus.graph import load_graph
@@ -364,7 +399,8 @@ def _run_graph_once(scene: str, port: int, init_box: list[float], n: int, max_in
     done = threading.Event()
     with tempfile.TemporaryDirectory(prefix="followbus-graphcheck-") as tmp:
         path = Path(tmp) / "graph.yaml"
-        path.write_text(derived_graph(scene, port, f"gc{port}", init_box, n, max_in_flight=max_in_flight))
+        path.write_text(derived_graph(source, port, f"gc{port}", init_box, n, max_in_flight=max_in_flight,
+                                      detector=detector))
         graph = load_graph(path)
         session = open_session(graph.zenoh)
 
@@ -386,5 +422,5 @@ def _run_graph_once(scene: str, port: int, init_box: list[float], n: int, max_in
             runner.join(30)
             sub.undeclare()
             session.close()
-        log.info("graph check %s: %d/%d tracks in %.1f s", scene, len(tracks), n, time.monotonic() - t0)
+        log.info("graph check %s: %d/%d tracks in %.1f s", source, len(tracks), n, time.monotonic() - t0)
     return dict(tracks)
