@@ -42,7 +42,7 @@ def test_replay_verifies_with_zero_mismatches(recording, node, tmp_path):
                            timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr[-2000:]
     report = json.loads(report_path.read_text())
-    assert report["frames"] > 100
+    assert report["frames"] > 100 and report["recording_first_frame"] == 0 and "mid-run" not in result.stdout
     assert report["outputs_compared"] > 100 and report["mismatch_count"] == 0
     assert not report["missing"] and not report["extra"] and not report["timeouts"]
 
@@ -53,3 +53,26 @@ def test_changed_parameter_is_reported_as_a_mismatch(recording, tmp_path):
     assert result.returncode == 1, result.stdout
     first = result.stdout.split("first mismatch: frame", 1)[1].splitlines()[0]
     assert "rt/reid/measurement" in first and "field" in first, first
+
+
+def test_a_recording_started_mid_run_is_named_as_such(recording, tmp_path):
+    """A recorder attached to a running graph misses the node's history: replay says so instead of leaving
+    the user with an unexplained mismatch."""
+    from followbus.tools.mcap_io import RecordingWriter, bus_channels, iter_bus_messages, read_metadata
+    from followbus.tools.replay import _header
+
+    cut = 40
+    late = tmp_path / "late.mcap"
+    writer = RecordingWriter(late)
+    for name, data in read_metadata(recording).items():
+        writer.metadata(name, data)
+    types = bus_channels(recording)
+    for msg in iter_bus_messages(recording):
+        if _header(msg.data)[0] >= cut:
+            writer.write(writer.bus_channel(msg.key, types[msg.key] or None), msg.log_time, msg.data)
+    writer.finish()
+    report_path = tmp_path / "report.json"
+    result = run_followbus("replay", str(late), "--node", "prediction", "--report", str(report_path), timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr[-2000:]
+    assert json.loads(report_path.read_text())["recording_first_frame"] == cut
+    assert f"starts at frame {cut} of the run (recorded mid-run)" in result.stdout

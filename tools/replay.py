@@ -242,6 +242,7 @@ class ReplayReport:
     node: str
     params: dict[str, Any] = field(default_factory=dict)
     frames: int = 0
+    recording_first_frame: int | None = None  # the run's first recorded frame; > 0: recorded mid-run
     inputs_sent: int = 0
     outputs_expected: int = 0
     outputs_received: int = 0
@@ -299,6 +300,19 @@ def _header(data: bytes) -> tuple[int, int]:
 def _pub_ns(data: bytes) -> int:
     head = _peek_header(data)
     return head[4] if head is not None and isinstance(head[4], int) else 0
+
+
+def recording_first_frame(path: Path, look_at: int = 200) -> int | None:
+    """The lowest frame_seq among the recording's first messages (log time = capture stamp, so the run's
+    first recorded frame is among them); None when none carries a frame."""
+    seqs = []
+    for k, msg in enumerate(iter_bus_messages(path)):
+        if k >= look_at:
+            break
+        frame_seq = _header(msg.data)[0]
+        if frame_seq >= 0:
+            seqs.append(frame_seq)
+    return min(seqs) if seqs else None
 
 
 def causal_order(messages: Iterable[BusMessage]) -> Iterator[BusMessage]:
@@ -581,6 +595,7 @@ class Replayer:
                                          f"{self.opts.startup_timeout_s:.0f} s" if self.proc.poll() is None
                                          else f"node {self.spec.name} exited with status {self.proc.poll()}")
                 else:
+                    self.report.recording_first_frame = recording_first_frame(self.path)
                     self._lockstep(pubs)
             finally:
                 self._stop_node()
@@ -774,6 +789,10 @@ def _print_summary(report: ReplayReport, verify: bool) -> None:
     print(f"outputs: {report.outputs_expected} recorded, {report.outputs_received} produced, "
           f"{report.outputs_compared} compared, {report.matched} identical, {report.mismatch_count} differing, "
           f"{len(report.missing)} missing, {len(report.extra)} extra; {len(report.timeouts)} frame timeouts")
+    if report.recording_first_frame:
+        print(f"note: the recording starts at frame {report.recording_first_frame} of the run (recorded mid-run): "
+              "the node starts without the state it had built before (template, track state, filter), so its first "
+              "outputs can differ until that state converges; `followbus launch --record` records from frame 0")
     if report.mismatches:
         first = min(report.mismatches, key=lambda m: (m["frame_seq"], m["key"], m["index"]))
         print(f"first mismatch: frame {first['frame_seq']}, key {first['key']} (#{first['index']}), field "
