@@ -32,7 +32,7 @@ import zenoh
 
 from followbus.bus.graph import Graph, GraphError, NodeSpec
 from followbus.bus.pubsub import InputQueue, Publisher, RateLimitedLog, ShmPool, Subscriber
-from followbus.bus.schemas import Message, NodeStatus
+from followbus.bus.schemas import Frame, Message, NodeStatus
 from followbus.bus.session import open_session
 from followbus.bus.stats import TopicStats
 from followbus.bus.sync import FrameSynchronizer, SyncInput
@@ -289,6 +289,8 @@ class NodeRuntime:
         self._arrival = itertools.count()
         self._warn = RateLimitedLog(self.log)
         shm = ShmPool() if graph.zenoh.shm else None
+        if shm is not None and any(self.cls.OUTPUTS.get(out) is Frame for out in self.spec.outputs):
+            shm.warm_up()  # frames go through shared memory: not on the first frame's time
         for out in self.spec.outputs:
             key = graph.key(self.spec.name, out)
             self.publishers[out] = Publisher(

@@ -53,20 +53,33 @@ class ShmPool:
         self._failed = False
         self._lock = threading.Lock()
 
-    def buffer_with(self, payload: bytes) -> Any | None:
+    def _alloc(self, n: int) -> Any | None:
+        """A buffer of n bytes (caller holds the lock); None once shared memory turned out unusable."""
         if self._failed:
             return None
-        with self._lock:
-            try:
-                import zenoh.shm as zshm
+        try:
+            import zenoh.shm as zshm
 
-                if self._provider is None:
-                    self._provider = zshm.ShmProvider.default_backend(self.size_bytes)
-                buf = self._provider.alloc(len(payload), zshm.GarbageCollect(zshm.Defragment()))
-            except Exception as exc:  # no /dev/shm, pool exhausted, ...: fall back to plain bytes
-                log.warning("shared memory unavailable (%s); publishing large payloads over the network path", exc)
-                self._failed = True
-                return None
+            if self._provider is None:
+                self._provider = zshm.ShmProvider.default_backend(self.size_bytes)
+            return self._provider.alloc(n, zshm.GarbageCollect(zshm.Defragment()))
+        except Exception as exc:  # no /dev/shm, pool exhausted, ...: fall back to plain bytes
+            log.warning("shared memory unavailable (%s); publishing large payloads over the network path", exc)
+            self._failed = True
+            return None
+
+    def warm_up(self) -> None:
+        """Create the pool now. Creating it takes ~50 ms (and the first allocation a few more): on the first
+        large publish that would delay frame 0 so much that frame 1 follows right behind it, and a consumer
+        with a one-frame queue (detection) would drop frame 0."""
+        with self._lock:
+            self._alloc(SHM_THRESHOLD_BYTES)  # the buffer is released when it goes out of scope
+
+    def buffer_with(self, payload: bytes) -> Any | None:
+        with self._lock:
+            buf = self._alloc(len(payload))
+        if buf is None:
+            return None
         buf[:] = payload
         return buf
 

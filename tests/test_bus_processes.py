@@ -143,3 +143,23 @@ def test_node_counts_and_drops_malformed_messages_and_keeps_running(graph_file, 
         node.wait(10)
         session.close()
     assert node.returncode == 0
+
+
+def test_a_node_publishing_frames_creates_its_shared_memory_pool_before_its_first_frame(graph_file):
+    """Creating the pool takes ~50 ms; done on the first frame, it delayed frame 0 so that frame 1 followed
+    right behind it and the detection node's one-frame queue dropped frame 0 (seen in recordings)."""
+    from followbus.bus.graph import load_graph
+    from followbus.bus.node import NodeRuntime
+
+    graph = load_graph(graph_file(
+        "  capture:\n    run: followbus.nodes.capture\n    outputs: [frame, ground_truth]\n"
+        "    params: {source: 'scene:wall-occlusion'}\n"
+        "  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n"))
+    for name, warmed in (("capture", True), ("ticker", False)):
+        runtime = NodeRuntime(graph, name)
+        try:
+            pools = {p.shm for p in runtime.publishers.values()}
+            assert len(pools) == 1 and None not in pools, "shared memory is on in this graph"
+            assert (pools.pop()._provider is not None) is warmed, name
+        finally:
+            runtime.session.close()  # never set up: nothing else to tear down
