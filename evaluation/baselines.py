@@ -7,8 +7,9 @@
   ``lost_after_ms``; the gate keeps widening with the covariance, so it can re-capture whoever walks
   into it — which is exactly the failure mode appearance-based re-ID is meant to fix.
 * :class:`PeerFollower` — a multi-object tracker from Roboflow ``trackers`` used as a target follower:
-  on the first frame the track overlapping the init box best is chosen and its id followed; when that id
-  is not reported on a frame, the output is None.
+  on the first frame the track overlapping the init box best is chosen and its id followed; while that
+  id's track is alive but unmatched the follower coasts on the tracker's own prediction (as followbus and
+  the Kalman baseline coast on theirs); once the tracker deletes it, the output is None.
 """
 
 from __future__ import annotations
@@ -115,9 +116,12 @@ class PeerFollower:
 
     On the init frame the confirmed track overlapping the init box best is chosen; while no confirmed track
     overlaps it (trackers confirm after a few frames), later frames keep trying against that box with
-    IoU > 0.3. From then on the output is the box the tracker reports for that id, or None when it reports
-    none (the id was lost: a MOT tracker that re-identifies the person under a new id has lost the target).
-    ``info["mot"]`` carries the tracker's whole confirmed output ``(ids, boxes)`` for MOT scoring.
+    IoU > 0.3. From then on the output is the box the tracker reports for that id; on a frame it reports
+    none (no detection matched), the tracker's own Kalman prediction for the id while its track is still
+    alive (state COASTING), as followbus and the Kalman baseline coast on theirs; None once the tracker
+    has deleted it (the id is lost: a MOT tracker that re-identifies the person under a new id has lost
+    the target). ``info["mot"]`` carries the tracker's confirmed output ``(ids, boxes)`` for MOT scoring,
+    never the coasted box.
     """
 
     def __init__(self, kind: str, fps: float = 30.0) -> None:
@@ -171,4 +175,16 @@ class PeerFollower:
         for i, b in zip(ids, boxes, strict=True):
             if i == self.target_id:
                 return b, {**info, "state": "TRACKING"}
+        coasted = self._predicted_box()
+        if coasted is not None:
+            return coasted, {**info, "state": "COASTING"}
         return None, {**info, "state": "ID_MISSING"}
+
+    def _predicted_box(self) -> Box | None:
+        """The tracker's prediction for the followed id while its track is alive (``trackers`` 2.x keeps its
+        tracklets, lost ones included, in ``.tracks``)."""
+        for tracklet in getattr(self.tracker, "tracks", ()):
+            if getattr(tracklet, "tracker_id", -1) == self.target_id:
+                x0, y0, x1, y1 = (float(v) for v in np.asarray(tracklet.get_state_bbox()).reshape(-1)[:4])
+                return (x0, y0, x1 - x0, y1 - y0)
+        return None

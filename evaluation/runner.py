@@ -232,8 +232,8 @@ class SequenceRun:
     runs: dict[str, MethodRun] = field(default_factory=dict)
     gt_people: list[list[tuple[int, Box]]] = field(default_factory=list)
     # An oracle that outputs, on every frame with a target, the detection nearest to it: the best a follower
-    # that only ever outputs one of these detections can score (the peers). A follower that coasts on its
-    # prediction through missed detections (followbus, kalman) can beat it on such frames.
+    # that only ever outputs one of these detections can score. A follower that coasts on its prediction
+    # through missed detections (followbus, kalman, the peers) can beat it on such frames.
     ceiling: SingleTargetMetrics | None = None
 
     @property

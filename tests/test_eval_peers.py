@@ -31,6 +31,10 @@ def test_peers_follow_their_id_and_lose_the_target_at_a_full_occlusion():
         r = run.runs[name]
         states = [i["state"] for i in r.infos]
         assert states.count("TRACKING") > 50, (name, states[:20])  # it did pick the target and follow it
+        # through a missed detection it coasts on the tracker's prediction; that box is not MOT output
+        coast = [k for k, st in enumerate(states) if st == "COASTING"]
+        assert coast, name
+        assert all(r.boxes[k] not in r.infos[k]["mot"][1] for k in coast)
         before = r.boxes[start - 20:start - 3]  # still on the target just before the wall
         assert sum(b is not None for b in before) >= 8, (name, before)
         after = r.boxes[end + 10:]
@@ -38,8 +42,9 @@ def test_peers_follow_their_id_and_lose_the_target_at_a_full_occlusion():
         assert r.metrics.reid_censored == len(r.metrics.reid_events) > 0
         assert r.metrics.tsr < fb.tsr - 0.3, (name, r.metrics.tsr, fb.tsr)
         assert r.mot is None  # a scene annotates no person ids: no MOT scoring
-        # a peer outputs detection boxes: it can never beat the oracle that picks the nearest detection
-        assert r.metrics.successes <= run.ceiling.successes
+        # on a frame it reports its id, a peer outputs a detection: never better than the nearest-detection oracle
+        reported = [k for k, st in enumerate(states) if st == "TRACKING" and run.gt_boxes[k] is not None]
+        assert all(run.ceiling.center_errors[k] <= r.metrics.center_errors[k] + 1e-6 for k in reported)
     # the detector misses the partly hidden target for a while; followbus coasts on its prior through those
     # frames, so it beats even the nearest-detection oracle
     assert run.ceiling.missing_outputs > 10 and fb.tsr > run.ceiling.tsr

@@ -273,8 +273,8 @@ def cmd_eval(args) -> int:
     if any(r.detections_cached for r in runs):
         notes.append("detector ms/frame of cached sequences is the time measured when the cache was filled.")
     notes.append("detector ceiling = the detection nearest the target on every frame (an oracle): the best a "
-                 "follower that outputs detections can do; followbus and kalman coast on their prediction "
-                 "through missed detections and can exceed it there.")
+                 "follower that only outputs detections can do; followbus, kalman and the peers coast on their "
+                 "prediction through missed detections and can exceed it there.")
     notes.append("Miss = gt frames without an output; Switch = output moved from the target onto another "
                  "annotated person (SOT sequences annotate only the target, so switches there are always 0).")
     md, js = write_report(runs, methods, out, command, args.detector, notes)
