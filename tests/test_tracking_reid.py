@@ -162,6 +162,28 @@ def test_motion_blob_candidates_when_no_detection_in_gate() -> None:
     assert x >= 128.0 and x + w <= 141.0 and y == 100.0 and h == 60.0  # the newly covered strip
 
 
+@pytest.mark.parametrize("max_changed", [0.2, 1.0])
+def test_no_motion_blob_candidates_while_the_camera_pans(max_changed: float) -> None:
+    """Frame differencing on a panning camera marks the whole background as moving: with the default
+    limit those blobs are not candidates (the target is held OCCLUDED on its prior); without it (1.0) a
+    background blob gets accepted as the target."""
+    params = TrackerParams(motion_max_changed_fraction=max_changed)
+    reid = ReIdentifier(params)
+    blocks = np.random.default_rng(3).integers(0, 256, (H // 16, (W + 48) // 16, 3), dtype=np.uint8)
+    texture = np.kron(blocks, np.ones((16, 16, 1), np.uint8))  # a cluttered background of 16-px patches
+    f0 = texture[:, :W].copy()
+    f0[100:160, 100:130] = RED
+    reid.step(f0, dets(TARGET), None, None, 0, init_box=TARGET)
+    template = hs_histogram(f0, TARGET)
+    f1 = texture[:, 12:W + 12].copy()  # the camera pans 12 px; the target stays where it was in the image
+    f1[100:160, 100:130] = RED
+    res = reid.step(f1, dets(), prior_at(TARGET, 33 * MS), template, 33 * MS)
+    if max_changed < 1.0:
+        assert res.candidates == [] and not res.accepted and res.state is TrackState.OCCLUDED
+    else:
+        assert res.candidates and all(c.source == "motion" for c in res.candidates)
+
+
 def test_gate_excludes_far_detection_unless_disabled() -> None:
     far = (250.0, 20.0, 30.0, 60.0)  # ~170 px from the prediction, gate radius ~62 px
     frame = draw((far, RED))

@@ -57,6 +57,15 @@ def motion_blobs(
     return blobs
 
 
+def changed_fraction(prev_grey: np.ndarray, grey: np.ndarray, threshold: int = 25) -> float:
+    """Fraction of the pixels whose grey level changed by more than ``threshold`` between two frames (1.0
+    when the shapes differ). Frame differencing finds moving objects only against a still background: a
+    large fraction means the camera itself moved."""
+    if prev_grey.shape != grey.shape:
+        return 1.0
+    return float(np.count_nonzero(cv2.absdiff(prev_grey, grey) > threshold)) / float(grey.size)
+
+
 def frame_difference_roi(
     prev_bgr: np.ndarray, bgr: np.ndarray, threshold: int = 25, kernel_px: int = 5, min_area_px: int = 64
 ) -> Box | None:

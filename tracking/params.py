@@ -64,6 +64,13 @@ class TrackerParams:
     # S_geo = 0, so only a strong appearance match (ω → 1 by Eq. 3) can pass T_reid.
     global_search_when_lost: bool = True
 
+    # Alg. 1 line 2 (background subtraction) presumes a still background. When more than this fraction
+    # of the whole frame changed since the previous one, the camera moved (a pan, a turning robot) and the
+    # blobs are background, not the target: no motion candidates that frame. A person walking through a
+    # still scene changes a few % of a 640x480 frame (the synthetic scenes, even with ego-motion: ≤ 12 %);
+    # a camera panning with the target changes 30-55 % (otb-couple).
+    motion_max_changed_fraction: float = 0.2
+
     # --- ablation switches (paper Table 6) ------------------------------------------------
     use_geometry: bool = True  # False: S_geo off, ω = 1 (M_fuse = S_color)
     use_gate: bool = True  # False: no Mahalanobis gate, every detection/blob is a candidate
@@ -73,7 +80,7 @@ class TrackerParams:
     def __post_init__(self) -> None:
         positive = (
             "morph_kernel_px", "bins_h", "bins_s", "dt_ms", "gate_chi2", "gamma", "r0_px2",
-            "lost_after_ms",
+            "lost_after_ms", "motion_max_changed_fraction",
         )
         for name in positive:
             if getattr(self, name) <= 0:

@@ -11,7 +11,8 @@ Definitions this module fixes (the paper leaves them open):
   ω(t) is therefore one number per frame, as Eq. 3 writes it.
 * S_geo = s_gate · s_dist · s_size (see :func:`geometric_score`).
 * Candidates are the detections whose centre is in the gate; only when there is none, the
-  frame-difference blobs in the gate (Alg. 1 line 2, background subtraction).
+  frame-difference blobs in the gate (Alg. 1 line 2, background subtraction), and those only while
+  the background holds still (less than ``motion_max_changed_fraction`` of the frame changed).
 * ``secure`` (Eq. 10 "tracked securely") = accepted, state TRACKING (not within the first
   ``reacquired_hold_frames`` after a re-lock), not ambiguous (no other candidate's M_fuse within
   ``ambiguity_margin`` of the best) and a detector box (a motion blob covers only the moving
@@ -29,7 +30,7 @@ from enum import Enum
 import numpy as np
 
 from followbus.tracking.appearance import bhattacharyya, hs_histogram
-from followbus.tracking.init import motion_blobs, nearest_to_centre_bottom, to_grey
+from followbus.tracking.init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
 from followbus.tracking.kalman import Box, Prior, box_centre
 from followbus.tracking.params import TrackerParams
 
@@ -182,8 +183,10 @@ class ReIdentifier:
 
         p = self.params
         candidates = self._gate_candidates(boxes, prior, "detection")
-        if not candidates and prev_grey is not None:
-            # Alg. 1 line 2: nothing detected in R, look for moving regions inside it instead.
+        if (not candidates and prev_grey is not None
+                and changed_fraction(prev_grey, grey, p.diff_threshold) <= p.motion_max_changed_fraction):
+            # Alg. 1 line 2: nothing detected in R, look for moving regions inside it instead (only while
+            # the background holds still: see TrackerParams.motion_max_changed_fraction).
             roi = self._search_window(prior, grey.shape) if p.use_gate else None
             blobs = motion_blobs(prev_grey, grey, p.diff_threshold, p.morph_kernel_px, p.min_blob_area_px, roi)
             candidates = self._gate_candidates([b for b, _ in blobs], prior, "motion")
