@@ -344,7 +344,11 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
         def detect(item):
             return sim.detect(item.bgr, item.truth)
     else:
-        real = make_eval_detector(detector)
+        import yaml
+
+        # the detection node's thread count, so both paths run inference the same way
+        det_params = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]["detection"]["params"]
+        real = make_eval_detector(detector, threads=int(det_params.get("threads") or 0) or None)
 
         def detect(item):
             return real.detect(item.bgr)
