@@ -23,7 +23,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from followbus.evaluation import detcache
-from followbus.evaluation.baselines import KalmanFollower, PeerFollower
+from followbus.evaluation.baselines import PEER_NAMES, KalmanFollower, PeerFollower
 from followbus.evaluation.datasets import load_sequence
 from followbus.evaluation.metrics import Box, SingleTargetMetrics, evaluate_single_target
 from followbus.evaluation.mot_metrics import MotMetrics, evaluate_mot
@@ -85,6 +85,8 @@ def method_factories(methods: Sequence[str], ablations: bool = False,
                                                                lost_after_ms=p.lost_after_ms))
         elif m.startswith("peer:"):
             kind = m.split(":", 1)[1]
+            if kind.lower().replace("-", "").replace("_", "") not in PEER_NAMES:
+                raise ValueError(f"unknown peer tracker {kind!r} in {m!r}; known: {', '.join(PEER_NAMES)}")
             out[m] = lambda fps, k=kind: _NoEgo(PeerFollower(k, fps))
         else:
             raise ValueError(f"unknown method {m!r} (followbus, kalman, peer:bytetrack|ocsort|botsort)")

@@ -107,6 +107,13 @@ def test_launched_graph_matches_in_process_on_a_real_sequence_with_real_inferenc
     assert sum(b is not None for b in res["graph"]) == 60
 
 
+def test_unknown_methods_are_a_usage_error(tmp_path):
+    for method in ("peer:foo", "nonsense"):
+        res = run_followbus("eval", "scene:wall-occlusion", "--method", method, "--detector", "simulated",
+                            "--out", str(tmp_path), timeout=60)
+        assert res.returncode == 2 and "unknown" in res.stderr and "Traceback" not in res.stderr, res.stderr
+
+
 def test_graph_check_refuses_what_it_cannot_reproduce(tmp_path):
     res = run_followbus("eval", "all", "--graph-check", "--out", str(tmp_path), timeout=60)
     assert res.returncode == 2 and "not 'all'" in res.stderr, res.stderr
