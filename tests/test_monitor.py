@@ -341,3 +341,31 @@ def _port_open(port: int) -> bool:
 
     with socket.socket() as s:
         return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def test_first_preview_request_waits_for_the_first_preview():
+    """A page opened before any preview arrived asks for "anything" (after=-1): it must get the first one
+    when it comes, not an immediate empty answer (seen as a 204 when the track arrived before the preview)."""
+    from http.server import ThreadingHTTPServer
+    from types import SimpleNamespace
+
+    from followbus.tools.webview import PreviewGate, make_handler
+
+    monitor = SimpleNamespace(lock=threading.Lock(), preview_jpeg=b"", preview_count=0, preview=None)
+    gate = PreviewGate()
+    server = ThreadingHTTPServer(("127.0.0.1", 0), make_handler(monitor, gate))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        def arrive() -> None:
+            time.sleep(0.3)
+            with monitor.lock:
+                monitor.preview_jpeg, monitor.preview_count = b"\xff\xd8jpeg", 1
+                monitor.preview = SimpleNamespace(header=SimpleNamespace(frame_seq=7))
+            gate.notify()
+
+        threading.Thread(target=arrive, daemon=True).start()
+        status, body, headers = _get(f"http://127.0.0.1:{server.server_port}/preview.jpg?after=-1&client=t")
+        assert status == 200 and body == b"\xff\xd8jpeg" and headers["X-Frame-Seq"] == "7", (status, headers)
+    finally:
+        server.shutdown()
+        server.server_close()

@@ -7,7 +7,7 @@ slow a browser or the Wi-Fi is, nothing flows back to the robot. Each browser fe
 ``MAX_PREVIEWS_PER_S`` per client, always the newest frame: a slow client simply sees fewer frames.
 
 Endpoints: ``/`` (the page), ``/state.json`` (snapshot with history), ``/preview.jpg?after=N&client=ID``
-(long-polls up to 1 s for a preview newer than N), ``/healthz``.
+(long-polls up to 1 s for a preview newer than N, or for the first one; 204 if none came), ``/healthz``.
 """
 
 from __future__ import annotations
@@ -95,7 +95,8 @@ def make_handler(monitor: BusMonitor, gate: PreviewGate) -> type[BaseHTTPRequest
             gate.pace(client)
             deadline = time.monotonic() + LONG_POLL_S
             with gate.cond:
-                while monitor.preview_count <= after and time.monotonic() < deadline:
+                # count 0 = nothing received yet: wait for the first preview too, whatever ``after`` says
+                while (monitor.preview_count <= after or monitor.preview_count == 0) and time.monotonic() < deadline:
                     gate.cond.wait(max(0.0, deadline - time.monotonic()))
             with monitor.lock:
                 jpeg, count = monitor.preview_jpeg, monitor.preview_count
