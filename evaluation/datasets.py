@@ -19,8 +19,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 from followbus.evaluation.metrics import Box
-from followbus.evaluation.mot_metrics import load_mot_file
+from followbus.evaluation.mot_metrics import PEDESTRIAN_CLASS, load_mot_file, load_mot_regions
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +54,9 @@ class Sequence:
     gt_boxes: list[Box | None]  # the follow target per frame (None = absent / not annotated)
     all_gt: list[list[tuple[int, Box]]] = field(default_factory=list)  # every annotated person: (id, box)
     target_id: int | None = None
+    # MOT16/17: per frame every gt row, ignored ones included, and which are distractors (MOT scoring
+    # preprocessing, mot_metrics.remove_distractor_matches); empty for SOT and MOT15
+    gt_regions: list[tuple[np.ndarray, np.ndarray] | None] = field(default_factory=list)
 
     @property
     def frames(self) -> int:
@@ -175,8 +180,11 @@ def load_mot_sequence(directory: str | Path) -> Sequence:
     if n != len(images):
         log.warning("%s: seqLength=%d but %d images; using the images", d, n, len(images))
         n = len(images)
-    # is_gt: rows flagged conf = 0 (MOT16/17 ignore regions, non-pedestrians) are dropped, conf -1 kept
-    gt = load_mot_file(d / "gt" / "gt.txt", is_gt=True)
+    # is_gt: rows flagged conf = 0 (MOT16/17 ignore regions, non-pedestrians) are dropped, conf -1 kept;
+    # classes: pedestrians only where a class column exists (MOT16/17), as MOTChallenge scores them
+    # (TrackEval's gt_to_keep_mask)
+    gt = load_mot_file(d / "gt" / "gt.txt", is_gt=True, classes=(PEDESTRIAN_CLASS,))
+    regions = load_mot_regions(d / "gt" / "gt.txt")
     all_gt: list[list[tuple[int, Box]]] = [[] for _ in range(n)]
     for frame, (ids, boxes) in gt.items():
         if not 1 <= frame <= n:
@@ -195,7 +203,7 @@ def load_mot_sequence(directory: str | Path) -> Sequence:
     return Sequence(
         name=info.get("name", d.name), kind="mot", path=d, image_paths=images,
         fps=float(info.get("frameRate", "30")), width=width, height=height, gt_boxes=gt_boxes,
-        all_gt=all_gt, target_id=target)
+        all_gt=all_gt, target_id=target, gt_regions=[regions.get(k + 1) for k in range(n)] if regions else [])
 
 
 def _kind_of(path: Path) -> Literal["sot", "mot"] | None:

@@ -39,6 +39,8 @@ __all__ = [
     "clear_mot",
     "evaluate_mot",
     "evaluate_mot_combined",
+    "load_mot_regions",
+    "remove_distractor_matches",
     "hota",
     "identity_scores",
     "iou_matrix",
@@ -49,6 +51,10 @@ __all__ = [
 FrameTracks = tuple[np.ndarray, np.ndarray]
 
 HOTA_ALPHAS = np.arange(0.05, 0.99, 0.05)  # 19 thresholds, as TrackEval
+PEDESTRIAN_CLASS = 1  # MOT16/17 gt class column
+# MOT17 classes a tracker box may sit on without penalty (TrackEval's ``distractor_classes``): person on
+# vehicle, static person, distractor, reflection.
+DISTRACTOR_CLASSES = (2, 7, 8, 12)
 _EPS = np.finfo(float).eps
 
 
@@ -428,6 +434,52 @@ def load_mot_file(
     log.debug("loaded %s: %d rows in %d frames", path, len(rows), len(out))
     return {fr: (np.asarray(ids, dtype=np.int64), np.asarray(boxes, dtype=float).reshape(-1, 4))
             for fr, (ids, boxes) in sorted(out.items())}
+
+
+def load_mot_regions(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Every gt row of a MOT16/17 file, ignored ones included: {frame: (boxes (n, 4), is_distractor (n,))},
+    the input of :func:`remove_distractor_matches`. Files without a positive class column (MOT15) have no
+    distractors: {}."""
+    rows: dict[int, tuple[list[list[float]], list[bool]]] = {}
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            parts = [p for p in _SPLIT.split(line.strip()) if p]
+            if len(parts) < 8 or line.lstrip().startswith("#"):
+                continue
+            vals = [float(p) for p in parts]
+            if vals[7] <= 0:
+                continue
+            boxes, distractor = rows.setdefault(int(vals[0]), ([], []))
+            boxes.append(vals[2:6])
+            distractor.append(int(vals[7]) in DISTRACTOR_CLASSES)
+    if not any(any(d) for _, d in rows.values()):
+        return {}
+    return {fr: (np.asarray(b, dtype=float).reshape(-1, 4), np.asarray(d, dtype=bool)) for fr, (b, d) in rows.items()}
+
+
+def remove_distractor_matches(pred_frames: Sequence, regions: Sequence[tuple[np.ndarray, np.ndarray] | None], *,
+                              iou_threshold: float = 0.5) -> list[FrameTracks]:
+    """MOTChallenge preprocessing (TrackEval ``get_preprocessed_seq_data``): per frame, tracker boxes are
+    matched one-to-one (Hungarian, IoU >= 0.5) against *all* gt rows, ignored ones included, and those
+    matched to a distractor-class row are removed: neither a false positive nor a true positive."""
+    if len(regions) != len(pred_frames):
+        raise ValueError(f"{len(regions)} region frames for {len(pred_frames)} tracker frames")
+    out: list[FrameTracks] = []
+    for frame, region in zip(pred_frames, regions, strict=True):
+        ids, boxes = _as_frame(frame)
+        if region is None or not len(ids) or not region[1].any():
+            out.append((ids, boxes))
+            continue
+        all_boxes, distractor = region
+        iou = iou_matrix(all_boxes, boxes)
+        iou[iou < iou_threshold - _EPS] = 0.0
+        rows, cols = linear_sum_assignment(-iou)
+        matched = iou[rows, cols] > _EPS
+        drop = cols[matched][distractor[rows[matched]]]
+        keep = np.ones(len(ids), dtype=bool)
+        keep[drop] = False
+        out.append((ids[keep], boxes[keep]))
+    return out
 
 
 def align_frames(

@@ -26,7 +26,7 @@ from followbus.evaluation import detcache
 from followbus.evaluation.baselines import PEER_NAMES, KalmanFollower, PeerFollower
 from followbus.evaluation.datasets import load_sequence
 from followbus.evaluation.metrics import Box, SingleTargetMetrics, evaluate_single_target
-from followbus.evaluation.mot_metrics import MotMetrics, evaluate_mot
+from followbus.evaluation.mot_metrics import MotMetrics, evaluate_mot, remove_distractor_matches
 from followbus.tracking.params import TrackerParams
 from followbus.tracking.tracker import TargetTracker
 
@@ -122,6 +122,8 @@ class EvalSequence:
     height: int
     n_frames: int
     frames: Callable[[], Iterator[FrameItem]]
+    # MOT16/17: per frame every gt row and which are distractors (MOT scoring preprocessing); else empty
+    gt_regions: list[Any] = field(default_factory=list)
 
 
 def scene_truth(gt_box: Any, visible_fraction: float, others: Any,
@@ -185,7 +187,8 @@ def open_sequence(spec: str, *, seed: int = 0, width: int = 640, height: int = 4
                             people=list(seq.all_gt[i]))
 
     label = f"{seq.kind}/{Path(spec).name}"
-    return EvalSequence(label, seq.kind, str(Path(spec).resolve()), seq.fps, seq.width, seq.height, n, disk_frames)
+    return EvalSequence(label, seq.kind, str(Path(spec).resolve()), seq.fps, seq.width, seq.height, n, disk_frames,
+                        gt_regions=seq.gt_regions[:n])
 
 
 # --------------------------------------------------------------------------- detectors
@@ -214,6 +217,7 @@ class MethodRun:
     tracker_ms: list[float]
     metrics: SingleTargetMetrics | None = None
     mot: MotMetrics | None = None  # multi-object trackers on MOT sequences: their whole output vs every person
+    mot_frames: list[Any] | None = None  # that output per frame as scored (distractor matches removed)
 
     @property
     def tracker_ms_mean(self) -> float:
@@ -328,7 +332,10 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
         run.metrics = evaluate_single_target(run.boxes, gts, other_gt=others, fps=seq.fps,
                                              image_size=(seq.width, seq.height))
         if seq.kind == "mot" and any("mot" in info for info in run.infos):
-            run.mot = evaluate_mot(gt_mot_frames(people), [info.get("mot") for info in run.infos])
+            run.mot_frames = [info.get("mot") for info in run.infos]
+            if seq.gt_regions:
+                run.mot_frames = remove_distractor_matches(run.mot_frames, seq.gt_regions)
+            run.mot = evaluate_mot(gt_mot_frames(people), run.mot_frames)
     return result
 
 

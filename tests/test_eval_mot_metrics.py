@@ -251,3 +251,20 @@ def test_combined_sequences_sum_counts_like_trackeval() -> None:
     np.testing.assert_allclose(both.hota.deta_alpha, (tpa + tpb) / (n_all - tpa - tpb), atol=1e-9)
     np.testing.assert_allclose(both.hota.assa_alpha,
                                (ea.hota.assa_alpha * tpa + eb.hota.assa_alpha * tpb) / (tpa + tpb), atol=1e-9)
+
+
+def test_distractor_matches_are_removed_before_scoring() -> None:
+    from followbus.evaluation.mot_metrics import remove_distractor_matches
+
+    # gt rows of one frame: a pedestrian, a static person (distractor class 7), a car (ignored, not a distractor)
+    region = (np.array([[0, 0, 10, 20], [50, 0, 10, 20], [100, 0, 40, 20]], float), np.array([False, True, False]))
+    pred = ([1, 2, 3, 4], [[0, 0, 10, 20], [51, 0, 10, 20], [100, 0, 40, 20], [200, 0, 10, 20]])
+    (ids, boxes), = remove_distractor_matches([pred], [region])
+    assert ids.tolist() == [1, 3, 4]  # only the box on the static person goes; the car box stays a FP
+    gt = [([7], [[0, 0, 10, 20]])]
+    m = evaluate_mot(gt, [(ids, boxes)])
+    assert (m.clear.num_tp, m.clear.num_false_positives) == (1, 2)
+    # one tracker box on both a pedestrian and an overlapping distractor: the one-to-one match decides
+    region = (np.array([[0, 0, 10, 20], [1, 0, 10, 20]], float), np.array([False, True]))
+    (ids2, _), = remove_distractor_matches([([5], [[0, 0, 10, 20]])], [region])
+    assert ids2.tolist() == [5]  # best IoU is with the pedestrian (1.0 vs 0.82)

@@ -11,6 +11,7 @@ import pytest
 from followbus.evaluation.baselines import peer_available
 from followbus.evaluation.mot_metrics import evaluate_mot, iou_matrix
 from followbus.evaluation.runner import gt_mot_frames, method_factories, open_sequence, run_sequence
+from followbus.vision.models import find_model
 
 from .conftest import SHARED, run_followbus
 
@@ -118,3 +119,32 @@ def test_eval_cli_reports_mot_metrics_for_peers(tmp_path):
     assert "| mot/tud-campus | 71 | followbus |" not in md.split("Multi-object metrics")[1].split("###")[0]
     methods = json.loads((out / "results.json").read_text())["sequences"]["mot/tud-campus"]["methods"]
     assert "mot" not in methods["followbus"] and 0.0 < methods["peer:bytetrack"]["mot"]["mota"] <= 1.0
+
+
+MOT17 = SHARED / "data" / "mot" / "mot17-mini-02"  # YOLOX finds two of its static people
+
+
+@pytest.mark.skipif(not MOT17.is_dir(), reason=f"evaluation data absent ({MOT17})")
+@pytest.mark.skipif(find_model("yolox_nano_640.onnx") is None, reason="YOLOX-nano 640 model not found")
+def test_mot17_scoring_with_distractors_matches_trackeval_parity_evaluation(tmp_path):
+    """The whole MOTChallenge protocol, preprocessing included, against ``trackers.eval.evaluate_mot_sequence``
+    run on the files: a real detector finds the static people that MOT17 marks as distractors."""
+    from trackers.eval import evaluate_mot_sequence
+
+    from followbus.evaluation.mot_metrics import load_mot_regions
+
+    regions = load_mot_regions(MOT17 / "gt" / "gt.txt")
+    assert any(d.any() for _, d in regions.values()), "this excerpt has distractor rows"
+    run = run_sequence(open_sequence(str(MOT17)), method_factories(["peer:bytetrack"]), "yolox640")
+    mine = run.runs["peer:bytetrack"]
+    raw = sum(len(i["mot"][0]) for i in mine.infos if "mot" in i)
+    scored = sum(len(f[0]) for f in mine.mot_frames)
+    assert scored < raw, "no tracker box was on a distractor: the preprocessing was not exercised"
+    rows = [f"{k + 1},{i},{b[0]:.6f},{b[1]:.6f},{b[2]:.6f},{b[3]:.6f},1,-1,-1,-1"
+            for k, info in enumerate(mine.infos) if "mot" in info for i, b in zip(*info["mot"], strict=True)]
+    (tmp_path / "bt.txt").write_text("\n".join(rows) + "\n")
+    ref = evaluate_mot_sequence(MOT17 / "gt" / "gt.txt", tmp_path / "bt.txt", metrics=["CLEAR", "HOTA", "Identity"])
+    assert mine.mot.mota == pytest.approx(ref.CLEAR.MOTA, abs=1e-6)
+    assert mine.mot.clear.num_false_positives == ref.CLEAR.CLR_FP
+    assert mine.mot.idf1 == pytest.approx(ref.Identity.IDF1, abs=1e-6)
+    assert mine.mot.hota.hota == pytest.approx(ref.HOTA.HOTA, abs=1e-6)

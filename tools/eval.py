@@ -150,14 +150,15 @@ def mot_table(runs: list[SequenceRun], methods: list[str]) -> str:
         lines += [row(r.sequence.name, r.sequence.n_frames, m, r.runs[m].mot) for m in methods
                   if m in r.runs and r.runs[m].mot is not None]
     for m in methods:
-        pairs = [(gt_mot_frames(r.gt_people), [i.get("mot") for i in r.runs[m].infos])
+        pairs = [(gt_mot_frames(r.gt_people), r.runs[m].mot_frames)
                  for r in mot_runs if m in r.runs and r.runs[m].mot is not None]
         if pairs:
             frames = sum(len(g) for g, _ in pairs)
             lines.append(row("**combined**", frames, m, evaluate_mot_combined(pairs)))
-    lines += ["", "Scored as MOTChallenge does (IoU ≥ 0.5 for CLEAR/identity; HOTA over α = 0.05…0.95), but without "
-              "its ignore-region preprocessing: gt rows flagged 0 are dropped and a tracker box on such a person "
-              "counts as a false positive. Combined = all MOT sequences as one benchmark (counts summed).", ""]
+    lines += ["", "Scored as MOTChallenge/TrackEval do: IoU ≥ 0.5 for CLEAR and identity, HOTA over α = 0.05…0.95; "
+              "gt = pedestrian rows not flagged 0; a tracker box matched to a distractor (person on vehicle, static "
+              "person, distractor, reflection) is removed before scoring. Combined = all MOT sequences as one "
+              "benchmark (counts summed).", ""]
     return "\n".join(lines) + "\n"
 
 
