@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import zenoh
 
 from followbus.bus.codec import DecodeError
-from followbus.bus.pubsub import payload_bytes
+from followbus.bus.pubsub import direct_callback, payload_bytes
 from followbus.bus.schemas import NodeStatus, decode
 
 
@@ -42,8 +42,9 @@ class HealthWatcher:
         self._lock = threading.Lock()
         prefix = f"{namespace}/@health/"
         self._prefix = prefix
-        self._live_sub = session.liveliness().declare_subscriber(f"{prefix}*", self._on_liveliness, history=True)
-        self._status_sub = (session.declare_subscriber(f"{namespace}/@status/*", self._on_status)
+        self._live_sub = session.liveliness().declare_subscriber(
+            f"{prefix}*", direct_callback(self._on_liveliness), history=True)
+        self._status_sub = (session.declare_subscriber(f"{namespace}/@status/*", direct_callback(self._on_status))
                             if watch_status else None)
 
     def _node(self, name: str) -> NodeHealth:

@@ -32,7 +32,7 @@ def _frame_shape(size: int) -> tuple[int, ...]:
 
 
 def _subscriber(port: int, ready, results, expected: int) -> None:
-    from followbus.bus.pubsub import Subscriber, payload_bytes
+    from followbus.bus.pubsub import Subscriber, direct_callback, payload_bytes
     from followbus.bus.schemas import Frame
     from followbus.bus.session import open_session
 
@@ -52,7 +52,7 @@ def _subscriber(port: int, ready, results, expected: int) -> None:
         lat.setdefault(f"raw/{name}", []).append((now - sent) / 1e6)
 
     subs = [Subscriber(session, "bench/bus/**", on_bus, schema=Frame),
-            session.declare_subscriber("bench/raw/*", on_raw)]
+            session.declare_subscriber("bench/raw/*", direct_callback(on_raw))]
     ready.set()
     deadline = time.monotonic() + 600
     while time.monotonic() < deadline:

@@ -56,7 +56,7 @@ def _graph_text(scene: str, port: int, namespace: str, detector: str) -> str:
 
 def run_bench_pipeline(args) -> int:
     from followbus.bus.graph import load_graph
-    from followbus.bus.pubsub import payload_bytes
+    from followbus.bus.pubsub import direct_callback, payload_bytes
     from followbus.bus.schemas import NodeStatus, decode
     from followbus.bus.session import open_session
     from followbus.tools.launch import Launcher
@@ -103,7 +103,7 @@ def run_bench_pipeline(args) -> int:
                    ("prediction", "prior"): Prior, ("reid", "measurement"): Measurement,
                    ("prediction", "track"): Track, ("motor", "command"): MotorCommand}
         for st in STAGES:
-            subs.append(session.declare_subscriber(graph.key(*st), header_cb(st, schemas[st])))
+            subs.append(session.declare_subscriber(graph.key(*st), direct_callback(header_cb(st, schemas[st]))))
 
         def on_status(sample) -> None:
             try:
@@ -113,7 +113,7 @@ def run_bench_pipeline(args) -> int:
             with lock:
                 pids[st.node] = st.pid
 
-        subs.append(session.declare_subscriber(f"{ns}/@status/*", on_status))
+        subs.append(session.declare_subscriber(f"{ns}/@status/*", direct_callback(on_status)))
         launcher = Launcher(graph, quiet=True, startup_timeout_s=60.0)
         ready = threading.Event()
         runner = threading.Thread(target=launcher.run, kwargs={"duration_s": args.duration + 120,

@@ -21,7 +21,7 @@ import numpy as np
 import zenoh
 
 from followbus.bus.codec import DecodeError
-from followbus.bus.pubsub import payload_bytes
+from followbus.bus.pubsub import direct_callback, payload_bytes
 from followbus.bus.schemas import Frame, Measurement, Message, MotorCommand, NodeStatus, Prior, Track, decode, to_plain
 from followbus.bus.session import ZenohSettings, open_session
 from followbus.tools.introspect import wait_for
@@ -61,12 +61,12 @@ class FoxgloveBridge:
         self.session = open_session(settings)
         keys = info.keys
         self.subs = [
-            self.session.declare_subscriber(info.preview_key, self._on_preview),
-            self.session.declare_subscriber(keys["track"], self._remember),
-            self.session.declare_subscriber(keys["prior"], self._remember),
-            self.session.declare_subscriber(keys["measurement"], self._remember),
-            self.session.declare_subscriber(keys["command"], self._on_command),
-            self.session.declare_subscriber(f"{ns}/@status/*", self._on_status),
+            self.session.declare_subscriber(info.preview_key, direct_callback(self._on_preview)),
+            self.session.declare_subscriber(keys["track"], direct_callback(self._remember)),
+            self.session.declare_subscriber(keys["prior"], direct_callback(self._remember)),
+            self.session.declare_subscriber(keys["measurement"], direct_callback(self._remember)),
+            self.session.declare_subscriber(keys["command"], direct_callback(self._on_command)),
+            self.session.declare_subscriber(f"{ns}/@status/*", direct_callback(self._on_status)),
         ]
 
     @property

@@ -13,7 +13,7 @@ import zenoh
 
 from followbus.bus.codec import DecodeError
 from followbus.bus.health import HealthWatcher
-from followbus.bus.pubsub import payload_bytes
+from followbus.bus.pubsub import direct_callback, payload_bytes
 from followbus.bus.schemas import decode, to_plain
 from followbus.bus.session import ZenohSettings, open_session
 
@@ -46,7 +46,7 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
             types[key] = msg_type
 
     session = open_session(settings)
-    sub = session.declare_subscriber(f"{namespace}/**", on_sample)
+    sub = session.declare_subscriber(f"{namespace}/**", direct_callback(on_sample))
     wait_for(args.seconds)
     sub.undeclare()
     session.close()
@@ -80,7 +80,7 @@ def cmd_echo(args, settings: ZenohSettings, namespace: str) -> int:
             done.set()
 
     session = open_session(settings)
-    sub = session.declare_subscriber(args.key, on_sample)
+    sub = session.declare_subscriber(args.key, direct_callback(on_sample))
     wait_for(args.seconds, done)
     sub.undeclare()
     session.close()
@@ -104,7 +104,7 @@ def cmd_hz(args, settings: ZenohSettings, namespace: str) -> int:
                 latencies.append((now - stamp) / 1e6)
 
     session = open_session(settings)
-    sub = session.declare_subscriber(args.key, on_sample)
+    sub = session.declare_subscriber(args.key, direct_callback(on_sample))
     start = time.monotonic()
     try:
         while args.seconds is None or time.monotonic() - start < args.seconds:

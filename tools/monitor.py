@@ -28,7 +28,7 @@ import zenoh
 
 from followbus.bus.codec import DecodeError
 from followbus.bus.health import HealthWatcher
-from followbus.bus.pubsub import payload_bytes
+from followbus.bus.pubsub import direct_callback, payload_bytes
 from followbus.bus.schemas import (
     Frame,
     GroundTruth,
@@ -199,9 +199,9 @@ class BusMonitor:
         self._session = session
         self._watcher = HealthWatcher(session, self.info.namespace, on_change=self._on_health)
         for name, key in self.info.keys.items():
-            self._subs.append(session.declare_subscriber(key, self._make_handler(name)))
+            self._subs.append(session.declare_subscriber(key, direct_callback(self._make_handler(name))))
         if self.want_preview:
-            self._subs.append(session.declare_subscriber(self.info.preview_key, self._on_preview))
+            self._subs.append(session.declare_subscriber(self.info.preview_key, direct_callback(self._on_preview)))
 
     def _close_session(self) -> None:
         for sub in self._subs:

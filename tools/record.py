@@ -48,7 +48,7 @@ import zenoh
 from followbus import __version__
 from followbus.bus.codec import DecodeError, unpack
 from followbus.bus.node import RECORDER_NAME
-from followbus.bus.pubsub import RateLimitedLog, payload_bytes
+from followbus.bus.pubsub import RateLimitedLog, direct_callback, payload_bytes
 from followbus.bus.schemas import Frame, decode
 from followbus.tools import foxglove_schemas as fox
 from followbus.tools.mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, RecordingWriter
@@ -176,7 +176,7 @@ class Recorder:
             # Direct: the callback runs on zenoh's receive thread (it only copies and enqueues), which
             # keeps the order samples arrived in; zenoh-python's default hands each subscriber a thread.
             self._subs.append(self.session.declare_subscriber(
-                pattern, zenoh.handlers.Callback(self._callback_for(i), indirect=False)))
+                pattern, direct_callback(self._callback_for(i))))
 
     def _callback_for(self, index: int):
         def callback(sample: zenoh.Sample) -> None:

@@ -40,7 +40,6 @@ from typing import Any
 import msgpack
 import numpy as np
 import yaml
-import zenoh
 
 from followbus.bus.codec import MAGIC, DecodeError
 from followbus.bus.graph import Graph, GraphError, NodeSpec, load_graph
@@ -560,7 +559,7 @@ class Replayer:
     # --- main -------------------------------------------------------------------------------------
     def run(self) -> ReplayReport:
         from followbus.bus.health import HealthWatcher
-        from followbus.bus.pubsub import Publisher, ShmPool
+        from followbus.bus.pubsub import Publisher, ShmPool, direct_callback
         from followbus.bus.session import open_session
 
         with tempfile.TemporaryDirectory(prefix="followbus-replay-") as tmp:
@@ -572,10 +571,9 @@ class Replayer:
             log_path = Path(tmp) / "node.log"
             try:
                 for key, out in self.output_keys.items():
-                    # Direct callbacks: zenoh-python's default runs each subscriber's callback on its own
-                    # thread, which loses the order of samples across keys.
-                    subs.append(session.declare_subscriber(
-                        self._private_key(key), zenoh.handlers.Callback(self._on_output(out), indirect=False)))
+                    # Direct callbacks keep the order of samples across keys (bus.pubsub.direct_callback).
+                    subs.append(session.declare_subscriber(self._private_key(key),
+                                                           direct_callback(self._on_output(out))))
                 # Deferred frames keep a few dozen frames in flight: room for them in shared memory.
                 shm = ShmPool(REPLAY_SHM_BYTES) if private.zenoh.shm else None
                 for key in self.input_keys:
