@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -380,6 +380,19 @@ def evaluate_mot_combined(sequences: Iterable[tuple[Sequence, Sequence]], *,
 _SPLIT = re.compile(r"[,\s]+")
 
 
+def _mot_rows(path: str | Path) -> Iterator[list[float]]:
+    """The numeric fields of each row of a MOTChallenge text file (blank and # lines skipped)."""
+    with open(path, encoding="utf-8") as f:
+        for lineno, line in enumerate(f, 1):
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            parts = [p for p in _SPLIT.split(line) if p]
+            if len(parts) < 6:
+                raise ValueError(f"{path}:{lineno}: expected >= 6 fields, got {len(parts)}")
+            yield [float(p) for p in parts]
+
+
 def load_mot_file(
     path: str | Path,
     *,
@@ -406,24 +419,16 @@ def load_mot_file(
     """
     keep_classes = None if classes is None else {int(c) for c in classes}
     rows: list[tuple[int, int, float, float, float, float]] = []
-    with open(path, encoding="utf-8") as f:
-        for lineno, line in enumerate(f, 1):
-            line = line.strip()
-            if not line or line.startswith("#"):
+    for vals in _mot_rows(path):
+        conf = vals[6] if len(vals) > 6 else 1.0
+        if min_confidence is not None:
+            if conf < min_confidence:
                 continue
-            parts = [p for p in _SPLIT.split(line) if p]
-            if len(parts) < 6:
-                raise ValueError(f"{path}:{lineno}: expected >= 6 fields, got {len(parts)}")
-            vals = [float(p) for p in parts]
-            conf = vals[6] if len(vals) > 6 else 1.0
-            if min_confidence is not None:
-                if conf < min_confidence:
-                    continue
-            elif is_gt and conf == 0:
-                continue
-            if keep_classes is not None and len(vals) > 7 and vals[7] > 0 and int(vals[7]) not in keep_classes:
-                continue
-            rows.append((int(vals[0]), int(vals[1]), vals[2], vals[3], vals[4], vals[5]))
+        elif is_gt and conf == 0:
+            continue
+        if keep_classes is not None and len(vals) > 7 and vals[7] > 0 and int(vals[7]) not in keep_classes:
+            continue
+        rows.append((int(vals[0]), int(vals[1]), vals[2], vals[3], vals[4], vals[5]))
     out: dict[int, tuple[list[int], list[list[float]]]] = {}
     for fr, tid, x, y, w, h in rows:
         ids, boxes = out.setdefault(fr, ([], []))
@@ -441,17 +446,12 @@ def load_mot_regions(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarray
     the input of :func:`remove_distractor_matches`. Files without a positive class column (MOT15) have no
     distractors: {}."""
     rows: dict[int, tuple[list[list[float]], list[bool]]] = {}
-    with open(path, encoding="utf-8") as f:
-        for line in f:
-            parts = [p for p in _SPLIT.split(line.strip()) if p]
-            if len(parts) < 8 or line.lstrip().startswith("#"):
-                continue
-            vals = [float(p) for p in parts]
-            if vals[7] <= 0:
-                continue
-            boxes, distractor = rows.setdefault(int(vals[0]), ([], []))
-            boxes.append(vals[2:6])
-            distractor.append(int(vals[7]) in DISTRACTOR_CLASSES)
+    for vals in _mot_rows(path):
+        if len(vals) < 8 or vals[7] <= 0:
+            continue
+        boxes, distractor = rows.setdefault(int(vals[0]), ([], []))
+        boxes.append(vals[2:6])
+        distractor.append(int(vals[7]) in DISTRACTOR_CLASSES)
     if not any(any(d) for _, d in rows.values()):
         return {}
     return {fr: (np.asarray(b, dtype=float).reshape(-1, 4), np.asarray(d, dtype=bool)) for fr, (b, d) in rows.items()}
