@@ -102,6 +102,14 @@ class KalmanFollower:
         return self._box(), {"state": "COASTING"}
 
 
+def peer_kind(name: str) -> str:
+    """``ByteTrack``, ``oc-sort``, ``bot_sort`` … → a name of PEER_NAMES; ValueError for anything else."""
+    kind = name.lower().replace("-", "").replace("_", "")
+    if kind not in PEER_NAMES:
+        raise ValueError(f"unknown peer tracker {name!r}; known: {', '.join(PEER_NAMES)}")
+    return kind
+
+
 def peer_available() -> str | None:
     """None when Roboflow ``trackers`` can be imported, else the reason it cannot."""
     try:
@@ -125,9 +133,7 @@ class PeerFollower:
     """
 
     def __init__(self, kind: str, fps: float = 30.0) -> None:
-        kind = kind.lower().replace("-", "").replace("_", "")
-        if kind not in PEER_NAMES:
-            raise ValueError(f"unknown peer tracker {kind!r}; known: {', '.join(PEER_NAMES)}")
+        kind = peer_kind(kind)
         reason = peer_available()
         if reason:
             raise RuntimeError(reason)

@@ -23,7 +23,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from followbus.evaluation import detcache
-from followbus.evaluation.baselines import PEER_NAMES, KalmanFollower, PeerFollower
+from followbus.evaluation.baselines import KalmanFollower, PeerFollower, peer_kind
 from followbus.evaluation.datasets import load_sequence
 from followbus.evaluation.metrics import Box, SingleTargetMetrics, evaluate_single_target
 from followbus.evaluation.mot_metrics import MotMetrics, evaluate_mot, remove_distractor_matches
@@ -84,9 +84,7 @@ def method_factories(methods: Sequence[str], ablations: bool = False,
                                                                size_smoothing=p.size_smoothing,
                                                                lost_after_ms=p.lost_after_ms))
         elif m.startswith("peer:"):
-            kind = m.split(":", 1)[1]
-            if kind.lower().replace("-", "").replace("_", "") not in PEER_NAMES:
-                raise ValueError(f"unknown peer tracker {kind!r} in {m!r}; known: {', '.join(PEER_NAMES)}")
+            kind = peer_kind(m.split(":", 1)[1])
             out[m] = lambda fps, k=kind: _NoEgo(PeerFollower(k, fps))
         else:
             raise ValueError(f"unknown method {m!r} (followbus, kalman, peer:bytetrack|ocsort|botsort)")
