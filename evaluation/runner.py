@@ -192,8 +192,7 @@ def open_sequence(spec: str, *, seed: int = 0, width: int = 640, height: int = 4
 # --------------------------------------------------------------------------- detectors
 
 
-def make_eval_detector(name: str, seed: int = 0, threads: int | None = None):
-    """``threads``: onnxruntime intra-op threads (None: its default)."""
+def make_eval_detector(name: str, seed: int = 0):
     from followbus.vision.detectors import make_detector
 
     if name not in DETECTORS:
@@ -201,8 +200,8 @@ def make_eval_detector(name: str, seed: int = 0, threads: int | None = None):
     if name == "simulated":
         return make_detector("simulated", seed=seed)
     if name.startswith("yolox"):
-        return make_detector("yolox", input_size=640 if name == "yolox640" else 416, threads=threads)
-    return make_detector(name, threads=threads)
+        return make_detector("yolox", input_size=640 if name == "yolox640" else 416)
+    return make_detector(name)
 
 
 # --------------------------------------------------------------------------- running

@@ -35,6 +35,17 @@ class DetectionParams:
     seed: int = 0
 
 
+def detector_from_params(p: DetectionParams):
+    """The detector this node runs for these params (also what `followbus eval --graph-check` runs
+    in-process, so both paths infer the same way)."""
+    return make_detector(
+        p.backend, model_dir=p.model_dir or None, model_file=p.model_file or None,
+        input_size=p.input_size, score_threshold=p.score_threshold, nms_iou=p.nms_iou,
+        threads=p.threads or None, noise_px=p.sim_noise_px, miss_rate=p.sim_miss_rate,
+        false_positive_rate=p.sim_false_positive_rate, seed=p.seed,
+    )
+
+
 class Detection(Node):
     INPUTS = {"frame": Frame, "ground_truth": GroundTruth}
     REQUIRED_INPUTS = frozenset({"frame"})
@@ -49,14 +60,8 @@ class Detection(Node):
         return params
 
     def setup(self) -> None:
-        p = self.params
         try:
-            self.detector = make_detector(
-                p.backend, model_dir=p.model_dir or None, model_file=p.model_file or None,
-                input_size=p.input_size, score_threshold=p.score_threshold, nms_iou=p.nms_iou,
-                threads=p.threads or None, noise_px=p.sim_noise_px, miss_rate=p.sim_miss_rate,
-                false_positive_rate=p.sim_false_positive_rate, seed=p.seed,
-            )
+            self.detector = detector_from_params(self.params)
         except DetectorUnavailable as exc:
             self.log.error("%s", exc)
             raise SystemExit(1) from exc

@@ -287,6 +287,15 @@ def cmd_eval(args) -> int:
 # --------------------------------------------------------------------------- graph check
 
 
+def _set_detector(params: dict[str, Any], detector: str) -> dict[str, Any]:
+    """Detection-node params switched to ``detector`` as ``followbus eval --detector`` names it."""
+    if detector.startswith("yolox"):
+        params.update(backend="yolox", input_size=640 if detector == "yolox640" else 416)
+    else:
+        params["backend"] = detector
+    return params
+
+
 def derived_graph(source: str, port: int, namespace: str, init_box: list[float], max_frames: int,
                   base: Path = REPO / "graph.yaml", max_in_flight: int = 1, detector: str = "simulated") -> str:
     """graph.yaml adapted for a lockstep run: private port/namespace, ``source`` (scene:<name> or a sequence
@@ -301,11 +310,7 @@ def derived_graph(source: str, port: int, namespace: str, init_box: list[float],
     cap = g["nodes"]["capture"]
     cap.setdefault("inputs", {})["ack"] = {"from": "prediction/track", "sync": "none"}
     cap["params"].update(source=source, pace="fast", max_frames=max_frames, max_in_flight=max_in_flight)
-    det = g["nodes"]["detection"]["params"]
-    if detector.startswith("yolox"):
-        det.update(backend="yolox", input_size=640 if detector == "yolox640" else 416)
-    else:
-        det["backend"] = detector
+    _set_detector(g["nodes"]["detection"]["params"], detector)
     for node in g["nodes"].values():
         # Lockstep loses nothing, so a timeout could only mean a slow (cold, loaded) node, and a set
         # emitted without its feedback would make the graph diverge from the in-process run.
@@ -327,7 +332,7 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
 
     Returns {"compared", "mismatches", "missing", "first_mismatch", "graph", "inproc", "detector"}.
     """
-    from followbus.evaluation.runner import FollowbusFollower, make_eval_detector, open_sequence
+    from followbus.evaluation.runner import FollowbusFollower, open_sequence
     from followbus.vision.detectors import SimulatedDetector
 
     is_scene = spec.startswith("scene:")
@@ -347,9 +352,11 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
     else:
         import yaml
 
-        # the detection node's thread count, so both paths run inference the same way
-        det_params = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]["detection"]["params"]
-        real = make_eval_detector(detector, threads=int(det_params.get("threads") or 0) or None)
+        from followbus.nodes.detection import Detection, detector_from_params
+
+        # exactly the detector the graph's detection node builds (threads, thresholds, model)
+        node_params = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]["detection"]["params"]
+        real = detector_from_params(Detection.parse_params(_set_detector(dict(node_params), detector)))
 
         def detect(item):
             return real.detect(item.bgr)
