@@ -95,8 +95,8 @@ def make_handler(monitor: BusMonitor, gate: PreviewGate) -> type[BaseHTTPRequest
             gate.pace(client)
             deadline = time.monotonic() + LONG_POLL_S
             with gate.cond:
-                # count 0 = nothing received yet: wait for the first preview too, whatever ``after`` says
-                while (monitor.preview_count <= after or monitor.preview_count == 0) and time.monotonic() < deadline:
+                # count 0 = nothing received yet: "after -1" still waits for the first preview
+                while monitor.preview_count <= max(after, 0) and time.monotonic() < deadline:
                     gate.cond.wait(max(0.0, deadline - time.monotonic()))
             with monitor.lock:
                 jpeg, count = monitor.preview_jpeg, monitor.preview_count
