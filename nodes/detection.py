@@ -32,18 +32,24 @@ class DetectionParams:
     sim_noise_px: float = 4.0
     sim_miss_rate: float = 0.05
     sim_false_positive_rate: float = 0.02
+    # Fault injector (backend simulated): each detection takes at least this long (sleeps), to try the
+    # loop against a slow detector (`followbus bench chaos`, detector-delay-80ms).
+    sim_delay_ms: float = 0.0
     seed: int = 0
 
 
 def detector_from_params(p: DetectionParams):
     """The detector this node runs for these params (also what `followbus eval --graph-check` runs
     in-process, so both paths infer the same way)."""
-    return make_detector(
+    detector = make_detector(
         p.backend, model_dir=p.model_dir or None, model_file=p.model_file or None,
         input_size=p.input_size, score_threshold=p.score_threshold, nms_iou=p.nms_iou,
         threads=p.threads or None, noise_px=p.sim_noise_px, miss_rate=p.sim_miss_rate,
         false_positive_rate=p.sim_false_positive_rate, seed=p.seed,
     )
+    if isinstance(detector, SimulatedDetector):
+        detector.delay_ms = p.sim_delay_ms
+    return detector
 
 
 class Detection(Node):
@@ -57,6 +63,10 @@ class Detection(Node):
         params = super().parse_params(raw)
         if params.backend not in BACKENDS:
             raise ParamError("backend", f"backend must be one of {', '.join(BACKENDS)}, not {params.backend!r}")
+        if not params.sim_delay_ms >= 0:
+            raise ParamError("sim_delay_ms", f"sim_delay_ms must be >= 0, not {params.sim_delay_ms!r}")
+        if params.sim_delay_ms and params.backend != "simulated":
+            raise ParamError("sim_delay_ms", "sim_delay_ms only applies to backend 'simulated'")
         return params
 
     def setup(self) -> None:

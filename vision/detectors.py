@@ -402,16 +402,24 @@ class SimulatedDetector:
     Output is clipped to the image, not NMS-ed, and in shuffled order (backends guarantee no order).
     Deterministic for a seed and the same call sequence (:meth:`reset` restarts the stream).
     Truth is passed per call (``detect(bgr, truth)``) or beforehand via :meth:`set_truth`.
+
+    ``delay_ms`` is a load/latency fault injector (``followbus bench chaos``): every :meth:`detect`
+    call sleeps until it has taken at least that long, like a slow detector on a busy CPU, without
+    changing the boxes.
     """
 
     MIN_VISIBLE_FRACTION = 0.3
     is_simulated = True
 
     def __init__(
-        self, noise_px: float = 4.0, miss_rate: float = 0.05, false_positive_rate: float = 0.02, seed: int = 0
+        self, noise_px: float = 4.0, miss_rate: float = 0.05, false_positive_rate: float = 0.02, seed: int = 0,
+        delay_ms: float = 0.0,
     ) -> None:
         if not 0.0 <= miss_rate <= 1.0:
             raise ValueError("miss_rate must be in [0, 1]")
+        if not delay_ms >= 0.0:
+            raise ValueError("delay_ms must be >= 0")
+        self.delay_ms = float(delay_ms)
         self.noise_px = float(noise_px)
         self.miss_rate = float(miss_rate)
         self.false_positive_rate = float(false_positive_rate)
@@ -454,6 +462,8 @@ class SimulatedDetector:
         dets = np.asarray(rows, dtype=np.float32).reshape(-1, 5)
         if dets.shape[0] > 1:
             dets = dets[rng.permutation(dets.shape[0])]
+        if self.delay_ms > 0:
+            time.sleep(max(0.0, t0 + self.delay_ms / 1e3 - time.perf_counter()))
         self.last_infer_ms = (time.perf_counter() - t0) * 1e3
         return clip_detections(dets, w_img, h_img)
 
