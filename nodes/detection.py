@@ -1,9 +1,9 @@
 """detection: person boxes with scores for every frame it keeps up with.
 
-Backends (``backend`` param): ``yolox`` (ONNX, ../shared/models or the model search path),
+Backends (``backend`` param): ``yolox`` (ONNX, shipped in models/, found on the model search path),
 ``yolov8`` (a user-supplied ultralytics ONNX export), ``hog`` (OpenCV's people detector),
 ``simulated`` (synthetic scenes only: ground truth + a documented noise model; never a detection
-accuracy), ``auto`` (yolox if its model is found, else hog, logged loudly).
+accuracy), ``auto`` (yolox; a missing or corrupt model stops the node with one line saying what to do).
 The frame input should be a 1-deep drop_oldest queue so the detector always works on the newest frame.
 """
 

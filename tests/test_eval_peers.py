@@ -11,7 +11,6 @@ import pytest
 from followbus.evaluation.baselines import peer_available
 from followbus.evaluation.mot_metrics import evaluate_mot, iou_matrix
 from followbus.evaluation.runner import gt_mot_frames, method_factories, open_sequence, run_sequence
-from followbus.vision.models import find_model
 
 from .conftest import SHARED, run_followbus
 
@@ -125,7 +124,6 @@ MOT17 = SHARED / "data" / "mot" / "mot17-mini-02"  # YOLOX finds two of its stat
 
 
 @pytest.mark.skipif(not MOT17.is_dir(), reason=f"evaluation data absent ({MOT17})")
-@pytest.mark.skipif(find_model("yolox_nano_640.onnx") is None, reason="YOLOX-nano 640 model not found")
 def test_mot17_scoring_with_distractors_matches_trackeval_parity_evaluation(tmp_path):
     """The whole MOTChallenge protocol, preprocessing included, against ``trackers.eval.evaluate_mot_sequence``
     run on the files: a real detector finds the static people that MOT17 marks as distractors."""

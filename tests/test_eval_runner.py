@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from followbus.evaluation.runner import method_factories, open_sequence, run_sequence
-from followbus.vision.models import find_model
 
 from .conftest import SHARED, processes_matching, run_followbus, wait_until
 
@@ -57,7 +56,6 @@ SOT_SEQ = SHARED / "data" / "sot" / "otb-crossing"
 
 @pytest.mark.slow
 @pytest.mark.skipif(not SOT_SEQ.is_dir(), reason=f"evaluation data absent ({SOT_SEQ})")
-@pytest.mark.skipif(find_model("yolox_nano_416.onnx") is None, reason="YOLOX-nano 416 model not found")
 def test_eval_cli_on_a_real_sequence(tmp_path):
     out = tmp_path / "res"
     result = run_followbus("eval", str(SOT_SEQ), "--detector", "yolox", "--out", str(out), timeout=120)
@@ -94,7 +92,6 @@ def test_launched_graph_matches_in_process_tracker(port):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not SOT_SEQ.is_dir(), reason=f"evaluation data absent ({SOT_SEQ})")
-@pytest.mark.skipif(find_model("yolox_nano_416.onnx") is None, reason="YOLOX-nano 416 model not found")
 def test_launched_graph_matches_in_process_on_a_real_sequence_with_real_inference(port):
     """The detection node runs YOLOX on the frames it receives over the bus; in-process runs it on the
     frames read from disk: the tracks must still agree bit for bit."""

@@ -27,6 +27,7 @@ examples:
   followbus replay recordings/run.mcap --node reid --verify   lockstep regression replay
   followbus eval all --ablations         score followers on ../shared/data (results/results.md)
   followbus bench pipeline                capture -> motor command latency through the graph
+  followbus models                        where the ONNX models are found; checks their SHA-256
 
 Every command that talks to the bus reads the zenoh settings of --graph (default ./graph.yaml);
 --connect tcp/HOST:7447 joins another machine's graph as a client instead.
@@ -204,6 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instead: run the scene(s) through the launched graph and in-process, require identical boxes")
     p.set_defaults(argv=None)
     _add_recording_parsers(sub)
+    from followbus.tools.models_cmd import add_parser as add_models_parser
+
+    add_models_parser(sub)
     return parser
 
 
@@ -417,6 +421,10 @@ def dispatch(args) -> int:
         from followbus.tools.eval import cmd_eval
 
         return cmd_eval(args)
+    if cmd == "models":
+        from followbus.tools.models_cmd import cmd_models
+
+        return cmd_models(args)
     raise AssertionError(f"unhandled command {cmd!r}")
 
 

@@ -19,7 +19,7 @@ from followbus.bus.schemas import Detections, GroundTruth, MotorCommand, Templat
 from followbus.bus.session import open_session
 from followbus.evaluation.metrics import evaluate_single_target
 from followbus.tools.launch import Launcher, install_stop_signals
-from followbus.vision.models import find_model, format_search_path
+from followbus.vision.detectors import DetectorUnavailable, resolve_detector_model
 
 log = logging.getLogger("followbus.demo")
 
@@ -104,19 +104,20 @@ class DemoWatcher:
 
 def run_demo(graph: Graph, duration_s: float, log_path: Path, overrides: list[str] | None = None) -> int:
     detection = graph.nodes.get("detection")
-    backend = detection.params.get("backend", "auto") if detection else "auto"
-    if backend in ("auto", "yolox"):
-        size = int(detection.params.get("input_size", 416)) if detection else 416
-        model = find_model(f"yolox_nano_{size}.onnx", detection.params.get("model_dir") if detection else None)
-        if model is None:
-            banner = "!" * 78
-            print(f"{banner}\n!! NO DETECTOR MODEL FOUND (yolox_nano_{size}.onnx).\n"
-                  f"!! Searched: {format_search_path()}\n"
-                  "!! Falling back to OpenCV's HOG people detector: far less accurate.\n"
-                  "!! Put the model in models/ or set FOLLOWBUS_MODELS to its folder.\n"
-                  f"{banner}", flush=True)
-        else:
-            print(f"detector: YOLOX-nano {size} from {model}", flush=True)
+    params = detection.params if detection else {}
+    backend = str(params.get("backend", "auto"))
+    # Checked here, before anything is launched: the detection node would refuse to start anyway.
+    try:
+        model = resolve_detector_model(backend, model_dir=params.get("model_dir") or None,
+                                       model_file=params.get("model_file") or None,
+                                       input_size=int(params.get("input_size", 416)))
+    except DetectorUnavailable as exc:
+        print(f"followbus demo: {exc}", file=sys.stderr, flush=True)
+        return 2
+    if model is not None:
+        print(f"detector: backend {backend}, model {model}", flush=True)
+    elif backend == "hog":
+        print("detector: OpenCV HOG (chosen explicitly; far less accurate than YOLOX)", flush=True)
     log_path.parent.mkdir(parents=True, exist_ok=True)
     print(f"launching {len(graph.nodes)} nodes for {duration_s:.0f} s (Ctrl-C to stop); node logs: {log_path}",
           flush=True)

@@ -24,7 +24,7 @@ from typing import Any, Protocol, runtime_checkable
 import cv2
 import numpy as np
 
-from followbus.vision.models import find_model, search_path
+from followbus.vision.models import MODELS_ENV, ModelError, ModelNotFound, resolve_model, search_path, verify_model
 
 log = logging.getLogger(__name__)
 
@@ -38,12 +38,14 @@ Box = tuple[float, float, float, float]
 
 
 class DetectorUnavailable(RuntimeError):
-    """An explicitly requested backend cannot be built (model missing, runtime error, ...)."""
+    """A backend cannot be built (model missing or corrupt, runtime error, ...); one line: what, where, the fix."""
 
-    def __init__(self, message: str, tried: Sequence[Path] = ()) -> None:
+    def __init__(self, message: str, tried: Sequence[Path] = (), hint: str = "") -> None:
         self.search_path = list(tried)
         if tried:
             message = f"{message}; model search path tried: {', '.join(str(p) for p in tried)}"
+        if hint:
+            message = f"{message}; {hint}"
         super().__init__(message)
 
 
@@ -198,7 +200,13 @@ def _ort_session(model_path: Path, threads: int | None) -> Any:
     # Idle inference threads spin by default, burning a core the other nodes of the graph need: on two
     # cores that alone doubled the end-to-end p50 (BENCHMARKS.md, pipeline, 2026-11-23).
     opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    return ort.InferenceSession(str(model_path), sess_options=opts, providers=["CPUExecutionProvider"])
+    try:
+        return ort.InferenceSession(str(model_path), sess_options=opts, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own Fail/InvalidProtobuf/... types, multi-line
+        lines = str(exc).strip().splitlines()
+        raise ModelError(f"model file {model_path} cannot be loaded by onnxruntime "
+                         f"({lines[0] if lines else type(exc).__name__}); replace it with a valid ONNX model "
+                         "(run `followbus models` to check the shipped ones)") from exc
 
 
 def _static_square_size(shape: Sequence[Any]) -> int | None:
@@ -223,6 +231,7 @@ class _OnnxDetector:
         threads: int | None = None,
     ) -> None:
         self.model_path = Path(model_path)
+        verify_model(self.model_path)  # a corrupt file must not reach onnxruntime (or worse, load and misdetect)
         self.session = _ort_session(self.model_path, threads)
         inp = self.session.get_inputs()[0]
         self.input_name = inp.name
@@ -475,6 +484,41 @@ def _default_model_file(backend: str, input_size: int) -> str:
     return f"yolox_nano_{input_size}.onnx" if backend == "yolox" else DEFAULT_YOLOV8_FILE
 
 
+def resolve_detector_model(
+    backend: str,
+    *,
+    model_dir: str | os.PathLike[str] | None = None,
+    model_file: str | None = None,
+    input_size: int = 416,
+) -> Path | None:
+    """The checked model file an ONNX backend would load (``None`` for ``hog``/``simulated``).
+
+    Raises :class:`DetectorUnavailable` with a one-line message naming the search path or the
+    corrupt file and the fix. Cheap (no onnxruntime): the demo checks with it before launching.
+    """
+    backend = backend.strip().lower()
+    if backend in ("hog", "simulated"):
+        return None
+    kind = "yolox" if backend == "auto" else backend
+    filename = model_file or _default_model_file(kind, input_size)
+    try:
+        return resolve_model(filename, model_dir)
+    except ModelNotFound as exc:
+        if kind == "yolox":
+            where = (f"restore the shipped models/ (`git checkout -- models`) or point model_dir or ${MODELS_ENV} "
+                     f"at a folder holding {filename}")
+            if backend == "auto":
+                raise DetectorUnavailable(
+                    f"detector backend 'auto' needs the YOLOX model {filename}, which is missing", exc.tried,
+                    f"{where}, or set `backend: hog` explicitly (far less accurate)") from exc
+            raise DetectorUnavailable(f"yolox model {filename} not found", exc.tried, where) from exc
+        raise DetectorUnavailable(
+            f"{kind} model {filename} not found", exc.tried,
+            "export one (`yolo export model=yolov8n.pt format=onnx`) and set model_dir/model_file to it") from exc
+    except ModelError as exc:
+        raise DetectorUnavailable(str(exc)) from exc
+
+
 def make_detector(
     backend: str,
     *,
@@ -491,45 +535,30 @@ def make_detector(
 ) -> Detector:
     """Build a detector by backend name (one of :data:`BACKENDS`).
 
-    ``auto`` uses YOLOX when ``model_file`` (default ``yolox_nano_<input_size>.onnx``) is on the
-    model search path and loads, otherwise HOG; the choice and the search path are logged at
-    WARNING because detection quality differs enormously between the two. An explicit backend
-    that cannot be built raises :class:`DetectorUnavailable`. ``simulated`` ignores the image and
-    needs ground truth (see :class:`SimulatedDetector`).
+    ``auto`` is YOLOX with ``model_file`` (default ``yolox_nano_<input_size>.onnx``, shipped in
+    models/). A model that is missing from the search path, fails its SHA-256 check or does not
+    load raises :class:`DetectorUnavailable`, for ``auto`` too: there is no silent fallback to HOG,
+    whose detections are far worse; ``hog`` is an explicit choice. ``simulated`` ignores the image
+    and needs ground truth (see :class:`SimulatedDetector`).
     """
     backend = backend.strip().lower()
     if backend not in BACKENDS:
         raise ValueError(f"unknown detector backend {backend!r}; choose one of {', '.join(BACKENDS)}")
-    tried = search_path(model_dir)
-
     if backend == "hog":
         return HogDetector(score_threshold=score_threshold, nms_iou=nms_iou)
     if backend == "simulated":
         return SimulatedDetector(noise_px, miss_rate, false_positive_rate, seed)
 
-    kind = "yolox" if backend == "auto" else backend
-    filename = model_file or _default_model_file(kind, input_size)
-    path = find_model(filename, model_dir)
-    cls = YoloxDetector if kind == "yolox" else YoloV8Detector
-    error: str
-    if path is None:
-        error = f"{kind} model {filename!r} not found"
-    else:
-        try:
-            det = cls(path, input_size=input_size, score_threshold=score_threshold, nms_iou=nms_iou,
-                      threads=threads)
-        except Exception as exc:  # onnxruntime raises assorted types for corrupt/incompatible files
-            error = f"{kind} model {path} failed to load: {exc}"
-        else:
-            if backend == "auto":
-                log.warning("detector auto -> %s (model %s); search path: %s",
-                            det.name, path, ", ".join(map(str, tried)))
-            return det
-    if backend != "auto":
-        raise DetectorUnavailable(error, tried)
-    log.warning("detector auto -> hog (%s; HOG is far less accurate); search path tried: %s",
-                error, ", ".join(map(str, tried)))
-    return HogDetector(score_threshold=score_threshold, nms_iou=nms_iou)
+    path = resolve_detector_model(backend, model_dir=model_dir, model_file=model_file, input_size=input_size)
+    assert path is not None
+    cls = YoloV8Detector if backend == "yolov8" else YoloxDetector
+    try:
+        det = cls(path, input_size=input_size, score_threshold=score_threshold, nms_iou=nms_iou, threads=threads)
+    except ModelError as exc:
+        raise DetectorUnavailable(str(exc)) from exc
+    log.info("detector %s -> %s (model %s; search path: %s)",
+             backend, det.name, path, ", ".join(map(str, search_path(model_dir))))
+    return det
 
 
 def best_iou(dets: np.ndarray, box: Sequence[float]) -> float:
@@ -553,6 +582,7 @@ __all__ = [
     "iou_xywh",
     "letterbox",
     "make_detector",
+    "resolve_detector_model",
     "nms",
     "unletterbox_boxes",
     "yolov8_postprocess",

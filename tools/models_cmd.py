@@ -1,0 +1,125 @@
+"""``followbus models``: where each model file is found on the search path, and whether it is intact."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+from followbus.vision.models import (
+    MODEL_ROLES,
+    MODELS_ENV,
+    ModelCheck,
+    check_model,
+    checksums_path,
+    find_all_copies,
+    known_checksums,
+    restore_hint,
+    search_path,
+    shipped_models_dir,
+)
+
+EXIT_PROBLEM = 1
+
+DESCRIPTION = f"""\
+List the model search path and, for every model the project ships (models/SHA256SUMS), each copy found
+on it, its size and whether its SHA-256 matches. The first copy is the one the detection node loads;
+the others are shadowed. Exit status 1 when a shipped model is missing or the copy in use is corrupt.
+
+The search path, first match wins: --model-dir (as the detection node's model_dir parameter),
+${MODELS_ENV} ({os.pathsep}-separated), the repository's models/, then ../shared/models.
+Detectors verify the same checksums when they load a model, so a truncated download or a bad edit
+fails with a message naming the file instead of producing wrong detections."""
+
+EPILOG = f"""\
+examples:
+  followbus models                         check the shipped models
+  followbus models --model-dir /opt/models as the node with `model_dir: /opt/models`
+  {MODELS_ENV}=/opt/models followbus models
+  git checkout -- models                   restore the shipped files after a MISMATCH"""
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("models", help="where the ONNX models are found and whether their SHA-256 matches",
+                       description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model-dir", metavar="DIR", default=None,
+                   help="a directory tried first, like the detection node's model_dir parameter")
+
+
+def _mb(size_bytes: int) -> str:
+    return f"{size_bytes / 1e6:.2f} MB"
+
+
+def _origin(directory: Path, model_dir: str | None) -> str:
+    """Why a directory is on the search path, for the listing."""
+    tags = []
+    explicit = Path(model_dir).expanduser() if model_dir else None
+    if explicit is not None and directory == (explicit.parent if explicit.is_file() else explicit).resolve():
+        tags.append("--model-dir")
+    env = [Path(p.strip()).expanduser().resolve() for p in os.environ.get(MODELS_ENV, "").split(os.pathsep)
+           if p.strip()]
+    if directory in env:
+        tags.append(f"${MODELS_ENV}")
+    if directory == shipped_models_dir().resolve():
+        tags.append("shipped with the repository")
+    if not tags and directory.name == "models" and directory.parent.name == "shared":
+        tags.append("../shared")
+    state = "" if directory.is_dir() else ", absent"
+    return f" ({', '.join(tags)}{state})" if tags or state else ""
+
+
+def _describe(check: ModelCheck) -> str:
+    if check.ok:
+        return "SHA-256 OK"
+    return f"SHA-256 MISMATCH: {check.sha256}, expected {check.expected_sha256}"
+
+
+def cmd_models(args: argparse.Namespace) -> int:
+    model_dir: str | None = args.model_dir
+    dirs = search_path(model_dir)
+    print("model search path (first match wins):")
+    for i, d in enumerate(dirs, 1):
+        print(f"  {i}. {d}{_origin(d, model_dir)}")
+
+    sums = known_checksums()
+    if not sums:
+        print(f"\nno checksums: {checksums_path()} is missing or empty; restore models/ with `git checkout -- models`")
+        return EXIT_PROBLEM
+    print(f"checksums: {checksums_path()}\n")
+
+    problems: list[str] = []
+    for name in sorted(sums):
+        role = MODEL_ROLES.get(name, "")
+        print(f"{name}: {role}" if role else name)
+        copies = find_all_copies(name, model_dir)
+        if not copies:
+            print("  MISSING: in no directory of the search path; restore it with "
+                  f"`git checkout -- models/{name}`")
+            problems.append(f"{name} missing")
+            continue
+        for k, path in enumerate(copies):
+            try:
+                check = check_model(path, sums)
+            except OSError as exc:
+                print(f"  {'used' if k == 0 else 'also'}  {path}  unreadable: {exc.strerror or exc}")
+                if k == 0:
+                    problems.append(f"{path} unreadable")
+                continue
+            label = "used" if k == 0 else "also"
+            print(f"  {label}  {path}  {_mb(check.size_bytes)}  {_describe(check)}")
+            if not check.ok:
+                print(f"        {restore_hint(path)}")
+                if k == 0:
+                    problems.append(f"{path} corrupt")
+
+    others = sorted({p for d in dirs if d.is_dir() for p in d.glob("*.onnx") if p.name not in sums})
+    if others:
+        print("\nother ONNX files on the search path (loaded without a checksum when named by model_file):")
+        for p in others:
+            print(f"  {p}  {_mb(p.stat().st_size)}")
+
+    if problems:
+        print(f"\n{len(problems)} problem(s): {'; '.join(problems)}")
+        return EXIT_PROBLEM
+    print(f"\nall {len(sums)} shipped models present and intact")
+    return 0
