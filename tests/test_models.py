@@ -247,3 +247,15 @@ def test_followbus_models_reports_a_missing_model(tmp_path: Path) -> None:
     assert "yolox_nano_640.onnx" in res.stdout and "MISSING" in res.stdout
     assert "git checkout -- models/yolox_nano_640.onnx" in res.stdout and "1 problem(s)" in res.stdout
     assert res.stdout.count("SHA-256 OK") == 2
+
+
+def test_other_commands_report_a_corrupt_model_in_one_line(tmp_path: Path) -> None:
+    """`followbus eval` builds its detector in-process: a bad model is a usage error there too, no traceback."""
+    bad = _truncated_copy(tmp_path / "m")
+    env = {**os.environ, MODELS_ENV: str(tmp_path / "m")}
+    res = subprocess.run(followbus_argv("eval", "scene:wall-occlusion", "--detector", "yolox", "--max-frames", "5",
+                                        "--out", str(tmp_path / "res")),
+                         capture_output=True, text=True, timeout=120, cwd=REPO, env=env, stdin=subprocess.DEVNULL)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    errors = [ln for ln in res.stderr.splitlines() if ln.startswith("followbus: ")]
+    assert len(errors) == 1 and str(bad) in errors[0] and "corrupt" in errors[0], res.stderr

@@ -360,10 +360,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     from followbus.bus.graph import GraphError
+    from followbus.vision.models import ModelError
 
     try:
         return dispatch(args)
     except GraphError as exc:
+        print(f"followbus: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except ModelError as exc:  # a missing or corrupt model (DetectorUnavailable too): the message says what to do
         print(f"followbus: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:

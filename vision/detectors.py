@@ -37,7 +37,7 @@ DEFAULT_YOLOV8_FILE = "yolov8n.onnx"
 Box = tuple[float, float, float, float]
 
 
-class DetectorUnavailable(RuntimeError):
+class DetectorUnavailable(ModelError):
     """A backend cannot be built (model missing or corrupt, runtime error, ...); one line: what, where, the fix."""
 
     def __init__(self, message: str, tried: Sequence[Path] = (), hint: str = "") -> None:
