@@ -29,8 +29,9 @@ import yaml
 from followbus.bus.session import ZenohSettings
 
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
-TOP_KEYS = {"name", "namespace", "zenoh", "nodes"}
-NODE_KEYS = {"run", "inputs", "outputs", "params", "restart", "host", "sync_timeout_ms", "description"}
+TOP_KEYS = {"name", "namespace", "zenoh", "nodes", "max_lag_ms"}
+DEFAULT_MAX_LAG_MS = 150.0  # a frame set further behind the newest complete one is skipped (bus.sync)
+NODE_KEYS = {"run", "inputs", "outputs", "params", "restart", "host", "sync_timeout_ms", "max_lag_ms", "description"}
 INPUT_KEYS = {"from", "queue", "policy", "sync", "offset", "optional"}
 RESTART_KEYS = {"policy", "max_restarts", "backoff_ms", "max_backoff_ms"}
 POLICIES = ("drop_oldest", "block")
@@ -83,6 +84,7 @@ class NodeSpec:
     restart: RestartPolicy = field(default_factory=RestartPolicy)
     host: str | None = None
     sync_timeout_ms: float = 100.0
+    max_lag_ms: float | None = None  # None: the graph's; 0: never skip a lagging frame set
     line: int | None = None
     param_lines: dict[str, int] = field(default_factory=dict)
 
@@ -95,6 +97,13 @@ class Graph:
     nodes: dict[str, NodeSpec]
     path: str = "<memory>"
     text: str = ""
+    max_lag_ms: float = DEFAULT_MAX_LAG_MS
+
+    def lag_bound_ms(self, node: str) -> float | None:
+        """The frame-set lag bound of a node (None: unbounded)."""
+        own = self.nodes[node].max_lag_ms
+        value = self.max_lag_ms if own is None else own
+        return value or None
 
     def key(self, node: str, output: str) -> str:
         """The bus key of a node's output: ``<namespace>/<node>/<output>``."""
@@ -227,7 +236,11 @@ def load_graph(path: str | Path, text: str | None = None) -> Graph:
     if not nodes:
         raise GraphError(path, _line(seen["nodes"]), "no nodes declared")
 
-    graph = Graph(name=name, namespace=namespace, zenoh=zenoh_settings, nodes=nodes, path=path, text=text)
+    max_lag_ms = DEFAULT_MAX_LAG_MS
+    if "max_lag_ms" in seen:
+        max_lag_ms = _non_negative_ms(seen["max_lag_ms"], path, "max_lag_ms")
+    graph = Graph(name=name, namespace=namespace, zenoh=zenoh_settings, nodes=nodes, path=path, text=text,
+                  max_lag_ms=max_lag_ms)
     _check_wiring(graph)
     return graph
 
@@ -283,7 +296,16 @@ def _parse_node(name: str, key_node: yaml.Node, node: yaml.Node, path: str) -> N
         if value <= 0:
             raise GraphError(path, _line(fields["sync_timeout_ms"][1]), f"node {name!r}: sync_timeout_ms must be > 0")
         spec.sync_timeout_ms = float(value)
+    if "max_lag_ms" in fields:
+        spec.max_lag_ms = _non_negative_ms(fields["max_lag_ms"][1], path, f"node {name!r}: max_lag_ms")
     return spec
+
+
+def _non_negative_ms(node: yaml.Node, path: str, what: str) -> float:
+    value = _expect(_plain(node, path), (int, float), path, _line(node), what)
+    if isinstance(value, bool) or value < 0:
+        raise GraphError(path, _line(node), f"{what} must be a number >= 0 (0: unbounded)")
+    return float(value)
 
 
 def _parse_input(node: str, name: str, key_node: yaml.Node, value_node: yaml.Node, path: str) -> InputSpec:

@@ -35,9 +35,10 @@ from followbus.bus.pubsub import InputQueue, Publisher, RateLimitedLog, ShmPool,
 from followbus.bus.schemas import Frame, Message, NodeStatus
 from followbus.bus.session import open_session
 from followbus.bus.stats import TopicStats
-from followbus.bus.sync import FrameSynchronizer, SyncInput
+from followbus.bus.sync import IMPLAUSIBLE, RESYNCED, STALE, FrameSynchronizer, SequenceGuard, SyncInput
 
 STATUS_PERIOD_S = 1.0
+RESET_AFTER_FAILURES = 5  # consecutive on_frame failures after which a node's state is rebuilt
 # Set by the launcher for its children: the comma-separated names of the nodes it started.
 LAUNCHED_NODES_ENV = "FOLLOWBUS_LAUNCHED_NODES"
 
@@ -190,6 +191,11 @@ class Node:
 
     # hooks
     def setup(self) -> None: ...
+    def reset(self) -> None:
+        """Rebuild the node's state after it became invalid (the runtime calls this when on_frame keeps
+        failing). The default runs ``setup()`` again; override to keep what is still good."""
+        self.setup()
+
     def on_message(self, name: str, msg: Message) -> None: ...
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None: ...
     def on_timer(self, now_ns: int) -> None: ...
@@ -202,10 +208,15 @@ class Node:
 
     # helpers
     def publish(self, output: str, msg: Message, like: Message | None = None) -> None:
-        """Publish on an output; ``like`` copies the stamp and frame_seq of the input it derives from."""
+        """Publish on an output; ``like`` copies the stamp, frame_seq and epoch of the input it derives from.
+
+        Inside ``on_frame`` the output also carries which feedback messages the set used (header.feedback)."""
         if like is not None:
             msg.header.stamp_ns = like.header.stamp_ns
             msg.header.frame_seq = like.header.frame_seq
+            msg.header.epoch_ns = like.header.epoch_ns
+        if self.runtime.provenance is not None:
+            msg.header.feedback = dict(self.runtime.provenance)
         self.runtime.publishers[output].put(msg)
 
     def has_output(self, output: str) -> bool:
@@ -285,6 +296,9 @@ class NodeRuntime:
         self.queues: dict[str, InputQueue] = {}
         self.latest: dict[str, Message] = {}
         self.handler_errors = 0
+        self.resets = 0
+        self._frame_failures = 0  # consecutive
+        self.provenance: dict[str, int] | None = None  # feedback used by the set being handled
         self._cond = threading.Condition()
         self._arrival = itertools.count()
         self._warn = RateLimitedLog(self.log)
@@ -299,8 +313,16 @@ class NodeRuntime:
             )
         frame_inputs = [SyncInput(i.name, i.offset, i.optional) for i in self.spec.inputs.values()
                         if i.sync == "frame"]
-        self.sync = (FrameSynchronizer(frame_inputs, int(self.spec.sync_timeout_ms * 1e6))
+        # The lag bound is a live policy: a lockstep replay never builds a backlog, and skipping there
+        # would depend on how fast the replayer feeds the node.
+        lag_ms = graph.lag_bound_ms(name) if clock == "wall" else None
+        self.sync = (FrameSynchronizer(frame_inputs, int(self.spec.sync_timeout_ms * 1e6),
+                                       max_lag_ns=None if lag_ms is None else int(lag_ms * 1e6))
                      if frame_inputs else None)
+        self._feedback_inputs = [i.name for i in frame_inputs if i.offset]
+        # Inputs not joined by frame are still frame-numbered streams (motor's tracks, capture's acks): the
+        # same sequence checks keep a forged or stale message from reaching the node.
+        self._guards = {i.name: SequenceGuard() for i in self.spec.inputs.values() if i.sync != "frame"}
         self.node = self.cls(self.params, self)
         for inp in self.spec.inputs.values():
             key = graph.key(inp.source_node, inp.source_output)
@@ -327,9 +349,13 @@ class NodeRuntime:
     def status(self) -> NodeStatus:
         topics = {p.key: p.stats.snapshot() for p in self.publishers.values()}
         topics.update({q.stats.key: q.stats.snapshot() for q in self.queues.values()})
-        extra = {"handler_errors": self.handler_errors}
+        extra: dict[str, Any] = {"handler_errors": self.handler_errors, "resets": self.resets}
         if self.sync is not None:
-            extra.update(sync_timeouts=self.sync.timeouts, sync_dropped=self.sync.dropped)
+            extra.update(self.sync.counters())
+        if self._guards:
+            extra.update(seq_stale=sum(g.stale for g in self._guards.values()),
+                         seq_implausible=sum(g.implausible for g in self._guards.values()),
+                         seq_resyncs=sum(g.resyncs for g in self._guards.values()))
         try:
             extra.update(self.node.status_extra())
         except Exception as exc:  # status must never take the node down
@@ -405,13 +431,36 @@ class NodeRuntime:
             self.close()
 
     def _dispatch(self, name: str, msg: Message) -> None:
-        self.clock.observe(msg.header.stamp_ns)
         spec = self.spec.inputs[name]
+        h = msg.header
+        guard = self._guards.get(name)
+        if guard is not None and h.frame_seq >= 0:
+            verdict = guard.check(h.frame_seq, h.stamp_ns, h.epoch_ns, floor=guard.newest_seq)
+            if verdict in (STALE, IMPLAUSIBLE):
+                self._warn.warning("dropped %s %s frame %d (stamp %d): out of sequence with the stream",
+                                   verdict, name, h.frame_seq, h.stamp_ns)
+                return
+            if verdict == RESYNCED:
+                self.log.warning("input %s: the source restarted or was replaced (frame %d); following it",
+                                 name, h.frame_seq)
+        self.clock.observe(h.stamp_ns)
+        if spec.sync == "frame" and self.sync is not None:
+            # Judged before the node sees it: a forged or stale message must not reach on_message either.
+            verdict = self.sync.add(name, h.frame_seq, msg, self._sync_now(), stamp_ns=h.stamp_ns, epoch_ns=h.epoch_ns)
+            if verdict == IMPLAUSIBLE:
+                self._warn.warning("rejected %s frame %d (stamp %d): out of sequence with the stream",
+                                   name, h.frame_seq, h.stamp_ns)
+                return
+            if verdict == STALE:
+                self.log.debug("stale %s frame %d dropped", name, h.frame_seq)
+                return
+            if verdict == RESYNCED:
+                self.log.warning("input %s: the source restarted or was replaced (frame %d, epoch %d); "
+                                 "re-synchronising on it", name, h.frame_seq, h.epoch_ns)
         self._guarded(f"on_message({name})", self.node.on_message, name, msg)
         if spec.sync == "latest":
             self.latest[name] = msg
-        elif spec.sync == "frame" and self.sync is not None:
-            self.sync.add(name, msg.header.frame_seq, msg, self._sync_now())
+        elif spec.sync == "frame":
             self._emit_ready()
 
     def _sync_now(self) -> int:
@@ -421,7 +470,24 @@ class NodeRuntime:
         if self.sync is None:
             return
         for frame_seq, inputs in self.sync.poll(self._sync_now()):
+            self._handle_frame(frame_seq, inputs)
+
+    def _handle_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
+        used = {name: inputs.get(name) for name in self._feedback_inputs}
+        self.provenance = {name: (m.header.frame_seq if m is not None else -1) for name, m in used.items()}
+        errors = self.handler_errors
+        try:
             self._guarded("on_frame", self.node.on_frame, frame_seq, inputs)
+        finally:
+            self.provenance = None
+        self._frame_failures = self._frame_failures + 1 if self.handler_errors > errors else 0
+        if self._frame_failures >= RESET_AFTER_FAILURES:
+            # Whatever the cause (a poisoned filter, a state no input can repair), staying dead is the worst
+            # outcome: rebuild the node's state and let it re-initialise from the next frames.
+            self.log.error("on_frame failed %d times in a row; resetting the node's state", self._frame_failures)
+            self._frame_failures = 0
+            self.resets += 1
+            self._guarded("reset", self.node.reset)
 
     def close(self) -> None:
         self.stop_event.set()

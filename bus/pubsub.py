@@ -13,7 +13,7 @@ from typing import Any
 import zenoh
 
 from followbus.bus.codec import DecodeError
-from followbus.bus.schemas import Message, decode, encode
+from followbus.bus.schemas import Message, decode, encode, validate
 from followbus.bus.stats import TopicStats
 
 log = logging.getLogger(__name__)
@@ -136,7 +136,8 @@ def payload_bytes(sample: zenoh.Sample) -> bytes:
 
 
 class Subscriber:
-    """Decodes every sample on a key; malformed ones are counted, logged once a second and dropped."""
+    """Decodes and validates every sample on a key; malformed ones (bad bytes, wrong type, non-finite or
+    out-of-range values) are counted in ``decode_errors``, logged once a second and dropped."""
 
     def __init__(self, session: zenoh.Session, key: str, on_message: Callable[[Message], None], *,
                  schema: type[Message] | None = None, stats: TopicStats | None = None,
@@ -154,7 +155,7 @@ class Subscriber:
     def _callback(self, sample: zenoh.Sample) -> None:
         try:
             data = payload_bytes(sample)
-            msg = decode(data, self.schema)
+            msg = validate(decode(data, self.schema))
         except DecodeError as exc:
             self.stats.decode_error()
             self._warn.warning("dropped malformed message on %s: %s", sample.key_expr, exc)

@@ -3,7 +3,15 @@
 Every message starts with a :class:`Header`. ``stamp_ns`` is the capture stamp of the camera
 frame the message derives from (so latency = now - stamp_ns, and replays are deterministic),
 ``frame_seq`` that frame's sequence number, ``pub_ns`` the wall-clock time of publication
-(per-edge latency; never compared by replay verification).
+(per-edge latency; never compared by replay verification). ``epoch_ns`` names the numbering
+``frame_seq`` belongs to (the start time of the capture session that numbered the frame), so a
+restarted camera that counts from 0 again is told apart from stale frames. ``feedback`` is the
+provenance of a frame-synchronised output: for each feedback input (``offset: -1``) the frame_seq of
+the message the node used (-1: none), so a replay reproduces what the live run did.
+
+Messages are checked twice on the way in: :func:`decode` checks the wire types, :func:`validate`
+the values (finite numbers, boxes of non-negative size, consistent frames); both raise DecodeError,
+which subscribers count and drop, so a malformed or poisoned message never reaches a filter.
 
 Boxes are ``[x, y, w, h]`` float pixels, top-left origin.
 """
@@ -11,6 +19,7 @@ Boxes are ``[x, y, w, h]`` float pixels, top-left origin.
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -30,6 +39,8 @@ class Header:
     frame_seq: int = -1
     source: str = ""
     pub_ns: int = 0
+    epoch_ns: int = 0  # 0: unknown (messages not derived from a camera frame, old recordings)
+    feedback: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass
@@ -251,15 +262,24 @@ def _check(value: Any, hint: Any, where: str) -> Any:
             raise DecodeError(f"{where}: expected map, got {type(value).__name__}")
         return value
     if hint is Header:
-        if not isinstance(value, (list, tuple)) or len(value) != 5:
-            raise DecodeError(f"{where}: expected a 5-element header")
-        return Header(
+        # 5 elements: recordings made before epoch and provenance existed.
+        if not isinstance(value, (list, tuple)) or len(value) not in (5, 7):
+            raise DecodeError(f"{where}: expected a 5- or 7-element header")
+        header = Header(
             seq=_check(value[0], int, "header.seq"),
             stamp_ns=_check(value[1], int, "header.stamp_ns"),
             frame_seq=_check(value[2], int, "header.frame_seq"),
             source=_check(value[3], str, "header.source"),
             pub_ns=_check(value[4], int, "header.pub_ns"),
         )
+        if len(value) == 7:
+            header.epoch_ns = _check(value[5], int, "header.epoch_ns")
+            feedback = _check(value[6], dict, "header.feedback")
+            if not all(isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool)
+                       for k, v in feedback.items()):
+                raise DecodeError(f"{where}: header.feedback must map input names to frame numbers")
+            header.feedback = feedback
+        return header
     return value
 
 
@@ -269,7 +289,7 @@ def encode(msg: Message) -> bytes:
     out: dict[str, Any] = {
         "_t": msg.TYPE,
         "_v": SCHEMA_VERSION,
-        "header": [h.seq, h.stamp_ns, h.frame_seq, h.source, h.pub_ns],
+        "header": [h.seq, h.stamp_ns, h.frame_seq, h.source, h.pub_ns, h.epoch_ns, h.feedback],
     }
     for f in dataclasses.fields(msg):
         if f.name != "header":
@@ -298,6 +318,67 @@ def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None
     if obj:
         raise DecodeError(f"{type_name}: unknown fields {sorted(obj)}")
     return cls(**kwargs)  # type: ignore[return-value]
+
+
+TRACK_STATES = frozenset({"TRACKING", "OCCLUDED", "REACQUIRED", "LOST", "UNINITIALISED"})
+BOX_FIELDS = frozenset({"box", "best_box", "init_box", "filtered_box"})
+UNCHECKED_TYPES = frozenset({"NodeStatus", "Tick"})  # free-form diagnostics
+
+
+def _check_box(name: str, box: np.ndarray) -> None:
+    if box.shape != (4,):
+        raise DecodeError(f"{name}: a box is [x, y, w, h], got shape {list(box.shape)}")
+    if box[2] < 0 or box[3] < 0:
+        raise DecodeError(f"{name}: box of negative size {box.tolist()}")
+
+
+def validate(msg: Message) -> Message:
+    """Check a decoded message's values; raise DecodeError on anything a node must never see.
+
+    Every float and float array must be finite (a NaN reaching a Kalman filter poisons it for good),
+    boxes have non-negative width and height, frames match their declared size, track states are known.
+    Returns the message, so ``validate(decode(data))`` reads naturally.
+    """
+    h = msg.header
+    where = msg.TYPE
+    if h.stamp_ns < 0 or h.frame_seq < -1 or h.epoch_ns < 0:
+        raise DecodeError(f"{where}: header out of range (stamp_ns {h.stamp_ns}, frame_seq {h.frame_seq})")
+    if msg.TYPE in UNCHECKED_TYPES:
+        return msg
+    for f in dataclasses.fields(msg):
+        if f.name == "header":
+            continue
+        value = getattr(msg, f.name)
+        name = f"{where}.{f.name}"
+        if isinstance(value, float) and not math.isfinite(value):
+            raise DecodeError(f"{name}: non-finite value {value}")
+        if isinstance(value, np.ndarray) and value.dtype.kind == "f" and not np.isfinite(value).all():
+            raise DecodeError(f"{name}: non-finite values in array")
+        if f.name in BOX_FIELDS and value is not None:
+            _check_box(name, value)
+    if isinstance(msg, Detections):
+        boxes = msg.boxes
+        if boxes.ndim != 2 or boxes.shape[1] != 5:
+            raise DecodeError(f"{where}.boxes: expected N x 5 (x, y, w, h, score), got {list(boxes.shape)}")
+        if (boxes[:, 2:4] < 0).any():
+            raise DecodeError(f"{where}.boxes: box of negative size")
+    elif isinstance(msg, Frame):
+        data = msg.data
+        if msg.encoding == "bgr8":
+            if data.dtype != np.uint8 or data.shape != (msg.height, msg.width, 3):
+                raise DecodeError(f"{where}: bgr8 data {data.dtype} {list(data.shape)} does not match "
+                                  f"{msg.width}x{msg.height}")
+        elif msg.encoding == "jpeg":
+            if data.dtype != np.uint8 or data.ndim != 1:
+                raise DecodeError(f"{where}: jpeg data must be 1-D uint8")
+        else:
+            raise DecodeError(f"{where}: unknown encoding {msg.encoding!r}")
+    elif isinstance(msg, (Measurement, Track)) and msg.state not in TRACK_STATES:
+        raise DecodeError(f"{where}.state: unknown state {msg.state!r}")
+    elif isinstance(msg, Prior) and (msg.state.shape != (4,) or msg.covariance.shape != (4, 4)
+                                     or msg.innovation_cov.shape != (2, 2)):
+        raise DecodeError(f"{where}: state, covariance or innovation covariance of the wrong shape")
+    return msg
 
 
 def to_plain(msg: Message) -> dict[str, Any]:

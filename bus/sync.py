@@ -1,15 +1,38 @@
 """Input synchronisation by camera frame (like ROS message_filters' exact-time policy, keyed on
-``header.frame_seq``), with feedback inputs and a timeout.
+``header.frame_seq``), with feedback inputs, bounded lag and sequence checks that heal themselves.
 
-A feedback input (``offset = -1``) contributes to frame k's set the message of the *previous frame
-this node handled* (k-1 when no frame was skipped upstream): the re-ID of frame k waits for the
-template learnt on the frame before it. The first set has no previous frame and does not wait.
+**Frame sets.** The same-frame inputs (``offset = 0``) of one frame_seq form a set. A set is emitted
+when every input is present; after ``timeout_ns`` it is emitted without its missing *optional* inputs,
+or dropped if a required one is missing. Sets are emitted in frame order; an incomplete set is dropped
+as soon as a newer set has all its same-frame inputs.
 
-A set is emitted when every input is present; after ``timeout_ns`` it is emitted without its
-missing *optional* inputs, or dropped if a required one is missing. Sets are emitted in frame
-order; an incomplete set is dropped as soon as a newer set is complete, and anything older than
-an emitted set is stale. Pure logic, no Zenoh: the caller passes the clock, so it is testable and
-replay-deterministic.
+**Feedback.** A feedback input (``offset = -1``) contributes to frame k's set the message of the
+*previous frame this node handled* (k-1 when no frame was skipped upstream): the re-ID of frame k
+waits for the template learnt on the frame before it. The first set has no previous frame and does not
+wait. When that message has not come by the set's deadline (its producer dropped the frame, restarted,
+or is stopped), the set goes on with the newest feedback at or before the previous handled frame, and
+from then on sets stop waiting for feedback until an exact one is there in time again: a producer that
+lost a frame costs one wait per outage, never one per frame. Which message was used is returned with
+the set (the feedback message itself, whose frame_seq the runtime writes into the output's
+``header.feedback``), so a replay can reproduce a live fallback exactly.
+
+**Bounded lag.** A set whose capture stamp is more than ``max_lag_ns`` behind the newest set that has
+all its same-frame inputs is dropped (``late``): under load the node re-synchronises on the newest
+frame instead of working through a backlog. Lag is measured between capture stamps, so it is the same
+live, in a fast-paced evaluation and in a replay.
+
+**Sequence checks** on same-frame inputs, against the newest message seen (no trust in either
+direction):
+
+- *stale*: frame_seq at or before the last emitted set: dropped;
+- *implausible*: a frame_seq further ahead than the elapsed stamp time allows (``MAX_FRAMES_PER_S``
+  plus ``MAX_SEQ_AHEAD``), or a stamp that goes back, or runs ahead by more than
+  ``MAX_FRAME_INTERVAL_NS`` per frame: rejected (one forged message cannot freeze the node);
+- *restart*: a new ``epoch_ns`` with a newer stamp (the capture restarted and counts from 0 again), or
+  ``RESYNC_AFTER_REJECTS`` rejected messages in a row (whatever the cause, the stream we trust is not
+  the one arriving): the synchroniser starts afresh on the arriving stream (``resyncs``).
+
+Pure logic, no Zenoh: the caller passes the clock, so it is testable and replay-deterministic.
 """
 
 from __future__ import annotations
@@ -18,6 +41,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 FEEDBACK_KEEP = 64  # feedback messages remembered per input
+MAX_SEQ_AHEAD = 64  # frames a stream may jump ahead of the newest one with no stamp time passing...
+MAX_FRAMES_PER_S = 1000  # ...plus this many per second of stamp time
+MAX_FRAME_INTERVAL_NS = 10_000_000_000  # a stamp may not run ahead by more than 10 s per frame
+RESYNC_AFTER_REJECTS = 8  # consecutive stale/implausible messages that mean "the source restarted"
+
+# Verdicts of add()
+ACCEPTED, STALE, IMPLAUSIBLE, RESYNCED = "accepted", "stale", "implausible", "resynced"
 
 
 @dataclass
@@ -30,11 +60,73 @@ class SyncInput:
 @dataclass
 class _Slot:
     first_ns: int
+    stamp_ns: int | None = None
     msgs: dict[str, Any] = field(default_factory=dict)
 
 
+class SequenceGuard:
+    """The sequence checks of one stream of frame-numbered messages (see the module docstring).
+
+    ``check`` judges a message against the newest accepted one and ``floor`` (the last frame handled:
+    anything at or before it is stale); after ``RESYNC_AFTER_REJECTS`` rejections in a row, or on a new
+    epoch with a newer stamp, it answers ``resynced``: the caller forgets its state and follows the stream.
+    """
+
+    def __init__(self) -> None:
+        self.epoch: int | None = None
+        self.newest_seq: int | None = None
+        self.newest_stamp: int | None = None
+        self._reject_streak = 0
+        self.stale = 0
+        self.implausible = 0
+        self.resyncs = 0
+
+    def check(self, seq: int, stamp_ns: int | None, epoch_ns: int, floor: int | None) -> str:
+        verdict = self._judge(seq, stamp_ns, epoch_ns, floor)
+        if verdict in (STALE, IMPLAUSIBLE):
+            self._reject_streak += 1
+            if self._reject_streak < RESYNC_AFTER_REJECTS:
+                return verdict
+            verdict = RESYNCED
+        if verdict == RESYNCED:
+            self.resyncs += 1
+            self.epoch = epoch_ns or None
+            self.newest_seq = self.newest_stamp = None
+        self._reject_streak = 0
+        if epoch_ns and self.epoch is None:
+            self.epoch = epoch_ns
+        if self.newest_seq is None or seq >= self.newest_seq:
+            self.newest_seq = seq
+            if stamp_ns is not None:
+                self.newest_stamp = stamp_ns
+        return verdict
+
+    def _judge(self, seq: int, stamp_ns: int | None, epoch_ns: int, floor: int | None) -> str:
+        if epoch_ns and self.epoch is not None and epoch_ns != self.epoch:
+            if stamp_ns is None or self.newest_stamp is None or stamp_ns > self.newest_stamp:
+                return RESYNCED  # the source restarted: follow it
+            self.stale += 1  # in flight from before the restart
+            return STALE
+        if floor is not None and seq <= floor:
+            self.stale += 1
+            return STALE
+        if self.newest_seq is not None and seq > self.newest_seq and stamp_ns is not None \
+                and self.newest_stamp is not None:
+            frames_ahead = seq - self.newest_seq
+            dt_ns = stamp_ns - self.newest_stamp
+            if dt_ns < 0 or frames_ahead > MAX_SEQ_AHEAD + dt_ns * MAX_FRAMES_PER_S // 1_000_000_000 \
+                    or dt_ns > frames_ahead * MAX_FRAME_INTERVAL_NS:
+                self.implausible += 1
+                return IMPLAUSIBLE
+        return ACCEPTED
+
+    def epoch_mismatch(self, epoch_ns: int) -> bool:
+        return bool(epoch_ns) and self.epoch is not None and epoch_ns != self.epoch
+
+
 class FrameSynchronizer:
-    def __init__(self, inputs: list[SyncInput], timeout_ns: int, max_pending: int = 64):
+    def __init__(self, inputs: list[SyncInput], timeout_ns: int, max_pending: int = 64,
+                 max_lag_ns: int | None = None):
         if not inputs:
             raise ValueError("a synchroniser needs at least one input")
         if any(i.offset not in (0, -1) for i in inputs):
@@ -44,74 +136,140 @@ class FrameSynchronizer:
         self.inputs = {i.name: i for i in inputs}
         self.timeout_ns = timeout_ns
         self.max_pending = max_pending
+        self.max_lag_ns = max_lag_ns
         self._slots: dict[int, _Slot] = {}
         self._feedback: dict[str, dict[int, Any]] = {i.name: {} for i in inputs if i.offset}
         self._last_emitted: int | None = None
         self._last_emit_ns = 0
-        self.timeouts = 0  # sets emitted without an optional input
-        self.dropped = 0  # sets dropped: required input missing at timeout, stale, or overflow
+        self.guard = SequenceGuard()  # on the same-frame inputs
+        self._feedback_lost = False
+        self._forced: dict[int, dict[str, int]] = {}  # replay: feedback a live run used for a frame
+        self.timeouts = 0  # sets emitted without an optional input (feedback included)
+        self.dropped = 0  # sets dropped: required input missing at timeout, superseded, or overflow
+        self.late = 0  # sets dropped for lagging more than max_lag_ns behind a complete newer one
+        self.feedback_fallbacks = 0  # sets that went on with older (or no) feedback
 
-    def add(self, name: str, frame_seq: int, msg: Any, now_ns: int) -> None:
+    # --- input ----------------------------------------------------------------------------------
+    def add(self, name: str, frame_seq: int, msg: Any, now_ns: int, *, stamp_ns: int | None = None,
+            epoch_ns: int = 0) -> str:
+        """Offer one message; returns the verdict (``accepted``, ``stale``, ``implausible``, ``resynced``)."""
         if name in self._feedback:
-            store = self._feedback[name]
-            store[frame_seq] = msg
-            while len(store) > FEEDBACK_KEEP:
-                del store[min(store)]
-            return
-        if self._last_emitted is not None and frame_seq <= self._last_emitted:
-            return  # that frame was already handled
+            return self._add_feedback(name, frame_seq, msg, epoch_ns)
+        verdict = self.guard.check(frame_seq, stamp_ns, epoch_ns, self._last_emitted)
+        if verdict in (STALE, IMPLAUSIBLE):
+            return verdict
+        if verdict == RESYNCED:
+            self._restart()
         slot = self._slots.get(frame_seq)
         if slot is None:
-            slot = self._slots[frame_seq] = _Slot(first_ns=now_ns)
+            slot = self._slots[frame_seq] = _Slot(first_ns=now_ns, stamp_ns=stamp_ns)
         slot.msgs[name] = msg
         while len(self._slots) > self.max_pending:
             del self._slots[min(self._slots)]
             self.dropped += 1
+        return verdict
 
-    def _gather(self, slot: _Slot) -> tuple[dict[str, Any], bool, bool]:
-        """(messages, complete, required present) of a slot, feedback inputs included."""
+    def _add_feedback(self, name: str, seq: int, msg: Any, epoch_ns: int) -> str:
+        if self.guard.epoch_mismatch(epoch_ns):
+            self.guard.stale += 1
+            return STALE
+        newest = self.guard.newest_seq
+        if newest is not None and seq > newest + MAX_SEQ_AHEAD:
+            self.guard.implausible += 1  # feedback for a frame nobody has seen: forged or from another run
+            return IMPLAUSIBLE
+        store = self._feedback[name]
+        store[seq] = msg
+        while len(store) > FEEDBACK_KEEP:
+            del store[min(store)]
+        return ACCEPTED
+
+    def _restart(self) -> None:
+        self.dropped += len(self._slots)
+        self._slots.clear()
+        for store in self._feedback.values():
+            store.clear()
+        self._last_emitted = None
+        self._feedback_lost = False
+
+    def force_feedback(self, frame_seq: int, used: dict[str, int]) -> None:
+        """Replay: frame ``frame_seq`` takes exactly these feedback frames (-1: none), as the live run did."""
+        self._forced[frame_seq] = dict(used)
+
+    # --- output ---------------------------------------------------------------------------------
+    def _feedback_for(self, name: str, seq: int) -> tuple[Any, bool]:
+        """(message, exact) of feedback input ``name`` for the set of frame ``seq``."""
+        store = self._feedback[name]
+        forced = self._forced.get(seq, {}).get(name)
+        if forced is not None:
+            return (store.get(forced), forced in store or forced < 0)
+        assert self._last_emitted is not None
+        if self._last_emitted in store:
+            return store[self._last_emitted], True
+        older = [s for s in store if s <= self._last_emitted]
+        return (store[max(older)] if older else None), False
+
+    def _gather(self, seq: int, slot: _Slot) -> tuple[dict[str, Any], bool, bool]:
+        """(messages, same-frame inputs all present, exact feedback all present) of a slot."""
         msgs = dict(slot.msgs)
-        complete = required = True
+        same_frame = exact = True
         for name, spec in self.inputs.items():
             if spec.offset:
-                if self._last_emitted is None:
+                if self._last_emitted is None and seq not in self._forced:
                     msgs[name] = None  # the first set has no previous frame to wait for
                     continue
-                if self._last_emitted in self._feedback[name]:
-                    msgs[name] = self._feedback[name][self._last_emitted]
-                    continue
-            elif name in msgs:
-                continue
-            complete = False
-            required = required and spec.optional
-        return msgs, complete, required
+                msgs[name], ok = self._feedback_for(name, seq)
+                exact = exact and ok
+            elif name not in msgs and not spec.optional:
+                same_frame = False
+        return msgs, same_frame, exact
 
     def poll(self, now_ns: int) -> list[tuple[int, dict[str, Any]]]:
-        """Sets ready to be handled, in frame order."""
+        """Sets ready to be handled, in frame order, as (frame_seq, {input: message or None})."""
         ready: list[tuple[int, dict[str, Any]]] = []
+        newest_complete = max((s.stamp_ns for s in self._slots.values()
+                               if s.stamp_ns is not None and not self._missing_same_frame(s)), default=None)
         for seq in sorted(self._slots):
             slot = self._slots[seq]
-            msgs, complete, required = self._gather(slot)
-            expired = now_ns >= self._deadline(slot)
-            if complete:
-                pass
-            elif expired and required:
-                self.timeouts += 1
-            elif expired or (self._missing_same_frame(slot) and self._newer_complete(seq)):
-                # Dropped: a required input never came, or this frame lost an input upstream (a
-                # detector that skipped it) while a newer frame is complete: waiting would only add
-                # latency. A frame missing only its feedback is not dropped this way: every newer
-                # frame waits for the same feedback.
+            if self._lagging(slot, newest_complete):
                 del self._slots[seq]
-                self.dropped += 1
+                self.late += 1
                 continue
-            else:
+            msgs, required, exact = self._gather(seq, slot)
+            all_present = required and all(name in slot.msgs for name, s in self.inputs.items() if not s.offset)
+            expired = now_ns >= self._deadline(slot)
+            if not required:
+                if expired or self._newer_complete(seq):
+                    # A required input never came, or this frame lost an input upstream (a detector that
+                    # skipped it) while a newer frame is complete: waiting would only add latency.
+                    del self._slots[seq]
+                    self.dropped += 1
+                    continue
                 break  # wait for it, bounded by its timeout
+            if not all_present and not expired and not self._newer_complete(seq):
+                break  # an optional same-frame input may still come
+            if not exact and (seq in self._forced or not self._feedback_lost):
+                if not expired:
+                    break  # wait for the feedback of the previous frame, bounded by the timeout
+                if seq not in self._forced:
+                    self._feedback_lost = True  # stop waiting until exact feedback is back in time
+            if exact:
+                self._feedback_lost = False
+            else:
+                self.feedback_fallbacks += 1
+            if not all_present or not exact:
+                self.timeouts += 1
             del self._slots[seq]
+            self._forced.pop(seq, None)
             ready.append((seq, {name: msgs.get(name) for name in self.inputs}))
             self._last_emitted = seq
             self._last_emit_ns = now_ns
         return ready
+
+    def _lagging(self, slot: _Slot, newest_complete_ns: int | None) -> bool:
+        """Is this set more than max_lag_ns (capture time) behind the newest set with all its inputs?"""
+        if self.max_lag_ns is None or slot.stamp_ns is None or newest_complete_ns is None:
+            return False
+        return newest_complete_ns - slot.stamp_ns > self.max_lag_ns
 
     def _deadline(self, slot: _Slot) -> int:
         # A set cannot be handled before its predecessor went out, so its wait starts then.
@@ -131,3 +289,13 @@ class FrameSynchronizer:
     @property
     def pending(self) -> int:
         return len(self._slots)
+
+    @property
+    def feedback_lost(self) -> bool:
+        return self._feedback_lost
+
+    def counters(self) -> dict[str, int]:
+        return {"sync_timeouts": self.timeouts, "sync_dropped": self.dropped, "sync_late": self.late,
+                "sync_stale": self.guard.stale, "sync_implausible": self.guard.implausible,
+                "sync_resyncs": self.guard.resyncs,
+                "sync_feedback_fallbacks": self.feedback_fallbacks}

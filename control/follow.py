@@ -24,11 +24,14 @@ Safety: every stop (lost target, invalid box, watchdog) is commanded *at once* �
 acceleration limiter, which only shapes motion commands. The chassis's own deceleration limits
 what happens physically; a late stop is worse than an abrupt one. After a stop, motion ramps up
 from zero again. ``on_tick`` is the watchdog: once no track has arrived for ``watchdog_timeout_ms``
-it returns a zero command (reason ``"watchdog"``) on every tick. The node must call it from a timer
-and pass ``t_ns`` in the same clock as the track stamps; with tick period p the stop is issued at
-most ``watchdog_timeout_ms + p`` after the last track, so tick fast (≥ 50 Hz) or shorten the timeout.
+it returns a zero command (reason ``"watchdog"``) on every tick. The watchdog trusts no message stamp:
+the caller passes the time each track was *received* (``received_ns``) and the current time
+(``now_received_ns``) on its own monotonic clock, so a track stamped an hour ahead cannot keep the
+robot driving. With tick period p the stop is issued at most ``watchdog_timeout_ms + p`` after the
+last track, so tick fast (≥ 50 Hz) or shorten the timeout.
 
-Time comes only from ``t_ns`` arguments (message stamps); nothing here reads a clock.
+Time comes only from arguments (message stamps for the control law, receive times for the watchdog;
+both default to the stamps, for replays); nothing here reads a clock.
 """
 
 from __future__ import annotations
@@ -90,7 +93,9 @@ class FollowParams:
     # The rate limiter's dt is capped so a command after a long gap cannot jump (one 10 Hz step).
     max_rate_dt_s: float = 0.1
     occluded_speed_scale: float = 0.5
-    watchdog_timeout_ms: float = 200.0
+    # Stop after this long without a track: with a 10 ms tick the zero lands ~140 ms after the last track,
+    # inside the product's 200 ms promise with margin for a loaded machine.
+    watchdog_timeout_ms: float = 130.0
     # --- chassis geometry (small Mecanum platform) ------------------------------------------
     half_length_m: float = 0.10
     half_width_m: float = 0.10
@@ -175,7 +180,7 @@ class FollowController:
         self._strafe_pid = PID(p.strafe_kp, p.strafe_ki, p.strafe_kd, output_limit=p.max_strafe_mps,
                                integral_limit=p.strafe_integral_limit_mps,
                                derivative_tau_s=p.derivative_tau_s)
-        self._last_track_ns: int | None = None
+        self._last_track_rx_ns: int | None = None  # watchdog: when the last track was received
         self._last_cmd: FollowCommand | None = None
 
     @property
@@ -186,15 +191,16 @@ class FollowController:
         """Forget all state (PIDs, last command, watchdog stamp)."""
         for pid in (self._range_pid, self._yaw_pid, self._strafe_pid):
             pid.reset()
-        self._last_track_ns = None
+        self._last_track_rx_ns = None
         self._last_cmd = None
 
     # ------------------------------------------------------------------------------------------
-    def on_track(self, t_ns: int, state: str, box: Sequence[float] | np.ndarray | None) -> FollowCommand:
-        """Command for a track ``box`` = ``[x, y, w, h]`` px (top-left origin) in ``state`` at ``t_ns``."""
+    def on_track(self, t_ns: int, state: str, box: Sequence[float] | np.ndarray | None,
+                 received_ns: int | None = None) -> FollowCommand:
+        """Command for a track ``box`` = ``[x, y, w, h]`` px (top-left origin) in ``state`` at ``t_ns``,
+        received at ``received_ns`` on the watchdog's clock (default: ``t_ns``)."""
         t_ns = int(t_ns)
-        if self._last_track_ns is None or t_ns > self._last_track_ns:
-            self._last_track_ns = t_ns
+        self._last_track_rx_ns = t_ns if received_ns is None else int(received_ns)
         if box is None or state in STOP_STATES:
             return self._stop(t_ns, "target-lost")
         if state not in FOLLOW_STATES and state not in PREDICTED_STATES:
@@ -226,15 +232,17 @@ class FollowController:
         reason = "occluded" if predicted else state.lower()
         return self._emit(t_ns, vx, vy, wz, range_m, bear, reason)
 
-    def on_tick(self, t_ns: int) -> FollowCommand | None:
+    def on_tick(self, t_ns: int, now_received_ns: int | None = None) -> FollowCommand | None:
         """Watchdog: a zero command (reason ``"watchdog"``) if no track for ``watchdog_timeout_ms``.
 
-        Returns ``None`` while tracks are fresh (nothing to publish). Also stops when no track has
-        ever arrived. Repeats the zero command on every tick after expiry.
+        ``now_received_ns`` is now on the clock of ``on_track``'s ``received_ns`` (default: ``t_ns``);
+        a stop is stamped ``t_ns``. Returns ``None`` while tracks are fresh (nothing to publish). Also
+        stops when no track has ever arrived. Repeats the zero command on every tick after expiry.
         """
         t_ns = int(t_ns)
-        if self._last_track_ns is not None:
-            age_ms = (t_ns - self._last_track_ns) * 1e-6
+        now_rx = t_ns if now_received_ns is None else int(now_received_ns)
+        if self._last_track_rx_ns is not None:
+            age_ms = (now_rx - self._last_track_rx_ns) * 1e-6
             if age_ms < self.params.watchdog_timeout_ms:
                 return None
             if self._last_cmd is None or self._last_cmd.reason != "watchdog":

@@ -66,6 +66,9 @@ class Capture(Node):
         self.frames = iter(self.source)
         self.fps = p.fps or getattr(self.source, "fps", 30.0) or 30.0
         self.published = 0
+        # Names this session's frame numbering: a restarted capture counts from 0 again under a new epoch,
+        # which every node follows instead of taking the new frames for stale ones (bus.sync).
+        self.epoch_ns = time.time_ns()
         self.acked = -1
         self.t0_wall_ns: int | None = None
         self.first_source_ns = 0
@@ -155,6 +158,7 @@ class Capture(Node):
         if vis is not None:
             gt.others_visible = np.asarray(vis, dtype=np.float64).reshape(-1)
         gt.header.stamp_ns, gt.header.frame_seq = stamp_ns, seq
+        frame.header.epoch_ns = gt.header.epoch_ns = self.epoch_ns
         # Ground truth first: a detector joining it with the frame never waits.
         self.publish("ground_truth", gt)
         self.publish("frame", frame)
@@ -170,7 +174,7 @@ class Capture(Node):
         ok, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, p.jpeg_quality])
         msg = Frame(width=small.shape[1], height=small.shape[0], encoding="jpeg",
                     data=np.frombuffer(jpeg.tobytes() if ok else b"", np.uint8), source_width=w, source_height=h)
-        msg.header.stamp_ns, msg.header.frame_seq = stamp_ns, seq
+        msg.header.stamp_ns, msg.header.frame_seq, msg.header.epoch_ns = stamp_ns, seq, self.epoch_ns
         return msg
 
     def status_extra(self) -> dict[str, Any]:

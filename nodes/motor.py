@@ -1,10 +1,14 @@
 """motor: follows the target with PID on bearing and width-based range (seed 001 Eq. 1), Mecanum
 inverse kinematics to four wheel speeds, speed and acceleration limits.
 
-Safety: a watchdog ticking at 50 Hz commands zero within 200 ms when tracks stop arriving, and a
-LOST (or uninitialised) target is an immediate zero. Drivers: ``sim`` integrates the robot pose
-and publishes odometry (which feeds prediction's ego-motion-aware noise, Eq. 7 of seed 000);
-``serial`` writes the documented line protocol of control/drivers.py to ``port``.
+Safety: a watchdog ticking at 100 Hz commands zero when no valid track has been *received* for
+``watchdog_timeout_ms`` (130 ms: the stop lands ~140 ms after the last track, inside the 200 ms promise
+with margin for a loaded machine). It runs on this process's monotonic clock, never on message stamps,
+so no message can disable it. A LOST (or uninitialised) target is an immediate zero. Live, a track whose
+capture is older than ``max_track_age_ms`` does not count as valid: the robot never acts on a stale view
+of the world. Drivers: ``sim`` integrates the robot pose and publishes odometry (which feeds
+prediction's ego-motion-aware noise, Eq. 7 of seed 000); ``serial`` writes the documented line protocol
+of control/drivers.py to ``port``.
 
 Each command carries the stamp and frame_seq of the track it answers, so end-to-end latency from
 frame capture to motor command is ``command.pub_ns - command.stamp_ns``.
@@ -30,6 +34,7 @@ class MotorParams:
     driver: str = "sim"  # sim | serial
     port: str = ""  # serial device, e.g. /dev/ttyUSB0
     baud: int = 115200
+    max_track_age_ms: float = 500.0  # live: older tracks (capture -> here) are not acted on; 0: no limit
 
 
 class Motor(Node):
@@ -37,7 +42,7 @@ class Motor(Node):
     REQUIRED_INPUTS = frozenset({"track"})
     OUTPUTS = {"command": MotorCommand, "odometry": Odometry}
     EXPRESS = frozenset({"command"})
-    TIMER_PERIOD_MS = 20.0  # watchdog and odometry tick (50 Hz): a stop lands <= 220 ms after the last track
+    TIMER_PERIOD_MS = 10.0  # watchdog and odometry tick (100 Hz)
 
     @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> tuple[MotorParams, FollowParams]:
@@ -61,16 +66,26 @@ class Motor(Node):
         self.last_cmd: FollowCommand | None = None
         self.commands = 0
         self.last_odom_ns = 0
+        self.too_old = 0  # tracks not acted on: captured longer than max_track_age_ms ago
+        self.live = self.runtime.clock.mode == "wall"
 
     def on_message(self, name: str, msg: Message) -> None:
         if not isinstance(msg, Track):
             return
-        # Controller time is the track stamp (replay-deterministic); the watchdog uses the node clock.
-        cmd = self.controller.on_track(msg.header.stamp_ns, msg.state, msg.box)
+        # Controller time is the track stamp (replay-deterministic); the watchdog uses the receive time on
+        # this process's monotonic clock (live) so that no stamp can hold it off.
+        received_ns = None
+        if self.live:
+            received_ns = time.monotonic_ns()
+            max_age_ms = self.motor_params.max_track_age_ms
+            if max_age_ms and (time.time_ns() - msg.header.stamp_ns) > max_age_ms * 1e6:
+                self.too_old += 1
+                return
+        cmd = self.controller.on_track(msg.header.stamp_ns, msg.state, msg.box, received_ns=received_ns)
         self._command(cmd, like=msg)
 
     def on_timer(self, now_ns: int) -> None:
-        cmd = self.controller.on_tick(now_ns)
+        cmd = self.controller.on_tick(now_ns, time.monotonic_ns() if self.live else None)
         repeated_stop = self.last_cmd is not None and self.last_cmd.is_zero and cmd is not None \
             and cmd.reason == self.last_cmd.reason
         if cmd is not None and not repeated_stop:
@@ -109,7 +124,7 @@ class Motor(Node):
 
     def status_extra(self) -> dict[str, Any]:
         last = self.last_cmd
-        return {"commands": self.commands, "reason": last.reason if last else "",
+        return {"commands": self.commands, "too_old": self.too_old, "reason": last.reason if last else "",
                 "vx_mps": round(last.vx_mps, 3) if last else 0.0, "wz_radps": round(last.wz_radps, 3) if last else 0.0}
 
 

@@ -8,6 +8,11 @@ target is occluded) and the posterior track is published at once, so motor contr
 back a frame. Odometry feeds the ego-motion-aware measurement noise R_k = R0 + κ‖v_ego‖² I (Eq. 7):
 for frame k the newest odometry sample stamped at or before frame k's capture is used, never "whatever
 arrived last", so a live run and its lockstep replay compute the same R_k.
+
+Self-healing: a frame stamp that goes back, or jumps further ahead than ``max_predict_gap_ms``, or a
+filter state that is no longer finite, resets the filter (counted in ``resets``). The prior is then
+uninitialised and re-ID re-initialises the target from its template, so the loop recovers by itself
+instead of extrapolating a poisoned state forever.
 """
 
 from __future__ import annotations
@@ -16,6 +21,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from followbus.bus.node import Node
 from followbus.bus.schemas import Detections, Measurement, Message, Odometry, Prior, Track
@@ -29,6 +36,7 @@ from followbus.tracking.tracker import output_box
 @dataclass
 class PredictionParams:
     use_odometry: bool = True  # False: R_k = R0 (the ablation without ego-motion-aware noise)
+    max_predict_gap_ms: float = 5000.0  # a longer jump between frame stamps re-initialises the filter
 
 
 class Prediction(Node):
@@ -45,8 +53,20 @@ class Prediction(Node):
         self.predictor = Predictor(tracker_params)
         self.priors: dict[int, Any] = {}  # frame_seq -> pure Prior, until its measurement arrives
         self.applied_seq = -1
+        self.applied_epoch = 0
         self.last_state = "UNINITIALISED"
         self.odometry: deque[Odometry] = deque(maxlen=512)  # ~10 s at 50 Hz, in stamp order
+        self.filter_resets = 0
+
+    def _reset_filter(self, why: str) -> None:
+        self.log.warning("resetting the Kalman filter: %s; re-ID will re-initialise the target", why)
+        self.filter_resets += 1
+        self.predictor.reset()
+        self.priors.clear()
+
+    def _filter_ok(self) -> bool:
+        kf = self.predictor.kf
+        return not kf.initialised or bool(np.isfinite(kf.x).all() and np.isfinite(kf.P).all())
 
     def _v_ego(self, stamp_ns: int) -> tuple[float, float]:
         """Ego velocity at a frame's capture stamp: the newest odometry sample not after it."""
@@ -67,11 +87,18 @@ class Prediction(Node):
         if name != "measurement" or not isinstance(msg, Measurement):
             return
         seq = msg.header.frame_seq
+        if msg.header.epoch_ns != self.applied_epoch:
+            # The synchroniser followed a restarted capture (new frame numbering): so do we.
+            self.applied_epoch, self.applied_seq = msg.header.epoch_ns, -1
+            self.priors.clear()
         if seq <= self.applied_seq:
             return
         reid = msg_to_reid(msg)
         prior = self.priors.pop(seq, None)
         posterior = self.predictor.apply(reid, self._v_ego(msg.header.stamp_ns))
+        if not self._filter_ok():
+            self._reset_filter("the measurement update left a non-finite state")
+            posterior = None
         self.applied_seq = seq
         self.last_state = msg.state
         self.publish("track", make_track(msg.state, output_box(reid, prior), posterior), like=msg)
@@ -81,12 +108,20 @@ class Prediction(Node):
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         dets = inputs["detections"]
         assert dets is not None
-        prior = self.predictor.predict(dets.header.stamp_ns, self._v_ego(dets.header.stamp_ns))
+        stamp = dets.header.stamp_ns
+        last = self.predictor.kf.t_ns if self.predictor.initialised else None
+        if last is not None and not 0 <= stamp - last <= self.node_params.max_predict_gap_ms * 1e6:
+            self._reset_filter(f"frame stamp jumped by {(stamp - last) / 1e6:.0f} ms")
+        prior = self.predictor.predict(stamp, self._v_ego(stamp))
+        if not self._filter_ok():
+            self._reset_filter("the prediction left a non-finite state")
+            prior = None
         self.priors[frame_seq] = prior
         self.publish("prior", prior_to_msg(prior), like=dets)
 
     def status_extra(self) -> dict[str, Any]:
-        return {"state": self.last_state, "initialised": self.predictor.initialised}
+        return {"state": self.last_state, "initialised": self.predictor.initialised,
+                "filter_resets": self.filter_resets}
 
 
 NODE = Prediction

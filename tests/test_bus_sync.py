@@ -67,17 +67,109 @@ def test_newer_complete_frame_supersedes_an_incomplete_one_and_late_data_is_stal
     assert sync.poll(3 * MS) == [] and sync.pending == 0
 
 
-def test_missing_feedback_does_not_cascade_into_dropping_newer_frames():
+def test_missing_feedback_costs_one_wait_per_outage_not_one_per_frame():
     sync = FrameSynchronizer([SyncInput("dets"), SyncInput("meas", offset=-1, optional=True)], 10 * MS)
     sync.add("dets", 1, "d1", 0)
     assert [seq for seq, _ in sync.poll(0)] == [1]
     for seq in (2, 3, 4):  # the measurement of frame 1 is lost; detections keep coming
         sync.add("dets", seq, f"d{seq}", seq * MS)
     assert sync.poll(5 * MS) == [] and sync.dropped == 0
-    # Frame 2 goes on without it after the timeout; frame 3 then waits for frame 2's measurement.
-    assert sync.poll(12 * MS) == [(2, {"dets": "d2", "meas": None})]
-    sync.add("meas", 2, "m2", 13 * MS)
-    assert sync.poll(13 * MS) == [(3, {"dets": "d3", "meas": "m2"})]
-    sync.add("meas", 3, "m3", 14 * MS)
-    assert sync.poll(14 * MS) == [(4, {"dets": "d4", "meas": "m3"})]
-    assert sync.dropped == 0 and sync.timeouts == 1
+    # Frame 2 goes on without it after the timeout, and the frames queued behind it follow at once.
+    assert sync.poll(12 * MS) == [(2, {"dets": "d2", "meas": None}), (3, {"dets": "d3", "meas": None}),
+                                  (4, {"dets": "d4", "meas": None})]
+    assert sync.feedback_lost and sync.feedback_fallbacks == 3
+    # The producer is back: its measurement of frame 4 arrives before frame 5 does, so frame 5 is exact
+    # and frames after it wait for their feedback again.
+    sync.add("meas", 4, "m4", 13 * MS)
+    sync.add("dets", 5, "d5", 14 * MS)
+    assert sync.poll(14 * MS) == [(5, {"dets": "d5", "meas": "m4"})]
+    assert not sync.feedback_lost
+    sync.add("dets", 6, "d6", 15 * MS)
+    assert sync.poll(16 * MS) == []
+
+
+def test_fallback_uses_the_newest_feedback_at_or_before_the_previous_frame():
+    sync = FrameSynchronizer([SyncInput("dets"), SyncInput("meas", offset=-1)], 10 * MS)
+    sync.add("dets", 1, "d1", 0)
+    sync.poll(0)
+    sync.add("meas", 1, "m1", 1 * MS)
+    sync.add("dets", 2, "d2", 2 * MS)
+    assert sync.poll(2 * MS) == [(2, {"dets": "d2", "meas": "m1"})]
+    sync.add("dets", 3, "d3", 3 * MS)  # the measurement of frame 2 never comes
+    assert sync.poll(14 * MS) == [(3, {"dets": "d3", "meas": "m1"})]
+    assert sync.feedback_fallbacks == 1
+
+
+def test_a_backlog_is_skipped_to_the_newest_frame():
+    sync = FrameSynchronizer([SyncInput("frame"), SyncInput("prior")], 1000 * MS, max_lag_ns=100 * MS)
+    for seq in range(10):  # frames queue up while the node was busy (33 ms apart)
+        sync.add("frame", seq, f"f{seq}", 0, stamp_ns=seq * 33 * MS)
+        sync.add("prior", seq, f"p{seq}", 0, stamp_ns=seq * 33 * MS)
+    # 0..5 are more than 100 ms behind frame 9: only 6..9 are handled.
+    assert [seq for seq, _ in sync.poll(1 * MS)] == [6, 7, 8, 9]
+    assert sync.late == 6
+
+
+def test_a_lagging_set_is_still_handled_when_nothing_newer_is_complete():
+    sync = FrameSynchronizer([SyncInput("frame"), SyncInput("prior")], 1000 * MS, max_lag_ns=100 * MS)
+    sync.add("frame", 1, "f1", 0, stamp_ns=0)
+    sync.add("frame", 9, "f9", 0, stamp_ns=300 * MS)  # newer, but incomplete
+    sync.add("prior", 1, "p1", 0, stamp_ns=0)
+    assert [seq for seq, _ in sync.poll(1 * MS)] == [1]
+
+
+def test_far_future_frame_seq_is_rejected_and_does_not_freeze_the_stream():
+    sync = FrameSynchronizer([SyncInput("frame")], 100 * MS)
+    for seq in range(3):
+        assert sync.add("frame", seq, seq, 0, stamp_ns=seq * 33 * MS) == "accepted"
+    assert [s for s, _ in sync.poll(0)] == [0, 1, 2]
+    assert sync.add("frame", 10**9, "forged", 0, stamp_ns=3 * 33 * MS) == "implausible"
+    assert sync.add("frame", 4, 4, 0, stamp_ns=100 * 3600 * 10**9) == "implausible"  # stamp an hour ahead
+    sync.add("frame", 3, 3, 0, stamp_ns=3 * 33 * MS)
+    assert [s for s, _ in sync.poll(0)] == [3]
+    assert sync.guard.implausible == 2
+
+
+def test_a_forged_first_message_is_outlived_by_the_real_stream():
+    sync = FrameSynchronizer([SyncInput("frame")], 100 * MS)
+    sync.add("frame", 10**9, "forged", 0, stamp_ns=0)
+    assert [s for s, _ in sync.poll(0)] == [10**9]
+    handled = []
+    for seq in range(1, 12):
+        sync.add("frame", seq, seq, 0, stamp_ns=seq * 33 * MS)
+        handled += [s for s, _ in sync.poll(0)]
+    assert handled and handled == list(range(handled[0], 12)) and sync.guard.resyncs == 1
+
+
+def test_a_restarted_source_is_followed_from_its_new_epoch():
+    sync = FrameSynchronizer([SyncInput("dets"), SyncInput("meas", offset=-1)], 100 * MS)
+    for seq in range(5):
+        sync.add("dets", seq, seq, 0, stamp_ns=seq * 33 * MS, epoch_ns=1)
+        sync.add("meas", seq, f"m{seq}", 0, epoch_ns=1)
+        assert [s for s, _ in sync.poll(0)] == [seq]
+    # The camera restarts and counts from 0 again, with later stamps and a new epoch.
+    sync.add("dets", 0, "new0", 0, stamp_ns=10_000 * MS, epoch_ns=2)
+    assert sync.poll(0) == [(0, {"dets": "new0", "meas": None})]  # a fresh start: no feedback to wait for
+    assert sync.add("meas", 4, "old", 0, epoch_ns=1) == "stale"  # in flight from before the restart
+    assert sync.guard.resyncs == 1
+
+
+def test_stale_messages_are_dropped_and_counted():
+    sync = FrameSynchronizer([SyncInput("frame")], 100 * MS)
+    sync.add("frame", 5, 5, 0, stamp_ns=5 * 33 * MS)
+    sync.poll(0)
+    assert sync.add("frame", 4, 4, 0, stamp_ns=4 * 33 * MS) == "stale"
+    assert sync.poll(0) == [] and sync.guard.stale == 1
+
+
+def test_forced_feedback_reproduces_a_live_fallback():
+    """Replay: the recorded output says frame 3 used the measurement of frame 1 (frame 2's was late)."""
+    sync = FrameSynchronizer([SyncInput("dets"), SyncInput("meas", offset=-1)], 10 * MS)
+    for seq, meas in ((1, None), (2, "m1")):
+        sync.add("dets", seq, f"d{seq}", 0)
+        if meas:
+            sync.add("meas", 1, meas, 0)
+        sync.poll(0)
+    sync.force_feedback(3, {"meas": 1})
+    sync.add("dets", 3, "d3", 0)
+    assert sync.poll(0) == [(3, {"dets": "d3", "meas": "m1"})]

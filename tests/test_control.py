@@ -139,7 +139,7 @@ def _box(range_m: float, centre_u: float = 320.0, focal_px: float = 500.0) -> li
 
 def test_follow_params_defaults_and_from_dict() -> None:
     p = FollowParams()
-    assert p.cx_px == 640.0 and p.target_distance_m == 1.5 and p.watchdog_timeout_ms == 200.0
+    assert p.cx_px == 640.0 and p.target_distance_m == 1.5 and p.watchdog_timeout_ms == 130.0
     assert _params().cx_px == 320.0
     with pytest.raises(ValueError, match="max_sped_mps"):
         FollowParams.from_dict({"max_sped_mps": 1.0})
@@ -227,13 +227,24 @@ def test_watchdog() -> None:
         ctl.on_track(k * 33 * MS, "TRACKING", _box(3.0))
     last = 29 * 33 * MS
     assert not ctl.last_command.is_zero
-    assert ctl.on_tick(last + 150 * MS) is None
+    assert ctl.on_tick(last + 120 * MS) is None
     cmd = ctl.on_tick(last + 250 * MS)
     assert cmd is not None and cmd.reason == "watchdog" and cmd.is_zero
     assert np.all(cmd.wheel_radps == 0.0)
     assert ctl.on_tick(last + 270 * MS).is_zero  # keeps stopping
+
     resumed = ctl.on_track(last + 300 * MS, "TRACKING", _box(3.0))
     assert 0 < resumed.vx_mps <= ctl.params.max_accel_mps2 * 0.030 + 1e-12  # ramps up from zero
+
+
+def test_watchdog_trusts_receive_times_not_stamps() -> None:
+    """A track stamped an hour ahead must not hold the watchdog off: it runs on the receive clock."""
+    ctl = FollowController(FollowParams(image_width_px=640, focal_px=450.0))
+    hour = 3600 * 10**9
+    ctl.on_track(hour, "TRACKING", [300, 100, 60, 150], received_ns=1_000 * MS)
+    assert ctl.on_tick(5 * MS, now_received_ns=1_100 * MS) is None
+    cmd = ctl.on_tick(6 * MS, now_received_ns=1_140 * MS)
+    assert cmd is not None and cmd.reason == "watchdog" and cmd.is_zero
 
 
 # -------------------------------------------------------------------------------- drivers

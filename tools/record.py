@@ -237,7 +237,7 @@ class Recorder:
             obj = unpack(item.data)
             item.type_name = obj.get("_t") if isinstance(obj.get("_t"), str) else None
             raw_header = obj.get("header")
-            if isinstance(raw_header, list) and len(raw_header) == 5:
+            if isinstance(raw_header, list) and len(raw_header) in (5, 7):  # 7: with epoch and provenance
                 item.header = raw_header
         except DecodeError:
             pass

@@ -281,7 +281,7 @@ def _peek_header(data: bytes) -> list[Any] | None:
         for _ in range(unpacker.read_map_header()):
             if unpacker.unpack() == "header":
                 head = unpacker.unpack()
-                return head if isinstance(head, list) and len(head) == 5 else None
+                return head if isinstance(head, list) and len(head) in (5, 7) else None
             unpacker.skip()
     except (ValueError, msgpack.UnpackException, msgpack.OutOfData):
         return None
