@@ -4,10 +4,15 @@ Default: peer mode on loopback with multicast scouting off. Every peer tries to 
 well-known endpoint (the first one wins) plus an ephemeral loopback port, and connects to the
 well-known endpoint; gossip then tells peers about each other so they form a direct mesh that
 survives whichever process held the well-known port going away.
+
+Exposure: with no ``transport/auth`` settings every local process is trusted (anyone on the machine can
+publish motor commands or declare health tokens); that is acceptable only on loopback, so a session
+listening on any other address without authentication is logged loudly (:func:`exposure`).
 """
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import logging
 from dataclasses import dataclass, field
@@ -81,8 +86,48 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     return conf
 
 
+def _is_local(endpoint: str) -> bool:
+    """Whether only processes on this machine can reach an endpoint (loopback IP, or a Unix socket)."""
+    proto, _, address = endpoint.partition("/")
+    if proto.startswith("unixsock"):
+        return True
+    host = address.split("#", 1)[0].split("?", 1)[0].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: it may resolve to anything
+        return False
+
+
+def _has_auth(config: dict[str, Any]) -> bool:
+    """Whether the raw overrides authenticate peers (user/password, public keys, or mutual TLS)."""
+    for key, value in config.items():
+        if key.startswith("transport/auth") or (key == "transport/link/tls/enable_mtls" and value is True):
+            return True
+        if isinstance(value, dict) and ((key == "transport" and "auth" in value)
+                                        or (key == "transport/link/tls" and value.get("enable_mtls") is True)):
+            return True
+    return False
+
+
+def exposure(settings: ZenohSettings) -> str | None:
+    """Why other machines could write on this bus unauthenticated, or None (client, loopback only, or auth)."""
+    if settings.mode == "client" or _has_auth(settings.config):
+        return None
+    reachable = [ep for ep in settings.listen if not _is_local(ep)]
+    if not reachable:
+        return None
+    return (f"listening on {', '.join(reachable)} without authentication: anyone who can reach it can publish "
+            "on the bus (motor commands included) and fake node health; add transport/auth/usrpwd to the zenoh "
+            "config (README, Security)")
+
+
 def open_session(settings: ZenohSettings | None = None) -> zenoh.Session:
     settings = settings or ZenohSettings()
+    warning = exposure(settings)
+    if warning:
+        log.warning("zenoh: %s", warning)
     log.debug("opening zenoh session: mode=%s listen=%s connect=%s", settings.mode, settings.listen,
               settings.connect)
     return zenoh.open(build_config(settings))

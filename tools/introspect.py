@@ -133,12 +133,13 @@ def cmd_nodes(args, settings: ZenohSettings, namespace: str) -> int:
     if not snapshot:
         print(f"no nodes under {namespace}/@health")
         return 1
-    print(f"{'node':<14} {'state':<6} {'pid':>7} {'uptime s':>9} {'handler errs':>12}")
+    print(f"{'node':<14} {'state':<6} {'pid':>7} {'uptime s':>9} {'handler errs':>12}  check")
     for name in sorted(snapshot):
         h = snapshot[name]
         st = h.status
         print(f"{name:<14} {'up' if h.alive else 'down':<6} {st.pid if st else '-':>7} "
-              f"{(f'{st.uptime_s:.0f}' if st else '-'):>9} {(st.extra.get('handler_errors', 0) if st else '-'):>12}")
+              f"{(f'{st.uptime_s:.0f}' if st else '-'):>9} {(st.extra.get('handler_errors', 0) if st else '-'):>12}  "
+              f"{h.trust}{f' ({h.trust_reason})' if h.trust_reason else ''}")
     return 0
 
 

@@ -8,6 +8,7 @@ import ctypes
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -16,8 +17,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from followbus.bus.graph import Graph, NodeSpec
-from followbus.bus.health import HealthWatcher
+from followbus.bus.health import (
+    LAUNCHER_PERIOD_S,
+    HealthWatcher,
+    LaunchedProcess,
+    launcher_id,
+    launcher_key,
+    process_table,
+)
 from followbus.bus.node import LAUNCHED_NODES_ENV
+from followbus.bus.pubsub import Publisher
 from followbus.bus.session import open_session
 
 log = logging.getLogger("followbus.launch")
@@ -42,6 +51,9 @@ class Child:
     next_start: float = 0.0
     failed: bool = False  # failed for good (restart budget exhausted or policy never)
     finished: bool = False  # exited cleanly and will not be restarted
+    pid: int = 0  # the current process, or the last one once it exited
+    exit_code: int | None = None
+    changed_at: float = 0.0  # monotonic time of its last start or exit
     threads: list[threading.Thread] = field(default_factory=list)
 
     @property
@@ -83,6 +95,12 @@ class Launcher:
             self.children.append(Child(NodeSpec(name=name, run="<tool>"), argv))
         self.health: HealthWatcher | None = None
         self.session = None
+        # The process table (which node runs as which pid, which exited) lets monitors tell a live node
+        # from a token someone else declared under its name (bus/health.py).
+        self.launcher_id = launcher_id(socket.gethostname(), os.getpid())
+        self._table_pub: Publisher | None = None
+        self._table_due = 0.0  # monotonic time of the next publication; 0 = at once
+        self._started_ns = time.time_ns()
 
     def _node_argv(self, name: str) -> list[str]:
         argv = [sys.executable, "-m", "followbus.tools.cli", "node", name, "--graph", str(Path(self.graph.path))]
@@ -114,9 +132,13 @@ class Launcher:
         thread = threading.Thread(target=self._pump, args=(child, child.proc.stdout), daemon=True)
         thread.start()
         child.threads.append(thread)
+        child.pid, child.exit_code, child.changed_at = child.proc.pid, None, time.monotonic()
+        self._table_due = 0.0
         log.info("started %s (pid %d)", child.name, child.proc.pid)
 
     def _on_exit(self, child: Child, code: int) -> None:
+        child.exit_code, child.changed_at = code, time.monotonic()
+        self._table_due = 0.0
         policy = child.spec.restart
         log_fn = log.info if code == 0 else log.warning
         log_fn("%s exited with status %d", child.name, code)
@@ -138,6 +160,22 @@ class Launcher:
         log.warning("restarting %s in %d ms (restart %d of %d)", child.name, backoff_ms, child.restarts,
                     policy.max_restarts)
 
+    def _publish_table(self, stopped: bool = False) -> None:
+        """Publish the process table now; ``stopped`` retracts it (the launcher is going away)."""
+        if self._table_pub is None:
+            return
+        now = time.monotonic()
+        processes = {c.name: LaunchedProcess(c.pid, c.proc is not None and not stopped, c.restarts, c.exit_code,
+                                             since_s=now - c.changed_at)
+                     for c in self.children if c.pid}
+        msg = process_table(self.launcher_id, processes, os.getpid(), (time.time_ns() - self._started_ns) / 1e9,
+                            stopped=stopped)
+        try:
+            self._table_pub.put(msg)
+        except Exception as exc:  # monitoring must never take the graph down
+            log.warning("could not publish the process table: %r", exc)
+        self._table_due = time.monotonic() + LAUNCHER_PERIOD_S
+
     def request_stop(self, *_args) -> None:
         self.stop_event.set()
 
@@ -145,6 +183,8 @@ class Launcher:
         """Run until duration elapses, Ctrl-C/SIGTERM, or every node has finished. Returns the exit status."""
         self.session = open_session(self.graph.zenoh)
         self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=False)
+        self._table_pub = Publisher(self.session, launcher_key(self.graph.namespace, self.launcher_id),
+                                    self.launcher_id, congestion="drop")
         for child in self.children:
             self._start(child)
         node_names = {c.name for c in self.children if c.spec.run != "<tool>"}
@@ -164,6 +204,8 @@ class Launcher:
                             self._on_exit(child, code)
                     elif not child.finished and now >= child.next_start:
                         self._start(child)
+                if now >= self._table_due:
+                    self._publish_table()
                 if not ready:
                     missing = node_names - self.health.alive()
                     if not missing:
@@ -209,6 +251,7 @@ class Launcher:
         failed = sorted(c.name for c in self.children if c.failed)
         if failed:
             log.error("node(s) failed for good: %s", ", ".join(failed))
+        self._publish_table(stopped=True)
         if self.health is not None:
             self.health.close()
         if self.session is not None:

@@ -132,6 +132,8 @@ class NodeView:
     pids: list[int] = field(default_factory=list)
     status: NodeStatus | None = None
     status_ns: int = 0
+    trust: str = "unverified"  # bus.health: verified / unverified / spoofed? (token vs launcher's process table)
+    trust_reason: str = ""
 
     @property
     def restarts(self) -> int:
@@ -347,11 +349,10 @@ class BusMonitor:
         if watcher is None:
             return
         for name, health in watcher.snapshot().items():
-            if health.status is None:
-                continue
             with self.lock:
                 node = self.nodes.setdefault(name, NodeView(name))
-                if health.status_ns > node.status_ns:
+                node.trust, node.trust_reason = health.trust, health.trust_reason
+                if health.status is not None and health.status_ns > node.status_ns:
                     node.status, node.status_ns = health.status, health.status_ns
                     if health.status.pid and health.status.pid not in node.pids:
                         node.pids.append(health.status.pid)
@@ -373,6 +374,7 @@ class BusMonitor:
                     "status_age_s": (now_ns - n.status_ns) / 1e9 if st else None,
                     "topics": (st.topics if st and fresh else {}),
                     "handler_errors": st.extra.get("handler_errors", 0) if st else 0,
+                    "trust": n.trust, "trust_reason": n.trust_reason,
                 })
             track, prior = self.latest.get("track"), self.latest.get("prior")
             meas, template = self.latest.get("measurement"), self.latest.get("template")
@@ -431,6 +433,11 @@ def _num(value: Any, fmt: str = ".1f", missing: str = "-") -> str:
     return format(value, fmt)
 
 
+def _trust(node: dict[str, Any]) -> str:
+    reason = node.get("trust_reason")
+    return node.get("trust", "") + (f" ({reason})" if reason else "")
+
+
 def render(snap: dict[str, Any]) -> list[str]:
     """The dashboard as plain lines (the caller adds ANSI in-place refresh on a TTY)."""
     ends = ", ".join(snap["endpoints"])
@@ -441,12 +448,12 @@ def render(snap: dict[str, Any]) -> list[str]:
         if snap.get("last_error"):
             link += f" ({snap['last_error'][:80]})"
     lines = [f"followbus monitor  {ends}  ns={snap['namespace']}  {_clock(snap['now_ns'])}  {link}", ""]
-    lines.append(f"{'node':<14} {'state':<5} {'for s':>7} {'restarts':>8} {'pid':>7} {'uptime s':>9} {'errs':>5}")
+    lines.append(f"{'node':<14} {'state':<5} {'for s':>7} {'restarts':>8} {'pid':>7} {'uptime s':>9} {'errs':>5} check")
     for n in snap["nodes"]:
         for_s = (snap["now_ns"] - n["since_ns"]) / 1e9 if n["since_ns"] else None
         lines.append(f"{n['name']:<14} {'up' if n['alive'] else 'DOWN':<5} {_num(for_s, '.0f'):>7} "
                      f"{n['restarts']:>8} {_num(n['pid'], 'd'):>7} {_num(n['uptime_s'], '.0f'):>9} "
-                     f"{n['handler_errors']:>5}")
+                     f"{n['handler_errors']:>5} {_trust(n)}")
     lines += ["", f"{'topic (as seen by node)':<40} {'dir':<3} {'rate Hz':>7} {'p50 ms':>7} {'p99 ms':>7} "
                   f"{'drops':>6} {'dec err':>7}"]
     for n in snap["nodes"]:
