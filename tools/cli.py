@@ -155,7 +155,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=float, help="stop after S seconds (--once: wait at most S, default 5)")
     p.add_argument("--web", type=int, nargs="?", const=8080, metavar="PORT",
                    help="serve the web view on PORT (default 8080) instead of the terminal dashboard")
-    p.add_argument("--bind", default="127.0.0.1", help="address the web view listens on (default 127.0.0.1)")
+    p.add_argument("--bind", default="127.0.0.1", help="address the web view listens on (default 127.0.0.1; "
+                                                        "any other address requires a token)")
+    p.add_argument("--web-token", metavar="TOKEN",
+                   help="token the web view requires (also on loopback; default $FOLLOWBUS_WEB_TOKEN, else one "
+                        "generated and printed when --bind is not loopback)")
 
     p = sub.add_parser("bench", help="benchmarks that write figures (see BENCHMARKS.md)")
     bench = p.add_subparsers(dest="bench", metavar="WHAT")

@@ -171,6 +171,7 @@ class BusMonitor:
         self.preview: Frame | None = None
         self.preview_jpeg = b""
         self.preview_count = 0
+        self.preview_received_ns = 0  # receive time: the web view tells a frozen preview from a live one
         self.connected = False
         self.ever_connected = False
         self.unreachable_since_ns = time.time_ns()
@@ -340,6 +341,7 @@ class BusMonitor:
             self.preview = msg
             self.preview_jpeg = msg.data.tobytes()
             self.preview_count += 1
+            self.preview_received_ns = time.time_ns()
         if self.on_preview is not None:
             self.on_preview()
 
@@ -375,6 +377,7 @@ class BusMonitor:
                     "topics": (st.topics if st and fresh else {}),
                     "handler_errors": st.extra.get("handler_errors", 0) if st else 0,
                     "trust": n.trust, "trust_reason": n.trust_reason,
+                    "extra": dict(st.extra) if st else {},  # e.g. capture's done: the web view's "source ended"
                 })
             track, prior = self.latest.get("track"), self.latest.get("prior")
             meas, template = self.latest.get("measurement"), self.latest.get("template")
@@ -417,6 +420,7 @@ class BusMonitor:
             out["centre_error_px"] = err[-1][1] if err else None
             if self.preview is not None:
                 out["preview"] = {"count": self.preview_count, "width": self.preview.width,
+                                  "age_s": (now_ns - self.preview_received_ns) / 1e9,
                                   "height": self.preview.height, "frame_seq": self.preview.header.frame_seq,
                                   "stamp_ns": self.preview.header.stamp_ns}
             return out
@@ -498,7 +502,7 @@ def run_monitor(args: Any) -> int:
     if args.web is not None:
         from followbus.tools.webview import serve
 
-        return serve(settings, info, args.bind, args.web, args.seconds)
+        return serve(settings, info, args.bind, args.web, args.seconds, token=args.web_token)
     monitor = BusMonitor(settings, info).start()
     try:
         if args.once:

@@ -1,4 +1,4 @@
-"""``followbus monitor --web``: the monitor as a web page served from the laptop.
+"""``followbus monitor --web``: the monitor as an operator's screen served from the laptop.
 
 The server holds one :class:`~followbus.tools.monitor.BusMonitor` (a Zenoh client that only subscribes: the
 latest JPEG preview, never raw frames, plus a bounded history). HTTP handlers only read that state, so however
@@ -6,19 +6,36 @@ slow a browser or the Wi-Fi is, nothing flows back to the robot. Each browser fe
 (the next request goes out when the previous image has loaded) and the server serves at most
 ``MAX_PREVIEWS_PER_S`` per client, always the newest frame: a slow client simply sees fewer frames.
 
-Endpoints: ``/`` (the page), ``/state.json`` (snapshot with history), ``/preview.jpg?after=N&client=ID``
-(long-polls up to 1 s for a preview newer than N, or for the first one; 204 if none came), ``/healthz``.
+The page: video with overlays on the left, state, plots and the health table (a row per topic, labelled
+columns) on the right at laptop width, one column on narrow screens; a banner over the video says what the
+operator is looking at: waiting for the first frame, source ended, no new frame (frozen), robot unreachable.
+
+Access: a loopback bind is open. Any other bind requires a token (``--web-token`` or a generated one printed
+once at start as a ``?token=`` URL), checked on every request; the first visit with ``?token=`` sets a cookie.
+``--web-token`` on a loopback bind requires it there too.
+
+Endpoints: ``/`` (the page), ``/state.json`` (snapshot with history, ``screen`` state and ``health`` rows),
+``/preview.jpg?after=N&client=ID`` (long-polls up to 1 s for a preview newer than N, or for the first one;
+204 if none came), ``/healthz``.
 """
 
 from __future__ import annotations
 
+import hmac
+import ipaddress
 import json
 import logging
+import os
+import re
+import secrets
+import socket
+import sys
 import threading
 import time
+from http.cookies import CookieError, SimpleCookie
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
-from urllib.parse import parse_qs, urlparse
+from urllib.parse import parse_qs, urlencode, urlparse
 
 from followbus.bus.session import ZenohSettings
 from followbus.tools.introspect import wait_for
@@ -28,6 +45,103 @@ log = logging.getLogger("followbus.webview")
 
 MAX_PREVIEWS_PER_S = 10.0
 LONG_POLL_S = 1.0
+# Nodes publish NodeStatus every second: none for this long while connected means nothing on the robot runs.
+STATUS_STALE_S = 5.0
+FRAME_STALE_S = 3.0  # no preview for this long: the picture is frozen, say so rather than "live"
+TOKEN_COOKIE = "followbus_token"
+TOKEN_ENV = "FOLLOWBUS_WEB_TOKEN"
+TOKEN_RE = re.compile(r"[A-Za-z0-9._~-]{8,256}")  # URL- and cookie-safe; shorter is guessable
+EXIT_BAD_INPUT = 2
+
+
+def is_loopback_bind(bind: str) -> bool:
+    """True when ``bind`` only accepts connections from this machine (127.0.0.0/8, ::1, localhost).
+
+    Anything else, including ``0.0.0.0``/``::`` (every interface), an empty string and host names other than
+    ``localhost`` (whose resolution may change), counts as reachable from the network.
+    """
+    host = bind.strip().strip("[]")
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def web_token(bind: str, given: str | None) -> tuple[str | None, bool]:
+    """The token the server requires (None: open) and whether it was generated here.
+
+    Raises ValueError for a token that is too short or has characters unsafe in a URL or cookie."""
+    if given is not None:
+        if not TOKEN_RE.fullmatch(given):
+            raise ValueError("--web-token must be 8-256 characters of A-Z a-z 0-9 . _ ~ -")
+        return given, False
+    if is_loopback_bind(bind):
+        return None, False
+    return secrets.token_urlsafe(18), True
+
+
+def _clock(ns: int | None) -> str:
+    return time.strftime("%H:%M:%S", time.localtime(ns / 1e9)) if ns else "?"
+
+
+def screen_state(snap: dict[str, Any], source_node: str, stale_after_s: float = STATUS_STALE_S,
+                 frame_stale_s: float = FRAME_STALE_S) -> dict[str, str]:
+    """What the operator is looking at, as ``{"code", "text"}``: unreachable, ended, waiting, stalled or live.
+
+    ``source_node`` publishes the preview; its NodeStatus extra says whether its source is exhausted
+    (``done``) and how many frames it published in this run (0: any preview shown is from an earlier run)."""
+    if not snap.get("connected"):
+        text = f"robot unreachable since {_clock(snap.get('unreachable_since_ns'))}"
+        if snap.get("last_error"):
+            text += f" ({snap['last_error'][:80]})"
+        return {"code": "unreachable", "text": text}
+    ages = [n["status_age_s"] for n in snap.get("nodes", []) if n.get("status_age_s") is not None]
+    if ages and min(ages) > stale_after_s:
+        return {"code": "unreachable", "text": f"robot unreachable: no node status for {min(ages):.0f} s"}
+    source = next((n for n in snap.get("nodes", []) if n.get("name") == source_node), None)
+    extra = (source or {}).get("extra") or {}
+    preview = snap.get("preview")
+    if extra.get("done"):
+        published = extra.get("published")
+        count = f" after {published} frames" if isinstance(published, int) else ""
+        shown = "; last frame shown" if preview and published else ""
+        return {"code": "ended", "text": f"source ended{count}{shown}"}
+    if not preview or extra.get("published") == 0:
+        return {"code": "waiting", "text": "waiting for first frame"}
+    age = preview.get("age_s")
+    if age is not None and age > frame_stale_s:
+        return {"code": "stalled", "text": f"no new frame for {age:.0f} s (showing frame {preview.get('frame_seq')})"}
+    return {"code": "live", "text": f"live: frame {preview.get('frame_seq', '?')}"}
+
+
+def health_rows(snap: dict[str, Any]) -> list[dict[str, Any]]:
+    """The health table: a row per topic of each node (outputs, then inputs), one row for a node without any.
+
+    Outputs carry only a rate; inputs a rate, p50 latency and drops. Topic names drop the namespace, and an
+    output its own node's name too (``preview``; an input reads ``capture/frame``)."""
+    prefix = f"{snap.get('namespace', '')}/"
+    rows: list[dict[str, Any]] = []
+    for node in snap.get("nodes", []):
+        base = {"node": node["name"], "alive": bool(node.get("alive")), "restarts": node.get("restarts", 0),
+                "pid": node.get("pid")}
+        topics = node.get("topics") or {}
+        order = sorted(topics, key=lambda k: (topics[k].get("direction") != "out", k))
+        if not order:
+            rows.append({**base, "topic": None, "direction": None, "rate_hz": None, "latency_p50_ms": None,
+                         "drops": None, "decode_errors": None})
+        for key in order:
+            t = topics[key]
+            name = key[len(prefix):] if key.startswith(prefix) else key
+            inbound = t.get("direction") == "in"
+            if not inbound and name.startswith(f"{node['name']}/"):
+                name = name[len(node["name"]) + 1:]
+            rows.append({**base, "topic": name, "direction": "in" if inbound else "out", "rate_hz": t.get("rate_hz"),
+                         "latency_p50_ms": t.get("latency_p50_ms") if inbound else None,
+                         "drops": t.get("drops", 0) if inbound else None,
+                         "decode_errors": t.get("decode_errors", 0)})
+    return rows
 
 
 class PreviewGate:
@@ -55,7 +169,15 @@ class PreviewGate:
             self._last[client] = time.monotonic()
 
 
-def make_handler(monitor: BusMonitor, gate: PreviewGate) -> type[BaseHTTPRequestHandler]:
+def _source_node(monitor: Any) -> str:
+    info = getattr(monitor, "info", None)
+    key = getattr(info, "preview_key", "") or "fb/capture/preview"
+    return key.split("/")[-2]
+
+
+def make_handler(monitor: BusMonitor, gate: PreviewGate, token: str | None = None) -> type[BaseHTTPRequestHandler]:
+    """The request handler; with ``token`` every request must carry it (query, cookie or Bearer header)."""
+
     class Handler(BaseHTTPRequestHandler):
         server_version = "followbus-monitor"
 
@@ -72,14 +194,53 @@ def make_handler(monitor: BusMonitor, gate: PreviewGate) -> type[BaseHTTPRequest
             self.end_headers()
             self.wfile.write(body)
 
+        def _credential(self, query: dict[str, list[str]]) -> tuple[str | None, bool]:
+            """The token this request offers, and whether it came in the URL (then it becomes a cookie)."""
+            if "token" in query:
+                return query["token"][0], True
+            auth = self.headers.get("Authorization", "")
+            if auth.startswith("Bearer "):
+                return auth[len("Bearer "):].strip(), False
+            try:
+                morsel = SimpleCookie(self.headers.get("Cookie", "")).get(TOKEN_COOKIE)
+            except CookieError:
+                morsel = None
+            return (morsel.value if morsel is not None else None), False
+
+        def _authorise(self, path: str, query: dict[str, list[str]]) -> bool:
+            """Answer 401/403 (or the redirect that swaps a URL token for a cookie); True: go on."""
+            if token is None:
+                return True
+            given, in_url = self._credential(query)
+            if given is None:
+                self._send(401, b"token required: open the URL followbus monitor printed (.../?token=...)\n",
+                           "text/plain", {"WWW-Authenticate": 'Bearer realm="followbus monitor"'})
+                return False
+            if not hmac.compare_digest(given.encode(), token.encode()):
+                log.warning("refused %s: wrong token", self.address_string())
+                self._send(403, b"wrong token\n", "text/plain")
+                return False
+            if in_url and path in ("/", "/index.html"):
+                # Keep the token out of the address bar and history: a cookie carries it from now on.
+                rest = urlencode({k: v for k, v in query.items() if k != "token"}, doseq=True)
+                self._send(303, b"", "text/plain", {"Location": "/" + (f"?{rest}" if rest else ""),
+                                                   "Set-Cookie": self._cookie()})
+                return False
+            return True
+
+        def _cookie(self) -> str:
+            return f"{TOKEN_COOKIE}={token}; Path=/; HttpOnly; SameSite=Strict"
+
         def do_GET(self) -> None:  # noqa: N802 (http.server API)
             url = urlparse(self.path)
             query = parse_qs(url.query)
             try:
+                if not self._authorise(url.path, query):
+                    return
                 if url.path in ("/", "/index.html"):
                     self._send(200, PAGE.encode(), "text/html; charset=utf-8")
                 elif url.path == "/state.json":
-                    self._send(200, json.dumps(monitor.snapshot()).encode(), "application/json")
+                    self._send(200, json.dumps(self._state(), default=str).encode(), "application/json")
                 elif url.path == "/preview.jpg":
                     self._preview(query)
                 elif url.path == "/healthz":
@@ -89,9 +250,19 @@ def make_handler(monitor: BusMonitor, gate: PreviewGate) -> type[BaseHTTPRequest
             except (BrokenPipeError, ConnectionResetError):
                 pass  # the browser went away
 
+        def _state(self) -> dict[str, Any]:
+            snap = monitor.snapshot()
+            snap["screen"] = screen_state(snap, _source_node(monitor))
+            snap["health"] = health_rows(snap)
+            return snap
+
         def _preview(self, query: dict[str, list[str]]) -> None:
             client = query.get("client", [self.client_address[0]])[0][:64]
-            after = int(query.get("after", ["-1"])[0] or -1)
+            try:
+                after = int(query.get("after", ["-1"])[0] or -1)
+            except ValueError:
+                self._send(400, b"after must be an integer\n", "text/plain")
+                return
             gate.pace(client)
             deadline = time.monotonic() + LONG_POLL_S
             with gate.cond:
@@ -101,7 +272,7 @@ def make_handler(monitor: BusMonitor, gate: PreviewGate) -> type[BaseHTTPRequest
             with monitor.lock:
                 jpeg, count = monitor.preview_jpeg, monitor.preview_count
                 seq = monitor.preview.header.frame_seq if monitor.preview is not None else -1
-            if not jpeg:
+            if not jpeg or count <= after:  # nothing newer within the long poll: the page keeps its frame
                 self._send(204, b"", "image/jpeg", {"X-Preview-Count": str(count)})
                 return
             self._send(200, jpeg, "image/jpeg", {"X-Preview-Count": str(count), "X-Frame-Seq": str(seq)})
@@ -109,22 +280,57 @@ def make_handler(monitor: BusMonitor, gate: PreviewGate) -> type[BaseHTTPRequest
     return Handler
 
 
-def start_server(settings: ZenohSettings, info: GraphInfo, bind: str, port: int
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+
+
+class _Server6(_Server):
+    address_family = socket.AF_INET6
+
+
+def start_server(settings: ZenohSettings, info: GraphInfo, bind: str, port: int, token: str | None = None
                  ) -> tuple[ThreadingHTTPServer, BusMonitor, threading.Thread]:
-    """Start the bus monitor and the HTTP server (in a thread); the caller shuts both down."""
+    """Start the bus monitor and the HTTP server (in a thread); the caller shuts both down.
+
+    Raises OSError when the address cannot be bound (nothing is left running then)."""
     gate = PreviewGate()
+    host = bind.strip("[]")
+    server_cls = _Server6 if ":" in host else _Server
+    # Bind first: a taken port or a bad address fails before the bus is joined.
+    server = server_cls((host, port), BaseHTTPRequestHandler)
     monitor = BusMonitor(settings, info, preview=True, on_preview=gate.notify).start()
-    server = ThreadingHTTPServer((bind, port), make_handler(monitor, gate))
-    server.daemon_threads = True
+    server.RequestHandlerClass = make_handler(monitor, gate, token)
     thread = threading.Thread(target=server.serve_forever, name="webview-http", daemon=True)
     thread.start()
     return server, monitor, thread
 
 
-def serve(settings: ZenohSettings, info: GraphInfo, bind: str, port: int, seconds: float | None = None) -> int:
-    server, monitor, thread = start_server(settings, info, bind, port)
+def serve(settings: ZenohSettings, info: GraphInfo, bind: str, port: int, seconds: float | None = None,
+          token: str | None = None) -> int:
+    """Serve the web view until Ctrl-C (or ``seconds``); 2 with one line on stderr for a bad token or bind."""
+    given = token if token is not None else (os.environ.get(TOKEN_ENV) or None)
+    try:
+        required, generated = web_token(bind, given)
+        server, monitor, thread = start_server(settings, info, bind, port, required)
+    except ValueError as exc:
+        print(f"followbus monitor: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as exc:  # port taken, address not on this machine, ...
+        print(f"followbus monitor: cannot serve the web view on {bind}:{port}: {exc.strerror or exc}",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
     host, real_port = server.server_address[:2]
-    print(f"followbus monitor: web view on http://{host}:{real_port}/ (watching {', '.join(settings.connect)}; "
+    url = f"http://{f'[{host}]' if ':' in host else host}:{real_port}/"
+    if generated:  # printed once: the operator opens this URL, the browser keeps a cookie
+        url += f"?token={required}"
+        access = "token required (--bind is not loopback; generated for this run)"
+    elif required:
+        access = "token required (--web-token)"
+    else:
+        access = "open to this machine only"
+    if not is_loopback_bind(bind) and ipaddress.ip_address(host).is_unspecified:
+        access += "; listening on every interface, use this machine's address"
+    print(f"followbus monitor: web view on {url} ({access}; watching {', '.join(settings.connect)}; "
           "Ctrl-C to stop)", flush=True)
     try:
         wait_for(seconds)
@@ -143,26 +349,51 @@ PAGE = """<!doctype html>
 <meta name="viewport" content="width=device-width, initial-scale=1">
 <style>
 body{font:14px system-ui,sans-serif;margin:12px;background:#111;color:#ddd}
-h1{font-size:16px;margin:0 0 8px} .row{display:flex;flex-wrap:wrap;gap:12px}
-canvas{background:#000;border:1px solid #333} table{border-collapse:collapse;font-size:12px}
-td,th{border-bottom:1px solid #333;padding:2px 6px;text-align:right} td:first-child,th:first-child{text-align:left}
-.up{color:#6c6} .down{color:#e55} #link.bad{color:#e55} .plot{display:block;margin-bottom:6px}
-#state{font:13px monospace;white-space:pre}
+header{display:flex;gap:16px;align-items:baseline;margin-bottom:8px}
+h1{font-size:16px;margin:0} #link.bad{color:#e55}
+#layout{display:grid;grid-template-columns:minmax(0,1fr);gap:16px}
+@media (min-width:1100px){#layout{grid-template-columns:minmax(0,1fr) minmax(0,1fr)}}
+#video{position:relative;background:#000;border:1px solid #333}
+#view{display:block;width:100%;height:auto}
+#banner{position:absolute;left:0;right:0;top:40%;text-align:center;font-size:20px;padding:10px;
+ background:rgba(20,20,20,.8)}
+#banner[data-state=live]{display:none} #banner[data-state=unreachable],#banner[data-state=server]{color:#f77}
+#banner[data-state=ended],#banner[data-state=stalled]{color:#fc6;top:auto;bottom:0;font-size:16px}
+.legend{font-size:12px;color:#888;margin:4px 0}
+#screen{font-weight:bold} #screen[data-state=live]{color:#6c6} #screen[data-state=unreachable],
+#screen[data-state=server]{color:#e55} #screen[data-state=ended],#screen[data-state=waiting],
+#screen[data-state=stalled]{color:#fc6}
+#state{font:13px monospace;white-space:pre;margin:0 0 8px}
+.plot{display:block;width:100%;height:72px;margin-bottom:4px}
+table{border-collapse:collapse;font-size:12px;width:100%}
+td,th{border-bottom:1px solid #333;padding:2px 6px;text-align:right;vertical-align:top}
+th{color:#aaa;font-weight:normal} td.l,th.l{text-align:left} tr.first td{border-top:1px solid #555}
+td.topic{white-space:nowrap}
+.up{color:#6c6} .down{color:#e55} .dir{color:#888} .na{color:#555}
 </style></head><body>
-<h1>followbus monitor <span id="link">connecting...</span></h1>
-<div class="row">
- <div><canvas id="view" width="640" height="480"></canvas>
+<header><h1>followbus monitor</h1><span id="screen" data-state="waiting">waiting for the monitor's first state</span>
+ <span id="link">connecting...</span></header>
+<main id="layout">
+ <section id="left">
+  <div id="video"><canvas id="view" width="640" height="480"></canvas>
+   <div id="banner" data-state="waiting">waiting for first frame</div></div>
   <div id="frames">frames: 0</div>
-  <div style="font-size:12px;color:#888">green: target box, cyan: gate ellipse (prior, chi2), yellow: candidates.
-   Boxes are scaled
-   by preview width / source width (<span id="srcw"></span> px; override with ?source_width=N).</div></div>
- <div><div id="state">no state yet</div>
-  <canvas class="plot" id="p_err" width="420" height="110"></canvas>
-  <canvas class="plot" id="p_eta" width="420" height="110"></canvas>
-  <canvas class="plot" id="p_lat" width="420" height="110"></canvas>
-  <table id="nodes"><thead><tr><th>node</th><th>state</th><th>restarts</th><th>pid</th><th>out Hz</th>
-   <th>in p50 ms</th><th>drops</th><th>dec err</th></tr></thead><tbody></tbody></table></div>
-</div>
+  <p class="legend">green: target box, cyan: gate ellipse (prior, chi2), yellow: candidates (score).
+   Boxes are scaled by preview width / source width (<span id="srcw">source width not known yet</span>;
+   override with ?source_width=N).</p>
+ </section>
+ <section id="right">
+  <div id="state">no state yet: target, eta_k and motor command appear here</div>
+  <canvas class="plot" id="p_err"></canvas>
+  <canvas class="plot" id="p_eta"></canvas>
+  <canvas class="plot" id="p_lat"></canvas>
+  <table id="nodes"><thead><tr><th class="l">node</th><th class="l">state</th><th>restarts</th>
+   <th class="l">topic</th><th>rate Hz</th><th title="inputs: median capture-to-receive latency">p50 latency ms</th>
+   <th title="inputs: messages dropped by the queue policy">drops</th><th>decode errors</th></tr></thead>
+   <tbody><tr><td class="l na" colspan="8">no node status yet</td></tr></tbody></table>
+  <div id="monitor_errors" class="legend"></div>
+ </section>
+</main>
 <script>
 "use strict";
 const params = new URLSearchParams(location.search);
@@ -171,13 +402,31 @@ const view = document.getElementById("view"), ctx = view.getContext("2d");
 let state = null, frames = 0, lastCount = -1, img = null;
 
 function fmt(v, d) { return (v === null || v === undefined) ? "-" : Number(v).toFixed(d); }
+function esc(v) { return String(v).replace(/[&<>"]/g, c => ({"&": "&amp;", "<": "&lt;", ">": "&gt;",
+                                                           '"': "&quot;"}[c])); }
+function box(el) { const r = el.getBoundingClientRect();
+  return {left: Math.round(r.left), top: Math.round(r.top), right: Math.round(r.right),
+          bottom: Math.round(r.bottom)}; }
+
+function probe() {
+  // Where things ended up, for tests and for anyone debugging the layout from the DOM alone.
+  document.body.dataset.layout = JSON.stringify({width: innerWidth, video: box(document.getElementById("video")),
+    health: box(document.getElementById("nodes")), state: box(document.getElementById("state"))});
+}
+
+function setScreen(code, text) {
+  for (const id of ["screen", "banner"]) {
+    const el = document.getElementById(id); el.dataset.state = code; el.textContent = text; }
+}
+
+function sourceWidth(pv) {
+  return Number(params.get("source_width")) || (state && state.source_width) || (pv && pv.width) || null;
+}
 
 function drawOverlay() {
   if (!state || !img) return;
   const pv = state.preview || {width: img.width};
-  const srcw = Number(params.get("source_width")) || state.source_width || pv.width;
-  document.getElementById("srcw").textContent = srcw;
-  const s = pv.width / srcw;
+  const s = pv.width / (sourceWidth(pv) || pv.width);
   const m = state.measurement;
   if (m) {
     ctx.strokeStyle = "#ec3"; ctx.setLineDash([4, 3]); ctx.fillStyle = "#ec3"; ctx.font = "11px monospace";
@@ -221,7 +470,9 @@ async function pollPreview() {
 }
 
 function plot(id, series, label, unit) {
-  const c = document.getElementById(id), g = c.getContext("2d"), now = Date.now() / 1000;
+  const c = document.getElementById(id), now = Date.now() / 1000;
+  if (c.width !== c.clientWidth || c.height !== c.clientHeight) { c.width = c.clientWidth; c.height = c.clientHeight; }
+  const g = c.getContext("2d");
   g.clearRect(0, 0, c.width, c.height); g.fillStyle = "#1a1a1a"; g.fillRect(0, 0, c.width, c.height);
   const pts = series.filter(p => p[0] > now - 60);
   const last = pts.length ? pts[pts.length - 1][1] : null;
@@ -230,19 +481,51 @@ function plot(id, series, label, unit) {
   if (pts.length < 2) return;
   let lo = Math.min(...pts.map(p => p[1])), hi = Math.max(...pts.map(p => p[1]));
   if (hi - lo < 1e-9) { hi += 1e-3; lo -= 1e-3; }
-  g.fillText(hi.toPrecision(3), c.width - 60, 12); g.fillText(lo.toPrecision(3), c.width - 60, c.height - 3);
+  // The curve keeps clear of the right margin, where the scale is written.
+  const w = c.width - 64;
+  g.fillText(hi.toPrecision(3), w + 6, 12); g.fillText(lo.toPrecision(3), w + 6, c.height - 3);
   g.strokeStyle = "#6cf"; g.beginPath();
-  pts.forEach((p, i) => { const x = (p[0] - (now - 60)) / 60 * c.width;
+  pts.forEach((p, i) => { const x = (p[0] - (now - 60)) / 60 * w;
     const y = c.height - 4 - (p[1] - lo) / (hi - lo) * (c.height - 20);
     if (i) g.lineTo(x, y); else g.moveTo(x, y); });
   g.stroke();
 }
 
+function healthTable(rows) {
+  const body = document.querySelector("#nodes tbody");
+  if (!rows.length) {
+    body.innerHTML = '<tr><td class="l na" colspan="8">no node seen yet</td></tr>'; return; }
+  const span = {};
+  for (const r of rows) span[r.node] = (span[r.node] || 0) + 1;
+  const html = [];
+  let prev = null;
+  for (const r of rows) {
+    const first = r.node !== prev; prev = r.node;
+    let tr = `<tr${first ? ' class="first"' : ""} data-node="${esc(r.node)}">`;
+    if (first) {
+      const n = span[r.node];
+      tr += `<td class="l" rowspan="${n}" title="pid ${r.pid ?? "-"}">${esc(r.node)}</td>` +
+        `<td class="l ${r.alive ? "up" : "down"}" rowspan="${n}">${r.alive ? "up" : "DOWN"}</td>` +
+        `<td rowspan="${n}">${r.restarts}</td>`;
+    }
+    const na = '<td class="na">-</td>';
+    if (r.topic === null) { tr += '<td class="l na" colspan="5">no status</td></tr>'; html.push(tr); continue; }
+    tr += `<td class="l topic"><span class="dir">${r.direction}</span> ${esc(r.topic)}</td>` +
+      `<td>${fmt(r.rate_hz, 1)}</td>` +
+      (r.direction === "in" ? `<td>${fmt(r.latency_p50_ms, 1)}</td><td>${r.drops}</td>` : na + na) +
+      `<td>${r.decode_errors}</td></tr>`;
+    html.push(tr);
+  }
+  body.innerHTML = html.join("");
+}
+
 function render() {
   const s = state, link = document.getElementById("link");
-  link.textContent = s.connected ? `connected to ${s.endpoints.join(", ")}` :
-    `robot unreachable since ${new Date(s.unreachable_since_ns / 1e6).toLocaleTimeString()}`;
+  link.textContent = s.connected ? `connected to ${s.endpoints.join(", ")}` : `watching ${s.endpoints.join(", ")}`;
   link.className = s.connected ? "" : "bad";
+  setScreen(s.screen.code, s.screen.text);
+  const srcw = sourceWidth(s.preview);
+  document.getElementById("srcw").textContent = srcw ? `source width ${srcw} px` : "source width not known yet";
   const t = s.target, c = s.command;
   const lines = [
     t ? `target ${t.state} frame ${t.frame_seq} box [${t.box ? t.box.map(v => v.toFixed(0)).join(", ") : "-"}]`
@@ -254,31 +537,27 @@ function render() {
       : "motor (no command yet)",
   ];
   document.getElementById("state").textContent = lines.join("\\n");
-  const body = document.querySelector("#nodes tbody"); body.innerHTML = "";
-  for (const n of s.nodes) {
-    const topics = Object.values(n.topics || {});
-    const out = topics.filter(x => x.direction === "out").map(x => fmt(x.rate_hz, 1)).join(" ");
-    const inn = topics.filter(x => x.direction === "in").map(x => fmt(x.latency_p50_ms, 1)).join(" ");
-    const drops = topics.reduce((a, x) => a + (x.drops || 0), 0);
-    const dec = topics.reduce((a, x) => a + (x.decode_errors || 0), 0);
-    const tr = document.createElement("tr");
-    tr.innerHTML = `<td>${n.name}</td><td class="${n.alive ? "up" : "down"}">${n.alive ? "up" : "DOWN"}</td>` +
-      `<td>${n.restarts}</td><td>${n.pid ?? "-"}</td><td>${out || "-"}</td><td>${inn || "-"}</td>` +
-      `<td>${drops}</td><td>${dec}</td>`;
-    body.appendChild(tr);
-  }
+  healthTable(s.health);
+  document.getElementById("monitor_errors").textContent =
+    s.decode_errors ? `monitor decode errors: ${s.decode_errors}` : "";
   plot("p_err", s.history.centre_error_px, "centre error", "px");
   plot("p_eta", s.history.eta, "eta_k", "");
   plot("p_lat", s.history.latency_ms, "capture->command latency", "ms");
+  probe();
 }
 
 async function pollState() {
   for (;;) {
-    try { state = await (await fetch("/state.json", {cache: "no-store"})).json(); render(); }
-    catch (e) { document.getElementById("link").textContent = "monitor server unreachable"; }
+    try {
+      const r = await fetch("/state.json", {cache: "no-store"});
+      if (r.status !== 200) throw new Error(`HTTP ${r.status}`);
+      state = await r.json(); render();
+    } catch (e) {
+      setScreen("server", `monitor server unreachable (${e.message})`); }
     await new Promise(res => setTimeout(res, 500));
   }
 }
-pollState(); pollPreview();
+addEventListener("resize", probe);
+probe(); pollState(); pollPreview();
 </script></body></html>
 """
