@@ -1,4 +1,4 @@
-"""Per-topic statistics: rate, latency from the frame's capture stamp, drops, decode errors."""
+"""Per-topic statistics: rate, latency from the frame's capture stamp, drops, decode errors, refusals."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ class TopicStats:
         self.count = 0
         self.drops = 0
         self.decode_errors = 0
+        self.refused = 0  # publications refused before sending (payload over the size limit)
         self.bytes = 0
         self._events: deque[tuple[int, float]] = deque()  # (wall ns, latency ms)
         self._lock = threading.Lock()
@@ -42,6 +43,10 @@ class TopicStats:
         with self._lock:
             self.decode_errors += 1
 
+    def refuse(self) -> None:
+        with self._lock:
+            self.refused += 1
+
     def _trim(self, now_ns: int) -> None:
         horizon = now_ns - int(WINDOW_S * 1e9)
         while self._events and self._events[0][0] < horizon:
@@ -57,6 +62,7 @@ class TopicStats:
                 "count": self.count,
                 "drops": self.drops,
                 "decode_errors": self.decode_errors,
+                "refused": self.refused,
                 "bytes": self.bytes,
             }
         if len(events) >= 2:

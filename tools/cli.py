@@ -223,12 +223,17 @@ def _add_recording_parsers(sub) -> None:
         description="Join the bus as a client and store every message losslessly (its msgpack bytes, one channel per "
                     "key) in an MCAP file, plus Foxglove views: frames as foxglove.CompressedImage, detections, the "
                     "Kalman gate and the target as foxglove.ImageAnnotations. Ctrl-C/SIGTERM finalise the file; a "
-                    "killed recorder leaves one that `followbus recover` repairs. Ends with received/written/dropped "
-                    "counts and the messages lost upstream (header.seq gaps).",
+                    "killed recorder leaves one that `followbus recover` repairs. A write error (full disk) ends it at "
+                    "once: the file is finalised at its last complete chunk, one line says what was lost, exit "
+                    "status 1. Ends with received/written/dropped counts and the messages lost upstream "
+                    "(header.seq gaps).",
         epilog="examples:\n  followbus record -o recordings/run1.mcap --duration 60\n"
                "  followbus record --topics 'fb/capture/**' 'fb/prediction/**' --status")
     p.add_argument("-o", "--output", metavar="FILE", help="output file (default recordings/<graph>-<time>.mcap)")
     p.add_argument("--topics", nargs="+", metavar="PATTERN", help="key expressions to record (default <ns>/**)")
+    p.add_argument("--exclude", action="append", metavar="PATTERN",
+                   help="leave out keys matching this key expression, e.g. 'fb/capture/frame' (raw frames; the "
+                        "JPEG preview stays); repeatable")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--status", action="store_true", help="also record the @status keys (node statistics)")
     p.add_argument("--compression", choices=("lz4", "zstd", "none"), default="lz4",
@@ -239,8 +244,8 @@ def _add_recording_parsers(sub) -> None:
     p.add_argument("--jpeg-quality", type=int, default=80, metavar="Q",
                    help="JPEG quality of the Foxglove copies of bgr8 frames (default 80)")
     p.add_argument("--no-foxglove", action="store_true", help="store the bus messages only")
-    p.add_argument("--max-queue-mb", type=float, default=1024.0, metavar="MB",
-                   help="memory the writer queue may hold before the recorder drops (default 1024)")
+    p.add_argument("--max-queue-mb", type=float, default=256.0, metavar="MB",
+                   help="memory the writer queue may hold before the recorder drops, counted per key (default 256)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="parameter overrides the graph runs with (as given to launch), stored in the metadata")
     _connect_arg(p)

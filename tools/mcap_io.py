@@ -16,24 +16,43 @@ Layout of a recording:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
 import os
 import struct
 import sys
+import time
 import typing
+import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any
 
+from mcap.data_stream import ReadDataStream, RecordBuilder
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Attachment, Channel, Chunk, Footer, Header, Message, Metadata, Schema
+from mcap.records import (
+    Attachment,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
 from mcap.stream_reader import StreamReader, breakup_chunk
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from followbus import __version__
 from followbus.bus import codec
@@ -90,7 +109,12 @@ def bus_schema_data(type_name: str) -> bytes:
 # --- writing ---------------------------------------------------------------------------------------
 
 class RecordingWriter:
-    """An mcap Writer that registers schemas and channels on first use and flushes whole chunks."""
+    """An mcap Writer that registers schemas and channels on first use and flushes whole chunks.
+
+    It closes chunks itself (at ``chunk_bytes`` or on ``flush()``), so the file is consistent up to
+    ``durable_offset`` after every chunk: after a write error (full disk, EIO, EFBIG) the writer's state
+    is unknown, and ``finish_after_failure`` cuts the file back to that offset and finalises it there.
+    """
 
     def __init__(self, path: str | Path, compression: str = DEFAULT_COMPRESSION,
                  chunk_bytes: int = DEFAULT_CHUNK_BYTES):
@@ -98,19 +122,46 @@ class RecordingWriter:
             raise ValueError(f"compression must be one of {', '.join(COMPRESSIONS)}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._created = not self.path.exists()  # discard() deletes only a file it created (never /dev/null)
         self._file: IO[bytes] = open(self.path, "wb")  # noqa: SIM115 (closed by finish)
-        self._writer = Writer(self._file, chunk_size=chunk_bytes, compression=COMPRESSIONS[compression])
-        self._writer.start(profile=PROFILE, library=f"followbus/{__version__}")
+        # The mcap Writer never closes a chunk on its own (chunk_size out of reach): write() does, so
+        # every chunk end is a point where durable_offset and durable_counts are known.
+        self._writer = Writer(self._file, chunk_size=1 << 62, compression=COMPRESSIONS[compression])
+        self._chunk_bytes = chunk_bytes
+        self._pending_bytes = 0
         self._schemas: dict[tuple[str, str], int] = {}
         self._channels: dict[tuple[str, str, str], int] = {}
+        self._schema_records: dict[int, Schema] = {}  # the summary after a failure repeats them
+        self._channel_records: dict[int, Channel] = {}
+        self._bus_topics: dict[int, str] = {}  # bus channel id -> key
+        self._pending_counts: dict[str, int] = {}
+        self.durable_counts: dict[str, int] = {}  # bus messages per key in complete, flushed chunks
+        self.durable_offset = 0  # the file is consistent up to here
+        self.durable_monotonic = time.monotonic()  # when it last was
         self.messages = 0
         self.compression = compression
+        self._writer.start(profile=PROFILE, library=f"followbus/{__version__}")
+        self._durable()
+
+    def _durable(self) -> None:
+        self._file.flush()
+        self.durable_offset = self._file.tell()
+        self.durable_monotonic = time.monotonic()
 
     def schema(self, name: str, encoding: str, data: bytes) -> int:
         key = (name, encoding)
         if key not in self._schemas:
-            self._schemas[key] = self._writer.register_schema(name=name, encoding=encoding, data=data)
+            sid = self._writer.register_schema(name=name, encoding=encoding, data=data)
+            self._schemas[key] = sid
+            self._schema_records[sid] = Schema(id=sid, name=name, encoding=encoding, data=data)
         return self._schemas[key]
+
+    def _register_channel(self, topic: str, message_encoding: str, schema_id: int, meta: dict[str, str]) -> int:
+        cid = self._writer.register_channel(topic=topic, message_encoding=message_encoding, schema_id=schema_id,
+                                            metadata=meta)
+        self._channel_records[cid] = Channel(id=cid, topic=topic, message_encoding=message_encoding,
+                                             schema_id=schema_id, metadata=dict(meta))
+        return cid
 
     def bus_channel(self, key: str, type_name: str | None) -> int:
         """The channel of a bus key; a payload that is not a followbus message gets one without schema."""
@@ -122,17 +173,17 @@ class RecordingWriter:
                 schema_id = self.schema(BUS_SCHEMA_PREFIX + type_name, BUS_SCHEMA_ENCODING,
                                         bus_schema_data(type_name))
                 meta["type"] = type_name
-            self._channels[ident] = self._writer.register_channel(
-                topic=key, message_encoding=BUS_MESSAGE_ENCODING, schema_id=schema_id, metadata=meta)
+            cid = self._register_channel(key, BUS_MESSAGE_ENCODING, schema_id, meta)
+            self._channels[ident] = cid
+            self._bus_topics[cid] = key
         return self._channels[ident]
 
     def foxglove_channel(self, topic: str, schema_name: str, source_key: str) -> int:
         ident = (topic, fox.MESSAGE_ENCODING, schema_name)
         if ident not in self._channels:
             schema_id = self.schema(schema_name, fox.SCHEMA_ENCODING, fox.schema_bytes(schema_name))
-            self._channels[ident] = self._writer.register_channel(
-                topic=topic, message_encoding=fox.MESSAGE_ENCODING, schema_id=schema_id,
-                metadata={"bus_key": source_key})
+            self._channels[ident] = self._register_channel(topic, fox.MESSAGE_ENCODING, schema_id,
+                                                           {"bus_key": source_key})
         return self._channels[ident]
 
     def write(self, channel_id: int, log_time: int, data: bytes, publish_time: int | None = None,
@@ -141,18 +192,186 @@ class RecordingWriter:
                                  publish_time=log_time if publish_time is None else publish_time,
                                  sequence=sequence & 0xFFFFFFFF)
         self.messages += 1
+        key = self._bus_topics.get(channel_id)
+        if key is not None:
+            self._pending_counts[key] = self._pending_counts.get(key, 0) + 1
+        self._pending_bytes += len(data) + 31  # + the Message record's own fields
+        if self._pending_bytes >= self._chunk_bytes:
+            self.flush()
 
     def metadata(self, name: str, data: dict[str, str]) -> None:
         self._writer.add_metadata(name, {k: str(v) for k, v in data.items()})
-        self._file.flush()
+        self._durable()  # a top-level record: the open chunk is still in memory, the file is consistent
 
     def flush(self) -> None:
         """Close the chunk in progress and push it to the OS: it survives a SIGKILL from now on."""
         self._writer.flush()
+        self._pending_bytes = 0
+        self._commit_counts()
+        self._durable()
+
+    def _commit_counts(self) -> None:
+        for key, n in self._pending_counts.items():
+            self.durable_counts[key] = self.durable_counts.get(key, 0) + n
+        self._pending_counts.clear()
 
     def finish(self) -> None:
         self._writer.finish()
         self._file.close()
+        self._commit_counts()
+
+    def discard(self) -> None:
+        """Close the file and delete it if this writer created it (nothing worth keeping was written)."""
+        with contextlib.suppress(OSError):
+            self._file.close()
+        if self._created and self.path.is_file():
+            with contextlib.suppress(OSError):
+                self.path.unlink()
+
+    def finish_after_failure(self, metadata: Iterable[tuple[str, dict[str, str]]] = ()) -> FinaliseResult:
+        """After a write error: cut the file back to ``durable_offset`` (dropping the chunk that failed)
+        and finalise it there with ``metadata`` appended. Raises OSError when even that cannot be written;
+        the file is then left cut at ``durable_offset``, every chunk complete, for ``followbus recover``."""
+        with contextlib.suppress(OSError):  # closing flushes what is buffered: that fails again
+            self._file.close()
+        return finalise_in_place(self.path, self.durable_offset, self._schema_records.values(),
+                                 self._channel_records.values(), metadata)
+
+
+@dataclass
+class FinaliseResult:
+    chunks: int
+    messages: int
+    channel_counts: dict[str, int]  # messages per topic in the finalised file
+    cut_bytes: int  # bytes dropped behind the last complete chunk
+    file_bytes: int
+
+
+def _scan_data_section(f: IO[bytes], end: int) -> tuple[int, list[ChunkIndex], list[MetadataIndex],
+                                                         dict[int, int], list[Schema], list[Channel]]:
+    """Walk the top-level records of an unfinalised MCAP file up to ``end`` (the last complete one) without
+    decompressing chunks. Returns (offset after the last complete record, chunk indexes, metadata indexes,
+    messages per channel id from the message indexes, top-level schemas, top-level channels)."""
+    f.seek(0)
+    if f.read(len(MCAP0_MAGIC)) != MCAP0_MAGIC:
+        raise RecordingError(f"{getattr(f, 'name', '?')}: not an MCAP file")
+    pos = len(MCAP0_MAGIC)
+    good = pos
+    chunks: list[ChunkIndex] = []
+    metas: list[MetadataIndex] = []
+    counts: dict[int, int] = {}
+    schemas: list[Schema] = []
+    channels: list[Channel] = []
+    open_chunk: ChunkIndex | None = None  # message indexes follow their chunk
+    while pos + 9 <= end:
+        f.seek(pos)
+        opcode, length = struct.unpack("<BQ", f.read(9))
+        record_end = pos + 9 + length
+        if record_end > end or opcode in (Opcode.DATA_END, Opcode.FOOTER):
+            break
+        if opcode == Opcode.CHUNK:
+            start_ns, end_ns, uncompressed, _crc, comp_len = struct.unpack("<QQQII", f.read(32))
+            compression = f.read(comp_len).decode()
+            (compressed,) = struct.unpack("<Q", f.read(8))
+            open_chunk = ChunkIndex(message_start_time=start_ns, message_end_time=end_ns, chunk_start_offset=pos,
+                                    chunk_length=9 + length, message_index_offsets={}, message_index_length=0,
+                                    compression=compression, compressed_size=compressed,
+                                    uncompressed_size=uncompressed)
+            chunks.append(open_chunk)
+        elif opcode == Opcode.MESSAGE_INDEX and open_chunk is not None:
+            channel_id, entries_bytes = struct.unpack("<HI", f.read(6))
+            open_chunk.message_index_offsets[channel_id] = pos
+            open_chunk.message_index_length += 9 + length
+            counts[channel_id] = counts.get(channel_id, 0) + entries_bytes // 16
+        else:
+            open_chunk = None
+            if opcode == Opcode.METADATA:
+                (name_len,) = struct.unpack("<I", f.read(4))
+                metas.append(MetadataIndex(offset=pos, length=9 + length, name=f.read(name_len).decode()))
+            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+                f.seek(pos + 9)
+                stream = ReadDataStream(f)
+                (schemas if opcode == Opcode.SCHEMA else channels).append(  # type: ignore[arg-type]
+                    Schema.read(stream) if opcode == Opcode.SCHEMA else Channel.read(stream))
+        pos = good = record_end
+    return good, chunks, metas, counts, schemas, channels
+
+
+def finalise_in_place(path: str | Path, end_offset: int, schemas: Iterable[Schema], channels: Iterable[Channel],
+                      metadata: Iterable[tuple[str, dict[str, str]]] = ()) -> FinaliseResult:
+    """Finalise an unfinished MCAP file where it stands, needing only a few kB more on disk (``recover``
+    writes a whole new file): cut it after the last complete record at or before ``end_offset``, append
+    ``metadata``, the summary (``schemas`` and ``channels``, usually kept in memory by the writer, plus
+    any found at top level; statistics, chunk and metadata indexes) and the footer.
+
+    Raises OSError when the file cannot be cut or appended to; it is then left cut at the last complete
+    record, so ``followbus recover`` still salvages every complete chunk."""
+    path = Path(path)
+    # Unbuffered: a buffered file would retry its failed buffer on truncate() and close().
+    with open(path, "r+b", buffering=0) as f:
+        size = os.fstat(f.fileno()).st_size
+        good, chunk_indexes, meta_indexes, counts, top_schemas, top_channels = _scan_data_section(
+            f, min(end_offset, size))
+        f.truncate(good)
+        try:
+            return _append_summary(f, good, size - good, chunk_indexes, meta_indexes, counts,
+                                   {s.id: s for s in [*top_schemas, *schemas]},
+                                   {c.id: c for c in [*top_channels, *channels]}, metadata)
+        except OSError:
+            with contextlib.suppress(OSError):  # leave a clean cut for `followbus recover`
+                f.truncate(good)
+            raise
+
+
+def _append_summary(f: IO[bytes], good: int, cut: int, chunk_indexes: list[ChunkIndex],
+                    meta_indexes: list[MetadataIndex], counts: dict[int, int], schemas: dict[int, Schema],
+                    channels: dict[int, Channel], metadata: Iterable[tuple[str, dict[str, str]]]) -> FinaliseResult:
+    """Append metadata records, DataEnd, summary and footer at ``good`` (what mcap's Writer.finish writes)."""
+    builder = RecordBuilder()
+    for name, data in metadata:
+        start = builder.count
+        Metadata(name=name, metadata={k: str(v) for k, v in data.items()}).write(builder)
+        meta_indexes.append(MetadataIndex(offset=good + start, length=builder.count - start, name=name))
+    DataEnd(0).write(builder)
+    summary_start = good + builder.count
+    times = [(ci.message_start_time, ci.message_end_time) for ci in chunk_indexes]
+    stats = Statistics(
+        message_count=sum(counts.values()), schema_count=len(schemas), channel_count=len(channels),
+        attachment_count=0, metadata_count=len(meta_indexes), chunk_count=len(chunk_indexes),
+        message_start_time=min((t[0] for t in times), default=0),
+        message_end_time=max((t[1] for t in times), default=0),
+        channel_message_counts=dict(counts))
+    summary = RecordBuilder()
+    offsets: list[SummaryOffset] = []
+    groups: list[tuple[Opcode, list[Any]]] = [
+        (Opcode.SCHEMA, list(schemas.values())), (Opcode.CHANNEL, list(channels.values())),
+        (Opcode.STATISTICS, [stats]), (Opcode.CHUNK_INDEX, chunk_indexes), (Opcode.ATTACHMENT_INDEX, []),
+        (Opcode.METADATA_INDEX, meta_indexes)]
+    for opcode, records in groups:
+        group_start = summary.count
+        for record in records:
+            record.write(summary)
+        offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + group_start,
+                                     group_length=summary.count - group_start))
+    summary_offset_start = summary_start + summary.count
+    for offset in offsets:
+        offset.write(summary)
+    summary_data = summary.end()
+    crc = zlib.crc32(summary_data)
+    crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
+    tail = RecordBuilder()
+    Footer(summary_start=summary_start, summary_offset_start=summary_offset_start, summary_crc=crc).write(tail)
+    f.seek(good)
+    data = memoryview(builder.end() + summary_data + tail.end() + MCAP0_MAGIC)
+    while data:
+        data = data[f.write(data) or 0:]  # a short write is followed by one that raises (ENOSPC, EFBIG)
+    os.fsync(f.fileno())  # a failure to store it must show here, not at a later close
+    by_topic: dict[str, int] = {}
+    for cid, n in counts.items():
+        topic = channels[cid].topic if cid in channels else str(cid)
+        by_topic[topic] = by_topic.get(topic, 0) + n
+    return FinaliseResult(chunks=len(chunk_indexes), messages=stats.message_count, channel_counts=by_topic,
+                          cut_bytes=cut, file_bytes=f.tell())
 
 
 # --- reading ---------------------------------------------------------------------------------------
@@ -358,6 +577,8 @@ def cmd_info(args) -> int:
     if rec:
         print(f"recorder:    received {rec.get('received')}, written {rec.get('written')}, dropped "
               f"{rec.get('dropped')}, lost upstream (seq gaps) {rec.get('seq_gaps')}")
+        if rec.get("write_error"):
+            print(f"write error: {rec['write_error']} (the recording ends at its last complete chunk)")
     else:
         print("recorder:    no recording_stats (the recorder did not stop cleanly)")
     counts = stats.channel_message_counts if stats else {}

@@ -4,8 +4,14 @@ A plain Zenoh subscriber on ``<namespace>/**`` (or the given key expressions). Z
 only copies the payload into a queue; two threads do everything else (``convert``: header parsing
 and the Foxglove views; ``write``: MCAP records, chunk compression, disk), so a slow disk never stalls
 the callbacks and publishers keep the congestion control they chose. The queue is bounded in bytes
-(``--max-queue-mb``): past that, messages are dropped and counted rather than growing memory
-without bound.
+(``--max-queue-mb``, bus payloads plus their Foxglove views): past that, messages are dropped, counted
+per key and reported (a warning at most every 5 s while it drops) rather than growing memory without
+bound. ``--exclude`` leaves keys out (the raw frames, say, keeping the JPEG preview).
+
+A write error (ENOSPC, EIO, EFBIG, ...) ends the recording at once: the recorder stops accepting
+messages, cuts the file back to its last complete chunk and finalises it there (readable by ``info``,
+``play``, Foxglove), prints one line on stderr saying what was lost and exits with status 1. If even
+finalising fails, the file is left cut at a complete chunk and ``followbus recover`` salvages it.
 
 Every chunk is closed and flushed at least every ``--chunk-seconds`` (and whenever it reaches
 ``--chunk-mb``), so a recorder killed with SIGKILL loses at most that much: ``followbus recover``
@@ -51,12 +57,14 @@ from followbus.bus.node import RECORDER_NAME
 from followbus.bus.pubsub import RateLimitedLog, direct_callback, payload_bytes
 from followbus.bus.schemas import Frame, decode
 from followbus.tools import foxglove_schemas as fox
-from followbus.tools.mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, RecordingWriter
+from followbus.tools.mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, FinaliseResult, RecordingWriter
 
 log = logging.getLogger("followbus.record")
 
 STATUS_SEGMENTS = ("@status", "@health")
-
+# ~10 s of the default graph's recording (raw 640x480 frames at 30 Hz: ~26 MB/s) if the disk stalls.
+DEFAULT_MAX_QUEUE_MB = 256.0
+EXIT_WRITE_FAILED = 1
 
 
 @dataclass
@@ -69,14 +77,15 @@ class RecordOptions:
     chunk_seconds: float = 1.0
     jpeg_quality: int = 80
     foxglove: bool = True
-    max_queue_bytes: int = 1024 * 1024 * 1024
+    max_queue_bytes: int = int(DEFAULT_MAX_QUEUE_MB * 1024 * 1024)
+    exclude: list[str] = field(default_factory=list)  # key expressions left out
 
 
 @dataclass
 class KeyStats:
     type_name: str = ""
     received: int = 0
-    written: int = 0
+    written: int = 0  # in the file (after a write error: in its complete chunks)
     dropped: int = 0  # recorder queue full
     seq_gaps: int = 0  # messages missing between two received header.seq of one publisher
     restarts: int = 0  # header.seq went back: the publisher restarted
@@ -94,6 +103,10 @@ class RecordReport:
     convert_busy_s: float = 0.0
     max_queue_bytes: int = 0
     file_bytes: int = 0
+    write_error: str = ""  # the error that ended the recording, "" when it ended normally
+    failed_at_bytes: int = 0  # file size when the write failed
+    recorded_s: float = 0.0  # after a write error: the span the complete chunks cover (recorder clock)
+    finalise_error: str = ""  # finalising after the write error failed too
 
     @property
     def received(self) -> int:
@@ -111,8 +124,23 @@ class RecordReport:
     def seq_gaps(self) -> int:
         return sum(k.seq_gaps for k in self.keys.values())
 
+    @property
+    def unrecorded(self) -> int:
+        """Messages received and not in the file: dropped, or still queued or in the failed chunk at a write error."""
+        return self.received - self.written
+
+    def failure_line(self) -> str:
+        """The one line a write error prints (stderr)."""
+        head = (f"record: write failed after {self.failed_at_bytes / 1e6:.1f} MB: {self.write_error}; "
+                f"{self.recorded_s:.1f} s recorded, {self.unrecorded} messages lost")
+        if self.finalise_error:
+            return (f"{head}; finalising failed too ({self.finalise_error}): `followbus recover {self.path}` "
+                    f"salvages its complete chunks")
+        return f"{head}; {self.path} finalised ({self.file_bytes / 1e6:.1f} MB, {self.written} messages)"
+
     def as_metadata(self) -> dict[str, str]:
-        return {
+        extra = {"write_error": self.write_error} if self.write_error else {}
+        return {**extra,
             "received": str(self.received), "written": str(self.written), "dropped": str(self.dropped),
             "seq_gaps": str(self.seq_gaps), "undecodable": str(self.undecodable),
             "foxglove_messages": str(self.foxglove_messages), "foxglove_errors": str(self.foxglove_errors),
@@ -121,6 +149,10 @@ class RecordReport:
             "max_queue_bytes": str(self.max_queue_bytes),
             "keys": json.dumps({k: vars(v) for k, v in sorted(self.keys.items())}),
         }
+
+
+def _error_text(exc: BaseException) -> str:
+    return str(exc) if isinstance(exc, OSError) and str(exc) else repr(exc)
 
 
 def is_status_key(key: str) -> bool:
@@ -137,16 +169,20 @@ class _Item:
     log_time: int = 0
     views: list[tuple[str, str, bytes]] = field(default_factory=list)  # Foxglove (topic, schema, payload)
 
+    @property
+    def view_bytes(self) -> int:
+        return sum(len(v[2]) for v in self.views)
+
 
 class Recorder:
     """Subscribes, queues, converts and writes from threads. ``start()``, then ``stop()`` returns the report.
 
     Two threads form a pipeline so JPEG encoding and chunk compression (both release the GIL) overlap:
-    ``convert`` parses headers and builds the Foxglove views, ``write`` feeds the MCAP writer.
+    ``convert`` parses headers and builds the Foxglove views, ``write`` feeds the MCAP writer. An error
+    in the writer sets ``failed``; ``stop()`` then finalises what reached the disk (see the module doc).
     """
 
-    def __init__(self, session: zenoh.Session, options: RecordOptions, metadata: dict[str, dict[str, str]]):
-        self.session = session
+    def __init__(self, options: RecordOptions, metadata: dict[str, dict[str, str]]):
         self.opts = options
         self.writer = RecordingWriter(options.output, options.compression, options.chunk_bytes)
         for name, data in metadata.items():
@@ -154,6 +190,7 @@ class Recorder:
         self.writer.flush()
         self.report = RecordReport(options.output)
         self._key_exprs = [zenoh.KeyExpr(p) for p in options.patterns]
+        self._excluded = [zenoh.KeyExpr(p) for p in options.exclude]
         self._subs: list[Any] = []
         self._raw: deque[_Item] = deque()
         self._ready: deque[_Item] = deque()
@@ -161,6 +198,8 @@ class Recorder:
         self._cond = threading.Condition()
         self._closing = False
         self._converted_all = False
+        self.failed = threading.Event()  # the writer hit an error: the recording is over
+        self._failure: BaseException | None = None
         self._last_seq: dict[tuple[str, str], int] = {}
         self._warn = RateLimitedLog(log, 5.0)
         self._threads = [threading.Thread(target=self._convert_loop, name="record-convert", daemon=True),
@@ -168,14 +207,14 @@ class Recorder:
         self._started = 0.0
 
     # --- zenoh side (must stay cheap) -------------------------------------------------------------
-    def start(self) -> None:
+    def start(self, session: zenoh.Session) -> None:
         self._started = time.monotonic()
         for thread in self._threads:
             thread.start()
         for i, pattern in enumerate(self.opts.patterns):
             # Direct: the callback runs on zenoh's receive thread (it only copies and enqueues), which
             # keeps the order samples arrived in; zenoh-python's default hands each subscriber a thread.
-            self._subs.append(self.session.declare_subscriber(
+            self._subs.append(session.declare_subscriber(
                 pattern, direct_callback(self._callback_for(i))))
 
     def _callback_for(self, index: int):
@@ -186,6 +225,8 @@ class Recorder:
                 first = next(i for i, k in enumerate(self._key_exprs) if k.intersects(sample.key_expr))
                 if first != index:
                     return
+            if self._excluded and any(k.intersects(sample.key_expr) for k in self._excluded):
+                return
             try:
                 data = payload_bytes(sample)
             except Exception as exc:  # never let one sample kill zenoh's callback thread
@@ -198,13 +239,17 @@ class Recorder:
     def _enqueue(self, key: str, data: bytes) -> None:
         now = time.time_ns()
         with self._cond:
+            if self._closing:  # stopping, or the writer failed: the recording is over
+                return
             stats = self.report.keys.get(key)
             if stats is None:
                 stats = self.report.keys[key] = KeyStats()
             stats.received += 1
             if self._queued_bytes + len(data) > self.opts.max_queue_bytes:
                 stats.dropped += 1
-                self._warn.warning("writer queue full (%d MB): dropping on %s", self._queued_bytes >> 20, key)
+                self._warn.warning("recorder queue at its bound (%.1f MB queued, %.1f MB message, --max-queue-mb "
+                                   "%.0f): dropping on %s", self._queued_bytes / 1e6, len(data) / 1e6,
+                                   self.opts.max_queue_bytes / 2**20, key)
                 return
             self._raw.append(_Item(key, data, now))
             self._queued_bytes += len(data)
@@ -229,7 +274,11 @@ class Recorder:
                 log.exception("failed to convert a message on %s", item.key)
             self.report.convert_busy_s += time.perf_counter() - busy_from
             with self._cond:
+                if self.failed.is_set():
+                    continue  # nobody writes it any more
                 self._ready.append(item)
+                self._queued_bytes += item.view_bytes  # the JPEG views count against the bound too
+                self.report.max_queue_bytes = max(self.report.max_queue_bytes, self._queued_bytes)
                 self._cond.notify_all()
 
     def _convert(self, item: _Item) -> None:
@@ -283,17 +332,33 @@ class Recorder:
                 if item is None and self._converted_all:
                     return
             busy_from = time.perf_counter()
-            if item is not None:
-                try:
+            try:
+                if item is not None:
                     self._write(item)
-                except Exception:
-                    log.exception("failed to write a message on %s", item.key)
-                with self._cond:
-                    self._queued_bytes -= len(item.data)
-            if time.monotonic() - last_flush >= self.opts.chunk_seconds:
-                self.writer.flush()  # a closed chunk survives a SIGKILL
-                last_flush = time.monotonic()
+                if time.monotonic() - last_flush >= self.opts.chunk_seconds:
+                    self.writer.flush()  # a closed chunk survives a SIGKILL
+                    last_flush = time.monotonic()
+            except Exception as exc:
+                # ENOSPC, EIO, EFBIG, ... and anything else: the mcap writer's state is unknown from here
+                # on, so the recording ends; stop() finalises what reached the disk.
+                self._fail(exc)
+                return
+            finally:
+                if item is not None and not self.failed.is_set():
+                    with self._cond:
+                        self._queued_bytes -= len(item.data) + item.view_bytes
             self.report.writer_busy_s += time.perf_counter() - busy_from
+
+    def _fail(self, exc: BaseException) -> None:
+        log.debug("write failed", exc_info=exc)
+        with self._cond:
+            self._failure = exc
+            self._closing = True
+            self._raw.clear()  # lost: the report counts them as received and not written
+            self._ready.clear()
+            self._queued_bytes = 0
+            self.failed.set()
+            self._cond.notify_all()
 
     def _write(self, item: _Item) -> None:
         header = item.header
@@ -321,11 +386,17 @@ class Recorder:
         self._last_seq[(key, source)] = seq
 
     # --- shutdown ---------------------------------------------------------------------------------
+    def discard(self) -> None:
+        """Remove the file of a recorder that never started (no bus to record)."""
+        self.writer.discard()
+
     def queued_bytes(self) -> int:
         with self._cond:
             return self._queued_bytes
 
     def stop(self) -> RecordReport:
+        """Unsubscribe, drain the queue to disk and finalise the file; after a write error (``failed``),
+        finalise what reached the disk instead. Never raises for a write error: see ``report.write_error``."""
         for sub in self._subs:
             with contextlib.suppress(Exception):
                 sub.undeclare()
@@ -335,10 +406,31 @@ class Recorder:
         for thread in self._threads:
             thread.join()
         self.report.duration_s = time.monotonic() - self._started
-        self.writer.metadata("recording_stats", self.report.as_metadata())
-        self.writer.finish()
+        if self._failure is None:
+            try:
+                self.writer.metadata("recording_stats", self.report.as_metadata())
+                self.writer.finish()
+            except Exception as exc:  # the disk filled up at the very end
+                self._failure = exc
+        if self._failure is not None:
+            self._finalise_after_failure(self._failure)
         self.report.file_bytes = self.opts.output.stat().st_size
         return self.report
+
+    def _finalise_after_failure(self, exc: BaseException) -> None:
+        report = self.report
+        report.write_error = _error_text(exc)
+        with contextlib.suppress(OSError):
+            report.failed_at_bytes = self.opts.output.stat().st_size
+        report.recorded_s = max(0.0, self.writer.durable_monotonic - self._started)
+        for key, stats in report.keys.items():
+            stats.written = self.writer.durable_counts.get(key, 0)
+        try:
+            result: FinaliseResult = self.writer.finish_after_failure([("recording_stats", report.as_metadata())])
+            log.debug("finalised after the write error: %s", result)
+            report.foxglove_messages = result.messages - report.written
+        except Exception as fin_exc:
+            report.finalise_error = _error_text(fin_exc)
 
 
 # --- metadata --------------------------------------------------------------------------------------
@@ -420,8 +512,22 @@ def cmd_record(args, settings, graph) -> int:
         output=output, patterns=patterns, include_status=args.status, compression=args.compression,
         chunk_bytes=int(args.chunk_mb * 1024 * 1024), chunk_seconds=args.chunk_seconds,
         jpeg_quality=args.jpeg_quality, foxglove=not args.no_foxglove,
-        max_queue_bytes=int(args.max_queue_mb * 1024 * 1024),
+        max_queue_bytes=int(args.max_queue_mb * 1024 * 1024), exclude=list(getattr(args, "exclude", None) or []),
     )
+    if options.max_queue_bytes <= 0:
+        print("followbus: --max-queue-mb must be positive", file=sys.stderr)
+        return 2
+    for pattern in [*options.patterns, *options.exclude]:
+        try:
+            zenoh.KeyExpr(pattern)
+        except zenoh.ZError as exc:
+            print(f"followbus: {pattern!r} is not a key expression: {exc}", file=sys.stderr)
+            return 2
+    try:  # before joining the bus: an unwritable output is reported at once
+        recorder = Recorder(options, build_metadata(graph, options, namespace))
+    except OSError as exc:
+        print(f"followbus: cannot write {output}: {exc}", file=sys.stderr)
+        return 2
     stop = threading.Event()
 
     def on_signal(signum, _frame):
@@ -435,10 +541,10 @@ def cmd_record(args, settings, graph) -> int:
     try:
         session = open_session(settings)
     except zenoh.ZError as exc:
+        recorder.discard()
         print(f"followbus: cannot join the bus via {', '.join(settings.connect)}: {exc}", file=sys.stderr)
         return 2
-    recorder = Recorder(session, options, build_metadata(graph, options, namespace))
-    recorder.start()
+    recorder.start(session)
     # Declared after the subscribers: a capture node launched with --record waits for it before frame 0,
     # so a recording holds the run from its first frame (a replayed node must start where the live one did).
     token = session.liveliness().declare_token(f"{namespace}/@health/{RECORDER_NAME}")
@@ -446,7 +552,7 @@ def cmd_record(args, settings, graph) -> int:
     started = time.monotonic()
     next_status = started + 10.0
     try:
-        while not stop.is_set():
+        while not stop.is_set() and not recorder.failed.is_set():
             if args.duration is not None and time.monotonic() - started >= args.duration:
                 break
             stop.wait(0.1)
@@ -461,4 +567,7 @@ def cmd_record(args, settings, graph) -> int:
         with contextlib.suppress(Exception):
             session.close()
     print_report(report)
+    if report.write_error:
+        print(report.failure_line(), file=sys.stderr, flush=True)
+        return EXIT_WRITE_FAILED
     return 0
