@@ -115,6 +115,10 @@ class Graph:
     def status_key(self, node: str) -> str:
         return f"{self.namespace}/@status/{node}"
 
+    def replay_hint_key(self, node: str) -> str:
+        """Where ``followbus replay`` tells a node run with ``--clock stamps`` what the live run did."""
+        return f"{self.namespace}/@replay/{node}"
+
     def error(self, line: int | None, message: str) -> GraphError:
         return GraphError(self.path, line, message)
 

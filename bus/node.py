@@ -32,7 +32,7 @@ import zenoh
 
 from followbus.bus.graph import Graph, GraphError, NodeSpec
 from followbus.bus.pubsub import InputQueue, Publisher, RateLimitedLog, ShmPool, Subscriber
-from followbus.bus.schemas import Frame, Message, NodeStatus
+from followbus.bus.schemas import Frame, Message, NodeStatus, ReplayHint
 from followbus.bus.session import open_session
 from followbus.bus.stats import TopicStats
 from followbus.bus.sync import IMPLAUSIBLE, RESYNCED, STALE, FrameSynchronizer, SequenceGuard, SyncInput
@@ -333,6 +333,12 @@ class NodeRuntime:
                 self.session, key, self._enqueuer(queue), schema=self.cls.INPUTS[inp.name], stats=stats,
                 logger=self.log,
             ))
+        self._hints: list[ReplayHint] = []
+        if clock == "stamps" and self.sync is not None:
+            # Lockstep replay: the replayer says which frames the live node skipped and which feedback it
+            # joined, so a live fallback (a late feedback, a skipped backlog) is reproduced exactly.
+            self.subscribers.append(Subscriber(self.session, graph.replay_hint_key(name), self._on_hint,
+                                               schema=ReplayHint, logger=self.log))
         self._token = self.session.liveliness().declare_token(graph.health_key(self.spec.name))
         self._status_pub = Publisher(self.session, graph.status_key(self.spec.name), self.spec.name)
         self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
@@ -345,6 +351,11 @@ class NodeRuntime:
             queue.push(msg)
 
         return push
+
+    def _on_hint(self, hint: Message) -> None:
+        with self._cond:
+            self._hints.append(hint)  # type: ignore[arg-type]
+            self._cond.notify_all()
 
     def status(self) -> NodeStatus:
         topics = {p.key: p.stats.snapshot() for p in self.publishers.values()}
@@ -415,7 +426,13 @@ class NodeRuntime:
                     if not any(len(q) for q in self.queues.values()) and wait_s > 0:
                         self._cond.wait(wait_s)
                     items = [(name, m) for name, q in self.queues.items() for m in q.pop_all()]
+                    hints, self._hints = self._hints, []
                     self._cond.notify_all()  # wake producers blocked on a full queue
+                for hint in hints:  # published before the frame's inputs, so they arrive first
+                    if self.sync is not None and hint.skip:
+                        self.sync.skip(hint.header.frame_seq)
+                    elif self.sync is not None:
+                        self.sync.force_feedback(hint.header.frame_seq, hint.feedback)
                 items.sort(key=lambda item: item[1]._arrival)
                 for name, msg in items:
                     self._dispatch(name, msg)

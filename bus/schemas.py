@@ -195,11 +195,22 @@ class Tick(Message):
     payload: np.ndarray | None = None
 
 
+@dataclass
+class ReplayHint(Message):
+    """What the live run did with frame ``header.frame_seq``, sent by ``followbus replay`` before the frame's
+    inputs so the replayed node does the same: skip it (the live node skipped it: lag bound, lost input), or
+    join exactly these feedback frames (``header.feedback`` of the recorded output; -1: none)."""
+
+    TYPE: ClassVar[str] = "ReplayHint"
+    skip: bool = False
+    feedback: dict[str, int] = field(default_factory=dict)
+
+
 SCHEMAS: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (
         Frame, GroundTruth, Detections, Prior, Measurement, Track, Template, MotorCommand, Odometry,
-        NodeStatus, Tick,
+        NodeStatus, Tick, ReplayHint,
     )
 }
 

@@ -144,6 +144,7 @@ class FrameSynchronizer:
         self.guard = SequenceGuard()  # on the same-frame inputs
         self._feedback_lost = False
         self._forced: dict[int, dict[str, int]] = {}  # replay: feedback a live run used for a frame
+        self._skipped: set[int] = set()  # replay: frames the live run did not handle
         self.timeouts = 0  # sets emitted without an optional input (feedback included)
         self.dropped = 0  # sets dropped: required input missing at timeout, superseded, or overflow
         self.late = 0  # sets dropped for lagging more than max_lag_ns behind a complete newer one
@@ -195,6 +196,10 @@ class FrameSynchronizer:
         """Replay: frame ``frame_seq`` takes exactly these feedback frames (-1: none), as the live run did."""
         self._forced[frame_seq] = dict(used)
 
+    def skip(self, frame_seq: int) -> None:
+        """Replay: frame ``frame_seq`` is not handled, as the live run did not handle it."""
+        self._skipped.add(frame_seq)
+
     # --- output ---------------------------------------------------------------------------------
     def _feedback_for(self, name: str, seq: int) -> tuple[Any, bool]:
         """(message, exact) of feedback input ``name`` for the set of frame ``seq``."""
@@ -230,6 +235,11 @@ class FrameSynchronizer:
                                if s.stamp_ns is not None and not self._missing_same_frame(s)), default=None)
         for seq in sorted(self._slots):
             slot = self._slots[seq]
+            if seq in self._skipped:
+                del self._slots[seq]
+                self._skipped.discard(seq)
+                self.dropped += 1
+                continue
             if self._lagging(slot, newest_complete):
                 del self._slots[seq]
                 self.late += 1

@@ -255,6 +255,7 @@ class ReplayReport:
     timeouts: list[int] = field(default_factory=list)  # frames whose outputs did not all come in time
     deferred_frames: int = 0  # frames not awaited at once: their set waited for a later stamp
     late_inputs: int = 0
+    hints: int = 0  # frames told to skip, or to join the feedback the live run joined (a live fallback)
     startup_s: float = 0.0
     wall_s: float = 0.0
     recorded_span_s: float = 0.0
@@ -294,6 +295,12 @@ def _header(data: bytes) -> tuple[int, int]:
     if head is not None and isinstance(head[2], int) and isinstance(head[1], int):
         return head[2], head[1]
     return -1, 0
+
+
+def _provenance(data: bytes) -> dict[str, int] | None:
+    """header.feedback of a stored bus message (None: recorded before provenance existed)."""
+    head = _peek_header(data)
+    return head[6] if head is not None and len(head) == 7 and isinstance(head[6], dict) else None
 
 
 def _pub_ns(data: bytes) -> int:
@@ -436,14 +443,46 @@ class Replayer:
         return self.private_ns + recorded_key[len(self.recorded_ns):]
 
     # --- frame bookkeeping ------------------------------------------------------------------------
-    def _frame_inputs_complete(self, names: set[str], last_handled: int | None) -> tuple[bool, bool]:
+    def _recorded_hints(self) -> tuple[dict[int, dict[str, int]], set[int]]:
+        """(feedback each recorded output joined, frames with any recorded output) of the node: what the
+        live run did, told to the replayed node frame by frame (bus.schemas.ReplayHint)."""
+        provenance: dict[int, dict[str, int]] = {}
+        handled: set[int] = set()
+        for msg in iter_bus_messages(self.path, set(self.output_keys)):
+            frame_seq, _ = _header(msg.data)
+            if frame_seq < 0:
+                continue
+            handled.add(frame_seq)
+            used = _provenance(msg.data)
+            if used:
+                provenance[frame_seq] = used
+        return provenance, handled
+
+    def _send_hint(self, frame_seq: int) -> tuple[bool, dict[str, int] | None]:
+        """Tell the node what the live run did with this frame: (skipped, feedback joined)."""
+        from followbus.bus.schemas import ReplayHint
+
+        if not self._feedback_sent or not self._live_handled:
+            return False, None  # nothing to reproduce: no feedback inputs, or no outputs recorded
+        skip = frame_seq not in self._live_handled and frame_seq > min(self._live_handled)
+        used = None if skip else self._live_feedback.get(frame_seq)
+        if skip or used:
+            hint = ReplayHint(skip=skip, feedback=dict(used or {}))
+            hint.header.frame_seq = frame_seq
+            self._hint_pub.put(hint)
+            self.report.hints += 1
+        return skip, used
+
+    def _frame_inputs_complete(self, names: set[str], last_handled: int | None,
+                               forced: dict[str, int] | None = None) -> tuple[bool, bool]:
         """(complete, required same-frame inputs present) of a frame set, as the node's synchroniser sees it."""
         complete = required = True
         for inp in self.spec.inputs.values():
             if inp.sync != "frame":
                 continue
             if inp.offset:
-                if last_handled is not None and last_handled not in self._feedback_sent[inp.name]:
+                wanted = forced[inp.name] if forced and inp.name in forced else last_handled
+                if wanted is not None and wanted >= 0 and wanted not in self._feedback_sent[inp.name]:
                     complete = False
             elif inp.name not in names:
                 complete = False
@@ -578,6 +617,7 @@ class Replayer:
                 shm = ShmPool(REPLAY_SHM_BYTES) if private.zenoh.shm else None
                 for key in self.input_keys:
                     pubs[key] = Publisher(session, self._private_key(key), "replay", shm=shm)
+                self._hint_pub = Publisher(session, private.replay_hint_key(self.spec.name), "replay")
                 watcher = HealthWatcher(session, self.private_ns, watch_status=False)
                 with open(log_path, "wb") as node_log:
                     self.proc = subprocess.Popen(
@@ -640,6 +680,7 @@ class Replayer:
 
     def _lockstep(self, pubs: dict[str, Any]) -> None:
         self._feedback_sent: dict[str, set[int]] = {i.name: set() for i in self.spec.inputs.values() if i.offset}
+        self._live_feedback, self._live_handled = self._recorded_hints() if self._feedback_sent else ({}, set())
         last_handled: int | None = None
         # Frames whose outputs the node can only emit once later stamps arrive (a set waiting for an
         # optional input, or blocked behind such a set): in stamp order, oldest first.
@@ -672,6 +713,7 @@ class Replayer:
             nonlocal last_handled, first_stamp, last_stamp
             assert group_seq is not None
             names: set[str] = set()
+            skipped, forced = self._send_hint(group_seq)
             for key, data, fs, stamp in group:
                 if fs == group_seq and not self._wait_outputs_published_before(fs, _pub_ns(data),
                                                                               self.opts.frame_timeout_s):
@@ -685,8 +727,8 @@ class Replayer:
                 if stamp:
                     first_stamp = stamp if first_stamp is None else min(first_stamp, stamp)
                     last_stamp = stamp if last_stamp is None else max(last_stamp, stamp)
-            complete, required = self._frame_inputs_complete(names, last_handled)
-            if required:
+            complete, required = self._frame_inputs_complete(names, last_handled, forced)
+            if required and not skipped:
                 last_handled = group_seq
             self.report.frames += 1
             done_frames.add(group_seq)
@@ -787,6 +829,9 @@ def _print_summary(report: ReplayReport, verify: bool) -> None:
     print(f"outputs: {report.outputs_expected} recorded, {report.outputs_received} produced, "
           f"{report.outputs_compared} compared, {report.matched} identical, {report.mismatch_count} differing, "
           f"{len(report.missing)} missing, {len(report.extra)} extra; {len(report.timeouts)} frame timeouts")
+    if report.hints:
+        print(f"live fallbacks reproduced: {report.hints} frames skipped or joined older feedback live "
+              "(a late feedback, a skipped backlog), and were replayed the same way")
     if report.recording_first_frame:
         print(f"note: the recording starts at frame {report.recording_first_frame} of the run (recorded mid-run): "
               "the node starts without the state it had built before (template, track state, filter), so its first "
