@@ -22,6 +22,10 @@ from followbus.nodes.convert import msg_to_prior, reid_to_msg
 from followbus.tracking.params import TrackerParams
 from followbus.tracking.reid import ReIdentifier
 
+# init_box describes the target at the start of the source: a re-ID node (re)started later in the run, or
+# joining a capture that restarted long ago, re-acquires the target from its template instead.
+INIT_BOX_MAX_FRAME = 10
+
 
 @dataclass
 class ReidParams:
@@ -34,8 +38,12 @@ class Reid(Node):
     OUTPUTS = {"measurement": Measurement}
 
     @classmethod
+    def params_classes(cls) -> tuple[type, ...]:
+        return (ReidParams, TrackerParams)
+
+    @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> tuple[ReidParams, TrackerParams]:
-        node_params, tracker_params = split_params(raw, ReidParams, TrackerParams)
+        node_params, tracker_params = split_params(raw, *cls.params_classes())
         if node_params.init_box and len(node_params.init_box) != 4:
             from followbus.bus.node import ParamError
 
@@ -47,6 +55,7 @@ class Reid(Node):
         self.reid = ReIdentifier(tracker_params)
         self.template_hist: np.ndarray | None = None
         self.frames = 0
+        self.epoch_ns: int | None = None  # the capture session of the frames handled so far
         self.last: Measurement | None = None
 
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
@@ -55,7 +64,11 @@ class Reid(Node):
         template = inputs.get("template")
         if isinstance(template, Template):
             self.template_hist = None if not template.initialised or template.hist is None else np.array(template.hist)
-        init_box = self.node_params.init_box if (self.node_params.init_box and self.frames == 0) else None
+        new_source = frame.header.epoch_ns != self.epoch_ns
+        self.epoch_ns = frame.header.epoch_ns
+        init_box = None
+        if self.node_params.init_box and new_source and frame_seq < INIT_BOX_MAX_FRAME:
+            init_box = self.node_params.init_box
         result = self.reid.step(frame.data, dets.boxes, msg_to_prior(prior), self.template_hist,
                                 frame.header.stamp_ns, init_box=init_box)
         self.frames += 1

@@ -60,6 +60,7 @@ def _sample_messages() -> list[schemas.Message]:
         schemas.Odometry(x_m=1.0, y_m=2.0, theta_rad=0.3, vx_mps=0.4, vy_mps=0.1, wz_radps=0.05),
         schemas.NodeStatus(node="n", pid=42, uptime_s=3.5, topics={"k": {"rate_hz": 30.0}}, extra={"a": 1}),
         schemas.Tick(value=7, payload=np.arange(5000, dtype=np.uint8)),
+        schemas.ReplayHint(skip=False, feedback={"template": 8}),
     ]
 
 

@@ -16,23 +16,50 @@ from .conftest import REPO, followbus_argv, processes_matching, run_followbus
 pytestmark = pytest.mark.slow
 
 
-@pytest.fixture(scope="module")
-def recording(tmp_path_factory):
-    from .conftest import free_port
+def _record(tmp, namespace: str, frames: int, during=None, *extra: str):
+    """Launch the tracking graph with ``--record`` until re-ID has handled ``frames`` frames (after
+    ``during(graph)`` returned, when given), then stop it as a user would (SIGINT). Counting frames rather
+    than seconds keeps the recording the same size on a loaded machine, where start-up can take seconds."""
+    from followbus.bus.pubsub import Subscriber
+    from followbus.bus.schemas import Measurement
+    from followbus.bus.session import ZenohSettings, open_session
 
-    tmp = tmp_path_factory.mktemp("rec")
+    from .conftest import free_port, wait_until
+
     port = free_port()
     text = (REPO / "graph.yaml").read_text().replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}")
     graph = tmp / "graph.yaml"
-    graph.write_text(text.replace("namespace: fb", "namespace: rt"))
+    graph.write_text(text.replace("namespace: fb", f"namespace: {namespace}"))
     path = tmp / "run.mcap"
-    result = subprocess.run(
-        followbus_argv("launch", str(graph), "--duration", "7", "--record", str(path),
-                       "--set", "capture.source=scene:wall-occlusion", "--set", "detection.backend=simulated",
-                       "--set", "template.state_file="),
-        capture_output=True, text=True, timeout=90, stdin=subprocess.DEVNULL)
-    assert result.returncode == 0 and path.exists(), result.stdout[-3000:] + result.stderr[-2000:]
+    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    seen: list[int] = []
+    sub = Subscriber(session, f"{namespace}/reid/measurement", lambda m: seen.append(m.header.frame_seq),
+                     schema=Measurement)
+    proc = subprocess.Popen(
+        followbus_argv("launch", str(graph), "--duration", "120", "--record", str(path),
+                       "--set", "capture.source=scene:wall-occlusion", "--set", "capture.loop=true",
+                       "--set", "detection.backend=simulated", "--set", "template.state_file=", *extra),
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, stdin=subprocess.DEVNULL)
+    try:
+        if during is not None:
+            assert wait_until(lambda: len(seen) >= 60, timeout=90), "the graph did not start tracking"
+            during(graph)
+        target = len(seen) + frames - (60 if during is None else 0)
+        assert wait_until(lambda: len(seen) >= target, timeout=120), f"re-ID handled only {len(seen)} frames"
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sub.undeclare()
+        session.close()
+    assert path.exists(), out[-3000:]
     return path
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    return _record(tmp_path_factory.mktemp("rec"), "rt", 220)
 
 
 @pytest.mark.parametrize("node", ["reid", "prediction"])
@@ -83,28 +110,8 @@ def test_a_live_fallback_is_replayed_exactly(tmp_path):
     waiting), reid then skips its backlog to the newest frame. The outputs carry which feedback each frame
     joined, the recording keeps which frames were skipped, and a lockstep replay of either node does the
     same, with zero mismatches."""
-    from followbus.bus.pubsub import Subscriber
-    from followbus.bus.schemas import Measurement
-    from followbus.bus.session import ZenohSettings, open_session
 
-    from .conftest import free_port, wait_until
-
-    port = free_port()
-    text = (REPO / "graph.yaml").read_text().replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}")
-    graph = tmp_path / "graph.yaml"
-    graph.write_text(text.replace("namespace: fb", "namespace: rf"))
-    path = tmp_path / "run.mcap"
-    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
-    seen: list[int] = []
-    sub = Subscriber(session, "rf/reid/measurement", lambda m: seen.append(m.header.frame_seq), schema=Measurement)
-    proc = subprocess.Popen(
-        followbus_argv("launch", str(graph), "--duration", "60", "--record", str(path),
-                       "--set", "capture.source=scene:wall-occlusion", "--set", "capture.loop=true",
-                       "--set", "detection.backend=simulated",
-                       "--set", "template.state_file="),
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, stdin=subprocess.DEVNULL)
-    try:
-        assert wait_until(lambda: len(seen) >= 60, timeout=60), "the graph did not start tracking"
+    def stop_reid_for_a_second(graph):
         pids = processes_matching(f"node reid --graph {graph}")
         assert pids, "reid is not running"
         for pid in pids:
@@ -112,16 +119,8 @@ def test_a_live_fallback_is_replayed_exactly(tmp_path):
         time.sleep(1.0)
         for pid in pids:
             os.kill(pid, signal.SIGCONT)
-        resumed = len(seen)
-        assert wait_until(lambda: len(seen) >= resumed + 60, timeout=60), "reid did not resume"
-        proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        sub.undeclare()
-        session.close()
-    assert path.exists(), out[-3000:]
+
+    path = _record(tmp_path, "rf", 60, stop_reid_for_a_second)
     for node in ("prediction", "reid"):
         report_path = tmp_path / f"{node}.json"
         result = run_followbus("replay", str(path), "--node", node, "--verify", "--report", str(report_path),
