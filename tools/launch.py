@@ -221,8 +221,9 @@ class Launcher:
                         return self._shutdown(1)
                 if all(c.finished for c in self.children):
                     break
-                if any(c.failed for c in self.children):
-                    # A graph missing a node for good (its motor, say) must not limp on.
+                if any(c.failed for c in self.children if c.spec.run != "<tool>"):
+                    # A graph missing a node for good (its motor, say) must not limp on. A tool beside it (the
+                    # recorder on a full disk) failing is reported, but the robot keeps following.
                     log.error("stopping the graph: a node failed for good")
                     break
                 time.sleep(0.05)
