@@ -27,6 +27,7 @@ examples:
   followbus replay recordings/run.mcap --node reid --verify   lockstep regression replay
   followbus eval all --ablations         score followers on ../shared/data (results/results.md)
   followbus bench pipeline                capture -> motor command latency through the graph
+  followbus bench chaos                   kill, stall, load and spoof the graph: does it recover?
   followbus models                        where the ONNX models are found; checks their SHA-256
 
 Every command that talks to the bus reads the zenoh settings of --graph (default ./graph.yaml);
@@ -178,6 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
     b.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
     b.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    _add_bench_chaos_parser(bench)
 
     p = sub.add_parser("eval", help="score followers on sequences (paper metrics, baselines, ablations, plots)",
                        description="Run followbus, the Kalman baseline, ablations and peer trackers in-process "
@@ -213,6 +215,58 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_models_parser(sub)
     return parser
+
+
+def _add_bench_chaos_parser(bench) -> None:
+    """``bench chaos``: the fault-injection suite (tools/chaos.py; RELIABILITY.md holds its figures)."""
+    b = bench.add_parser(
+        "chaos", help="fault injection: does the live loop always recover? (RELIABILITY.md)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Launch graph.yaml on a private loopback port (scene looping at 30 Hz, simulated detector)\n"
+                    "and try one fault at a time. After each fault it requires:\n"
+                    "  - 0 unsafe motor commands (a non-finite field, a speed beyond the motor's limits);\n"
+                    "  - a zero command <= 200 ms after the last track whenever tracks stop;\n"
+                    "  - the robot following again (TRACKING) within --recovery-bound of the fault's end (node\n"
+                    "    back up, or injection over; time the scene itself hides the target is added), then\n"
+                    "    tracking most of the next --hold seconds;\n"
+                    "  - under load: p99 capture->command <= 250 ms, and >= 50 % of frames answered (burners).\n"
+                    "A fault the loop does not survive is followed by a fresh launch of the graph.\n\n"
+                    "faults (--faults, comma-separated; 'all' is the default, 'ci' the tests' subset):\n"
+                    "  kill-capture (capture-restart), kill-detection, kill-prediction, kill-reid, kill-template,\n"
+                    "  kill-motor          SIGKILL the node; the launcher restarts it\n"
+                    "  stop-prediction-2s  SIGSTOP prediction for 2 s\n"
+                    "  burners             --burners processes spinning a CPU for --load-seconds\n"
+                    "  detector-delay-80ms detection takes 80 ms a frame (simulated sim_delay_ms; own launch)\n"
+                    "  future-stamp-track  a TRACKING track stamped +1 h, then SIGKILL prediction\n"
+                    "  future-seq-frame, future-seq-detections\n"
+                    "                      one message with frame_seq +10**9, then a 0.3 s camera stall\n"
+                    "  nan-measurement     an accepted TRACKING measurement with a NaN box\n"
+                    "  malformed           garbage/wrong-type/truncated/wrong-field payloads on every input key\n"
+                    "  flood               300 valid frames as fast as possible on capture/frame\n"
+                    "  kill-recorder       SIGKILL the recorder (only with --record)\n"
+                    "Exit status 0 when every fault was survived, 1 otherwise.",
+        epilog="examples:\n  followbus bench chaos                                   every fault, the table\n"
+               "  followbus bench chaos --faults kill-reid,nan-measurement --repeat 3\n"
+               "  followbus bench chaos --faults burners --burners 2 --load-seconds 20 --json chaos.json\n"
+               "  followbus bench chaos --record --faults kill-recorder")
+    b.add_argument("--faults", metavar="NAME,...", help="faults to try, in order (default: all)")
+    b.add_argument("--detector", default="simulated", choices=("simulated", "yolox416"),
+                   help="detection backend (default simulated: deterministic, needs no model)")
+    b.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
+    b.add_argument("--burners", type=int, default=2, metavar="N", help="CPU burners of the burners fault (default 2)")
+    b.add_argument("--load-seconds", type=float, default=10.0, metavar="S",
+                   help="how long burners and the detector delay last (default 10)")
+    b.add_argument("--repeat", type=int, default=1, metavar="N", help="run the fault list N times (default 1)")
+    b.add_argument("--record", action="store_true", help="run a recorder with the graph (adds kill-recorder)")
+    b.add_argument("--recovery-bound", type=float, default=2.0, metavar="S",
+                   help="seconds from the fault's end to following again (default 2)")
+    b.add_argument("--hold", type=float, default=3.0, metavar="S",
+                   help="after recovery, seconds that must be tracked most of the time (default 3)")
+    b.add_argument("--malformed-per-key", type=int, default=10_000, metavar="N",
+                   help="malformed payloads per input key (default 10000)")
+    b.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
+    b.add_argument("--log", default="state/chaos.log", help="where node logs go (default state/chaos.log)")
+    b.add_argument("--json", metavar="FILE", help="also write every run's checks and figures as JSON")
 
 
 def _add_recording_parsers(sub) -> None:
@@ -430,6 +484,10 @@ def dispatch(args) -> int:
         from followbus.tools.bench_pipeline import run_bench_pipeline
 
         return run_bench_pipeline(args)
+    if cmd == "bench" and args.bench == "chaos":
+        from followbus.tools.chaos import run_bench_chaos
+
+        return run_bench_chaos(args)
     if cmd == "eval":
         from followbus.tools.eval import cmd_eval
 

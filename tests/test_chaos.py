@@ -1,0 +1,188 @@
+"""The chaos suite (issue 14): the launched tracking graph must survive faults, with tracking resumed,
+0 unsafe motor commands and the watchdog's stop in time. The CI subset runs here on one launched graph;
+``followbus bench chaos`` runs every fault (RELIABILITY.md). The first tests check the harness's own
+judgement on made-up observations, so that a fault it calls survived really was."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from followbus.bus.codec import DecodeError
+from followbus.bus.graph import load_graph
+from followbus.bus.node import ParamError
+from followbus.bus.schemas import SCHEMAS, decode
+from followbus.tools import chaos
+from followbus.tools.chaos import (
+    CI_FAULTS,
+    FAULTS,
+    ChaosOptions,
+    ChaosRunner,
+    CommandObs,
+    Limits,
+    TrackObs,
+    TruthObs,
+    first_follow_ns,
+    resolve_faults,
+    tracking_coverage,
+    watchdog_report,
+)
+
+from .conftest import REPO, free_port, run_followbus
+
+MS = 1_000_000
+T0 = 1_000_000 * MS  # an arbitrary wall-clock origin for made-up observations
+
+
+def _track(t_ms: float, state: str = "TRACKING", source: str = "prediction", seq: int = 0) -> TrackObs:
+    return TrackObs(T0 + int(t_ms * MS), seq, T0 + int(t_ms * MS) - 30 * MS, state, source)
+
+
+def _cmd(t_ms: float, vx: float = 0.2, reason: str = "tracking", seq: int = 0, stamp_ms: float | None = None,
+         wz: float = 0.1) -> CommandObs:
+    stamp = T0 + int((t_ms - 30 if stamp_ms is None else stamp_ms) * MS)
+    wheels = (0.0,) * 4 if vx == 0 and wz == 0 else (1.0, 2.0, 1.0, 2.0)
+    return CommandObs(T0 + int(t_ms * MS), seq, stamp, T0 + int(t_ms * MS), vx, 0.0, wz, wheels, None, None, reason)
+
+
+def _stream(until_ms: float, state: str = "TRACKING") -> tuple[list[TrackObs], list[CommandObs]]:
+    """Tracks and their commands every 33 ms up to ``until_ms``."""
+    times = np.arange(0.0, until_ms, 33.0)
+    return ([_track(t, state, seq=i) for i, t in enumerate(times)],
+            [_cmd(t + 1, seq=i) for i, t in enumerate(times)])
+
+
+# ----------------------------------------------------------------------------- the harness's judgement
+
+
+def test_limits_come_from_the_graph_and_flag_unsafe_commands():
+    limits = Limits.from_graph(load_graph(REPO / "graph.yaml"))
+    assert limits.max_forward_mps > 0 and limits.max_reverse_mps >= 0 and limits.max_wheel_radps > 0
+    assert limits.unsafe(_cmd(0, vx=0.5 * limits.max_forward_mps)) == []
+    assert limits.unsafe(_cmd(0, vx=limits.max_forward_mps + 0.01))
+    assert limits.unsafe(_cmd(0, vx=-limits.max_reverse_mps - 0.01))
+    assert limits.unsafe(_cmd(0, vx=float("nan"))) == ["non-finite field"]
+    assert limits.unsafe(_cmd(0, wz=limits.max_yaw_radps * 1.5))
+    bad_wheels = _cmd(0)
+    bad_wheels.wheel_radps = (limits.max_wheel_radps * 2, 0.0, 0.0, 0.0)
+    assert limits.unsafe(bad_wheels)
+
+
+def test_watchdog_report_wants_a_stop_within_the_bound_of_the_last_track():
+    tracks, commands = _stream(1000)
+    last = tracks[-1].recv_ns
+    on_time = [*commands, _cmd((last - T0) / MS + 150, vx=0.0, wz=0.0, reason="watchdog", seq=-1)]
+    report = watchdog_report(tracks, on_time, T0, T0 + 3000 * MS, timeout_ms=130, bound_ms=200)
+    assert not report.violations and report.worst_ms == pytest.approx(150, abs=1)
+    late = [*commands, _cmd((last - T0) / MS + 260, vx=0.0, wz=0.0, reason="watchdog", seq=-1)]
+    report = watchdog_report(tracks, late, T0, T0 + 3000 * MS, timeout_ms=130, bound_ms=200)
+    assert report.violations and "260 ms" in report.violations[0]
+    report = watchdog_report(tracks, commands, T0, T0 + 3000 * MS, timeout_ms=130, bound_ms=200)
+    assert report.violations and "no zero command" in report.violations[0]
+    # After a LOST track the motor has already stopped: a pause then needs no watchdog.
+    lost = [*tracks[:-1], _track((last - T0) / MS, "LOST")]
+    assert not watchdog_report(lost, commands, T0, T0 + 3000 * MS, 130, 200).violations
+
+
+def test_recovery_ignores_commands_answering_injected_tracks():
+    injected_stamp = T0 + 500 * MS
+    commands = [_cmd(510, stamp_ms=500), _cmd(900, reason="watchdog", seq=-1, vx=0, wz=0), _cmd(1500)]
+    assert first_follow_ns(commands, T0 + 400 * MS, [injected_stamp]) == T0 + 1500 * MS
+    assert first_follow_ns(commands, T0 + 400 * MS) == T0 + 510 * MS
+    assert first_follow_ns(commands, T0 + 1600 * MS) is None
+
+
+def test_tracking_coverage_counts_stale_tracks_as_lost_and_skips_a_hidden_target():
+    tracks, _ = _stream(1000)
+    truth = [TruthObs(t.recv_ns, t.frame_seq, t.stamp_ns, True) for t in tracks]
+    assert tracking_coverage(tracks, truth, T0, T0 + 1000 * MS) > 0.95
+    # Tracks stop at 495 ms: samples 0..700 ms still see a fresh track (< 300 ms old), 800..2000 ms do not.
+    assert tracking_coverage(tracks[:16], truth, T0, T0 + 2000 * MS) == pytest.approx(8 / 21)
+    # OCCLUDED while the scene hides the target is not held against the tracker.
+    occluded = [TrackObs(t.recv_ns, t.frame_seq, t.stamp_ns, "OCCLUDED", t.source) for t in tracks]
+    hidden = [TruthObs(g.recv_ns, g.frame_seq, g.stamp_ns, False) for g in truth]
+    assert tracking_coverage(occluded, hidden, T0, T0 + 1000 * MS) is None
+    assert tracking_coverage(occluded, truth, T0, T0 + 1000 * MS) == 0.0
+    # Injected tracks do not count as tracking.
+    spoofed = [TrackObs(t.recv_ns, t.frame_seq, t.stamp_ns, "TRACKING", chaos.INJECTOR) for t in tracks]
+    assert tracking_coverage(spoofed, truth, T0, T0 + 1000 * MS) == 0.0
+
+
+@pytest.mark.parametrize("schema", sorted(SCHEMAS.values(), key=lambda c: c.TYPE), ids=lambda c: c.TYPE)
+def test_malformed_payloads_are_all_undecodable(schema):
+    payloads = chaos._malformed_payloads(schema, 40, np.random.default_rng(0))
+    for payload in payloads:
+        with pytest.raises(DecodeError):
+            decode(payload, schema)
+
+
+def test_fault_lists():
+    assert [f.name for f in resolve_faults("ci", record=False, detector="simulated")] == list(CI_FAULTS)
+    assert "kill-recorder" not in [f.name for f in resolve_faults(None, record=False, detector="simulated")]
+    everything = resolve_faults("all", record=True, detector="simulated")
+    assert everything[-1].name == "kill-recorder" and len(everything) == len(FAULTS)
+    assert [f.name for f in resolve_faults("capture-restart,burners-2", record=False, detector="simulated")] == [
+        "kill-capture", "burners"]
+    with pytest.raises(ValueError, match="needs --record"):
+        resolve_faults("kill-recorder", record=False, detector="simulated")
+    with pytest.raises(ValueError, match="unknown fault 'kill-everything'"):
+        resolve_faults("kill-everything", record=False, detector="simulated")
+
+
+def test_cli_usage_errors_and_help():
+    result = run_followbus("bench", "chaos", "--faults", "kill-everything", timeout=60)
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0 and "unknown fault 'kill-everything'" in result.stderr
+    result = run_followbus("bench", "chaos", "--repeat", "0", timeout=60)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    helptext = run_followbus("bench", "chaos", "--help", timeout=60).stdout
+    for name in FAULTS:
+        assert name in helptext
+
+
+def test_simulated_detector_delay_is_a_pure_delay():
+    from followbus.nodes.detection import Detection, detector_from_params
+
+    truth = [((100.0, 50.0, 40.0, 120.0), 1.0), ((300.0, 60.0, 30.0, 90.0), 0.8)]
+    image = np.zeros((240, 480, 3), np.uint8)
+    fast = detector_from_params(Detection.parse_params({"backend": "simulated"}))
+    slow = detector_from_params(Detection.parse_params({"backend": "simulated", "sim_delay_ms": 40}))
+    t0 = time.perf_counter()
+    boxes = [slow.detect(image, truth) for _ in range(3)]
+    assert time.perf_counter() - t0 >= 3 * 0.040  # a sleep never returns early
+    for got in boxes:
+        assert np.array_equal(got, fast.detect(image, truth))
+    with pytest.raises(ParamError, match="sim_delay_ms"):
+        Detection.parse_params({"backend": "simulated", "sim_delay_ms": -1})
+    with pytest.raises(ParamError, match="only applies to backend 'simulated'"):
+        Detection.parse_params({"backend": "hog", "sim_delay_ms": 80})
+
+
+# ----------------------------------------------------------------------------- the live graph under faults
+
+
+@pytest.fixture(scope="module")
+def runner(tmp_path_factory):
+    # One launched graph for the whole module; the runner relaunches it only after a fault it did not survive.
+    workdir = tmp_path_factory.mktemp("chaos")
+    options = ChaosOptions(port=free_port(), workdir=workdir, log_file=workdir / "nodes.log", hold_s=2.0,
+                           malformed_per_key=400, warmup_s=6.0)
+    with ChaosRunner(options) as r:
+        yield r
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", CI_FAULTS)
+def test_fault_is_survived(runner, name):
+    result = runner.run(FAULTS[name])
+    log_tail = ""
+    if not result.survived and runner.options.log_file is not None and runner.options.log_file.exists():
+        lines = runner.options.log_file.read_text(errors="replace").splitlines()
+        log_tail = "\n".join([line for line in lines if "track state" not in line][-25:])
+    assert result.survived, result.explain() + "\n--- node log (tail) ---\n" + log_tail
+    assert result.unsafe_commands == 0
+    assert result.recovery_s is not None and result.recovery_s <= result.recovery_bound_s + result.hidden_s
+    if result.watchdog_ms is not None:
+        assert result.watchdog_ms <= result.watchdog_bound_ms
