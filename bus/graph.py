@@ -29,6 +29,7 @@ import yaml
 from followbus.bus.session import ZenohSettings
 
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
+NAMESPACE_RE = re.compile(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
 TOP_KEYS = {"name", "namespace", "zenoh", "nodes", "max_lag_ms"}
 DEFAULT_MAX_LAG_MS = 150.0  # a frame set further behind the newest complete one is skipped (bus.sync)
 NODE_KEYS = {"run", "inputs", "outputs", "params", "restart", "host", "sync_timeout_ms", "max_lag_ms", "description"}
@@ -220,7 +221,7 @@ def load_graph(path: str | Path, text: str | None = None) -> Graph:
     namespace = "fb"
     if "namespace" in seen:
         namespace = _expect(_plain(seen["namespace"], path), str, path, _line(seen["namespace"]), "namespace")
-        if not re.match(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$", namespace):
+        if not NAMESPACE_RE.match(namespace):
             raise GraphError(path, _line(seen["namespace"]), f"namespace {namespace!r} is not a valid key prefix")
     zenoh_settings = ZenohSettings()
     if "zenoh" in seen:

@@ -189,6 +189,12 @@ class Node:
     def parse_params(cls, raw: dict[str, Any]) -> Any:
         return params_from_dict(cls.Params, raw)
 
+    @classmethod
+    def params_classes(cls) -> tuple[type, ...]:
+        """The dataclasses whose fields are this node's graph.yaml ``params`` (``followbus schema`` documents
+        them). A node whose ``parse_params`` splits the params over several classes overrides this too."""
+        return (cls.Params,)
+
     # hooks
     def setup(self) -> None: ...
     def reset(self) -> None:

@@ -45,8 +45,12 @@ class Motor(Node):
     TIMER_PERIOD_MS = 10.0  # watchdog and odometry tick (100 Hz)
 
     @classmethod
+    def params_classes(cls) -> tuple[type, ...]:
+        return (MotorParams, FollowParams)
+
+    @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> tuple[MotorParams, FollowParams]:
-        motor, follow = split_params(raw, MotorParams, FollowParams)
+        motor, follow = split_params(raw, *cls.params_classes())
         if motor.driver not in ("sim", "serial"):
             raise ParamError("driver", f"driver must be 'sim' or 'serial', not {motor.driver!r}")
         if motor.driver == "serial" and not motor.port:

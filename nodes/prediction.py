@@ -45,8 +45,12 @@ class Prediction(Node):
     OUTPUTS = {"prior": Prior, "track": Track}
 
     @classmethod
+    def params_classes(cls) -> tuple[type, ...]:
+        return (PredictionParams, TrackerParams)
+
+    @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> tuple[PredictionParams, TrackerParams]:
-        return split_params(raw, PredictionParams, TrackerParams)
+        return split_params(raw, *cls.params_classes())
 
     def setup(self) -> None:
         self.node_params, tracker_params = self.params

@@ -35,8 +35,12 @@ class TemplateNode(Node):
     OUTPUTS = {"template": Template}
 
     @classmethod
+    def params_classes(cls) -> tuple[type, ...]:
+        return (TemplateParams, TrackerParams)
+
+    @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> tuple[TemplateParams, TrackerParams]:
-        return split_params(raw, TemplateParams, TrackerParams)
+        return split_params(raw, *cls.params_classes())
 
     def setup(self) -> None:
         self.node_params, tracker_params = self.params
