@@ -13,10 +13,13 @@ import time
 import urllib.request
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from followbus.bus.schemas import MotorCommand, NodeStatus, Track
 from followbus.bus.session import ZenohSettings, open_session
-from followbus.tools.monitor import SEPARATOR
+from followbus.bus.stats import TopicStats
+from followbus.tools.monitor import SEPARATOR, BusMonitor, GraphInfo, show
 
 from .chromium import element_text, page_layout, render_dom, require_chromium, screenshot
 from .conftest import REPO, followbus_argv, free_port, wait_until
@@ -98,6 +101,8 @@ def test_monitor_once_sees_every_node_and_rates(tracking_robot):
     out = result.stdout
     assert result.returncode == 0, out + result.stderr[-2000:] + "".join(launch.lines[-20:])
     assert "connected" in out.splitlines()[0]
+    # A pipe gets plain text: no escape sequences, no trailing blanks, one row per line.
+    assert "\x1b" not in out and all(line == line.rstrip() for line in out.splitlines()), repr(out[:500])
     for node in ("capture", "detection", "prediction", "reid", "template", "motor"):
         row = next((line for line in out.splitlines() if line.startswith(f"{node} ")), "")
         assert row.split()[1:2] == ["up"], out
@@ -265,6 +270,63 @@ def test_monitor_reconnects_after_robot_restart(tmp_path):
             monitor.wait(10)
         except subprocess.TimeoutExpired:
             monitor.kill()
+
+
+def _dashboard(terminal: bool) -> str:
+    """The dashboard of a monitor that saw two nodes (one verified, one down and spoofed), a track, a command
+    and bad payloads, as printed to a terminal or to a pipe."""
+    import io
+
+    from rich.console import Console
+
+    monitor = BusMonitor(ZenohSettings(mode="client", listen=[], connect=["tcp/127.0.0.1:9"]),
+                         GraphInfo(namespace="t", nodes=["capture", "detection"]))  # never started: no session
+    monitor._set_connected(True)
+    for name, alive in (("capture", True), ("detection", True), ("detection", False)):
+        monitor._on_health(name, alive)
+    frames = TopicStats("t/capture/frame", "out")
+    now_ns = time.time_ns()
+    for i in range(31):
+        frames.record(now_ns - (31 - i) * 33_000_000 - 2_000_000, now_ns=now_ns - (31 - i) * 33_000_000)
+    frames.drop(3)
+    capture = monitor.nodes["capture"]
+    capture.status = NodeStatus(node="capture", pid=4242, uptime_s=12.0, topics={frames.key: frames.snapshot(now_ns)},
+                                extra={"handler_errors": 0})
+    capture.status_ns, capture.pids, capture.trust = now_ns, [4242], "verified"
+    monitor.nodes["detection"].trust = "spoofed?"
+    monitor.nodes["detection"].trust_reason = "no such process in the launcher's table"
+    track = Track(state="OCCLUDED", box=np.array([10.0, 20.0, 30.0, 90.0]), velocity=np.array([5.0, -2.0]))
+    track.header.frame_seq = 77
+    monitor._on_message("track", track)
+    monitor._on_message("command", MotorCommand(vx_mps=0.25, wz_radps=-0.5, reason="follow"))
+    monitor.decode_errors = 2
+    out = io.StringIO()
+    show(Console(file=out, force_terminal=terminal, width=120 if terminal else 200), monitor.snapshot())
+    return out.getvalue()
+
+
+def test_dashboard_shows_health_rates_target_and_command():
+    text = _dashboard(terminal=False)
+    assert "\x1b" not in text  # a pipe gets plain text
+    lines = text.splitlines()
+    assert lines[0].startswith("followbus monitor  tcp/127.0.0.1:9  ns=t") and lines[0].endswith("connected")
+    rows = {line.split()[0]: line.split() for line in lines if line.split()[:1] in (["capture"], ["detection"])}
+    assert rows["capture"][1:2] == ["up"] and rows["capture"][4] == "4242" and rows["capture"][-1] == "verified"
+    assert rows["detection"][1] == "DOWN" and "spoofed? (no such process in the launcher's table)" in text
+    topic = next(line for line in lines if line.startswith("t/capture/frame @capture")).split()
+    assert topic[2] == "out" and 25 < float(topic[3]) < 35 and float(topic[4]) == pytest.approx(2.0, abs=0.1)
+    assert topic[6:] == ["3", "0"]  # drops, decode errors
+    assert re.search(r"^target +OCCLUDED  box \[10\.0, 20\.0, 30\.0, 90\.0\]  v \[5\.0, -2\.0\] px/s  frame 77",
+                     text, re.M), text
+    assert re.search(r"^motor +vx \+0\.25 m/s  vy \+0\.00 m/s  wz -0\.50 rad/s  \[follow\]", text, re.M), text
+    assert re.search(r"^monitor +2 decode errors$", text, re.M), text
+
+
+def test_dashboard_on_a_terminal_is_coloured():
+    text = _dashboard(terminal=True)
+    plain = re.sub(r"\x1b\[[0-9;]*m", "", text)
+    assert "\x1b[" in text and "spoofed? (no such process" in plain
+    assert re.search(r"\x1b\[1;31mDOWN", text) and re.search(r"\x1b\[32mverified", text), text
 
 
 class _WsClient:

@@ -14,7 +14,6 @@ import contextlib
 import logging
 import math
 import os
-import sys
 import threading
 import time
 from collections import deque
@@ -25,6 +24,10 @@ from typing import Any
 
 import numpy as np
 import zenoh
+from rich.console import Console, Group
+from rich.live import Live
+from rich.table import Table
+from rich.text import Text
 
 from followbus.bus.codec import DecodeError
 from followbus.bus.health import HealthWatcher
@@ -426,7 +429,12 @@ class BusMonitor:
             return out
 
 
-# -- terminal rendering ----------------------------------------------------------------------------
+# -- terminal rendering (rich: colours and in-place redraw on a terminal, plain text in a pipe) ------------
+TRUST_STYLE = {"verified": "green", "unverified": "yellow", "spoofed?": "bold red"}
+TARGET_STYLE = {"TRACKING": "green", "REACQUIRED": "cyan", "OCCLUDED": "yellow", "LOST": "red"}
+PIPE_WIDTH = 200  # not a terminal: wide enough that no row wraps (scripts split lines into fields)
+
+
 def _clock(ns: int) -> str:
     return time.strftime("%H:%M:%S", time.localtime(ns / 1e9))
 
@@ -437,54 +445,66 @@ def _num(value: Any, fmt: str = ".1f", missing: str = "-") -> str:
     return format(value, fmt)
 
 
-def _trust(node: dict[str, Any]) -> str:
-    reason = node.get("trust_reason")
-    return node.get("trust", "") + (f" ({reason})" if reason else "")
+def _count(value: int, style: str) -> Text:
+    return Text(str(value), style=style if value else "")
 
 
-def render(snap: dict[str, Any]) -> list[str]:
-    """The dashboard as plain lines (the caller adds ANSI in-place refresh on a TTY)."""
-    ends = ", ".join(snap["endpoints"])
+def _table(columns: list[str], rows: list[list[str | Text]]) -> Table:
+    # No rules (two spaces between columns: the topic table fits 80 columns) and no padding at the sides: a row
+    # starts with its first field, as grep and split expect. Cells are Text, never markup ("[follow]").
+    table = Table(box=None, pad_edge=False, header_style="bold", show_header=any(columns))
+    for name in columns:
+        # On a narrow terminal only the last column (the trust reason, the target) wraps.
+        table.add_column(name, no_wrap=name != columns[-1], min_width=len("spoofed?" if name == "check" else name),
+                         justify="left" if name in (columns[0], "state", "dir", "check", "") else "right")
+    for row in rows:
+        table.add_row(*(cell if isinstance(cell, Text) else Text(cell) for cell in row))
+    return table
+
+
+def render(snap: dict[str, Any]) -> Group:
+    """The dashboard: a status line, node health, per-topic statistics, the target and the motor command."""
     if snap["connected"]:
-        link = "connected"
+        link = Text("connected", "green")
     else:
-        link = f"robot unreachable since {_clock(snap['unreachable_since_ns'])}"
-        if snap.get("last_error"):
-            link += f" ({snap['last_error'][:80]})"
-    lines = [f"followbus monitor  {ends}  ns={snap['namespace']}  {_clock(snap['now_ns'])}  {link}", ""]
-    lines.append(f"{'node':<14} {'state':<5} {'for s':>7} {'restarts':>8} {'pid':>7} {'uptime s':>9} {'errs':>5} check")
+        error = f" ({snap['last_error'][:80]})" if snap.get("last_error") else ""
+        link = Text(f"robot unreachable since {_clock(snap['unreachable_since_ns'])}{error}", "bold red")
+    head = Text.assemble(("followbus monitor", "bold"), f"  {', '.join(snap['endpoints'])}  ns={snap['namespace']}"
+                         f"  {_clock(snap['now_ns'])}  ", link)
+    nodes, topics = [], []
     for n in snap["nodes"]:
         for_s = (snap["now_ns"] - n["since_ns"]) / 1e9 if n["since_ns"] else None
-        lines.append(f"{n['name']:<14} {'up' if n['alive'] else 'DOWN':<5} {_num(for_s, '.0f'):>7} "
-                     f"{n['restarts']:>8} {_num(n['pid'], 'd'):>7} {_num(n['uptime_s'], '.0f'):>9} "
-                     f"{n['handler_errors']:>5} {_trust(n)}")
-    lines += ["", f"{'topic (as seen by node)':<40} {'dir':<3} {'rate Hz':>7} {'p50 ms':>7} {'p99 ms':>7} "
-                  f"{'drops':>6} {'dec err':>7}"]
-    for n in snap["nodes"]:
-        for key in sorted(n["topics"]):
-            t = n["topics"][key]
-            label = f"{key} @{n['name']}"
-            lines.append(f"{label:<40} {t.get('direction', '?'):<3} {_num(t.get('rate_hz')):>7} "
-                         f"{_num(t.get('latency_p50_ms')):>7} {_num(t.get('latency_p99_ms')):>7} "
-                         f"{t.get('drops', 0):>6} {t.get('decode_errors', 0):>7}")
-    lines.append("")
-    target = snap.get("target")
-    if target:
-        lines.append(f"target   {target['state']:<12} box {target['box']} v {target['velocity']} px/s  "
-                     f"frame {target['frame_seq']}  centre err {_num(snap.get('centre_error_px'))} px")
-    else:
-        lines.append("target   (no track yet)")
-    lines.append(f"eta_k    {_num(snap.get('eta'), '.4f')}")
-    cmd = snap.get("command")
-    if cmd:
-        lines.append(f"motor    vx {cmd['vx_mps']:+.2f} m/s  vy {cmd['vy_mps']:+.2f} m/s  "
-                     f"wz {cmd['wz_radps']:+.2f} rad/s  [{cmd['reason']}]  "
-                     f"capture->command {_num(cmd['latency_ms'])} ms")
-    else:
-        lines.append("motor    (no command yet)")
+        trust = n["trust"] + (f" ({n['trust_reason']})" if n["trust_reason"] else "")
+        nodes.append([n["name"], Text("up", "green") if n["alive"] else Text("DOWN", "bold red"), _num(for_s, ".0f"),
+                      str(n["restarts"]), _num(n["pid"], "d"), _num(n["uptime_s"], ".0f"),
+                      _count(n["handler_errors"], "red"), Text(trust, TRUST_STYLE.get(n["trust"], ""))])
+        topics += [[f"{key} @{n['name']}", t.get("direction", "?"), _num(t.get("rate_hz")),
+                    _num(t.get("latency_p50_ms")), _num(t.get("latency_p99_ms")), _count(t.get("drops", 0), "yellow"),
+                    _count(t.get("decode_errors", 0), "red")] for key, t in sorted(n["topics"].items())]
+    target, cmd = snap.get("target"), snap.get("command")
+    state = [
+        ["target", Text.assemble((target["state"], TARGET_STYLE.get(target["state"], "")),
+                                 f"  box {target['box']}  v {target['velocity']} px/s  frame {target['frame_seq']}"
+                                 f"  centre err {_num(snap.get('centre_error_px'))} px")
+         if target else "(no track yet)"],
+        ["eta_k", _num(snap.get("eta"), ".4f")],
+        ["motor", f"vx {cmd['vx_mps']:+.2f} m/s  vy {cmd['vy_mps']:+.2f} m/s  wz {cmd['wz_radps']:+.2f} rad/s  "
+                  f"[{cmd['reason']}]  capture->command {_num(cmd['latency_ms'])} ms" if cmd else "(no command yet)"],
+    ]
     if snap["decode_errors"]:
-        lines.append(f"monitor decode errors: {snap['decode_errors']}")
-    return lines
+        state.append(["monitor", Text(f"{snap['decode_errors']} decode errors", "red")])
+    return Group(head, "", _table(["node", "state", "for s", "restarts", "pid", "uptime s", "errs", "check"], nodes),
+                 "", _table(["topic (as seen by node)", "dir", "rate Hz", "p50 ms", "p99 ms", "drops", "dec err"],
+                            topics), "", _table(["", ""], state))
+
+
+def show(console: Console, snap: dict[str, Any]) -> None:
+    """Print one dashboard: coloured on a terminal; otherwise plain lines without the cells' trailing blanks."""
+    with console.capture() as captured:
+        console.print(render(snap))
+    text = captured.get()
+    console.file.write(text if console.is_terminal else "".join(line.rstrip() + "\n" for line in text.splitlines()))
+    console.file.flush()
 
 
 def _all_up(snap: dict[str, Any], expected: list[str]) -> bool:
@@ -504,6 +524,8 @@ def run_monitor(args: Any) -> int:
 
         return serve(settings, info, args.bind, args.web, args.seconds, token=args.web_token)
     monitor = BusMonitor(settings, info).start()
+    console = Console()  # colours on a terminal; in a pipe plain text (no ANSI), wide enough that no row wraps
+    console = console if console.is_terminal else Console(width=PIPE_WIDTH)
     try:
         if args.once:
             # Wait for every node's token and a status message (topic rates), or the time limit.
@@ -511,18 +533,19 @@ def run_monitor(args: Any) -> int:
             while time.monotonic() < deadline and not _all_up(monitor.snapshot(), info.nodes):
                 time.sleep(0.1)
             snap = monitor.snapshot()
-            print("\n".join(render(snap)), flush=True)
+            show(console, snap)
             return 0 if snap["connected"] and _all_up(snap, info.nodes) else 1
-        tty = sys.stdout.isatty()
         deadline = None if args.seconds is None else time.monotonic() + args.seconds
-        while deadline is None or time.monotonic() < deadline:
-            lines = render(monitor.snapshot())
-            if tty:  # home, redraw, clear the rest: refresh in place without flicker
-                sys.stdout.write("\x1b[H" + "\n".join(line + "\x1b[K" for line in lines) + "\n\x1b[J")
-            else:
-                sys.stdout.write(SEPARATOR + "\n" + "\n".join(lines) + "\n")
-            sys.stdout.flush()
-            time.sleep(0.5)
+        if console.is_terminal:
+            with Live(render(monitor.snapshot()), console=console, auto_refresh=False) as live:
+                while deadline is None or time.monotonic() < deadline:
+                    live.update(render(monitor.snapshot()), refresh=True)
+                    time.sleep(0.5)
+        else:
+            while deadline is None or time.monotonic() < deadline:
+                console.file.write(SEPARATOR + "\n")
+                show(console, monitor.snapshot())
+                time.sleep(0.5)
     except KeyboardInterrupt:
         pass
     finally:
