@@ -340,6 +340,7 @@ class NodeRuntime:
                 logger=self.log,
             ))
         self._hints: list[ReplayHint] = []
+        self._held: list[tuple[str, Message]] = []  # replay: feedback the live node received later
         if clock == "stamps" and self.sync is not None:
             # Lockstep replay: the replayer says which frames the live node skipped and which feedback it
             # joined, so a live fallback (a late feedback, a skipped backlog) is reproduced exactly.
@@ -466,6 +467,12 @@ class NodeRuntime:
             if verdict == RESYNCED:
                 self.log.warning("input %s: the source restarted or was replaced (frame %d); following it",
                                  name, h.frame_seq)
+        if (spec.offset and self.sync is not None and self.clock.mode == "stamps"
+                and self.sync.holds_back(name, h.frame_seq)):
+            # Live, this feedback arrived after a set that joined an older one: hand it to the node after that
+            # set, as live, or on_message (prediction's measurement update) runs in an order that never was.
+            self._held.append((name, msg))
+            return
         self.clock.observe(h.stamp_ns)
         if spec.sync == "frame" and self.sync is not None:
             # Judged before the node sees it: a forged or stale message must not reach on_message either.
@@ -494,6 +501,10 @@ class NodeRuntime:
             return
         for frame_seq, inputs in self.sync.poll(self._sync_now()):
             self._handle_frame(frame_seq, inputs)
+        if self._held:
+            held, self._held = self._held, []
+            for name, msg in held:
+                self._dispatch(name, msg)  # held again if it still must wait
 
     def _handle_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         used = {name: inputs.get(name) for name in self._feedback_inputs}

@@ -191,10 +191,16 @@ class FrameSynchronizer:
             store.clear()
         self._last_emitted = None
         self._feedback_lost = False
+        self._forced.clear()
 
     def force_feedback(self, frame_seq: int, used: dict[str, int]) -> None:
         """Replay: frame ``frame_seq`` takes exactly these feedback frames (-1: none), as the live run did."""
         self._forced[frame_seq] = dict(used)
+
+    def holds_back(self, name: str, seq: int) -> bool:
+        """Replay: did the live node receive feedback ``seq`` only after handling a set that joined an older one?
+        (A pending set s that joined j < seq < s: had seq been there, s would have joined it.)"""
+        return any(j < seq < s for s, used in self._forced.items() if (j := used.get(name)) is not None)
 
     def skip(self, frame_seq: int) -> None:
         """Replay: frame ``frame_seq`` is not handled, as the live run did not handle it."""
@@ -233,6 +239,7 @@ class FrameSynchronizer:
         ready: list[tuple[int, dict[str, Any]]] = []
         newest_complete = max((s.stamp_ns for s in self._slots.values()
                                if s.stamp_ns is not None and not self._missing_same_frame(s)), default=None)
+        behind = False  # a set was skipped for lag: waiting any longer for feedback only adds to it
         for seq in sorted(self._slots):
             slot = self._slots[seq]
             if seq in self._skipped:
@@ -243,6 +250,7 @@ class FrameSynchronizer:
             if self._lagging(slot, newest_complete):
                 del self._slots[seq]
                 self.late += 1
+                behind = True
                 continue
             msgs, required, exact = self._gather(seq, slot)
             all_present = required and all(name in slot.msgs for name, s in self.inputs.items() if not s.offset)
@@ -258,8 +266,8 @@ class FrameSynchronizer:
             if not all_present and not expired and not self._newer_complete(seq):
                 break  # an optional same-frame input may still come
             if not exact and (seq in self._forced or not self._feedback_lost):
-                if not expired:
-                    break  # wait for the feedback of the previous frame, bounded by the timeout
+                if not (expired or behind and seq not in self._forced):
+                    break  # wait for the feedback of the previous frame, bounded by the timeout and the lag
                 if seq not in self._forced:
                     self._feedback_lost = True  # stop waiting until exact feedback is back in time
             if exact:
@@ -269,7 +277,8 @@ class FrameSynchronizer:
             if not all_present or not exact:
                 self.timeouts += 1
             del self._slots[seq]
-            self._forced.pop(seq, None)
+            for done in [s for s in self._forced if s <= seq]:  # emitted, or never to be (dropped)
+                del self._forced[done]
             ready.append((seq, {name: msgs.get(name) for name in self.inputs}))
             self._last_emitted = seq
             self._last_emit_ns = now_ns

@@ -173,3 +173,16 @@ def test_forced_feedback_reproduces_a_live_fallback():
     sync.force_feedback(3, {"meas": 1})
     sync.add("dets", 3, "d3", 0)
     assert sync.poll(0) == [(3, {"dets": "d3", "meas": "m1"})]
+
+
+def test_waiting_for_feedback_ends_when_the_node_falls_behind():
+    """The feedback wait is bounded by the lag too: once newer frames have made the waiting ones late,
+    the newest goes on at once instead of waiting out the timeout."""
+    sync = FrameSynchronizer([SyncInput("dets"), SyncInput("meas", offset=-1)], 1000 * MS, max_lag_ns=100 * MS)
+    sync.add("dets", 0, "d0", 0, stamp_ns=0)
+    assert [s for s, _ in sync.poll(0)] == [0]
+    for seq in range(1, 6):  # the measurement of frame 0 does not come; frames keep arriving
+        sync.add("dets", seq, f"d{seq}", seq * 33 * MS, stamp_ns=seq * 33 * MS)
+    # Frame 1 is more than 100 ms behind frame 5: skipped; 2..5 go on at once, long before the 1 s timeout.
+    assert [s for s, _ in sync.poll(5 * 33 * MS)] == [2, 3, 4, 5]
+    assert sync.late == 1 and sync.feedback_lost
