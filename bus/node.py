@@ -39,6 +39,7 @@ from followbus.bus.sync import IMPLAUSIBLE, RESYNCED, STALE, FrameSynchronizer, 
 
 STATUS_PERIOD_S = 1.0
 RESET_AFTER_FAILURES = 5  # consecutive on_frame failures after which a node's state is rebuilt
+REPLAY_NOTES_KEEP = 512  # frames of live provenance a replayed node keeps
 # Set by the launcher for its children: the comma-separated names of the nodes it started.
 LAUNCHED_NODES_ENV = "FOLLOWBUS_LAUNCHED_NODES"
 
@@ -225,6 +226,17 @@ class Node:
             msg.header.feedback = dict(self.runtime.provenance)
         self.runtime.publishers[output].put(msg)
 
+    def note(self, key: str, value: int) -> None:
+        """Record a choice this handler made that a replay must repeat (e.g. which odometry sample, by stamp,
+        an unsynchronised input contributed): it travels in the ``header.feedback`` of what the handler
+        publishes next, and ``followbus replay`` hands it back through :meth:`replayed_choice`."""
+        if self.runtime.provenance is not None:
+            self.runtime.provenance[key] = int(value)
+
+    def replayed_choice(self, frame_seq: int, key: str) -> int | None:
+        """In a lockstep replay, the choice the live run noted for this frame (None live, or when not recorded)."""
+        return self.runtime.replay_notes.get(frame_seq, {}).get(key)
+
     def has_output(self, output: str) -> bool:
         return output in self.runtime.publishers
 
@@ -341,6 +353,7 @@ class NodeRuntime:
             ))
         self._hints: list[ReplayHint] = []
         self._held: list[tuple[str, Message]] = []  # replay: feedback the live node received later
+        self.replay_notes: dict[int, dict[str, int]] = {}  # replay: frame -> provenance of the live outputs
         if clock == "stamps" and self.sync is not None:
             # Lockstep replay: the replayer says which frames the live node skipped and which feedback it
             # joined, so a live fallback (a late feedback, a skipped backlog) is reproduced exactly.
@@ -436,6 +449,9 @@ class NodeRuntime:
                     hints, self._hints = self._hints, []
                     self._cond.notify_all()  # wake producers blocked on a full queue
                 for hint in hints:  # published before the frame's inputs, so they arrive first
+                    self.replay_notes[hint.header.frame_seq] = dict(hint.feedback)
+                    while len(self.replay_notes) > REPLAY_NOTES_KEEP:
+                        del self.replay_notes[min(self.replay_notes)]
                     if self.sync is not None and hint.skip:
                         self.sync.skip(hint.header.frame_seq)
                     elif self.sync is not None:
@@ -487,7 +503,11 @@ class NodeRuntime:
             if verdict == RESYNCED:
                 self.log.warning("input %s: the source restarted or was replaced (frame %d, epoch %d); "
                                  "re-synchronising on it", name, h.frame_seq, h.epoch_ns)
-        self._guarded(f"on_message({name})", self.node.on_message, name, msg)
+        self.provenance = {}  # what on_message publishes carries its own notes (Node.note)
+        try:
+            self._guarded(f"on_message({name})", self.node.on_message, name, msg)
+        finally:
+            self.provenance = None
         if spec.sync == "latest":
             self.latest[name] = msg
         elif spec.sync == "frame":

@@ -17,7 +17,6 @@ instead of extrapolating a poisoned state forever.
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass
 from typing import Any

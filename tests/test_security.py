@@ -65,8 +65,8 @@ def test_monitor_identity_cannot_spoof_health_or_write_on_robot_graph(tmp_path, 
         # then the real motor dies. Its token must go away: health down, no token left a moment later.
         spoofs = [monitor.liveliness().declare_token(key) for key in ("t/@health/motor", "t/@health/ghost")]
         probe = operator.liveliness().declare_token("t/@health/probe")  # not read-only: must get through
-        time.sleep(0.5)  # the declarations reach the hub
-        assert _tokens(robot, "t/@health/*") >= {"t/@health/probe", "t/@health/motor", "t/@health/ticker"}
+        assert wait_until(lambda: _tokens(robot, "t/@health/*") >= {"t/@health/probe", "t/@health/motor"}, 10)
+        time.sleep(0.3)  # the monitor's declarations went out with the operator's
         os.kill(_motor_pid(watcher), signal.SIGKILL)
         assert wait_until(lambda: not watcher.snapshot()["motor"].alive, 5), watcher.snapshot()["motor"]
         time.sleep(0.8)
@@ -82,14 +82,18 @@ def test_monitor_identity_cannot_spoof_health_or_write_on_robot_graph(tmp_path, 
                 for key in ("t/**", "t/@status/*", "t/@launcher/*", "t/@health/*")]
         queryables = [session.declare_queryable(f"t/@status/{name}", lambda q: q.reply(q.key_expr, b"reply"))
                       for session, name in ((monitor, "motor"), (operator, "probe"))]
-        time.sleep(0.5)
-        keys = ("t/@status/motor", "t/@launcher/fake", "t/@health/motor", "t/motor/command")
-        for key in keys:
+        for key in ("t/@status/motor", "t/@launcher/fake", "t/@health/motor", "t/motor/command"):
+            # The operator's put gets through (retried until the subscription has reached the hub), the
+            # monitor's put and delete on the same key do not.
+            def control_arrived(k: str = key) -> bool:
+                operator.put(k, b"control")
+                return (k, b"control") in received
+
+            assert wait_until(control_arrived, 10), key
             monitor.put(key, b"spoof")
             monitor.delete(key)
-            operator.put(key, b"control")
-        assert wait_until(lambda: sum(p == b"control" for _, p in received) >= len(keys), 5), received
-        assert [r.ok.payload.to_bytes() for r in robot.get("t/@status/probe", timeout=2.0) if r.ok] == [b"reply"]
+        assert wait_until(lambda: [r.ok.payload.to_bytes() for r in robot.get("t/@status/probe", timeout=1.0)
+                                   if r.ok] == [b"reply"], 10)
         assert not [r for r in robot.get("t/@status/motor", timeout=1.0) if r.ok is not None]
         # "@/**": the routers' admin space (config, links, routes) is closed to the monitor too.
         assert [r for r in operator.get("@/*/router", timeout=2.0) if r.ok is not None]
@@ -127,8 +131,12 @@ def test_health_flags_spoofed_token_and_status_on_an_open_graph(graph_file, port
 
         # A status under the motor's name from a process the launcher never ran.
         fake = Publisher(rogue, "t/@status/motor", "motor")
-        fake.put(NodeStatus(node="motor", pid=1, uptime_s=99.0))
-        assert wait_until(lambda: watcher.snapshot()["motor"].trust == SPOOFED, 5), watcher.snapshot()["motor"]
+
+        def fake_status_flagged() -> bool:
+            fake.put(NodeStatus(node="motor", pid=1, uptime_s=99.0))  # a spoofer repeats itself
+            return watcher.snapshot()["motor"].trust == SPOOFED
+
+        assert wait_until(fake_status_flagged, 5), watcher.snapshot()["motor"]
         assert "pid 1" in watcher.snapshot()["motor"].trust_reason
         assert watcher.snapshot()["motor"].alive  # the real motor is still running
 
@@ -136,9 +144,10 @@ def test_health_flags_spoofed_token_and_status_on_an_open_graph(graph_file, port
         token = rogue.liveliness().declare_token("t/@health/motor")
         time.sleep(0.3)
         os.kill(motor_pid, signal.SIGKILL)
-        assert wait_until(lambda: not watcher.snapshot()["motor"].alive, 5), watcher.snapshot()["motor"]
+        assert wait_until(lambda: not (m := watcher.snapshot()["motor"]).alive and m.token_alive, 5), \
+            watcher.snapshot()["motor"]
         motor = watcher.snapshot()["motor"]
-        assert motor.token_alive and not motor.launched.running and motor.launched.pid == motor_pid, motor
+        assert not motor.launched.running and motor.launched.pid == motor_pid, motor
         assert "t/@health/motor" in _tokens(observer, "t/@health/*")
         assert wait_until(lambda: watcher.snapshot()["motor"].trust == SPOOFED
                           and "launcher saw pid" in watcher.snapshot()["motor"].trust_reason, 5)
@@ -219,7 +228,7 @@ def test_peer_graph_with_usrpwd_refuses_wrong_credentials(tmp_path, port):
         good = open_session(client(port, "operator", "operator-secret"))
         ticks: list[bytes] = []
         sub = good.declare_subscriber("t/ticker/tick", lambda s: ticks.append(b""))
-        assert wait_until(lambda: len(ticks) >= 5, 10), "an authenticated client received nothing"
+        assert wait_until(lambda: len(ticks) >= 5, 20), "".join(launch.lines[-30:])
         sub.undeclare()
         good.close()
         for user, password in (("monitor", "wrong"), ("nobody", "robot-secret")):
@@ -269,7 +278,7 @@ def test_robot_graph_over_tls_needs_the_ca(tmp_path, port):
         session = open_session(with_ca)
         ticks: list[int] = []
         sub = session.declare_subscriber("t/ticker/tick", lambda s: ticks.append(1))
-        assert wait_until(lambda: len(ticks) >= 5, 10), "the client with the CA received nothing over TLS"
+        assert wait_until(lambda: len(ticks) >= 5, 20), "the client with the CA received nothing over TLS"
         sub.undeclare()
         session.close()
         # Without the CA the robot's certificate is not trusted: the TLS handshake fails, the session never opens.
@@ -286,6 +295,11 @@ def test_robot_graph_over_tls_needs_the_ca(tmp_path, port):
         assert any(line.split()[:2] == ["ticker", "up"] for line in ok.stdout.splitlines()), ok.stdout
         refused = subprocess.run(followbus_argv(*monitor, "--seconds", "3"), cwd=tmp_path, capture_output=True,
                                  text=True, timeout=60, stdin=subprocess.DEVNULL)
-        assert refused.returncode == 1 and "robot unreachable" in refused.stdout, refused.stdout
+        # Never connected: either a refusal the monitor recognises (one line naming --ca, status 2) or its
+        # dashboard showing the robot unreachable (status 1).
+        out = refused.stdout + refused.stderr
+        assert (refused.returncode, "--ca" in refused.stderr) == (2, True) or (
+            refused.returncode == 1 and "robot unreachable" in refused.stdout), out
+        assert "Traceback" not in out
     finally:
         launch.stop()

@@ -454,8 +454,8 @@ class Replayer:
                 continue
             handled.add(frame_seq)
             used = _provenance(msg.data)
-            if used:
-                provenance[frame_seq] = used
+            if used:  # a frame's outputs together: the prior's feedback and notes, the track's notes
+                provenance.setdefault(frame_seq, {}).update(used)
         return provenance, handled
 
     def _send_hint(self, frame_seq: int) -> tuple[bool, dict[str, int] | None]:
@@ -714,7 +714,9 @@ class Replayer:
             assert group_seq is not None
             names: set[str] = set()
             skipped, forced = self._send_hint(group_seq)
-            for key, data, fs, stamp in group:
+            # Messages of no frame (odometry) first: a node picks among them by stamp, and what it picked live
+            # is replayed from the hint, which needs the sample there before the frame's set is handled.
+            for key, data, fs, stamp in sorted(group, key=lambda item: item[2] >= 0):
                 if fs == group_seq and not self._wait_outputs_published_before(fs, _pub_ns(data),
                                                                               self.opts.frame_timeout_s):
                     check_node()
