@@ -5,6 +5,7 @@ judgement on made-up observations, so that a fault it calls survived really was.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -37,7 +38,7 @@ T0 = 1_000_000 * MS  # an arbitrary wall-clock origin for made-up observations
 
 
 def _track(t_ms: float, state: str = "TRACKING", source: str = "prediction", seq: int = 0) -> TrackObs:
-    return TrackObs(T0 + int(t_ms * MS), seq, T0 + int(t_ms * MS) - 30 * MS, state, source)
+    return TrackObs(T0 + int(t_ms * MS), seq, T0 + int(t_ms * MS) - 30 * MS, state, source, T0 + int(t_ms * MS))
 
 
 def _cmd(t_ms: float, vx: float = 0.2, reason: str = "tracking", seq: int = 0, stamp_ms: float | None = None,
@@ -101,12 +102,12 @@ def test_tracking_coverage_counts_stale_tracks_as_lost_and_skips_a_hidden_target
     # Tracks stop at 495 ms: samples 0..700 ms still see a fresh track (< 300 ms old), 800..2000 ms do not.
     assert tracking_coverage(tracks[:16], truth, T0, T0 + 2000 * MS) == pytest.approx(8 / 21)
     # OCCLUDED while the scene hides the target is not held against the tracker.
-    occluded = [TrackObs(t.recv_ns, t.frame_seq, t.stamp_ns, "OCCLUDED", t.source) for t in tracks]
+    occluded = [dataclasses.replace(t, state="OCCLUDED") for t in tracks]
     hidden = [TruthObs(g.recv_ns, g.frame_seq, g.stamp_ns, False) for g in truth]
     assert tracking_coverage(occluded, hidden, T0, T0 + 1000 * MS) is None
     assert tracking_coverage(occluded, truth, T0, T0 + 1000 * MS) == 0.0
     # Injected tracks do not count as tracking.
-    spoofed = [TrackObs(t.recv_ns, t.frame_seq, t.stamp_ns, "TRACKING", chaos.INJECTOR) for t in tracks]
+    spoofed = [dataclasses.replace(t, source=chaos.INJECTOR) for t in tracks]
     assert tracking_coverage(spoofed, truth, T0, T0 + 1000 * MS) == 0.0
 
 
