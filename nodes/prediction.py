@@ -71,16 +71,24 @@ class Prediction(Node):
         kf = self.predictor.kf
         return not kf.initialised or bool(np.isfinite(kf.x).all() and np.isfinite(kf.P).all())
 
-    def _v_ego(self, stamp_ns: int) -> tuple[float, float]:
-        """Ego velocity at a frame's capture stamp: the newest odometry sample not after it."""
+    def _v_ego(self, stamp_ns: int, frame_seq: int, use: str) -> tuple[float, float]:
+        """Ego velocity at a frame's capture stamp: the newest odometry sample not after it that has arrived.
+
+        Which sample that was depends on when odometry arrived, so the choice is noted (``use``: "odometry"
+        for the prior, "odometry_update" for the measurement update) and a replay repeats it."""
         if not self.node_params.use_odometry:
             return (0.0, 0.0)
+        forced = self.replayed_choice(frame_seq, use)
+        chosen = None
         for odom in reversed(self.odometry):
-            if odom.header.stamp_ns <= stamp_ns:
-                # Eq. 7 needs the ego speed; the filter is in image space, so only its magnitude matters.
-                ok = math.isfinite(odom.vx_mps + odom.vy_mps)
-                return (odom.vx_mps, odom.vy_mps) if ok else (0.0, 0.0)
-        return (0.0, 0.0)
+            if (odom.header.stamp_ns == forced) if forced is not None else (odom.header.stamp_ns <= stamp_ns):
+                chosen = odom
+                break
+        self.note(use, -1 if chosen is None else chosen.header.stamp_ns)
+        if chosen is None:
+            return (0.0, 0.0)
+        # Eq. 7 needs the ego speed; the filter is in image space, so only its magnitude matters.
+        return (chosen.vx_mps, chosen.vy_mps)
 
     def on_message(self, name: str, msg: Message) -> None:
         if name == "odometry" and isinstance(msg, Odometry):
@@ -98,7 +106,7 @@ class Prediction(Node):
             return
         reid = msg_to_reid(msg)
         prior = self.priors.pop(seq, None)
-        posterior = self.predictor.apply(reid, self._v_ego(msg.header.stamp_ns))
+        posterior = self.predictor.apply(reid, self._v_ego(msg.header.stamp_ns, seq, "odometry_update"))
         if not self._filter_ok():
             self._reset_filter("the measurement update left a non-finite state")
             posterior = None
@@ -115,7 +123,7 @@ class Prediction(Node):
         last = self.predictor.kf.t_ns if self.predictor.initialised else None
         if last is not None and not 0 <= stamp - last <= self.node_params.max_predict_gap_ms * 1e6:
             self._reset_filter(f"frame stamp jumped by {(stamp - last) / 1e6:.0f} ms")
-        prior = self.predictor.predict(stamp, self._v_ego(stamp))
+        prior = self.predictor.predict(stamp, self._v_ego(stamp, frame_seq, "odometry"))
         if not self._filter_ok():
             self._reset_filter("the prediction left a non-finite state")
             prior = None
