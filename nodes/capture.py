@@ -20,9 +20,9 @@ import cv2
 import numpy as np
 
 from followbus.bus.codec import DecodeError
-from followbus.bus.node import DownstreamBarrier, Node
+from followbus.bus.node import DownstreamBarrier, Node, ParamError
 from followbus.bus.schemas import Frame, GroundTruth, Message, Track, decode
-from followbus.vision.sources import open_source
+from followbus.vision.sources import SourceError, check_source, mcap_frame_channel, open_source
 
 
 @dataclass
@@ -55,10 +55,17 @@ class Capture(Node):
     def parse_params(cls, raw: dict[str, Any]) -> CaptureParams:
         params = super().parse_params(raw)
         if params.pace not in ("realtime", "fast"):
-            from followbus.bus.node import ParamError
-
             raise ParamError("pace", f"pace must be 'realtime' or 'fast', not {params.pace!r}")
         return params
+
+    @classmethod
+    def check_params(cls, params: CaptureParams) -> None:
+        """Can the source be opened? Run by `followbus check`, `launch` and `demo` before anything starts, so a
+        missing file or an unknown scene is one line instead of a node crash-looping (SourceError)."""
+        try:
+            check_source(params.source, groundtruth=params.groundtruth, mcap_frame_key=params.mcap_frame_key)
+        except SourceError as exc:
+            raise ParamError("source", str(exc)) from exc
 
     def setup(self) -> None:
         p = self.params
@@ -189,20 +196,10 @@ class McapFrameSource:
     """Raw frames (and ground truth, when recorded) of a followbus MCAP recording, in log-time order."""
 
     def __init__(self, path: str, frame_key: str = ""):
-        from mcap.reader import make_reader
-
         self.path = Path(path)
-        if not self.path.is_file():
-            raise ValueError(f"MCAP source {path!r}: no such file")
-        with self.path.open("rb") as f:
-            summary = make_reader(f).get_summary()
-        if summary is None:
-            raise ValueError(f"MCAP source {path!r} has no summary: run `followbus recover` on it first")
-        topics = sorted({ch.topic for ch in summary.channels.values()})
-        frame_keys = [frame_key] if frame_key else [t for t in topics if t.endswith("/frame")]
-        if not frame_keys or frame_keys[0] not in topics:
-            raise ValueError(f"MCAP source {path!r}: no frame channel (topics: {', '.join(topics)})")
-        self.frame_key = frame_keys[0]
+        # The same checks `followbus check` and `launch` run before starting anything (SourceError).
+        summary, self.frame_key = mcap_frame_channel(self.path, frame_key)
+        topics = {ch.topic for ch in summary.channels.values()}
         self.truth_key = self.frame_key.rsplit("/", 1)[0] + "/ground_truth"
         self.has_ground_truth = self.truth_key in topics
         self.name = self.path.name

@@ -16,11 +16,14 @@ Folder layouts understood (see shared/data/README.md):
 from __future__ import annotations
 
 import configparser
+import difflib
 import json
 import logging
 import math
 import os
 import re
+import struct
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -329,35 +332,141 @@ class SceneSource(_Source):
 # ----------------------------------------------------------------------------- spec parsing
 
 
+class SourceError(ValueError):
+    """A capture source that cannot be used; the message is one line: the spec, what is wrong, the choices."""
+
+
+def _did_you_mean(name: str, choices: list[str]) -> str:
+    close = difflib.get_close_matches(name, choices, n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def _scene_name(spec: str) -> str:
+    name = spec.split(":", 1)[1] or DEFAULT_SCENE
+    if name not in SCENES:
+        raise SourceError(f"unknown scene {name!r} in {spec!r}{_did_you_mean(name, list(SCENES))}; "
+                          f"available: {', '.join(SCENES)}")
+    return name
+
+
+def _camera_index(spec: str) -> int:
+    idx = spec.split(":", 1)[1] or "0"
+    if not idx.isdigit():
+        raise SourceError(f"camera spec needs a numeric index, got {spec!r}")
+    return int(idx)
+
+
+def _missing_path(spec: str, p: Path) -> SourceError:
+    where = "" if str(p.resolve()) == spec.strip() else f" ({p.resolve()})"
+    return SourceError(f"source {spec!r}: no such file or directory{where}")
+
+
+def _path_like(spec: str) -> bool:
+    """Whether a spec names a file or folder (``scen:x`` or ``rtsp://...`` do not)."""
+    return re.match(r"^[A-Za-z][A-Za-z0-9+.-]*:", spec) is None
+
+
+def _unknown_spec(spec: str) -> SourceError:
+    return SourceError(f"unknown source spec {spec!r}: expected camera:<index>, scene:<{'|'.join(SCENES)}>, "
+                       f"a video file ({', '.join(VIDEO_EXTS)}), an image folder or an MCAP recording")
+
+
+def check_source(spec: str, *, groundtruth: str = "", mcap_frame_key: str = "") -> None:
+    """Check, cheaply and before anything starts, that a capture source can be opened. Raises SourceError.
+
+    Scenes: the name is known. Files and folders: they exist and open (a video opens in OpenCV, a folder
+    holds images and its first one decodes, an MCAP file has a summary and a frame channel). Cameras: on
+    Linux ``/dev/video<N>`` exists (opening it here could take it from a graph already running); elsewhere
+    OpenCV opens the index.
+    """
+    s = spec.strip()
+    if not s:
+        raise SourceError("the capture source is empty")
+    if s.startswith("scene:"):
+        _scene_name(s)
+        return
+    if s.startswith("camera:"):
+        index = _camera_index(s)
+        if sys.platform.startswith("linux"):
+            device = Path(f"/dev/video{index}")
+            if not device.exists():
+                present = sorted(str(d) for d in Path("/dev").glob("video*"))
+                raise SourceError(f"source {spec!r}: {device} does not exist (video devices here: "
+                                  f"{', '.join(present) or 'none'})")
+            return
+        cap = cv2.VideoCapture(index)
+        try:
+            if not cap.isOpened():
+                raise SourceError(f"source {spec!r}: OpenCV cannot open camera {index} (no device, or it is busy)")
+        finally:
+            cap.release()
+        return
+    p = Path(s).expanduser()
+    if p.suffix.lower() == ".mcap":
+        mcap_frame_channel(p, mcap_frame_key)
+        return
+    if not p.exists():
+        raise _missing_path(spec, p) if _path_like(s) else _unknown_spec(spec)
+    if groundtruth and not Path(groundtruth).expanduser().is_file():
+        raise SourceError(f"source {spec!r}: ground-truth file {groundtruth!r} not found")
+    if p.is_file() and p.suffix.lower() not in VIDEO_EXTS:
+        raise SourceError(f"source {spec!r} is a file but not a video ({', '.join(VIDEO_EXTS)}) "
+                          "or an MCAP recording (.mcap)")
+    try:
+        if p.is_dir():
+            first = ImageFolderSource(p, groundtruth or None).images[0]
+            if cv2.imread(str(first), cv2.IMREAD_COLOR) is None:
+                raise OSError(f"cannot read image {first}")
+        else:
+            VideoFileSource(p)
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise SourceError(f"source {spec!r}: {exc}") from exc
+
+
+def mcap_frame_channel(path: Path, frame_key: str = "") -> tuple[Any, str]:
+    """(summary, frame key) of a recording to read frames from; raises SourceError when it has none."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    spec = str(path)
+    if not path.is_file():
+        raise SourceError(f"MCAP source {spec!r}: no such file")
+    try:
+        with path.open("rb") as f:
+            summary = make_reader(f).get_summary()
+    except (McapError, OSError, ValueError, struct.error) as exc:
+        raise SourceError(f"MCAP source {spec!r} is not a readable MCAP file ({exc or type(exc).__name__})") from exc
+    if summary is None:
+        raise SourceError(f"MCAP source {spec!r} has no summary: run `followbus recover` on it first")
+    topics = sorted({ch.topic for ch in summary.channels.values()})
+    frame_keys = [frame_key] if frame_key else [t for t in topics if t.endswith("/frame")]
+    if not frame_keys or frame_keys[0] not in topics:
+        raise SourceError(f"MCAP source {spec!r}: no frame channel (topics: {', '.join(topics) or 'none'})")
+    return summary, frame_keys[0]
+
+
 def open_source(spec: str, **kw: Any) -> _Source:
     """Open a source from a spec string.
 
     ``camera:<index>``, ``scene:<name>`` (keywords: seed, width, height, fps), a video file
     path, or an image folder path (keywords: groundtruth, fps, target_id). MCAP recordings are
-    replayed by the bus tools, not here. Raises ValueError for anything else.
+    replayed by the bus tools, not here. Raises ValueError (SourceError) for anything else.
     """
     s = spec.strip()
     if s.startswith("camera:"):
-        idx = s.split(":", 1)[1] or "0"
-        if not idx.isdigit():
-            raise ValueError(f"camera spec needs a numeric index, got {spec!r}")
-        return CameraSource(int(idx), **kw)
+        return CameraSource(_camera_index(s), **kw)
     if s.startswith("scene:"):
-        name = s.split(":", 1)[1] or DEFAULT_SCENE
-        if name not in SCENES:
-            raise ValueError(f"unknown scene {name!r} in {spec!r}; available: {', '.join(SCENES)}")
-        return SceneSource(name, **kw)
+        return SceneSource(_scene_name(s), **kw)
     p = Path(s).expanduser()
     if p.suffix.lower() == ".mcap":
-        raise ValueError(f"{spec!r} is an MCAP recording: replay it with the bus tools, not a vision source")
+        raise SourceError(f"{spec!r} is an MCAP recording: replay it with the bus tools, not a vision source")
     if p.is_dir():
         return ImageFolderSource(p, **kw)
     if p.is_file() and p.suffix.lower() in VIDEO_EXTS:
         return VideoFileSource(p, **kw)
-    raise ValueError(
-        f"unknown source spec {spec!r}: expected camera:<index>, scene:<{'|'.join(SCENES)}>, "
-        f"a video file ({', '.join(VIDEO_EXTS)}) or an image folder"
-    )
+    if not p.exists() and _path_like(s):
+        raise _missing_path(spec, p)  # a path, not a malformed spec: say that it is missing
+    raise _unknown_spec(spec)
 
 
 def list_sequences(data_root: str | os.PathLike[str]) -> list[Path]:
