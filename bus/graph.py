@@ -47,7 +47,7 @@ class GraphError(Exception):
         self.path = str(path)
         self.line = line
         self.message = message
-        super().__init__(f"{self.path}:{line if line is not None else '?'}: {message}")
+        super().__init__(f"{self.path}:{line}: {message}" if line is not None else f"{self.path}: {message}")
 
 
 @dataclass
@@ -132,14 +132,17 @@ def apply_overrides(graph: Graph, assignments: list[str]) -> None:
     for item in assignments:
         target, sep, raw = item.partition("=")
         node, dot, param = target.partition(".")
+        # Not in the file: said as the --set the user typed, without a file:line.
         if not sep or not dot or not node or not param:
-            raise GraphError(graph.path, None, f"override {item!r} must look like node.param=value")
+            raise GraphError(graph.path, None, f"--set {item}: must look like node.param=value")
         if node not in graph.nodes:
-            raise GraphError(graph.path, None, f"override {item!r}: no node named {node!r}")
+            raise GraphError(graph.path, None, f"--set {item}: no node named {node!r} to set {param!r} on "
+                                               f"(nodes: {', '.join(graph.nodes)})")
         try:
             value = yaml.safe_load(raw) if raw.strip() else ""
         except yaml.YAMLError as exc:
-            raise GraphError(graph.path, None, f"override {item!r}: value is not valid YAML ({exc})") from exc
+            problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+            raise GraphError(graph.path, None, f"--set {item}: the value is not valid YAML ({problem})") from exc
         graph.nodes[node].params[param] = value
 
 

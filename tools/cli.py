@@ -39,11 +39,15 @@ def _graph_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--graph", default="graph.yaml", help="graph file (default: ./graph.yaml)")
 
 
-def _connect_arg(p: argparse.ArgumentParser) -> None:
+def _connect_arg(p: argparse.ArgumentParser, timeout: bool = True) -> None:
     _graph_arg(p)
     p.add_argument("--connect", metavar="ENDPOINT", action="append",
                    help="join as a client via this endpoint (e.g. tcp/192.0.2.10:7447) instead of the graph's "
                         "zenoh settings; repeatable")
+    if timeout:
+        p.add_argument("--connect-timeout", type=float, metavar="S",
+                       help="give up joining the graph after S seconds (default: the graph's connect_timeout_ms, "
+                            "10 s; monitor: 3 s)")
 
 
 def _viewer_args(p: argparse.ArgumentParser) -> None:
@@ -90,7 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", default=None,
                    help="synthetic scene (corridor-occlusion, lookalike, wall-occlusion, night-puddles, sun-shadow, "
                         "ego-motion, lost-target); default: the graph's capture source")
-    p.add_argument("--log", default="state/demo.log", help="where node logs go (default state/demo.log)")
+    p.add_argument("--log", default=None, metavar="FILE",
+                   help="where this run's node logs go (default: a new state/demo-YYYYmmdd-HHMMSS.log per run)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter, e.g. --set detection.backend=hog; repeatable")
 
@@ -104,8 +109,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a parameter of this node, e.g. --set detection.backend=hog; repeatable")
 
-    p = sub.add_parser("check", help="validate a graph file and exit (status 2 on errors)")
+    p = sub.add_parser("check", help="validate a graph file and its capture source, and exit (status 2 on errors)",
+                       description="Validate a graph file (keys, wiring, types, every node's params) and that its "
+                                   "capture source opens (the file exists and decodes, the scene name is known, the "
+                                   "camera device exists), without starting anything. Exit status 2 on an error.",
+                       epilog="example: followbus check graph.yaml --set capture.source=recordings/run1.mcap")
     p.add_argument("graph", nargs="?", default="graph.yaml")
+    p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
+                   help="check with this parameter override (as given to launch); repeatable")
 
     p = sub.add_parser("schema", help="print the JSON Schema of graph.yaml (editors validate and complete with it)",
                        description="Generate the JSON Schema (draft-07) of graph.yaml from the validator's own "
@@ -132,11 +143,15 @@ def build_parser() -> argparse.ArgumentParser:
     _connect_arg(p)
     p.add_argument("-n", "--count", type=int, help="stop after N messages")
     p.add_argument("--seconds", type=float, help="stop after S seconds")
+    p.add_argument("--timeout", type=float, metavar="S",
+                   help="give up (exit status 1) when no message arrived within S seconds (default: wait)")
 
     p = sub.add_parser("hz", help="rate and latency of a key")
     p.add_argument("key")
     _connect_arg(p)
     p.add_argument("--seconds", type=float, help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--timeout", type=float, metavar="S",
+                   help="give up (exit status 1) when no message arrived within S seconds (default: wait)")
 
     p = sub.add_parser("nodes", help="node health from liveliness tokens and status messages")
     _connect_arg(p)
@@ -146,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Preview as foxglove.CompressedImage, target/gate/candidates as "
                                    "foxglove.ImageAnnotations, motor command and node status as JSON. Read-only.",
                        epilog="example: followbus foxglove --connect tcp/192.0.2.10:7447 --user monitor --port 8765")
-    _connect_arg(p)
+    _connect_arg(p, timeout=False)
     _viewer_args(p)
     p.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765)")
     p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
@@ -410,11 +425,14 @@ def _settings(args):
     from followbus.bus.session import ZenohSettings
 
     if getattr(args, "connect", None):
-        return ZenohSettings(mode="client", listen=[], connect=args.connect)
-    if Path(args.graph).exists():
-        graph = _load_graph(args.graph)
-        return graph.zenoh.as_client()
-    return ZenohSettings().as_client()
+        settings = ZenohSettings(mode="client", listen=[], connect=args.connect)
+    elif Path(args.graph).exists():
+        settings = _load_graph(args.graph).zenoh.as_client()
+    else:
+        settings = ZenohSettings().as_client()
+    if getattr(args, "connect_timeout", None) is not None:
+        settings.connect_timeout_ms = max(1, round(args.connect_timeout * 1000))
+    return settings
 
 
 def _namespace(args) -> str:
@@ -431,18 +449,56 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     from followbus.bus.graph import GraphError
+    from followbus.tools.connect import BusUnreachable, explain_connect_failure, is_connect_failure
+    from followbus.tools.errors import UsageError
     from followbus.vision.models import ModelError
 
+    # A user's mistake (or a graph that is not running) is one line on stderr and exit status 2; a failure
+    # found while running (a node crashed, nothing arrived, a replay differs) is reported by the command: 1.
     try:
         return dispatch(args)
-    except GraphError as exc:
+    except (GraphError, UsageError, BusUnreachable) as exc:
         print(f"followbus: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except ModelError as exc:  # a missing or corrupt model (DetectorUnavailable too): the message says what to do
         print(f"followbus: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except Exception as exc:
+        if not is_connect_failure(exc) or not hasattr(args, "connect"):
+            raise
+        # A command that opened its session itself (play, record, ...): the same line as topics or echo.
+        print(f"followbus: {explain_connect_failure(_settings(args))}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         return 130
+
+
+def _validate(graph, overrides: list[str] | None = None, *, opened: set[str] | None = None,
+              labels: dict[str, str] | None = None, nodes: list[str] | None = None) -> None:
+    """Validate every node (or ``nodes``) against its class, and check what the nodes in ``opened`` (default:
+    all) would open (the capture source: Capture.check_params), before anything starts. A problem with a value given on
+    the command line names the option (``labels``: node.param -> how it was given, else its --set); one from
+    the file names its line (GraphError)."""
+    from followbus.bus.node import ParamError, validate_node
+    from followbus.tools.errors import UsageError
+
+    given = {item.partition("=")[0].strip(): f"--set {item}" for item in overrides or []}
+    given.update(labels or {})
+    for name in nodes if nodes is not None else list(graph.nodes):
+        spec = graph.nodes[name]
+        try:
+            cls, params = validate_node(graph, spec)
+            check = getattr(cls, "check_params", None)
+            if check is not None and (opened is None or name in opened):
+                check(params)
+        except Exception as exc:
+            param = exc if isinstance(exc, ParamError) else exc.__cause__
+            key = f"{name}.{param.key}" if isinstance(param, ParamError) else ""
+            if key in given:
+                raise UsageError(f"{given[key]}: {param}") from exc
+            if isinstance(exc, ParamError):
+                raise graph.error(spec.param_lines.get(exc.key, spec.line), f"node {name!r}: {exc}") from exc
+            raise
 
 
 def dispatch(args) -> int:
@@ -450,11 +506,11 @@ def dispatch(args) -> int:
     if cmd == "schema":
         return cmd_schema(args)
     if cmd == "check":
-        from followbus.bus.node import validate_node
+        from followbus.bus.graph import apply_overrides
 
         graph = _load_graph(args.graph)
-        for spec in graph.nodes.values():
-            validate_node(graph, spec)
+        apply_overrides(graph, args.overrides)
+        _validate(graph, args.overrides)
         print(f"{args.graph}: ok ({len(graph.nodes)} nodes)")
         return 0
     if cmd == "node":
@@ -463,6 +519,8 @@ def dispatch(args) -> int:
 
         graph = _load_graph(args.graph)
         apply_overrides(graph, args.overrides)
+        if args.name in graph.nodes:  # (an unknown name: run_node says which nodes there are)
+            _validate(graph, args.overrides, opened={args.name}, nodes=[args.name])
         return run_node(graph, args.name, clock=args.clock)
     if cmd == "demo":
         return cmd_demo(args)
@@ -527,7 +585,6 @@ def cmd_schema(args) -> int:
 
 def cmd_demo(args) -> int:
     from followbus.bus.graph import apply_overrides
-    from followbus.bus.node import validate_node
     from followbus.tools.demo import run_demo
 
     graph = _load_graph(args.graph)
@@ -535,15 +592,14 @@ def cmd_demo(args) -> int:
     if args.scene:
         overrides.insert(0, f"capture.source=scene:{args.scene}")
     apply_overrides(graph, overrides)
+    _validate(graph, overrides, labels={"capture.source": f"--scene {args.scene}"} if args.scene else None)
     init = _first_truth_box(graph)
     if init is not None and "init_box" not in graph.nodes["reid"].params:
         # A follower is told whom to follow: on recorded sequences that is the first annotated box.
         overrides.append(f"reid.init_box=[{', '.join(f'{v:.2f}' for v in init)}]")
         apply_overrides(graph, overrides[-1:])
         print(f"target: the first ground-truth box {tuple(round(v, 1) for v in init)}")
-    for spec in graph.nodes.values():
-        validate_node(graph, spec)
-    return run_demo(graph, args.duration, Path(args.log), overrides)
+    return run_demo(graph, args.duration, Path(args.log) if args.log else None, overrides)
 
 
 def _first_truth_box(graph) -> tuple[float, ...] | None:
@@ -563,27 +619,35 @@ def _first_truth_box(graph) -> tuple[float, ...] | None:
 
 def cmd_launch(args) -> int:
     from followbus.bus.graph import apply_overrides
-    from followbus.bus.node import RECORDER_NAME, validate_node
+    from followbus.bus.node import RECORDER_NAME
     from followbus.tools.launch import Launcher, install_stop_signals
 
     graph = _load_graph(args.graph)
     apply_overrides(graph, args.overrides)
-    for spec in graph.nodes.values():
-        validate_node(graph, spec)
     only = [n.strip() for n in args.only.split(",")] if args.only else None
+    # Every node is validated; what a node would open (the capture source) only for the nodes started here.
+    _validate(graph, args.overrides, opened={n for n, spec in graph.nodes.items() if (not only or n in only)
+                                             and (args.host is None or spec.host in (None, args.host))})
     extra = []
     if args.record:
         extra.append((RECORDER_NAME, [sys.executable, "-m", "followbus.tools.cli", "record", "--graph", args.graph,
                                    "-o", args.record, *(f"--set={o}" for o in args.overrides)]))
     try:
         launcher = Launcher(graph, only=only, host=args.host, startup_timeout_s=args.startup_timeout,
-                            grace_s=args.grace, extra_children=extra, overrides=args.overrides)
+                            grace_s=args.grace, extra_children=extra, overrides=args.overrides,
+                            watch_outputs=args.duration is not None)
     except ValueError as exc:
         print(f"followbus: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     install_stop_signals(launcher)
     logging.getLogger("followbus.launch").setLevel(logging.INFO)
-    return launcher.run(args.duration)
+    status = launcher.run(args.duration)
+    problems = launcher.problems() if args.duration is not None else []
+    if problems:
+        # A scripted run (CI, a smoke test) must not pass with a node that crash-looped or stayed silent.
+        print(f"followbus launch: {'; '.join(problems)}", file=sys.stderr, flush=True)
+        return status or 1
+    return status
 
 
 if __name__ == "__main__":

@@ -102,7 +102,41 @@ class DemoWatcher:
         self.session.close()
 
 
-def run_demo(graph: Graph, duration_s: float, log_path: Path, overrides: list[str] | None = None) -> int:
+DEMO_LOG_DIR = Path("state")
+ERROR_LINES_SHOWN = 3
+
+
+def run_log_path(directory: Path = DEMO_LOG_DIR) -> Path:
+    """A log file of this run only (state/demo-YYYYmmdd-HHMMSS.log): one run's reasons are not buried in the
+    previous runs' lines."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    path = directory / f"demo-{stamp}.log"
+    n = 1
+    while path.exists():  # two demos started in the same second
+        n += 1
+        path = directory / f"demo-{stamp}-{n}.log"
+    return path
+
+
+def last_error_lines(log_path: Path, count: int = ERROR_LINES_SHOWN) -> list[str]:
+    """The last lines of a node log that say why something stopped (logged errors, exceptions)."""
+    from followbus.tools.launch import ERROR_LINE_RE
+
+    try:
+        lines = log_path.read_text(errors="replace").splitlines()
+    except OSError:
+        return []
+    hits: list[str] = []  # newest first, each once (a crash-looping node repeats the same error)
+    for line in reversed(lines):
+        text = line.split("] ", 1)[1] if line.startswith("[") and "] " in line else line
+        if ERROR_LINE_RE.search(text.strip()) and line.strip() not in hits:
+            hits.append(line.strip())
+            if len(hits) == count:
+                break
+    return hits[::-1]
+
+
+def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: list[str] | None = None) -> int:
     detection = graph.nodes.get("detection")
     params = detection.params if detection else {}
     backend = str(params.get("backend", "auto"))
@@ -118,11 +152,13 @@ def run_demo(graph: Graph, duration_s: float, log_path: Path, overrides: list[st
         print(f"detector: backend {backend}, model {model}", flush=True)
     elif backend == "hog":
         print("detector: OpenCV HOG (chosen explicitly; far less accurate than YOLOX)", flush=True)
+    log_path = log_path or run_log_path()
     log_path.parent.mkdir(parents=True, exist_ok=True)
+    log_path.write_text("")  # this run's lines only
     print(f"launching {len(graph.nodes)} nodes for {duration_s:.0f} s (Ctrl-C to stop); node logs: {log_path}",
           flush=True)
     logging.getLogger("followbus.launch").setLevel(logging.WARNING)
-    launcher = Launcher(graph, log_file=log_path, overrides=overrides)
+    launcher = Launcher(graph, log_file=log_path, overrides=overrides, watch_outputs=True)
     install_stop_signals(launcher)
     watcher = DemoWatcher(graph)
     stop = threading.Event()
@@ -158,4 +194,16 @@ def run_demo(graph: Graph, duration_s: float, log_path: Path, overrides: list[st
     if "latency_p50_ms" in summary:
         print(f"  capture -> motor command latency: p50 {summary['latency_p50_ms']:.1f} ms, "
               f"p99 {summary['latency_p99_ms']:.1f} ms")
+    problems = launcher.problems()
+    if summary["frames"] == 0 and not launcher.interrupted:
+        problems.insert(0, "0 frames captured")
+        if not launcher.ready_event.is_set():
+            problems.insert(1, f"the graph was not up after {launcher.ran_s:.0f} s (start-up takes a few seconds)")
+    if problems:
+        # The reason is in the node log; say it here, where the user is looking.
+        print(f"followbus demo: {'; '.join(problems)} (node logs: {log_path})", file=sys.stderr)
+        for line in last_error_lines(log_path):
+            print(f"  {line}", file=sys.stderr)
+        sys.stderr.flush()
+        return status or 1
     return status

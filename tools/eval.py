@@ -31,15 +31,19 @@ REPO = Path(__file__).resolve().parents[1]
 
 def expand_sequences(specs: list[str]) -> list[str]:
     """``all`` → every sequence under the data root; ``scene:<name>`` and directories pass through."""
-    from followbus.evaluation.datasets import find_data_root, list_sequences
+    from followbus.evaluation.datasets import find_data_root, list_sequences, load_sequence
 
     out: list[str] = []
     for s in specs:
         if s == "all":
             root = find_data_root()
             if root is None:
-                raise FileNotFoundError("'all': no evaluation data root found (set FOLLOWBUS_DATA)")
-            out += [str(p) for p in list_sequences(root)]
+                raise FileNotFoundError("'all': no evaluation data found: set FOLLOWBUS_DATA to a folder holding "
+                                        "sot/ and/or mot/ (the layouts of ../shared/data/README.md)")
+            found = [str(p) for p in list_sequences(root)]
+            if not found:
+                raise FileNotFoundError(f"'all': no sequences under {root}/sot or {root}/mot")
+            out += found
         elif s.startswith("scene:"):
             from followbus.vision.scenes import SCENES
 
@@ -48,7 +52,12 @@ def expand_sequences(specs: list[str]) -> list[str]:
             out.append(s)
         else:
             if not Path(s).is_dir():
-                raise FileNotFoundError(f"{s}: not a directory")
+                raise FileNotFoundError(f"{s}: not a directory (a sequence folder, scene:<name> or all)")
+            # Read before any work starts (no pixels: cheap), so a folder that is not a sequence is one line.
+            try:
+                load_sequence(s)
+            except (OSError, ValueError) as exc:
+                raise ValueError(str(exc)) from exc
             out.append(s)
     return out
 
@@ -255,10 +264,22 @@ def cmd_eval(args) -> int:
     out = Path(args.out)
     from tqdm import tqdm
 
+    from followbus.vision.models import ModelError
+
     runs: list[SequenceRun] = []
-    for spec in tqdm(seqs, desc="sequences", unit="seq", file=sys.stderr):
+    # delay: a run that fails at once (no model) shows its one line without a progress bar before it
+    for spec in tqdm(seqs, desc="sequences", unit="seq", file=sys.stderr, delay=1.0):
         seq = open_sequence(spec, max_frames=args.max_frames or 0)
-        run = run_sequence(seq, factories, args.detector, cache_dir=out / "cache", seed=args.seed, progress=True)
+        try:
+            run = run_sequence(seq, factories, args.detector, cache_dir=out / "cache", seed=args.seed,
+                               progress=True)
+        except ModelError as exc:
+            hint = ""
+            if args.detector.startswith("yolox"):
+                hint = ("; or score without a model: --detector simulated (ground truth + noise)"
+                        if spec.startswith("scene:") else "; or --detector hog (no model, far less accurate)")
+            print(f"followbus: {exc}{hint}", file=sys.stderr)
+            return 2
         runs.append(run)
         plot_sequence(run, out / "plots")
         fb = run.runs.get("followbus")

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import contextlib
 import json
+import sys
 import threading
 import time
 from collections import defaultdict
+from collections.abc import Callable
 
 import numpy as np
 import zenoh
@@ -16,6 +18,7 @@ from followbus.bus.health import HealthWatcher
 from followbus.bus.pubsub import direct_callback, payload_bytes
 from followbus.bus.schemas import decode, to_plain
 from followbus.bus.session import ZenohSettings, open_session
+from followbus.tools.connect import open_client_session
 
 
 def wait_for(seconds: float | None, done: threading.Event | None = None) -> None:
@@ -45,7 +48,7 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
             sizes[key] += len(data)
             types[key] = msg_type
 
-    session = open_session(settings)
+    session = open_client_session(settings)
     sub = session.declare_subscriber(f"{namespace}/**", direct_callback(on_sample))
     wait_for(args.seconds)
     sub.undeclare()
@@ -79,12 +82,36 @@ def cmd_echo(args, settings: ZenohSettings, namespace: str) -> int:
         if args.count is not None and seen[0] >= args.count:
             done.set()
 
-    session = open_session(settings)
+    session = open_client_session(settings)
     sub = session.declare_subscriber(args.key, direct_callback(on_sample))
-    wait_for(args.seconds, done)
+    first = _wait_first(lambda: seen[0] > 0, args.timeout, args.seconds, done)
+    if first:
+        wait_for(None if args.seconds is None else max(0.0, args.seconds - first), done)
     sub.undeclare()
     session.close()
+    limits = [t for t in (args.timeout, args.seconds) if t is not None]
+    if not seen[0] and limits and not done.is_set():
+        _no_message(args.key, min(limits))
     return 0 if seen[0] else 1
+
+
+def _wait_first(arrived: Callable[[], bool], timeout_s: float | None, seconds: float | None,
+                done: threading.Event | None = None) -> float:
+    """Wait for the first message at most ``timeout_s`` (and ``seconds``); returns the seconds waited, 0 if
+    nothing came (or the wait was cut short by ``done``)."""
+    limits = [t for t in (timeout_s, seconds) if t is not None]
+    deadline = time.monotonic() + min(limits) if limits else None
+    start = time.monotonic()
+    while not arrived():
+        if (deadline is not None and time.monotonic() >= deadline) or (done is not None and done.is_set()):
+            return 0.0
+        time.sleep(0.05)
+    return max(time.monotonic() - start, 1e-9)
+
+
+def _no_message(key: str, timeout_s: float) -> None:
+    print(f"followbus: no message on {key} in {timeout_s:g} s (`followbus topics` lists the keys with traffic)",
+          file=sys.stderr)
 
 
 def cmd_hz(args, settings: ZenohSettings, namespace: str) -> int:
@@ -103,9 +130,14 @@ def cmd_hz(args, settings: ZenohSettings, namespace: str) -> int:
             if stamp > 0:
                 latencies.append((now - stamp) / 1e6)
 
-    session = open_session(settings)
+    session = open_client_session(settings)
     sub = session.declare_subscriber(args.key, direct_callback(on_sample))
     start = time.monotonic()
+    if args.timeout is not None and not _wait_first(lambda: bool(arrivals), args.timeout, args.seconds):
+        sub.undeclare()
+        session.close()
+        _no_message(args.key, args.timeout)
+        return 1
     try:
         while args.seconds is None or time.monotonic() - start < args.seconds:
             time.sleep(1.0)
@@ -124,7 +156,7 @@ def cmd_hz(args, settings: ZenohSettings, namespace: str) -> int:
 
 
 def cmd_nodes(args, settings: ZenohSettings, namespace: str) -> int:
-    session = open_session(settings)
+    session = open_client_session(settings)
     watcher = HealthWatcher(session, namespace)
     wait_for(args.seconds)
     snapshot = watcher.snapshot()

@@ -7,6 +7,7 @@ import contextlib
 import ctypes
 import logging
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -26,12 +27,17 @@ from followbus.bus.health import (
     process_table,
 )
 from followbus.bus.node import LAUNCHED_NODES_ENV
-from followbus.bus.pubsub import Publisher
+from followbus.bus.pubsub import Publisher, direct_callback
 from followbus.bus.session import open_session
 
 log = logging.getLogger("followbus.launch")
 
 PR_SET_PDEATHSIG = 1
+# A node that fails again after being restarted this recently is crash-looping: its restarts are not helping.
+CRASH_LOOP_EXITS = 2
+CRASH_LOOP_WINDOW_S = 60.0
+# A line a node printed that says why it stopped: a logged ERROR, or the last line of a Python traceback.
+ERROR_LINE_RE = re.compile(r"\bERROR\b|^[A-Za-z_][\w.]*(Error|Exception|Exit)\b")
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
@@ -55,6 +61,11 @@ class Child:
     exit_code: int | None = None
     changed_at: float = 0.0  # monotonic time of its last start or exit
     threads: list[threading.Thread] = field(default_factory=list)
+    failures: list[tuple[float, int]] = field(default_factory=list)  # (monotonic time, status) of failed exits
+    last_error: str = ""  # the last line it printed that says why it stopped (see ERROR_LINE_RE)
+    last_line: str = ""  # the last line it printed at all (a one-line "followbus: ..." refusal, say)
+    published: bool = False  # some output of it was seen on the bus (watch_outputs)
+    output_subs: list = field(default_factory=list)
 
     @property
     def name(self) -> str:
@@ -65,8 +76,12 @@ class Launcher:
     def __init__(self, graph: Graph, *, only: list[str] | None = None, host: str | None = None,
                  startup_timeout_s: float = 30.0, grace_s: float = 5.0, extra_env: dict[str, str] | None = None,
                  extra_children: list[tuple[str, list[str]]] | None = None, quiet: bool = False,
-                 overrides: list[str] | None = None, log_file: Path | None = None):
+                 overrides: list[str] | None = None, log_file: Path | None = None, watch_outputs: bool = False):
         self.graph = graph
+        # Subscribe to every node's outputs until its first message: problems() names the silent ones.
+        self.watch_outputs = watch_outputs
+        self.interrupted = False  # stopped by Ctrl-C/SIGTERM rather than by its duration
+        self.ran_s = 0.0
         self.grace_s = grace_s
         self.startup_timeout_s = startup_timeout_s
         self.quiet = quiet
@@ -121,7 +136,12 @@ class Launcher:
         width = max(len(c.name) for c in self.children)
         prefix = f"[{child.name:<{width}}] "
         for raw in iter(stream.readline, b""):
-            self._print(prefix + raw.decode(errors="replace").rstrip())
+            line = raw.decode(errors="replace").rstrip()
+            if ERROR_LINE_RE.search(line.strip()):
+                child.last_error = line.strip()
+            if line.strip():
+                child.last_line = line.strip()
+            self._print(prefix + line)
         stream.close()
 
     def _start(self, child: Child) -> None:
@@ -138,6 +158,8 @@ class Launcher:
 
     def _on_exit(self, child: Child, code: int) -> None:
         child.exit_code, child.changed_at = code, time.monotonic()
+        if code != 0 and not self.stop_event.is_set():
+            child.failures.append((child.changed_at, code))
         self._table_due = 0.0
         policy = child.spec.restart
         log_fn = log.info if code == 0 else log.warning
@@ -179,12 +201,53 @@ class Launcher:
     def request_stop(self, *_args) -> None:
         self.stop_event.set()
 
+    def _watch_outputs(self) -> None:
+        for child in self.children:
+            if child.spec.run == "<tool>":
+                continue
+            for out in child.spec.outputs:
+                def seen(_sample, child: Child = child) -> None:
+                    child.published = True
+                child.output_subs.append(self.session.declare_subscriber(self.graph.key(child.name, out),
+                                                                         direct_callback(seen)))
+
+    def _unwatch(self, every: bool = False) -> None:
+        """Undeclare the output subscriptions of nodes already heard from (all of them with ``every``): one
+        message is all problems() needs, and a subscriber on raw frames would keep receiving them."""
+        for child in self.children:
+            if child.output_subs and (every or child.published):
+                for sub in child.output_subs:
+                    with contextlib.suppress(Exception):
+                        sub.undeclare()
+                child.output_subs = []
+
+    def problems(self) -> list[str]:
+        """What went wrong in the run that just ended, one phrase per node: a node that failed for good or
+        crash-looped (with the last error it printed), and, for a run that lasted its duration with
+        ``watch_outputs``, a node that never published any of its outputs."""
+        out = []
+        for child in self.children:
+            last_t, last_code = child.failures[-1] if child.failures else (0.0, child.exit_code)
+            recent = [t for t, _ in child.failures if t >= last_t - CRASH_LOOP_WINDOW_S]
+            if child.failed or len(recent) >= CRASH_LOOP_EXITS:
+                what = "failed for good" if child.failed else "crash-looped"
+                said = child.last_error or child.last_line
+                why = f": {said[:160]}" if said else ""
+                out.append(f"{child.name} {what} (exited {len(child.failures)} times, last status {last_code}){why}")
+        if self.watch_outputs and not self.interrupted:
+            silent = [c.name for c in self.children if c.spec.run != "<tool>" and c.spec.outputs and not c.published]
+            if silent:
+                out.append(f"no output in {self.ran_s:.0f} s from {', '.join(silent)}")
+        return out
+
     def run(self, duration_s: float | None = None, on_ready=None) -> int:
         """Run until duration elapses, Ctrl-C/SIGTERM, or every node has finished. Returns the exit status."""
         self.session = open_session(self.graph.zenoh)
         self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=False)
         self._table_pub = Publisher(self.session, launcher_key(self.graph.namespace, self.launcher_id),
                                     self.launcher_id, congestion="drop")
+        if self.watch_outputs:
+            self._watch_outputs()
         for child in self.children:
             self._start(child)
         node_names = {c.name for c in self.children if c.spec.run != "<tool>"}
@@ -206,6 +269,8 @@ class Launcher:
                         self._start(child)
                 if now >= self._table_due:
                     self._publish_table()
+                if self.watch_outputs:
+                    self._unwatch()
                 if not ready:
                     missing = node_names - self.health.alive()
                     if not missing:
@@ -218,6 +283,7 @@ class Launcher:
                     elif now - started > self.startup_timeout_s:
                         log.error("startup timeout after %.0f s: no liveliness from %s", self.startup_timeout_s,
                                   ", ".join(sorted(missing)))
+                        self.ran_s = now - started
                         return self._shutdown(1)
                 if all(c.finished for c in self.children):
                     break
@@ -229,6 +295,9 @@ class Launcher:
                 time.sleep(0.05)
         except KeyboardInterrupt:
             log.info("interrupted")
+            self.interrupted = True
+        self.interrupted = self.interrupted or self.stop_event.is_set()
+        self.ran_s = time.monotonic() - started
         status = 1 if any(c.failed for c in self.children) else 0
         return self._shutdown(status)
 
@@ -253,6 +322,7 @@ class Launcher:
         if failed:
             log.error("node(s) failed for good: %s", ", ".join(failed))
         self._publish_table(stopped=True)
+        self._unwatch(every=True)
         if self.health is not None:
             self.health.close()
         if self.session is not None:

@@ -14,6 +14,7 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import threading
 import time
 from collections import deque
@@ -70,6 +71,18 @@ def _client_config(base: dict[str, Any], user: str | None, password: str | None,
     return config
 
 
+def _ask_password(user: str) -> str:
+    """--user without a password: ask on a terminal; a script gets one line instead of a refused session."""
+    from followbus.tools.errors import UsageError
+
+    if not sys.stdin.isatty():
+        raise UsageError(f"--user {user} needs a password: pass --password or set $FOLLOWBUS_ZENOH_PASSWORD "
+                         "(or run in a terminal to be asked)")
+    import getpass
+
+    return getpass.getpass(f"zenoh password for {user}: ")
+
+
 def monitor_settings(graph_path: str | None, connect: list[str] | None, user: str | None = None,
                      password: str | None = None, ca: str | None = None) -> ZenohSettings:
     """Client settings for the laptop: --connect wins, else the graph's listen endpoints."""
@@ -83,6 +96,8 @@ def monitor_settings(graph_path: str | None, connect: list[str] | None, user: st
         if not endpoints:
             endpoints = list(graph.zenoh.listen or graph.zenoh.connect)
     password = password if password is not None else os.environ.get("FOLLOWBUS_ZENOH_PASSWORD")
+    if user and password is None:
+        password = _ask_password(user)
     return ZenohSettings(mode="client", listen=[], connect=endpoints or [DEFAULT_ENDPOINT], multicast_scouting=False,
                          shm=False, connect_timeout_ms=3000, config=_client_config(base, user, password, ca))
 
@@ -517,8 +532,13 @@ def _all_up(snap: dict[str, Any], expected: list[str]) -> bool:
 
 def run_monitor(args: Any) -> int:
     """``followbus monitor``: terminal dashboard, one snapshot (--once), or the web view (--web)."""
+    from followbus.tools.connect import check_credentials
+
     settings = monitor_settings(args.graph, args.connect, args.user, args.password, args.ca)
+    if getattr(args, "connect_timeout", None) is not None:
+        settings.connect_timeout_ms = max(1, round(args.connect_timeout * 1000))
     info = GraphInfo.load(args.graph, args.namespace)
+    check_credentials(settings)  # a refused password is one line (exit 2), not a robot shown unreachable
     if args.web is not None:
         from followbus.tools.webview import serve
 

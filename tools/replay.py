@@ -266,7 +266,8 @@ class ReplayReport:
     def ok(self, verify: bool) -> bool:
         if self.error:
             return False
-        return not verify or not (self.mismatch_count or self.missing or self.extra)
+        # Nothing compared proves nothing: a verify that checked no output must not pass.
+        return not verify or not (self.mismatch_count or self.missing or self.extra or not self.outputs_compared)
 
 
 def _peek_header(data: bytes) -> list[Any] | None:
@@ -850,7 +851,10 @@ def _print_summary(report: ReplayReport, verify: bool) -> None:
         print(f"first extra output: frame {m['frame_seq']}, key {m['key']}")
     if report.error:
         print(f"error: {report.error}")
-    if verify:
+    if verify and not report.outputs_compared and not report.error:
+        print(f"verify: FAILED: nothing compared (the recording holds no output of {report.node} for the frames "
+              "replayed; record the node's outputs too, e.g. `followbus launch --record`)")
+    elif verify:
         print("verify: " + ("OK" if report.ok(True) else "FAILED"))
     sys.stdout.flush()
 

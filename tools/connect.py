@@ -1,0 +1,106 @@
+"""Joining a running graph from a tool (topics, echo, hz, nodes, monitor, ...), with one line when it fails.
+
+zenoh-python 1.10 raises the same ``zenoh.ZError: Unable to connect to any of [...]. Timeout!`` whether
+nothing listens on the endpoint or the router refused our credentials (it closes the link in answer to
+the handshake, and retries go on until ``connect/timeout_ms``). A plain TCP connection to the endpoint
+tells the two apart: accepted means something listens there, so the zenoh handshake itself was refused.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import socket
+from typing import Any
+
+import zenoh
+
+from followbus.bus.session import ZenohSettings, open_session
+
+log = logging.getLogger(__name__)
+
+PROBE_TIMEOUT_S = 0.5
+TCP_BASED = ("tcp", "tls", "ws")  # link protocols whose endpoint a TCP connection can probe
+
+
+class BusUnreachable(Exception):
+    """No session could be opened on the given endpoints; the message says why and what to do."""
+
+
+def auth_user(config: dict[str, Any]) -> str | None:
+    """The user name the session authenticates with (``transport/auth/usrpwd``), if any."""
+    value = config.get("transport/auth/usrpwd")
+    if value is None:
+        value = ((config.get("transport") or {}).get("auth") or {}).get("usrpwd")
+    if isinstance(value, dict) and value.get("user"):
+        return str(value["user"])
+    return None
+
+
+def _host_port(endpoint: str) -> tuple[str, int] | None:
+    proto, _, address = endpoint.partition("/")
+    if proto not in TCP_BASED:
+        return None
+    address = address.split("#", 1)[0].split("?", 1)[0]
+    host, _, port = address.rpartition(":")
+    try:
+        return host.strip("[]"), int(port)
+    except ValueError:
+        return None
+
+
+def endpoint_listening(endpoint: str, timeout_s: float = PROBE_TIMEOUT_S) -> bool | None:
+    """Whether something accepts TCP connections on ``endpoint`` (None: not a TCP-based endpoint)."""
+    target = _host_port(endpoint)
+    if target is None:
+        return None
+    try:
+        with contextlib.closing(socket.create_connection(target, timeout=timeout_s)):
+            return True
+    except OSError:
+        return False
+
+
+def explain_connect_failure(settings: ZenohSettings) -> str:
+    """One line: nobody listens (no graph running), or the graph refused us (authentication, TLS)."""
+    endpoints = list(settings.connect) or list(settings.listen)
+    where = ", ".join(endpoints) or "(no endpoint)"
+    probes = {ep: endpoint_listening(ep) for ep in endpoints}
+    listening = [ep for ep, up in probes.items() if up]
+    if not listening:
+        if any(up is None for up in probes.values()):
+            return f"could not connect to {where} within {settings.connect_timeout_ms / 1000:g} s"
+        return (f"no graph is running on {where}: start one with `followbus launch` or `followbus router` "
+                "(or join another with --connect tcp/HOST:PORT)")
+    user = auth_user(settings.config)
+    if user:
+        return f"authentication failed for user {user} on {listening[0]} (wrong or missing password)"
+    if listening[0].startswith("tls/"):
+        return (f"{listening[0]} refused the connection: check the CA certificate (--ca), and whether the graph "
+                "requires a user (--user, --password)")
+    return (f"{listening[0]} refused the connection: the graph requires authentication "
+            "(--user and --password, or $FOLLOWBUS_ZENOH_PASSWORD)")
+
+
+def is_connect_failure(exc: BaseException) -> bool:
+    return isinstance(exc, zenoh.ZError) and "Unable to connect" in str(exc)
+
+
+def check_credentials(settings: ZenohSettings) -> None:
+    """When something listens on the endpoints, join once and leave: raises :class:`BusUnreachable` when the
+    graph refuses us (a wrong or missing password), instead of a monitor that only ever says "unreachable".
+    A graph that is not up (yet) is left to the caller, who may wait for it."""
+    if not any(endpoint_listening(ep) for ep in settings.connect):
+        return
+    open_client_session(settings).close()
+
+
+def open_client_session(settings: ZenohSettings) -> zenoh.Session:
+    """open_session, with a failure to join turned into :class:`BusUnreachable` (its message one line)."""
+    try:
+        return open_session(settings)
+    except zenoh.ZError as exc:
+        if not is_connect_failure(exc):
+            raise
+        log.debug("zenoh: %s", exc)
+        raise BusUnreachable(explain_connect_failure(settings)) from exc
