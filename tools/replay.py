@@ -330,12 +330,16 @@ def causal_order(messages: Iterable[BusMessage]) -> Iterator[BusMessage]:
     5 ms after frame k's capture comes before the measurement of frame k sent 22 ms after it). A message
     is published after its capture (pub_ns >= log_time), so once the stream reaches log time L every
     buffered message published before L is final: the reorder buffer holds only the in-flight window.
+
+    Messages of no frame (odometry) keep their stamp order instead: a node picks among them by stamp and
+    a replay repeats the live choice (provenance notes), so handing each over at the earliest moment it
+    could have existed is safe, whereas its publication time under load could make it late.
     """
     heap: list[tuple[int, int, int, BusMessage]] = []
     for counter, msg in enumerate(messages):
         while heap and heap[0][0] < msg.log_time:
             yield heapq.heappop(heap)[3]
-        pub = _pub_ns(msg.data) or msg.log_time
+        pub = msg.log_time if _header(msg.data)[0] < 0 else (_pub_ns(msg.data) or msg.log_time)
         heapq.heappush(heap, (max(pub, msg.log_time), msg.sequence, counter, msg))
     while heap:
         yield heapq.heappop(heap)[3]
@@ -459,20 +463,34 @@ class Replayer:
                 provenance.setdefault(frame_seq, {}).update(used)
         return provenance, handled
 
-    def _send_hint(self, frame_seq: int) -> tuple[bool, dict[str, int] | None]:
-        """Tell the node what the live run did with this frame: (skipped, feedback joined)."""
-        from followbus.bus.schemas import ReplayHint
-
+    def _hint_for(self, frame_seq: int) -> tuple[bool, dict[str, int] | None]:
+        """What the live run did with this frame: (skipped, feedback joined and choices noted)."""
         if not self._feedback_sent or not self._live_handled:
             return False, None  # nothing to reproduce: no feedback inputs, or no outputs recorded
         skip = frame_seq not in self._live_handled and frame_seq > min(self._live_handled)
-        used = None if skip else self._live_feedback.get(frame_seq)
-        if skip or used:
+        return skip, None if skip else self._live_feedback.get(frame_seq)
+
+    def _send_hints(self) -> None:
+        """Tell the node what the live run did with every frame, before any input: whether a feedback message
+        must wait for a later set (it reached the live node after that set) depends on the hints of frames
+        whose inputs have not been sent yet. Counts the frames where live did not do the ordinary thing."""
+        from followbus.bus.schemas import ReplayHint
+
+        if not self._feedback_sent or not self._live_handled:
+            return
+        previous = None
+        for frame_seq in range(min(self._live_handled), max(self._live_handled) + 1):
+            skip, used = self._hint_for(frame_seq)
+            if not (skip or used):
+                continue
             hint = ReplayHint(skip=skip, feedback=dict(used or {}))
             hint.header.frame_seq = frame_seq
             self._hint_pub.put(hint)
-            self.report.hints += 1
-        return skip, used
+            fallback = used is not None and previous is not None and any(
+                used.get(name, previous) != previous for name in self._feedback_sent)
+            self.report.hints += skip or fallback
+            if not skip:
+                previous = frame_seq
 
     def _frame_inputs_complete(self, names: set[str], last_handled: int | None,
                                forced: dict[str, int] | None = None) -> tuple[bool, bool]:
@@ -682,6 +700,7 @@ class Replayer:
     def _lockstep(self, pubs: dict[str, Any]) -> None:
         self._feedback_sent: dict[str, set[int]] = {i.name: set() for i in self.spec.inputs.values() if i.offset}
         self._live_feedback, self._live_handled = self._recorded_hints() if self._feedback_sent else ({}, set())
+        self._send_hints()
         last_handled: int | None = None
         # Frames whose outputs the node can only emit once later stamps arrive (a set waiting for an
         # optional input, or blocked behind such a set): in stamp order, oldest first.
@@ -714,7 +733,7 @@ class Replayer:
             nonlocal last_handled, first_stamp, last_stamp
             assert group_seq is not None
             names: set[str] = set()
-            skipped, forced = self._send_hint(group_seq)
+            skipped, forced = self._hint_for(group_seq)
             # Messages of no frame (odometry) first: a node picks among them by stamp, and what it picked live
             # is replayed from the hint, which needs the sample there before the frame's set is handled.
             for key, data, fs, stamp in sorted(group, key=lambda item: item[2] >= 0):
