@@ -511,7 +511,7 @@ class Injection:
     notes: list[str] = field(default_factory=list)
     load_window: tuple[int, int] | None = None
     injected_stamps: set[int] = field(default_factory=set)
-    expect_pause: bool = False  # the fault stops the track stream: a watchdog stop must be seen
+    expect_pause: bool = False  # the fault stops the track stream (noted when no watchdog stop was seen)
     check_load_processed: bool = False
     after: Callable[[], None] | None = None  # checks that need the status messages after the fault
 
@@ -771,7 +771,7 @@ def _kill_recorder(run: ChaosRunner) -> Injection:
     start = time.time_ns()
     os.kill(pid, signal.SIGKILL)
     time.sleep(3.0)
-    inj = Injection(start, start, notes=["recorder SIGKILLed"])
+    inj = Injection(start, time.time_ns(), notes=["recorder SIGKILLed; the loop must still follow 3 s later"])
     alive = run.graph.running and run.health.alive() >= set(run.graph.graph.nodes)
     _check(inj.checks, "graph kept running", alive,
            "launcher and every node up" if alive else f"launcher running={run.graph.running}, "
@@ -794,7 +794,7 @@ def _faults() -> dict[str, Fault]:
         *(Fault(f"kill-{n}", f"SIGKILL {n}; the launcher restarts it", _kill(n))
           for n in ("detection", "prediction", "reid", "template", "motor")),
         Fault("stop-prediction-2s", "SIGSTOP prediction for 2 s, then SIGCONT", _stop_prediction),
-        Fault("burners", "N processes burning a CPU each (--burners, default 2) for --load-seconds", _burners),
+        Fault("burners", "processes burning a CPU each (--burners, default 2) for --load-seconds", _burners),
         Fault("detector-delay-80ms", "the simulated detector takes 80 ms per frame (sim_delay_ms: 80)",
               _detector_delay, variant="delay80", simulated_only=True),
         Fault("future-stamp-track", "a TRACKING track stamped one hour ahead on prediction/track, then SIGKILL "
