@@ -88,7 +88,7 @@ def test_weight_threshold_removes_a_starved_component() -> None:
             break
     assert tr.n_components == 1
     assert len(tr.mu) == dims - 2
-    assert seen_weights[0] > seen_weights[-1]       # it starved first
+    assert len(seen_weights) > 2 and seen_weights[-2] < seen_weights[0]   # it starved before it went
     assert tr.estimate().centre_m[1] == pytest.approx(1.8, abs=0.4)
 
 
