@@ -136,8 +136,10 @@ def test_cli_usage_errors_and_help():
     result = run_followbus("bench", "chaos", "--faults", "kill-everything", timeout=60)
     assert result.returncode == 2
     assert result.stderr.strip().count("\n") == 0 and "unknown fault 'kill-everything'" in result.stderr
-    result = run_followbus("bench", "chaos", "--repeat", "0", timeout=60)
-    assert result.returncode == 2 and "Traceback" not in result.stderr
+    for bad in (["--repeat", "0"], ["--scene", "nowhere"], ["--faults", "kill-recorder"]):
+        result = run_followbus("bench", "chaos", *bad, timeout=60)
+        assert result.returncode == 2 and "Traceback" not in result.stderr, bad
+        assert len(result.stderr.strip().splitlines()) == 1, result.stderr
     helptext = run_followbus("bench", "chaos", "--help", timeout=60).stdout
     for name in FAULTS:
         assert name in helptext

@@ -879,13 +879,17 @@ class ChaosRunner:
             self._tmp = tempfile.TemporaryDirectory(prefix="followbus-chaos-")
             self.workdir = Path(self._tmp.name)
         self.workdir.mkdir(parents=True, exist_ok=True)
-        base = self._write_graph("base")
-        graph = load_graph(base)
-        self.limits = Limits.from_graph(graph)
-        self.session = open_session(graph.zenoh)  # the harness holds the port: it outlives every node
-        self.health = HealthWatcher(self.session, self.namespace)
-        self.observer = Observer(self.session, graph, self.limits)
-        self.scene_frames, self.good_phases = clear_phases(self.options.scene, self.options.clear_s)
+        try:
+            # The scene first: an unknown scene name is a ValueError before anything is opened.
+            self.scene_frames, self.good_phases = clear_phases(self.options.scene, self.options.clear_s)
+            graph = load_graph(self._write_graph("base"))
+            self.limits = Limits.from_graph(graph)
+            self.session = open_session(graph.zenoh)  # the harness holds the port: it outlives every node
+            self.health = HealthWatcher(self.session, self.namespace)
+            self.observer = Observer(self.session, graph, self.limits)
+        except BaseException:
+            self.close()
+            raise
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -1207,6 +1211,11 @@ def run_bench_chaos(args: Any) -> int:
         if find_model("yolox_nano_416.onnx") is None:
             print("followbus: bench chaos: yolox_nano_416.onnx not found on the model search path", file=sys.stderr)
             return 2
+    from followbus.vision.scenes import SCENES
+
+    if args.scene not in SCENES:
+        print(f"followbus: bench chaos: unknown scene {args.scene!r} (scenes: {', '.join(SCENES)})", file=sys.stderr)
+        return 2
     options = ChaosOptions(detector=args.detector, scene=args.scene, burners=args.burners, load_s=args.load_seconds,
                            recovery_bound_s=args.recovery_bound, hold_s=args.hold,
                            malformed_per_key=args.malformed_per_key, record=args.record, port=args.port,
@@ -1248,7 +1257,8 @@ def run_bench_chaos(args: Any) -> int:
     print(format_table(rows))
     survived = sum(r.survived for r in results)
     print(f"\n{survived} of {len(results)} fault runs survived; {sum(r.unsafe_commands for r in results)} unsafe "
-          f"commands; {launches} launches of the graph; {time.monotonic() - started:.0f} s; "
+          f"commands; {launches} launch{'es' if launches != 1 else ''} of the graph; "
+          f"{time.monotonic() - started:.0f} s; "
           f"watchdog bound {results[0].watchdog_bound_ms:.0f} ms, recovery bound {options.recovery_bound_s:.1f} s"
           if results else "no faults run")
     if args.json:
