@@ -217,10 +217,14 @@ def build_parser() -> argparse.ArgumentParser:
                               "  followbus eval ../shared/data/mot/tud-campus --method followbus "
                               "--method peer:bytetrack --method peer:botsort\n"
                               "  followbus eval scene:wall-occlusion --graph-check\n"
+                              "  followbus eval --group --out results/group\n"
                               "  followbus eval ../shared/data/sot/otb-crossing --graph-check --detector yolox",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("sequences", nargs="+", metavar="SEQ",
+    p.add_argument("sequences", nargs="*", metavar="SEQ",
                    help="sequence dir (sot/<name>, mot/<name>), scene:<name>, or 'all' (every sequence of the data)")
+    p.add_argument("--group", action="store_true",
+                   help="instead: seed 004's group-tracking benchmark on simulated squads (RMSE, OE, Lat-STD of "
+                        "ME-CGT-UGV and its comparison methods per scenario; group.md, group.json, plots)")
     p.add_argument("--method", action="append", metavar="M",
                    help="followbus | kalman | peer:bytetrack|ocsort|botsort; repeatable (default followbus + kalman)")
     p.add_argument("--ablations", action="store_true", help="also run the paper's Table 6 ablations of followbus")

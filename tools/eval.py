@@ -222,6 +222,21 @@ def cmd_eval(args) -> int:
     from followbus.evaluation.runner import method_factories, open_sequence, run_sequence
 
     command = "followbus " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if args.argv is None else args.argv
+    if getattr(args, "group", False):
+        from followbus.evaluation.group_eval import cmd_eval_group
+        from followbus.evaluation.group_sim import SCENARIOS
+
+        # With --group the positional names are simulator scenarios (default: all of them).
+        unknown = [s for s in args.sequences if s not in SCENARIOS]
+        if unknown:
+            print(f"followbus: unknown group scenario {unknown[0]!r}; available: {', '.join(SCENARIOS)}",
+                  file=sys.stderr)
+            return 2
+        return cmd_eval_group(Path(args.out), args.seed, command, args.sequences or None)
+    if not args.sequences:
+        print("followbus: eval needs at least one SEQ (a sequence dir, scene:<name> or all), or --group",
+              file=sys.stderr)
+        return 2
     if args.graph_check:
         Path(args.out).mkdir(parents=True, exist_ok=True)
         status = 0

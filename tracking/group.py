@@ -202,7 +202,9 @@ class GroupParams:
     lambda_iw: float = 0.95            # Eq. 24 forgetting factor of the extents
     lambda_dirichlet: float = 0.95     # Eq. 25 forgetting factor of the weights
     nu_min: float = 8.0                # IW degrees of freedom kept above d+1 so E[X] stays finite
-    extent_floor_m2: float = 0.09      # a sub-target is never thinner than a person (0.3 m std)
+    extent_floor_m2: float = 0.09      # a sub-target is never thinner than a person (0.3 m std) …
+    extent_ceiling_m2: float = 2.25    # … nor wider than 1.5 m std: an unbounded extent widens its own gate,
+                                       # takes in a passing disturber, widens again (seen in the simulator)
     weight_threshold_early: float = 0.01  # §4.6: 1 % in the initial stage …
     weight_threshold_late: float = 0.10   # … then 10 %
     early_frames: int = 10
@@ -416,7 +418,7 @@ class MultiEllipseGroupTracker:
         for l in range(self.n_components):
             ex = self.expected_extent(l)
             w, v = np.linalg.eigh(0.5 * (ex + ex.T))
-            w = np.maximum(w, self.p.extent_floor_m2)
+            w = np.clip(w, self.p.extent_floor_m2, self.p.extent_ceiling_m2)
             self.V[l] = (v * w) @ v.T * (self.nu[l] - D - 1)
 
     def estimate(self, selected: np.ndarray | None = None) -> GroupEstimate:
