@@ -32,7 +32,8 @@ NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
 NAMESPACE_RE = re.compile(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
 TOP_KEYS = {"name", "namespace", "zenoh", "nodes", "max_lag_ms"}
 DEFAULT_MAX_LAG_MS = 150.0  # a frame set further behind the newest complete one is skipped (bus.sync)
-NODE_KEYS = {"run", "inputs", "outputs", "params", "restart", "host", "sync_timeout_ms", "max_lag_ms", "description"}
+NODE_KEYS = {"run", "inputs", "outputs", "params", "restart", "host", "sync_timeout_ms", "max_lag_ms", "nice",
+             "description"}
 INPUT_KEYS = {"from", "queue", "policy", "sync", "offset", "optional"}
 RESTART_KEYS = {"policy", "max_restarts", "backoff_ms", "max_backoff_ms"}
 POLICIES = ("drop_oldest", "block")
@@ -86,6 +87,7 @@ class NodeSpec:
     host: str | None = None
     sync_timeout_ms: float = 100.0
     max_lag_ms: float | None = None  # None: the graph's; 0: never skip a lagging frame set
+    nice: int | None = None  # CPU priority of the node's process (-20 highest .. 19); None: inherited
     line: int | None = None
     param_lines: dict[str, int] = field(default_factory=dict)
 
@@ -306,6 +308,11 @@ def _parse_node(name: str, key_node: yaml.Node, node: yaml.Node, path: str) -> N
         spec.sync_timeout_ms = float(value)
     if "max_lag_ms" in fields:
         spec.max_lag_ms = _non_negative_ms(fields["max_lag_ms"][1], path, f"node {name!r}: max_lag_ms")
+    if "nice" in fields:
+        value = _expect(_plain(fields["nice"][1], path), int, path, _line(fields["nice"][1]), f"node {name!r}: nice")
+        if not -20 <= value <= 19:
+            raise GraphError(path, _line(fields["nice"][1]), f"node {name!r}: nice must be in -20..19")
+        spec.nice = value
     return spec
 
 

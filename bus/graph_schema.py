@@ -247,6 +247,9 @@ def _node_schema(runs: dict[str, tuple[type, ...]]) -> dict[str, Any]:
         "max_lag_ms": {"type": "number", "minimum": 0,
                        "description": "skip a frame set this far behind the newest complete one (0: never); "
                                       "default: the graph's max_lag_ms"},
+        "nice": {"type": "integer", "minimum": -20, "maximum": 19,
+                 "description": "CPU priority of the node's process (-20 highest); below 0 needs the right to "
+                                "raise priority (root or CAP_SYS_NICE), else it runs at the inherited priority"},
     }
     return {
         "type": "object", "required": ["run"], "additionalProperties": False,

@@ -294,6 +294,14 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
     return cls, params
 
 
+def _set_priority(nice: int, log: logging.Logger) -> None:
+    """Run this process at CPU priority ``nice``: the motor's watchdog must keep its timing on a busy machine."""
+    try:
+        os.nice(nice - os.nice(0))
+    except OSError as exc:  # raising priority needs root or CAP_SYS_NICE
+        log.warning("could not set nice %d (%s); running at nice %d", nice, exc, os.nice(0))
+
+
 class NodeRuntime:
     """Hosts one node in this process."""
 
@@ -303,6 +311,8 @@ class NodeRuntime:
         self.graph = graph
         self.spec = graph.nodes[name]
         self.cls, self.params = validate_node(graph, self.spec)
+        if self.spec.nice is not None:
+            _set_priority(self.spec.nice, logging.getLogger(f"followbus.{name}"))
         self.clock = Clock(clock)
         self.stop_event = threading.Event()
         self.log = logging.getLogger(f"followbus.{name}")

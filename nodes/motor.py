@@ -42,6 +42,9 @@ class Motor(Node):
     REQUIRED_INPUTS = frozenset({"track"})
     OUTPUTS = {"command": MotorCommand, "odometry": Odometry}
     EXPRESS = frozenset({"command"})
+    # A command or odometry sample that cannot go out now is worthless later: never let a congested link
+    # block the control loop (the driver has already been told; the bus only reports it).
+    CONGESTION = {"command": "drop", "odometry": "drop"}
     TIMER_PERIOD_MS = 10.0  # watchdog and odometry tick (100 Hz)
 
     @classmethod

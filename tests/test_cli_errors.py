@@ -184,7 +184,8 @@ def test_demo_that_captured_nothing_fails_with_its_own_log(tmp_path):
     assert len(logs) == 1 and re.fullmatch(r"demo-\d{8}-\d{6}\.log", logs[0].name), logs
     assert f"node logs: state/{logs[0].name}" in result.stdout
     first = result.stderr.strip().splitlines()[0]
-    assert first.startswith("followbus demo: 0 frames captured; the graph was not up after"), result.stderr
+    # Half a second after start-up nothing has come through the loop (capture holds frame 0 for 0.5 s).
+    assert first.startswith(("followbus demo: 0 frames captured", "followbus demo: no output in 1 s from")), first
     assert (tmp_path / "state" / "demo.log").read_text() == "an older run\n"
 
 

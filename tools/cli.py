@@ -74,7 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("graph", nargs="?", default="graph.yaml", help="graph file (default: ./graph.yaml)")
     p.add_argument("--only", help="comma-separated node names to launch (default: all)")
     p.add_argument("--host", help="launch only nodes whose host: is this name (or unset)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=float, metavar="S",
+                   help="stop S seconds after every node is up (start-up does not count)")
     p.add_argument("--record", metavar="FILE", help="also record the bus to this MCAP file")
     p.add_argument("--startup-timeout", type=float, default=30.0, metavar="S",
                    help="seconds to wait for every node's liveliness token (default 30)")

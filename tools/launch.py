@@ -241,7 +241,8 @@ class Launcher:
         return out
 
     def run(self, duration_s: float | None = None, on_ready=None) -> int:
-        """Run until duration elapses, Ctrl-C/SIGTERM, or every node has finished. Returns the exit status."""
+        """Run until duration elapses (counted from the moment every node is up, so start-up on a busy
+        machine does not eat the run), Ctrl-C/SIGTERM, or every node has finished. Returns the exit status."""
         self.session = open_session(self.graph.zenoh)
         self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=False)
         self._table_pub = Publisher(self.session, launcher_key(self.graph.namespace, self.launcher_id),
@@ -253,7 +254,8 @@ class Launcher:
         node_names = {c.name for c in self.children if c.spec.run != "<tool>"}
         started = time.monotonic()
         ready = False
-        deadline = None if duration_s is None else started + duration_s
+        deadline = None  # set when the graph is ready
+        ready_at: float | None = None
         try:
             while not self.stop_event.is_set():
                 now = time.monotonic()
@@ -275,6 +277,9 @@ class Launcher:
                     missing = node_names - self.health.alive()
                     if not missing:
                         ready = True
+                        ready_at = now
+                        if duration_s is not None:
+                            deadline = now + duration_s
                         self.ready_event.set()
                         log.info("graph %r ready: %d nodes up in %.1f s", self.graph.name, len(node_names),
                                  now - started)
@@ -297,7 +302,9 @@ class Launcher:
             log.info("interrupted")
             self.interrupted = True
         self.interrupted = self.interrupted or self.stop_event.is_set()
-        self.ran_s = time.monotonic() - started
+        # How long the graph ran: from the moment every node was up (else from the start, for a report of
+        # a start-up that never finished).
+        self.ran_s = time.monotonic() - (ready_at if ready_at is not None else started)
         status = 1 if any(c.failed for c in self.children) else 0
         return self._shutdown(status)
 
