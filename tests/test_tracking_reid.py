@@ -10,7 +10,7 @@ import pytest
 from followbus.tracking.appearance import hs_histogram
 from followbus.tracking.kalman import Prior
 from followbus.tracking.params import TrackerParams
-from followbus.tracking.reid import ReIdentifier, TrackState, appearance_weight, fuse, geometric_score
+from followbus.tracking.reid import ReIdentifier, ReidResult, TrackState, appearance_weight, fuse, geometric_score
 
 W, H = 320, 240
 BG = (40, 90, 40)
@@ -249,3 +249,18 @@ def test_lost_target_is_re_detected_outside_the_gate_only_with_global_search(glo
         assert res.accepted and res.box == far and res.state is TrackState.REACQUIRED
     else:
         assert not res.accepted and res.state is TrackState.LOST
+
+
+def test_a_restarted_reid_initialises_on_the_detection_the_prior_expects() -> None:
+    """re-ID restarted mid-run: no template yet, but prediction still has the track. The target is the
+    gated detection nearest the prior, not whoever stands nearest the image centre."""
+    from followbus.tracking.kalman import Predictor
+
+    pred = Predictor(TrackerParams())
+    left, centre = (40.0, 60.0, 40.0, 100.0), (140.0, 60.0, 40.0, 100.0)
+    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=left, source="init",
+                          init_box=left))
+    prior = pred.predict(33_000_000)
+    frame = np.zeros((240, 320, 3), np.uint8)
+    res = ReIdentifier(TrackerParams()).step(frame, dets(left, centre), prior, None, 33_000_000)
+    assert res.init_box == left and res.source == "prior"

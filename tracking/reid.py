@@ -172,14 +172,15 @@ class ReIdentifier:
     ) -> ReidResult:
         """Run one frame. Without a prior or a template (or with an explicit ``init_box``) this
         initialises the target instead: ``init_box``, else (when a template exists, e.g. restored
-        after a restart) the detection best matching it if above Thresh_reid, else the detection
-        nearest the image bottom-centre, else the frame-difference ROI (§2.1)."""
+        after a restart) the detection best matching it if above Thresh_reid, else (when a prior exists:
+        this re-ID was restarted while prediction kept the track) the gated detection nearest the prior,
+        else the detection nearest the image bottom-centre, else the frame-difference ROI (§2.1)."""
         t_ns = int(t_ns)
         grey = to_grey(frame_bgr)
         prev_grey, self._prev_grey = self._prev_grey, grey
         boxes = _valid_boxes(detections)
         if init_box is not None or prior is None or template_hist is None:
-            return self._initialise(frame_bgr, boxes, prev_grey, grey, t_ns, init_box, template_hist)
+            return self._initialise(frame_bgr, boxes, prev_grey, grey, t_ns, init_box, template_hist, prior)
 
         p = self.params
         candidates = self._gate_candidates(boxes, prior, "detection")
@@ -236,6 +237,7 @@ class ReIdentifier:
         t_ns: int,
         init_box: Sequence[float] | None,
         template_hist: np.ndarray | None,
+        prior: Prior | None = None,
     ) -> ReidResult:
         p = self.params
         height, width = grey.shape[:2]
@@ -245,6 +247,8 @@ class ReIdentifier:
             box = (float(init_box[0]), float(init_box[1]), float(init_box[2]), float(init_box[3]))
         elif template_hist is not None and (match := self._template_match(frame_bgr, boxes, template_hist)):
             box, source = match, "template"
+        elif prior is not None and (gated := self._gate_candidates(boxes, prior, "detection")):
+            box, source = min(gated, key=lambda c: c.maha_sq).box, "prior"  # Eq. 8: the track still known
         elif boxes:
             box = nearest_to_centre_bottom(np.array(boxes), width, height)
         elif prev_grey is not None:
