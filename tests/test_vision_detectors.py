@@ -190,7 +190,9 @@ def test_find_model_honours_env_and_order(tmp_path: Path, monkeypatch: pytest.Mo
     assert find_model("m.onnx") == b.resolve() / "m.onnx"
     path = search_path(str(explicit))
     assert path[:3] == [explicit.resolve(), a.resolve(), b.resolve()]
-    assert REPO_ROOT / "models" in path and REPO_ROOT.parent / "shared" / "models" in path
+    resolved = [p.resolve() for p in path]  # ../shared may be a link (a CI checkout's, say)
+    assert (REPO_ROOT / "models").resolve() in resolved
+    assert (REPO_ROOT.parent / "shared" / "models").resolve() in resolved
     (explicit / "m.onnx").write_bytes(b"y")
     assert find_model("m.onnx", str(explicit)) == explicit.resolve() / "m.onnx"  # explicit dir wins
     assert find_model("m.onnx", str(b / "m.onnx")) == (b / "m.onnx").resolve()  # explicit file
