@@ -37,6 +37,7 @@ Pure logic, no Zenoh: the caller passes the clock, so it is testable and replay-
 
 from __future__ import annotations
 
+from bisect import bisect_right, insort
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -144,6 +145,7 @@ class FrameSynchronizer:
         self.guard = SequenceGuard()  # on the same-frame inputs
         self._feedback_lost = False
         self._forced: dict[int, dict[str, int]] = {}  # replay: feedback a live run used for a frame
+        self._forced_frames: list[int] = []  # its keys, sorted: a replay hints every frame up front
         self._skipped: set[int] = set()  # replay: frames the live run did not handle
         self.timeouts = 0  # sets emitted without an optional input (feedback included)
         self.dropped = 0  # sets dropped: required input missing at timeout, superseded, or overflow
@@ -192,15 +194,25 @@ class FrameSynchronizer:
         self._last_emitted = None
         self._feedback_lost = False
         self._forced.clear()
+        self._forced_frames.clear()
 
     def force_feedback(self, frame_seq: int, used: dict[str, int]) -> None:
         """Replay: frame ``frame_seq`` takes exactly these feedback frames (-1: none), as the live run did."""
+        if frame_seq not in self._forced:
+            insort(self._forced_frames, frame_seq)
         self._forced[frame_seq] = dict(used)
 
     def holds_back(self, name: str, seq: int) -> bool:
         """Replay: did the live node receive feedback ``seq`` only after handling a set that joined an older one?
         (A pending set s that joined j < seq < s: had seq been there, s would have joined it.)"""
-        return any(j < seq < s for s, used in self._forced.items() if (j := used.get(name)) is not None)
+        # Within a run the feedback a set joins never goes back (newest at or before the previous frame), so
+        # the first pending set after seq that joined this input decides: later ones joined the same or newer.
+        frames = self._forced_frames
+        for i in range(bisect_right(frames, seq), len(frames)):  # indices: no copy of a long list
+            j = self._forced[frames[i]].get(name)
+            if j is not None:
+                return j < seq
+        return False
 
     def skip(self, frame_seq: int) -> None:
         """Replay: frame ``frame_seq`` is not handled, as the live run did not handle it."""
@@ -277,8 +289,10 @@ class FrameSynchronizer:
             if not all_present or not exact:
                 self.timeouts += 1
             del self._slots[seq]
-            for done in [s for s in self._forced if s <= seq]:  # emitted, or never to be (dropped)
-                del self._forced[done]
+            done = bisect_right(self._forced_frames, seq)  # emitted, or never to be (dropped)
+            for s in self._forced_frames[:done]:
+                del self._forced[s]
+            del self._forced_frames[:done]
             ready.append((seq, {name: msgs.get(name) for name in self.inputs}))
             self._last_emitted = seq
             self._last_emit_ns = now_ns
