@@ -37,7 +37,9 @@ def _cpu_ticks(pid: int) -> int | None:
         return None
 
 
-def _graph_text(scene: str, port: int, namespace: str, detector: str) -> str:
+def _graph_text(scene: str, port: int, namespace: str, detector: str, sim_delay_ms: float = 0.0) -> str:
+    """graph.yaml of the repository on a private port and namespace, the scene looping in real time (also the
+    graph `followbus bench chaos` launches)."""
     import yaml
 
     g = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))
@@ -50,7 +52,9 @@ def _graph_text(scene: str, port: int, namespace: str, detector: str) -> str:
         det.update(backend="yolox", input_size=640 if detector == "yolox640" else 416)
     else:
         det["backend"] = detector
-    g["nodes"]["template"]["params"]["state_file"] = ""
+        if sim_delay_ms:
+            det["sim_delay_ms"] = float(sim_delay_ms)
+    g["nodes"]["template"]["params"]["state_file"] = ""  # every launch starts from the same template
     return yaml.safe_dump(g, sort_keys=False)
 
 

@@ -70,7 +70,6 @@ from followbus.bus.session import open_session
 
 log = logging.getLogger("followbus.chaos")
 
-REPO = Path(__file__).resolve().parents[1]
 NS = 1_000_000_000
 MS = 1_000_000
 INJECTOR = "chaos"  # header.source of everything the harness publishes
@@ -395,24 +394,11 @@ def clear_phases(scene: str, clear_s: float, fps: float = 30.0) -> tuple[int, se
 
 def graph_text(*, scene: str, port: int, namespace: str, detector: str, sim_delay_ms: float = 0.0) -> str:
     """graph.yaml of the repository on a private port and namespace, the scene looping in real time."""
-    import yaml
+    from followbus.tools.bench_pipeline import _graph_text
 
-    g = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))
-    g["namespace"] = namespace
-    g["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
-    g["zenoh"]["connect"] = [f"tcp/127.0.0.1:{port}"]
-    g["nodes"]["capture"]["params"].update(source=f"scene:{scene}", pace="realtime", fps=30.0, loop=True)
-    det = g["nodes"]["detection"]["params"]
-    if detector == "simulated":
-        det["backend"] = "simulated"
-        if sim_delay_ms:
-            det["sim_delay_ms"] = float(sim_delay_ms)
-    elif detector == "yolox416":
-        det.update(backend="yolox", input_size=416)
-    else:
+    if detector not in ("simulated", "yolox416"):
         raise ValueError(f"unknown detector {detector!r}")
-    g["nodes"]["template"]["params"]["state_file"] = ""  # every launch starts from the same template
-    return yaml.safe_dump(g, sort_keys=False)
+    return _graph_text(scene, port, namespace, detector, sim_delay_ms if detector == "simulated" else 0.0)
 
 
 class ChaosGraph:
