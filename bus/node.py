@@ -176,6 +176,7 @@ class Node:
     OUTPUTS: ClassVar[dict[str, type[Message]]] = {}
     CONGESTION: ClassVar[dict[str, str]] = {}  # output -> "block" | "drop" (default block)
     EXPRESS: ClassVar[frozenset[str]] = frozenset()  # outputs sent without batching (control)
+    PRIORITY: ClassVar[dict[str, str]] = {}  # output -> "real_time" | "interactive_high" | "data" (default)
     Params: ClassVar[type] = NoParams
     TIMER_PERIOD_MS: ClassVar[float | None] = None
 
@@ -337,7 +338,7 @@ class NodeRuntime:
             key = graph.key(self.spec.name, out)
             self.publishers[out] = Publisher(
                 self.session, key, self.spec.name, congestion=self.cls.CONGESTION.get(out, "block"),
-                express=out in self.cls.EXPRESS, shm=shm,
+                express=out in self.cls.EXPRESS, priority=self.cls.PRIORITY.get(out, "data"), shm=shm,
             )
         frame_inputs = [SyncInput(i.name, i.offset, i.optional) for i in self.spec.inputs.values()
                         if i.sync == "frame"]

@@ -21,6 +21,10 @@ log = logging.getLogger(__name__)
 SHM_THRESHOLD_BYTES = 64 * 1024
 SHM_POOL_BYTES = 64 * 1024 * 1024
 CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
+# Zenoh queues each priority separately on a link: a "real_time" message is not stuck behind a backlog of
+# "data" ones (frames, a flood of bad payloads), which is what a stop command needs.
+PRIORITY = {"real_time": zenoh.Priority.REAL_TIME, "interactive_high": zenoh.Priority.INTERACTIVE_HIGH,
+            "data": zenoh.Priority.DATA}
 # A Publisher refuses (counts in TopicStats.refused, logs, does not send) payloads over this. Zenoh 1.10's
 # own limit is the receiver's transport/link/rx/max_message_size, 1 GiB by default: past it a message
 # vanishes with no error at either end (measured on loopback: 1000 MiB delivered, 1030 MiB not). Far
@@ -113,10 +117,12 @@ class Publisher:
     """
 
     def __init__(self, session: zenoh.Session, key: str, source: str, *, congestion: str = "block",
-                 express: bool = False, shm: ShmPool | None = None, stats: TopicStats | None = None,
-                 max_payload_bytes: int = MAX_PAYLOAD_BYTES):
+                 express: bool = False, priority: str = "data", shm: ShmPool | None = None,
+                 stats: TopicStats | None = None, max_payload_bytes: int = MAX_PAYLOAD_BYTES):
         if congestion not in CONGESTION:
             raise ValueError(f"congestion must be one of {sorted(CONGESTION)}")
+        if priority not in PRIORITY:
+            raise ValueError(f"priority must be one of {sorted(PRIORITY)}")
         self.key = key
         self.source = source
         self.shm = shm
@@ -124,7 +130,8 @@ class Publisher:
         self.max_payload_bytes = max_payload_bytes
         self._seq = 0
         self._warn = RateLimitedLog(log, 5.0)
-        self._pub = session.declare_publisher(key, congestion_control=CONGESTION[congestion], express=express)
+        self._pub = session.declare_publisher(key, congestion_control=CONGESTION[congestion], express=express,
+                                              priority=PRIORITY[priority])
 
     def put(self, msg: Message) -> bool:
         """Publish ``msg``; False when it was refused for its size."""

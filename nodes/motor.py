@@ -43,9 +43,14 @@ class Motor(Node):
     OUTPUTS = {"command": MotorCommand, "odometry": Odometry}
     EXPRESS = frozenset({"command"})
     # A command or odometry sample that cannot go out now is worthless later: never let a congested link
-    # block the control loop (the driver has already been told; the bus only reports it).
+    # block the control loop (the driver has already been told; the bus only reports it). Commands travel
+    # in Zenoh's real-time lane, ahead of any backlog of frames or bad payloads on the same link.
     CONGESTION = {"command": "drop", "odometry": "drop"}
+    PRIORITY = {"command": "real_time"}
     TIMER_PERIOD_MS = 10.0  # watchdog and odometry tick (100 Hz)
+    # A standing stop is re-published at this period (not every tick): a stop dropped on a congested link
+    # reaches the bus, a monitor that joins late sees it, and the bus carries 10 stops/s, not 100.
+    STOP_REPEAT_MS = 100.0
 
     @classmethod
     def params_classes(cls) -> tuple[type, ...]:
@@ -73,6 +78,7 @@ class Motor(Node):
         self.last_cmd: FollowCommand | None = None
         self.commands = 0
         self.last_odom_ns = 0
+        self.last_command_ns = 0  # when the last command went out (node clock)
         self.too_old = 0  # tracks not acted on: captured longer than max_track_age_ms ago
         self.live = self.runtime.clock.mode == "wall"
 
@@ -94,7 +100,7 @@ class Motor(Node):
     def on_timer(self, now_ns: int) -> None:
         cmd = self.controller.on_tick(now_ns, time.monotonic_ns() if self.live else None)
         repeated_stop = self.last_cmd is not None and self.last_cmd.is_zero and cmd is not None \
-            and cmd.reason == self.last_cmd.reason
+            and cmd.reason == self.last_cmd.reason and now_ns - self.last_command_ns < self.STOP_REPEAT_MS * 1e6
         if cmd is not None and not repeated_stop:
             self._command(cmd, like=None)
         if self.sim is not None:
@@ -114,6 +120,7 @@ class Motor(Node):
             out.header.stamp_ns = time.time_ns() if self.runtime.clock.mode == "wall" else self.now_ns()
         self.publish("command", out, like=like)
         self.last_cmd = cmd
+        self.last_command_ns = self.now_ns()
         self.commands += 1
 
     def _odometry(self, sample) -> None:
