@@ -19,6 +19,7 @@ import contextlib
 import dataclasses
 import itertools
 import logging
+import math
 import os
 import signal
 import threading
@@ -101,19 +102,44 @@ def _coerce(value: Any, hint: Any, key: str) -> Any:
 
 
 class Clock:
-    """Wall clock, or the newest observed message stamp (lockstep replay)."""
+    """A node's clock: wall time; or the newest observed message stamp (lockstep replay); or simulated time
+    (``sim``: the in-process runtime, bus.inproc, advances it; it stands for both wall and monotonic time).
 
-    def __init__(self, mode: str = "wall"):
-        if mode not in ("wall", "stamps"):
-            raise ValueError(f"clock must be 'wall' or 'stamps', not {mode!r}")
+    ``now_ns`` is the node clock; ``wall_ns`` and ``monotonic_ns`` are what a live node reads for receive
+    times and ages (its watchdog): the real clocks, except in ``sim`` where the simulated time stands in.
+    ``live`` is False only for ``stamps``: a simulated run behaves as a live one, on its own time.
+    """
+
+    MODES = ("wall", "stamps", "sim")
+
+    def __init__(self, mode: str = "wall", start_ns: int = 0):
+        if mode not in self.MODES:
+            raise ValueError(f"clock must be one of {', '.join(self.MODES)}, not {mode!r}")
         self.mode = mode
         self._latest = 0
+        self._sim_ns = start_ns
+
+    @property
+    def live(self) -> bool:
+        return self.mode != "stamps"
 
     def observe(self, stamp_ns: int) -> None:
         self._latest = max(self._latest, stamp_ns)
 
+    def advance_to(self, t_ns: int) -> None:
+        """Simulated clock: move to ``t_ns`` (never back)."""
+        self._sim_ns = max(self._sim_ns, t_ns)
+
     def now_ns(self) -> int:
+        if self.mode == "sim":
+            return self._sim_ns
         return time.time_ns() if self.mode == "wall" else self._latest
+
+    def wall_ns(self) -> int:
+        return self._sim_ns if self.mode == "sim" else time.time_ns()
+
+    def monotonic_ns(self) -> int:
+        return self._sim_ns if self.mode == "sim" else time.monotonic_ns()
 
 
 RECORDER_NAME = "recorder"  # liveliness name of `followbus record`, and the launcher's name for it
@@ -127,13 +153,23 @@ class DownstreamBarrier:
     results from racing the routes between later nodes), and of a recorder the launcher started. Nodes
     declare their token after their subscribers, so a visible token means they listen. Gives up after
     ``timeout_s`` with a warning naming who is missing, then lets ``settle_s`` pass for routes to settle.
+    A node hosted without a session (in-process, bus.inproc) opens at once: every node there is listening
+    before any publishes.
     """
 
-    def __init__(self, runtime: NodeRuntime, timeout_s: float, settle_s: float):
+    def __init__(self, runtime: NodeHost, timeout_s: float, settle_s: float):
         from followbus.bus.health import HealthWatcher
 
         graph, name = runtime.graph, runtime.spec.name
         self.log = runtime.log
+        self.timeout_s = timeout_s
+        self.settle_s = settle_s
+        self._open_at: float | None = None
+        self._health: HealthWatcher | None = None
+        self.waiting_for: set[str] = set()
+        if runtime.session is None:
+            self._open_at = -math.inf
+            return
         self.waiting_for = {n for n, spec in graph.nodes.items()
                             if any(i.source_node == name for i in spec.inputs.values())}
         launched = os.environ.get(LAUNCHED_NODES_ENV)
@@ -148,15 +184,15 @@ class DownstreamBarrier:
             if RECORDER_NAME in started:
                 self.waiting_for.add(RECORDER_NAME)
         self.waiting_for.discard(name)
-        self.timeout_s = timeout_s
-        self.settle_s = settle_s
         self._health = HealthWatcher(runtime.session, graph.namespace, watch_status=False)
         self._deadline = time.monotonic() + timeout_s
-        self._open_at: float | None = None
 
     def wait_s(self) -> float:
         """Seconds to wait before the first message (0: go)."""
+        if self._open_at == -math.inf:
+            return 0.0
         if self._open_at is None:
+            assert self._health is not None
             missing = self.waiting_for - self._health.alive()
             if missing and time.monotonic() < self._deadline:
                 return 0.05
@@ -167,7 +203,8 @@ class DownstreamBarrier:
         return max(0.0, self._open_at - time.monotonic())
 
     def close(self) -> None:
-        self._health.close()
+        if self._health is not None:
+            self._health.close()
 
 
 class Node:
@@ -180,7 +217,7 @@ class Node:
     Params: ClassVar[type] = NoParams
     TIMER_PERIOD_MS: ClassVar[float | None] = None
 
-    def __init__(self, params: Any, runtime: NodeRuntime):
+    def __init__(self, params: Any, runtime: NodeHost):
         self.params = params
         self.runtime = runtime
         self.name = runtime.spec.name
@@ -244,6 +281,14 @@ class Node:
     def now_ns(self) -> int:
         return self.runtime.clock.now_ns()
 
+    def wall_ns(self) -> int:
+        """Wall time (simulated in-process): for ages against capture stamps, stamps of what the node originates."""
+        return self.runtime.clock.wall_ns()
+
+    def monotonic_ns(self) -> int:
+        """Monotonic time (simulated in-process): for receive times and watchdogs, which no stamp may steer."""
+        return self.runtime.clock.monotonic_ns()
+
     def stop(self) -> None:
         self.runtime.stop_event.set()
 
@@ -303,48 +348,39 @@ def _set_priority(nice: int, log: logging.Logger) -> None:
         log.warning("could not set nice %d (%s); running at nice %d", nice, exc, os.nice(0))
 
 
-class NodeRuntime:
-    """Hosts one node in this process."""
+class NodeHost:
+    """What hosting one node takes, whatever carries its messages: its class and params, its clock, the frame
+    synchroniser and sequence guards of its inputs, and handing it messages, frame sets, timer ticks and
+    replay hints. :class:`NodeRuntime` carries the messages over Zenoh (one process per node);
+    ``bus.inproc.InProcessGraph`` between nodes in one process on a simulated clock. Both run this code, so a
+    node behaves the same in either. A subclass fills ``publishers`` (output -> object with ``put(msg)``)
+    and then calls :meth:`create_node`.
+    """
 
-    def __init__(self, graph: Graph, name: str, *, clock: str = "wall", session: zenoh.Session | None = None):
+    session: zenoh.Session | None = None  # NodeRuntime's; None in-process
+
+    def __init__(self, graph: Graph, name: str, clock: Clock,
+                 validated: tuple[type[Node], Any] | None = None):
         if name not in graph.nodes:
             raise GraphError(graph.path, None, f"no node named {name!r} (nodes: {', '.join(graph.nodes)})")
         self.graph = graph
         self.spec = graph.nodes[name]
-        self.cls, self.params = validate_node(graph, self.spec)
-        if self.spec.nice is not None:
-            _set_priority(self.spec.nice, logging.getLogger(f"followbus.{name}"))
-        self.clock = Clock(clock)
+        self.cls, self.params = validated if validated is not None else validate_node(graph, self.spec)
+        self.clock = clock
         self.stop_event = threading.Event()
         self.log = logging.getLogger(f"followbus.{name}")
-        self._own_session = session is None
-        self.session = session or open_session(graph.zenoh)
-        self.started_ns = time.time_ns()
-        self.publishers: dict[str, Publisher] = {}
-        self.subscribers: list[Subscriber] = []
-        self.queues: dict[str, InputQueue] = {}
+        self.publishers: dict[str, Any] = {}
         self.latest: dict[str, Message] = {}
         self.handler_errors = 0
         self.resets = 0
         self._frame_failures = 0  # consecutive
         self.provenance: dict[str, int] | None = None  # feedback used by the set being handled
-        self._cond = threading.Condition()
-        self._arrival = itertools.count()
         self._warn = RateLimitedLog(self.log)
-        shm = ShmPool() if graph.zenoh.shm else None
-        if shm is not None and any(self.cls.OUTPUTS.get(out) is Frame for out in self.spec.outputs):
-            shm.warm_up()  # frames go through shared memory: not on the first frame's time
-        for out in self.spec.outputs:
-            key = graph.key(self.spec.name, out)
-            self.publishers[out] = Publisher(
-                self.session, key, self.spec.name, congestion=self.cls.CONGESTION.get(out, "block"),
-                express=out in self.cls.EXPRESS, priority=self.cls.PRIORITY.get(out, "data"), shm=shm,
-            )
         frame_inputs = [SyncInput(i.name, i.offset, i.optional) for i in self.spec.inputs.values()
                         if i.sync == "frame"]
         # The lag bound is a live policy: a lockstep replay never builds a backlog, and skipping there
         # would depend on how fast the replayer feeds the node.
-        lag_ms = graph.lag_bound_ms(name) if clock == "wall" else None
+        lag_ms = graph.lag_bound_ms(name) if clock.live else None
         self.sync = (FrameSynchronizer(frame_inputs, int(self.spec.sync_timeout_ms * 1e6),
                                        max_lag_ns=None if lag_ms is None else int(lag_ms * 1e6))
                      if frame_inputs else None)
@@ -352,45 +388,20 @@ class NodeRuntime:
         # Inputs not joined by frame are still frame-numbered streams (motor's tracks, capture's acks): the
         # same sequence checks keep a forged or stale message from reaching the node.
         self._guards = {i.name: SequenceGuard() for i in self.spec.inputs.values() if i.sync != "frame"}
-        self.node = self.cls(self.params, self)
-        for inp in self.spec.inputs.values():
-            key = graph.key(inp.source_node, inp.source_output)
-            stats = TopicStats(key, "in")
-            queue = InputQueue(inp.name, inp.queue, inp.policy, stats, self._cond)
-            self.queues[inp.name] = queue
-            self.subscribers.append(Subscriber(
-                self.session, key, self._enqueuer(queue), schema=self.cls.INPUTS[inp.name], stats=stats,
-                logger=self.log,
-            ))
-        self._hints: list[ReplayHint] = []
         self._held: list[tuple[str, Message]] = []  # replay: feedback the live node received later
         self.replay_notes: dict[int, dict[str, int]] = {}  # replay: frame -> provenance of the live outputs
-        if clock == "stamps" and self.sync is not None:
-            # Lockstep replay: the replayer says which frames the live node skipped and which feedback it
-            # joined, so a live fallback (a late feedback, a skipped backlog) is reproduced exactly.
-            self.subscribers.append(Subscriber(self.session, graph.replay_hint_key(name), self._on_hint,
-                                               schema=ReplayHint, logger=self.log))
-        self._token = self.session.liveliness().declare_token(graph.health_key(self.spec.name))
-        self._status_pub = Publisher(self.session, graph.status_key(self.spec.name), self.spec.name)
-        self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
+        self.timer_ns = int(self.cls.TIMER_PERIOD_MS * 1e6) if self.cls.TIMER_PERIOD_MS else None
+        self.next_timer_ns: int | None = None
 
-    def _enqueuer(self, queue: InputQueue):
-        def push(msg: Message) -> None:
-            # Arrival order across inputs matters (a measurement for frame k-1 before the detections
-            # of frame k), so every message carries a process-wide arrival number.
-            msg._arrival = next(self._arrival)  # type: ignore[attr-defined]
-            queue.push(msg)
+    def create_node(self) -> None:
+        self.node = self.cls(self.params, self)
 
-        return push
+    def start(self) -> None:
+        """Set the node up and start its timer."""
+        self.node.setup()
+        self.next_timer_ns = self.clock.now_ns() + self.timer_ns if self.timer_ns else None
 
-    def _on_hint(self, hint: Message) -> None:
-        with self._cond:
-            self._hints.append(hint)  # type: ignore[arg-type]
-            self._cond.notify_all()
-
-    def status(self) -> NodeStatus:
-        topics = {p.key: p.stats.snapshot() for p in self.publishers.values()}
-        topics.update({q.stats.key: q.stats.snapshot() for q in self.queues.values()})
+    def sync_counters(self) -> dict[str, Any]:
         extra: dict[str, Any] = {"handler_errors": self.handler_errors, "resets": self.resets}
         if self.sync is not None:
             extra.update(self.sync.counters())
@@ -398,21 +409,7 @@ class NodeRuntime:
             extra.update(seq_stale=sum(g.stale for g in self._guards.values()),
                          seq_implausible=sum(g.implausible for g in self._guards.values()),
                          seq_resyncs=sum(g.resyncs for g in self._guards.values()))
-        try:
-            extra.update(self.node.status_extra())
-        except Exception as exc:  # status must never take the node down
-            extra["status_error"] = repr(exc)
-        msg = NodeStatus(node=self.spec.name, pid=os.getpid(), uptime_s=(time.time_ns() - self.started_ns) / 1e9,
-                         topics=topics, extra=extra)
-        msg.header.stamp_ns = time.time_ns()
-        return msg
-
-    def _status_loop(self) -> None:
-        while not self.stop_event.wait(STATUS_PERIOD_S):
-            try:
-                self._status_pub.put(self.status())
-            except Exception as exc:
-                self._warn.warning("status publish failed: %r", exc)
+        return extra
 
     def _guarded(self, what: str, fn, *args) -> Any:
         try:
@@ -424,62 +421,25 @@ class NodeRuntime:
                 self.log.exception("%s failed (%d errors so far)", what, self.handler_errors)
             return None
 
-    def install_signal_handlers(self) -> None:
-        def handler(signum, _frame):
-            self.log.info("received %s, shutting down", signal.Signals(signum).name)
-            self.stop_event.set()
-            with self._cond:
-                self._cond.notify_all()
+    def apply_hints(self, hints: list[Message]) -> None:
+        """Replay: what the live run did with some frames (ReplayHint), handed over before those frames' inputs."""
+        for hint in hints:
+            assert isinstance(hint, ReplayHint)
+            self.replay_notes[hint.header.frame_seq] = dict(hint.feedback)
+            while len(self.replay_notes) > REPLAY_NOTES_KEEP:
+                del self.replay_notes[min(self.replay_notes)]
+            if self.sync is not None and hint.skip:
+                self.sync.skip(hint.header.frame_seq)
+            elif self.sync is not None:
+                self.sync.force_feedback(hint.header.frame_seq, hint.feedback)
 
-        signal.signal(signal.SIGTERM, handler)
-        signal.signal(signal.SIGINT, handler)
-
-    def run(self) -> None:
-        node = self.node
-        node.setup()
-        self._status_thread.start()
-        self.log.info("node %s up (%s)", self.spec.name, self.spec.run)
-        timer_ns = int(self.cls.TIMER_PERIOD_MS * 1e6) if self.cls.TIMER_PERIOD_MS else None
-        next_timer = self.clock.now_ns() + timer_ns if timer_ns else None
-        next_poll_wall: float | None = time.monotonic()
-        try:
-            while not self.stop_event.is_set():
-                with self._cond:
-                    wait_s = 0.05
-                    if next_poll_wall is not None:
-                        wait_s = min(wait_s, max(0.0, next_poll_wall - time.monotonic()))
-                    if next_timer is not None and self.clock.mode == "wall":
-                        wait_s = min(wait_s, max(0.0, (next_timer - time.time_ns()) / 1e9))
-                    if self.sync is not None and self.clock.mode == "wall":
-                        deadline = self.sync.next_deadline_ns()
-                        if deadline is not None:
-                            wait_s = min(wait_s, max(0.0, (deadline - time.time_ns()) / 1e9))
-                    if not any(len(q) for q in self.queues.values()) and wait_s > 0:
-                        self._cond.wait(wait_s)
-                    items = [(name, m) for name, q in self.queues.items() for m in q.pop_all()]
-                    hints, self._hints = self._hints, []
-                    self._cond.notify_all()  # wake producers blocked on a full queue
-                for hint in hints:  # published before the frame's inputs, so they arrive first
-                    self.replay_notes[hint.header.frame_seq] = dict(hint.feedback)
-                    while len(self.replay_notes) > REPLAY_NOTES_KEEP:
-                        del self.replay_notes[min(self.replay_notes)]
-                    if self.sync is not None and hint.skip:
-                        self.sync.skip(hint.header.frame_seq)
-                    elif self.sync is not None:
-                        self.sync.force_feedback(hint.header.frame_seq, hint.feedback)
-                items.sort(key=lambda item: item[1]._arrival)
-                for name, msg in items:
-                    self._dispatch(name, msg)
-                self._emit_ready()
-                now = self.clock.now_ns()
-                if next_timer is not None and now >= next_timer:
-                    self._guarded("on_timer", node.on_timer, now)
-                    next_timer = max(next_timer + timer_ns, now - timer_ns)
-                if next_poll_wall is not None and time.monotonic() >= next_poll_wall:
-                    delay = self._guarded("poll", node.poll, now)
-                    next_poll_wall = None if delay is None else time.monotonic() + max(0.0, delay)
-        finally:
-            self.close()
+    def run_timer(self, now_ns: int) -> bool:
+        """Tick the node's timer if it is due at ``now_ns``; True if it ticked."""
+        if self.next_timer_ns is None or self.timer_ns is None or now_ns < self.next_timer_ns:
+            return False
+        self._guarded("on_timer", self.node.on_timer, now_ns)
+        self.next_timer_ns = max(self.next_timer_ns + self.timer_ns, now_ns - self.timer_ns)
+        return True
 
     def _dispatch(self, name: str, msg: Message) -> None:
         spec = self.spec.inputs[name]
@@ -525,7 +485,7 @@ class NodeRuntime:
             self._emit_ready()
 
     def _sync_now(self) -> int:
-        return time.time_ns() if self.clock.mode == "wall" else self.clock.now_ns()
+        return self.clock.wall_ns() if self.clock.live else self.clock.now_ns()
 
     def _emit_ready(self) -> None:
         if self.sync is None:
@@ -553,6 +513,132 @@ class NodeRuntime:
             self._frame_failures = 0
             self.resets += 1
             self._guarded("reset", self.node.reset)
+
+
+class NodeRuntime(NodeHost):
+    """Hosts one node in this process, its messages carried over Zenoh."""
+
+    def __init__(self, graph: Graph, name: str, *, clock: str = "wall", session: zenoh.Session | None = None):
+        if clock == "sim":
+            raise ValueError("a node on the bus runs on wall time or stamps; simulated time is bus.inproc's")
+        super().__init__(graph, name, Clock(clock))
+        if self.spec.nice is not None:
+            _set_priority(self.spec.nice, logging.getLogger(f"followbus.{name}"))
+        self._own_session = session is None
+        self.session = session or open_session(graph.zenoh)
+        self.started_ns = time.time_ns()
+        self.subscribers: list[Subscriber] = []
+        self.queues: dict[str, InputQueue] = {}
+        self._cond = threading.Condition()
+        self._arrival = itertools.count()
+        shm = ShmPool() if graph.zenoh.shm else None
+        if shm is not None and any(self.cls.OUTPUTS.get(out) is Frame for out in self.spec.outputs):
+            shm.warm_up()  # frames go through shared memory: not on the first frame's time
+        for out in self.spec.outputs:
+            key = graph.key(self.spec.name, out)
+            self.publishers[out] = Publisher(
+                self.session, key, self.spec.name, congestion=self.cls.CONGESTION.get(out, "block"),
+                express=out in self.cls.EXPRESS, priority=self.cls.PRIORITY.get(out, "data"), shm=shm,
+            )
+        self.create_node()
+        for inp in self.spec.inputs.values():
+            key = graph.key(inp.source_node, inp.source_output)
+            stats = TopicStats(key, "in")
+            queue = InputQueue(inp.name, inp.queue, inp.policy, stats, self._cond)
+            self.queues[inp.name] = queue
+            self.subscribers.append(Subscriber(
+                self.session, key, self._enqueuer(queue), schema=self.cls.INPUTS[inp.name], stats=stats,
+                logger=self.log,
+            ))
+        self._hints: list[ReplayHint] = []
+        if clock == "stamps" and self.sync is not None:
+            # Lockstep replay: the replayer says which frames the live node skipped and which feedback it
+            # joined, so a live fallback (a late feedback, a skipped backlog) is reproduced exactly.
+            self.subscribers.append(Subscriber(self.session, graph.replay_hint_key(name), self._on_hint,
+                                               schema=ReplayHint, logger=self.log))
+        self._token = self.session.liveliness().declare_token(graph.health_key(self.spec.name))
+        self._status_pub = Publisher(self.session, graph.status_key(self.spec.name), self.spec.name)
+        self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
+
+    def _enqueuer(self, queue: InputQueue):
+        def push(msg: Message) -> None:
+            # Arrival order across inputs matters (a measurement for frame k-1 before the detections
+            # of frame k), so every message carries a process-wide arrival number.
+            msg._arrival = next(self._arrival)  # type: ignore[attr-defined]
+            queue.push(msg)
+
+        return push
+
+    def _on_hint(self, hint: Message) -> None:
+        with self._cond:
+            self._hints.append(hint)  # type: ignore[arg-type]
+            self._cond.notify_all()
+
+    def status(self) -> NodeStatus:
+        topics = {p.key: p.stats.snapshot() for p in self.publishers.values()}
+        topics.update({q.stats.key: q.stats.snapshot() for q in self.queues.values()})
+        extra = self.sync_counters()
+        try:
+            extra.update(self.node.status_extra())
+        except Exception as exc:  # status must never take the node down
+            extra["status_error"] = repr(exc)
+        msg = NodeStatus(node=self.spec.name, pid=os.getpid(), uptime_s=(time.time_ns() - self.started_ns) / 1e9,
+                         topics=topics, extra=extra)
+        msg.header.stamp_ns = time.time_ns()
+        return msg
+
+    def _status_loop(self) -> None:
+        while not self.stop_event.wait(STATUS_PERIOD_S):
+            try:
+                self._status_pub.put(self.status())
+            except Exception as exc:
+                self._warn.warning("status publish failed: %r", exc)
+
+    def install_signal_handlers(self) -> None:
+        def handler(signum, _frame):
+            self.log.info("received %s, shutting down", signal.Signals(signum).name)
+            self.stop_event.set()
+            with self._cond:
+                self._cond.notify_all()
+
+        signal.signal(signal.SIGTERM, handler)
+        signal.signal(signal.SIGINT, handler)
+
+    def run(self) -> None:
+        node = self.node
+        self.start()
+        self._status_thread.start()
+        self.log.info("node %s up (%s)", self.spec.name, self.spec.run)
+        next_poll_wall: float | None = time.monotonic()
+        try:
+            while not self.stop_event.is_set():
+                with self._cond:
+                    wait_s = 0.05
+                    if next_poll_wall is not None:
+                        wait_s = min(wait_s, max(0.0, next_poll_wall - time.monotonic()))
+                    if self.next_timer_ns is not None and self.clock.mode == "wall":
+                        wait_s = min(wait_s, max(0.0, (self.next_timer_ns - time.time_ns()) / 1e9))
+                    if self.sync is not None and self.clock.mode == "wall":
+                        deadline = self.sync.next_deadline_ns()
+                        if deadline is not None:
+                            wait_s = min(wait_s, max(0.0, (deadline - time.time_ns()) / 1e9))
+                    if not any(len(q) for q in self.queues.values()) and wait_s > 0:
+                        self._cond.wait(wait_s)
+                    items = [(name, m) for name, q in self.queues.items() for m in q.pop_all()]
+                    hints, self._hints = self._hints, []
+                    self._cond.notify_all()  # wake producers blocked on a full queue
+                self.apply_hints(hints)  # published before the frame's inputs, so they arrive first
+                items.sort(key=lambda item: item[1]._arrival)
+                for name, msg in items:
+                    self._dispatch(name, msg)
+                self._emit_ready()
+                now = self.clock.now_ns()
+                self.run_timer(now)
+                if next_poll_wall is not None and time.monotonic() >= next_poll_wall:
+                    delay = self._guarded("poll", node.poll, now)
+                    next_poll_wall = None if delay is None else time.monotonic() + max(0.0, delay)
+        finally:
+            self.close()
 
     def close(self) -> None:
         self.stop_event.set()
