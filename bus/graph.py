@@ -15,6 +15,11 @@ starts. The command line turns a GraphError into exit status 2.
         params: {backend: auto}
         restart: on-failure                     # or {policy: on-failure, max_restarts: 5, backoff_ms: 500}
         host: robot
+
+A file can extend another (``extends: graph.yaml``, relative to the file): the base is loaded first and the
+file applies on top of it. Mappings merge key by key (the zenoh block, a node, its inputs and params), scalars
+and lists replace, ``null`` removes (a node, one of its keys, an input; a param's ``null`` is a value), new nodes
+are added. Each YAML node remembers its file, so an error in the base names the base file.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from followbus.bus.session import ZenohSettings
 
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
 NAMESPACE_RE = re.compile(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
-TOP_KEYS = {"name", "namespace", "zenoh", "nodes", "max_lag_ms"}
+TOP_KEYS = {"extends", "name", "namespace", "zenoh", "nodes", "max_lag_ms"}
 DEFAULT_MAX_LAG_MS = 150.0  # a frame set further behind the newest complete one is skipped (bus.sync)
 NODE_KEYS = {"run", "inputs", "outputs", "params", "restart", "host", "sync_timeout_ms", "max_lag_ms", "nice",
              "description"}
@@ -41,11 +46,26 @@ SYNC_MODES = ("frame", "latest", "none")
 RESTART_POLICIES = ("never", "on-failure", "always")
 
 
+class SourceLine(int):
+    """A 1-based line number that remembers its file: a graph that extends another spans several files, so
+    the lines kept in specs (NodeSpec.line, InputSpec.line, param_lines) must say which file they are in."""
+
+    path: str
+
+    def __new__(cls, line: int, path: str) -> SourceLine:
+        obj = super().__new__(cls, line)
+        obj.path = path
+        return obj
+
+    def __reduce__(self) -> tuple[Any, ...]:  # copy/pickle keep the file
+        return (SourceLine, (int(self), self.path))
+
+
 class GraphError(Exception):
-    """A graph.yaml problem, located to a file and line."""
+    """A graph.yaml problem, located to a file and line (a SourceLine's own file wins over ``path``)."""
 
     def __init__(self, path: str | Path, line: int | None, message: str):
-        self.path = str(path)
+        self.path = str(getattr(line, "path", None) or path)
         self.line = line
         self.message = message
         super().__init__(f"{self.path}:{line}: {message}" if line is not None else f"{self.path}: {message}")
@@ -99,7 +119,7 @@ class Graph:
     zenoh: ZenohSettings
     nodes: dict[str, NodeSpec]
     path: str = "<memory>"
-    text: str = ""
+    text: str = ""  # self-contained YAML (an extending file's is the resolved document): recordings keep it
     max_lag_ms: float = DEFAULT_MAX_LAG_MS
 
     def lag_bound_ms(self, node: str) -> float | None:
@@ -148,8 +168,8 @@ def apply_overrides(graph: Graph, assignments: list[str]) -> None:
         graph.nodes[node].params[param] = value
 
 
-def _line(node: yaml.Node) -> int:
-    return node.start_mark.line + 1
+def _line(node: yaml.Node) -> SourceLine:
+    return SourceLine(node.start_mark.line + 1, node.start_mark.name)
 
 
 def _plain(node: yaml.Node, path: str) -> Any:
@@ -193,24 +213,134 @@ def _type_names(types: type | tuple[type, ...]) -> str:
     return " or ".join(names.get(t.__name__, t.__name__) for t in seq)
 
 
-def load_graph(path: str | Path, text: str | None = None) -> Graph:
-    """Load and validate graph.yaml. Raises GraphError (file:line: message)."""
-    path = str(path)
-    if text is None:
-        try:
-            text = Path(path).read_text()
-        except OSError as exc:
-            raise GraphError(path, None, f"cannot read: {exc.strerror}") from exc
+_NULL_TAG = "tag:yaml.org,2002:null"
+
+
+def _read(path: str, text: str | None, read_from: tuple[str, int | None] | None = None) -> str:
+    if text is not None:
+        return text
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        return Path(path).read_text()
+    except OSError as exc:
+        if read_from is not None:  # a base file: the error is the extends line's
+            raise GraphError(read_from[0], read_from[1], f"extends: cannot read {path}: {exc.strerror}") from exc
+        raise GraphError(path, None, f"cannot read: {exc.strerror}") from exc
+
+
+def _compose(path: str, text: str) -> yaml.Node:
+    loader = yaml.SafeLoader(text)
+    loader.name = path  # every mark, so every line, names this file
+    try:
+        root = loader.get_single_node()
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
         context = getattr(exc, "context", None)
         detail = f"{problem} ({context})" if context else problem
         raise GraphError(path, mark.line + 1 if mark else None, f"invalid YAML: {detail}") from exc
+    finally:
+        loader.dispose()
     if root is None:
         raise GraphError(path, 1, "empty graph file")
+    return root
+
+
+def _compose_graph(path: str, text: str, chain: tuple[tuple[str, str], ...]) -> tuple[yaml.Node, list[str]]:
+    """The file's YAML tree with every file it extends merged under it, and the files (base first).
+
+    ``chain``: the (path, resolved path) of the files that extend this one, to tell a cycle."""
+    root = _compose(path, text)
+    if not isinstance(root, yaml.MappingNode):
+        return root, [path]  # the validator says what is wrong with it
+    items = _unique_items(root, ())
+    if "extends" not in items:
+        return root, [path]
+    key_node, value_node = items["extends"]
+    line = _line(value_node)
+    target = _plain(value_node, path)
+    if not isinstance(target, str) or not target.strip():
+        raise GraphError(path, line, "extends must be the path of a graph file (relative to this one)")
+    base = str(Path(path).parent / target)
+    chain = (*chain, (path, str(Path(path).resolve())))
+    if str(Path(base).resolve()) in {resolved for _, resolved in chain}:
+        raise GraphError(path, line, f"extends: cycle {' -> '.join([*(p for p, _ in chain), base])}")
+    base_root, files = _compose_graph(base, _read(base, None, (path, line)), chain)
+    if not isinstance(base_root, yaml.MappingNode):
+        raise GraphError(base, _line(base_root), "graph must be a mapping")
+    own = yaml.MappingNode(root.tag, [(k, v) for k, v in root.value if k is not key_node], start_mark=root.start_mark,
+                           end_mark=root.end_mark, flow_style=root.flow_style)
+    return _merge(base_root, own, (), base), [*files, path]
+
+
+def _unique_items(node: yaml.MappingNode, where: tuple[str, ...]) -> dict[str, tuple[yaml.Node, yaml.Node]]:
+    items: dict[str, tuple[yaml.Node, yaml.Node]] = {}
+    for key_node, value_node in node.value:
+        if not isinstance(key_node, yaml.ScalarNode):
+            raise GraphError(node.start_mark.name, _line(key_node), f"{_dotted(where)}: keys must be plain names")
+        if key_node.value in items:
+            raise GraphError(node.start_mark.name, _line(key_node),
+                             f"duplicate key {_dotted((*where, key_node.value))!r}")
+        items[key_node.value] = (key_node, value_node)
+    return items
+
+
+def _dotted(where: tuple[str, ...]) -> str:
+    return ".".join(where) or "graph"
+
+
+def _is_param_value(where: tuple[str, ...]) -> bool:
+    """Whether ``where`` is (inside) one parameter's value: it replaces whole, and null there is a value (an
+    Optional parameter's None), where everywhere else null removes the key."""
+    return len(where) >= 4 and where[0] == "nodes" and where[2] == "params"
+
+
+def _shorthand_key(where: tuple[str, ...]) -> str | None:
+    """The key a scalar shorthand stands for here: an input 'capture/frame' is {from: capture/frame}, a restart
+    'on-failure' is {policy: on-failure}."""
+    if len(where) == 4 and where[0] == "nodes" and where[2] == "inputs":
+        return "from"
+    if len(where) == 3 and where[0] == "nodes" and where[2] == "restart":
+        return "policy"
+    return None
+
+
+def _merge(base: yaml.Node, over: yaml.Node, where: tuple[str, ...], base_file: str) -> yaml.Node:
+    """``over`` applied on top of ``base``: mappings merge key by key, anything else replaces."""
+    shorthand = _shorthand_key(where)
+    if shorthand and isinstance(over, yaml.MappingNode) and isinstance(base, yaml.ScalarNode):
+        # {queue: 8} over 'capture/frame' keeps the source: the shorthand becomes the mapping it stands for.
+        key = yaml.ScalarNode("tag:yaml.org,2002:str", shorthand, start_mark=base.start_mark, end_mark=base.end_mark)
+        base = yaml.MappingNode("tag:yaml.org,2002:map", [(key, base)], start_mark=base.start_mark,
+                                end_mark=base.end_mark, flow_style=True)
+    if not (isinstance(base, yaml.MappingNode) and isinstance(over, yaml.MappingNode)) or _is_param_value(where):
+        return over
+    merged = _unique_items(base, where)
+    for key, (key_node, value_node) in _unique_items(over, where).items():
+        if value_node.tag == _NULL_TAG and not _is_param_value((*where, key)):
+            if key not in merged:
+                raise GraphError(over.start_mark.name, _line(key_node),
+                                 f"{_dotted((*where, key))}: null removes nothing ({base_file} has no such key)")
+            del merged[key]
+        elif key in merged:
+            base_key, base_value = merged[key]
+            value = _merge(base_value, value_node, (*where, key), base_file)
+            # A mapping merged into the base's is still declared where the base declared it (a node's line).
+            merged[key] = (key_node if value is value_node else base_key, value)
+        else:
+            merged[key] = (key_node, value_node)
+    return yaml.MappingNode(over.tag, list(merged.values()), start_mark=over.start_mark, end_mark=over.end_mark,
+                            flow_style=base.flow_style)
+
+
+def load_graph(path: str | Path, text: str | None = None) -> Graph:
+    """Load and validate graph.yaml (and the files it extends). Raises GraphError (file:line: message)."""
+    path = str(path)
+    text = _read(path, text)
+    root, files = _compose_graph(path, text, ())
+    if len(files) > 1:
+        # The one text a recording keeps must stand alone (its base files are not in the recording).
+        header = f"# {path} with extends resolved ({' -> '.join(files)}); comments dropped\n"
+        text = header + yaml.serialize(root, Dumper=yaml.SafeDumper, width=120)
     seen: dict[str, yaml.Node] = {}
     for key, key_node, value_node in _mapping_items(root, path, "graph"):
         if key in seen:
@@ -330,10 +460,12 @@ def _parse_input(node: str, name: str, key_node: yaml.Node, value_node: yaml.Nod
         raise GraphError(path, line, f"{where}: not a valid input name")
     value = _plain(value_node, path)
     options: dict[str, Any] = {}
+    lines: dict[str, int] = {}  # each option's own line: in a graph that extends another, maybe another file
     if isinstance(value, str):
         source = value
     elif isinstance(value, dict):
-        for opt_name, opt_key, _ in _mapping_items(value_node, path, where):
+        for opt_name, opt_key, opt_value in _mapping_items(value_node, path, where):
+            lines[opt_name] = _line(opt_value)
             if opt_name not in INPUT_KEYS:
                 raise GraphError(path, _line(opt_key),
                                  f"{where}: unknown key {opt_name!r} (allowed: {', '.join(sorted(INPUT_KEYS))})")
@@ -344,28 +476,28 @@ def _parse_input(node: str, name: str, key_node: yaml.Node, value_node: yaml.Nod
     else:
         raise GraphError(path, line, f"{where}: must be 'node/output' or a mapping with 'from'")
     if not isinstance(source, str) or source.count("/") != 1:
-        raise GraphError(path, line, f"{where}: source {source!r} must look like 'node/output'")
+        raise GraphError(path, lines.get("from", line), f"{where}: source {source!r} must look like 'node/output'")
     src_node, src_output = source.split("/")
     spec = InputSpec(name=name, source_node=src_node, source_output=src_output, line=line)
     if "queue" in options:
-        spec.queue = _expect(options["queue"], int, path, line, f"{where}: queue")
+        spec.queue = _expect(options["queue"], int, path, lines["queue"], f"{where}: queue")
         if spec.queue < 1:
-            raise GraphError(path, line, f"{where}: queue must be >= 1")
+            raise GraphError(path, lines["queue"], f"{where}: queue must be >= 1")
     if "policy" in options:
-        spec.policy = _expect(options["policy"], str, path, line, f"{where}: policy")
+        spec.policy = _expect(options["policy"], str, path, lines["policy"], f"{where}: policy")
         if spec.policy not in POLICIES:
-            raise GraphError(path, line, f"{where}: policy must be one of {', '.join(POLICIES)}")
+            raise GraphError(path, lines["policy"], f"{where}: policy must be one of {', '.join(POLICIES)}")
     if "sync" in options:
-        spec.sync = _expect(options["sync"], str, path, line, f"{where}: sync")
+        spec.sync = _expect(options["sync"], str, path, lines["sync"], f"{where}: sync")
         if spec.sync not in SYNC_MODES:
-            raise GraphError(path, line, f"{where}: sync must be one of {', '.join(SYNC_MODES)}")
+            raise GraphError(path, lines["sync"], f"{where}: sync must be one of {', '.join(SYNC_MODES)}")
     if "offset" in options:
-        spec.offset = _expect(options["offset"], int, path, line, f"{where}: offset")
+        spec.offset = _expect(options["offset"], int, path, lines["offset"], f"{where}: offset")
         if spec.offset not in (0, -1):
-            raise GraphError(path, line, f"{where}: offset must be 0 or -1 (-1: feedback from the previous frame "
-                                         "this node handled; a frame cannot wait for its future)")
+            raise GraphError(path, lines["offset"], f"{where}: offset must be 0 or -1 (-1: feedback from the previous "
+                                                    "frame this node handled; a frame cannot wait for its future)")
     if "optional" in options:
-        spec.optional = _expect(options["optional"], bool, path, line, f"{where}: optional")
+        spec.optional = _expect(options["optional"], bool, path, lines["optional"], f"{where}: optional")
     return spec
 
 
@@ -373,22 +505,26 @@ def _parse_restart(node: str, value_node: yaml.Node, path: str) -> RestartPolicy
     where = f"node {node!r}: restart"
     line = _line(value_node)
     value = _plain(value_node, path)
+    lines: dict[str, int] = {"policy": line}  # each key's own line (a base's or an override's)
     if isinstance(value, str):
         value = {"policy": value}
-    _expect(value, dict, path, line, where)
+    else:
+        _expect(value, dict, path, line, where)
+        lines.update({key: _line(v_node) for key, _, v_node in _mapping_items(value_node, path, where)})
     for key in value:
         if key not in RESTART_KEYS:
-            raise GraphError(path, line, f"{where}: unknown key {key!r} (allowed: {', '.join(sorted(RESTART_KEYS))})")
+            raise GraphError(path, lines[key],
+                             f"{where}: unknown key {key!r} (allowed: {', '.join(sorted(RESTART_KEYS))})")
     policy = RestartPolicy()
     if "policy" in value:
-        policy.policy = _expect(value["policy"], str, path, line, f"{where}: policy")
+        policy.policy = _expect(value["policy"], str, path, lines["policy"], f"{where}: policy")
         if policy.policy not in RESTART_POLICIES:
-            raise GraphError(path, line, f"{where}: policy must be one of {', '.join(RESTART_POLICIES)}")
+            raise GraphError(path, lines["policy"], f"{where}: policy must be one of {', '.join(RESTART_POLICIES)}")
     for key in ("max_restarts", "backoff_ms", "max_backoff_ms"):
         if key in value:
-            setattr(policy, key, _expect(value[key], int, path, line, f"{where}: {key}"))
+            setattr(policy, key, _expect(value[key], int, path, lines[key], f"{where}: {key}"))
             if getattr(policy, key) < 0:
-                raise GraphError(path, line, f"{where}: {key} must be >= 0")
+                raise GraphError(path, lines[key], f"{where}: {key} must be >= 0")
     return policy
 
 

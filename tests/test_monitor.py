@@ -35,19 +35,22 @@ DIAG_NODES = """\
 
 
 def robot_graph(tmp: Path, port: int, nodes: str | None = None) -> Path:
-    """graph.robot.yaml on a private port, with its own user dictionary (optionally other nodes)."""
+    """graph.robot.yaml on a private port, with its own user dictionary (optionally other nodes), beside a
+    private copy of the graph.yaml it extends."""
     users = tmp / "users.txt"
     users.write_text(USERS)
-    text = (REPO / "graph.robot.yaml").read_text()
+    texts = {name: (REPO / name).read_text() for name in ("graph.yaml", "graph.robot.yaml")}
     for old, new in (("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}"), ("namespace: fb", "namespace: t"),
                      ("docs/zenoh-users.example.txt", str(users)), ("change-me-robot", "robot-secret")):
-        assert old in text, old
-        text = text.replace(old, new)
+        assert any(old in text for text in texts.values()), old
+        texts = {name: text.replace(old, new) for name, text in texts.items()}
+    assert "extends: graph.yaml" in texts["graph.robot.yaml"]
     if nodes is not None:
-        text = text[:text.index("\nnodes:\n")] + "\nnodes:\n" + nodes
-    path = tmp / "graph.robot.yaml"
-    path.write_text(text)
-    return path
+        base = texts["graph.yaml"]
+        texts["graph.yaml"] = base[:base.index("\nnodes:\n")] + "\nnodes:\n" + nodes
+    for name, text in texts.items():
+        (tmp / name).write_text(text)
+    return tmp / "graph.robot.yaml"
 
 
 class Launch:
