@@ -11,7 +11,6 @@ the ``ack`` input (wire it to the last node of the chain, e.g. prediction/track)
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -75,7 +74,7 @@ class Capture(Node):
         self.published = 0
         # Names this session's frame numbering: a restarted capture counts from 0 again under a new epoch,
         # which every node follows instead of taking the new frames for stale ones (bus.sync).
-        self.epoch_ns = time.time_ns()
+        self.epoch_ns = self.wall_ns()
         self.acked = -1
         self.t0_wall_ns: int | None = None
         self.first_source_ns = 0
@@ -132,7 +131,7 @@ class Capture(Node):
             self.done = True
             return None
         if self.t0_wall_ns is None:
-            self.t0_wall_ns = time.time_ns()
+            self.t0_wall_ns = self.wall_ns()
             self.first_source_ns = item.t_ns
         self.last_source_ns = item.t_ns
         # Stamps keep the source's exact frame spacing (Kalman Δt is deterministic) anchored to
@@ -144,7 +143,7 @@ class Capture(Node):
             return None
         if p.pace == "fast":
             return 0.0
-        return max(0.0, (stamp + int(1e9 / self.fps) - time.time_ns()) / 1e9)
+        return max(0.0, (stamp + int(1e9 / self.fps) - self.wall_ns()) / 1e9)
 
     def _publish(self, item, stamp_ns: int) -> None:
         bgr = np.ascontiguousarray(item.bgr)

@@ -16,7 +16,6 @@ frame capture to motor command is ``command.pub_ns - command.stamp_ns``.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -80,7 +79,7 @@ class Motor(Node):
         self.last_odom_ns = 0
         self.last_command_ns = 0  # when the last command went out (node clock)
         self.too_old = 0  # tracks not acted on: captured longer than max_track_age_ms ago
-        self.live = self.runtime.clock.mode == "wall"
+        self.live = self.runtime.clock.live  # wall time, or the in-process runtime's simulated time
 
     def on_message(self, name: str, msg: Message) -> None:
         if not isinstance(msg, Track):
@@ -89,16 +88,16 @@ class Motor(Node):
         # this process's monotonic clock (live) so that no stamp can hold it off.
         received_ns = None
         if self.live:
-            received_ns = time.monotonic_ns()
+            received_ns = self.monotonic_ns()
             max_age_ms = self.motor_params.max_track_age_ms
-            if max_age_ms and (time.time_ns() - msg.header.stamp_ns) > max_age_ms * 1e6:
+            if max_age_ms and (self.wall_ns() - msg.header.stamp_ns) > max_age_ms * 1e6:
                 self.too_old += 1
                 return
         cmd = self.controller.on_track(msg.header.stamp_ns, msg.state, msg.box, received_ns=received_ns)
         self._command(cmd, like=msg)
 
     def on_timer(self, now_ns: int) -> None:
-        cmd = self.controller.on_tick(now_ns, time.monotonic_ns() if self.live else None)
+        cmd = self.controller.on_tick(now_ns, self.monotonic_ns() if self.live else None)
         repeated_stop = self.last_cmd is not None and self.last_cmd.is_zero and cmd is not None \
             and cmd.reason == self.last_cmd.reason and now_ns - self.last_command_ns < self.STOP_REPEAT_MS * 1e6
         if cmd is not None and not repeated_stop:
@@ -117,7 +116,7 @@ class Motor(Node):
         out = MotorCommand(vx_mps=cmd.vx_mps, vy_mps=cmd.vy_mps, wz_radps=cmd.wz_radps, wheel_radps=self.wheels,
                            range_m=cmd.range_m, bearing_rad=cmd.bearing_rad, reason=cmd.reason)
         if like is None:
-            out.header.stamp_ns = time.time_ns() if self.runtime.clock.mode == "wall" else self.now_ns()
+            out.header.stamp_ns = self.wall_ns() if self.live else self.now_ns()
         self.publish("command", out, like=like)
         self.last_cmd = cmd
         self.last_command_ns = self.now_ns()
