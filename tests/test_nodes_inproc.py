@@ -1,0 +1,422 @@
+"""The graph's node classes driven through the in-process runtime (bus/inproc.py): hand-made messages in,
+published messages out, on a simulated clock. No processes, no Zenoh."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from followbus.bus.graph import GraphError, apply_overrides, load_graph
+from followbus.bus.inproc import InProcessError, InProcessGraph
+from followbus.bus.schemas import (
+    Detections,
+    Frame,
+    Measurement,
+    Message,
+    Odometry,
+    Prior,
+    ReplayHint,
+    Tick,
+    Track,
+    encode,
+)
+
+from .conftest import REPO
+
+DT_NS = 33_333_333  # 30 fps
+MS = 1_000_000
+EPOCH_NS = 1_600_000_000_000_000_000
+W, H = 320, 240
+
+
+def tracking_graph(*overrides: str):
+    graph = load_graph(REPO / "graph.yaml")
+    # Never the repository's state/template.npz: a test neither reads nor writes it.
+    apply_overrides(graph, ["template.state_file=", *overrides])
+    return graph
+
+
+def stamped(msg: Message, k: int, stamp_ns: int) -> Message:
+    msg.header.frame_seq, msg.header.stamp_ns, msg.header.epoch_ns = k, stamp_ns, EPOCH_NS
+    return msg
+
+
+def person_frame(box: tuple[int, int, int, int], shirt=(40, 40, 200), wall: bool = False) -> np.ndarray:
+    """A textured floor and wall with one figure (shirt over trousers) at ``box``; ``wall``: a grey panel
+    hides the figure."""
+    yy, xx = np.mgrid[0:H, 0:W]
+    img = np.stack([60 + (xx * 7 + yy * 3) % 40, 90 + (xx * 5) % 30, 70 + (yy * 11) % 50], axis=-1).astype(np.uint8)
+    x, y, w, h = box
+    img[y:y + h // 2, x:x + w] = shirt
+    img[y + h // 2:y + h, x:x + w] = (120, 60, 20)
+    if wall:
+        img[:, x - 20:x + w + 20] = (128, 128, 128)
+    return img
+
+
+def frame_msg(k: int, stamp_ns: int, bgr: np.ndarray) -> Frame:
+    return stamped(Frame(width=bgr.shape[1], height=bgr.shape[0], encoding="bgr8", data=bgr), k, stamp_ns)
+
+
+def dets_msg(k: int, stamp_ns: int, *boxes) -> Detections:
+    rows = np.array([[*b, 0.9] for b in boxes], dtype=np.float32).reshape(-1, 5)
+    return stamped(Detections(boxes=rows, backend="hand-made"), k, stamp_ns)
+
+
+def measurement(k: int, stamp_ns: int, state: str, box=None, *, init: bool = False, secure: bool = True,
+                best_box=None) -> Measurement:
+    b = None if box is None else np.asarray(box, dtype=np.float64)
+    msg = Measurement(state=state, accepted=b is not None, secure=secure and b is not None, box=b,
+                      best_box=b if best_box is None else np.asarray(best_box, dtype=np.float64),
+                      source="init" if init else "detection", init_box=b if init else None)
+    return stamped(msg, k, stamp_ns)
+
+
+def states(msgs) -> list[str]:
+    return [m.state for m in msgs]
+
+
+# --------------------------------------------------------------------------- prediction
+
+
+def test_prediction_prior_waits_for_the_previous_measurement_then_times_out_on_the_simulated_clock():
+    with InProcessGraph(tracking_graph(), nodes=["prediction"]) as g:
+        t0 = g.now_ns
+        box = (100.0, 60.0, 30.0, 80.0)
+        g.inject("detection/detections", dets_msg(0, t0, box))
+        g.deliver()
+        priors = g.outputs("prediction", "prior")
+        assert [p.header.frame_seq for p in priors] == [0]
+        assert not priors[0].initialised  # nothing measured yet
+
+        # Frame 1's prior is computed after frame 0's measurement (offset -1), however late that comes.
+        g.inject("detection/detections", dets_msg(1, t0 + DT_NS, box))
+        g.deliver()
+        assert len(g.outputs("prediction", "prior")) == 1
+        g.inject("reid/measurement", measurement(0, t0, "TRACKING", box, init=True))
+        g.deliver()
+        priors = g.outputs("prediction", "prior")
+        assert [p.header.frame_seq for p in priors] == [0, 1]
+        assert priors[1].initialised and priors[1].header.feedback["measurement"] == 0
+        assert priors[1].gate_chi2 == 9.488  # graph.yaml's gate, which re-ID applies to this prior
+        assert np.all(np.linalg.eigvalsh(priors[1].innovation_cov) > 0)
+        tracks = g.outputs("prediction", "track")
+        assert states(tracks) == ["TRACKING"] and tracks[0].header.frame_seq == 0
+
+        # Measurement 1 never comes: frame 2's set waits sync_timeout_ms (300) of simulated time, no more.
+        g.inject("detection/detections", dets_msg(2, t0 + 2 * DT_NS, box))
+        g.deliver()
+        waiting_since = g.now_ns
+        g.run_until(waiting_since + 299 * MS)
+        assert len(g.outputs("prediction", "prior")) == 2
+        g.run_until(waiting_since + 300 * MS)
+        priors = g.outputs("prediction", "prior")
+        assert [p.header.frame_seq for p in priors] == [0, 1, 2]
+        assert priors[2].header.feedback["measurement"] == 0  # the newest one it had
+        assert g.status("prediction")["extra"]["sync_feedback_fallbacks"] == 1
+
+
+def _prior_of_frame_1(odometry: list[tuple[int, float]]) -> Prior:
+    """Frame 1's prior after frame 0 initialised the filter, with odometry samples (stamp offset, vx) given
+    in this order, all arriving before frame 1's detections."""
+    with InProcessGraph(tracking_graph(), nodes=["prediction"]) as g:
+        t0 = g.now_ns
+        box = (100.0, 60.0, 30.0, 80.0)
+        g.inject("detection/detections", dets_msg(0, t0, box))
+        g.inject("reid/measurement", measurement(0, t0, "TRACKING", box, init=True))
+        for offset_ns, vx in odometry:
+            g.inject("motor/odometry", stamped(Odometry(vx_mps=vx), -1, t0 + offset_ns))
+        g.inject("detection/detections", dets_msg(1, t0 + DT_NS, box))
+        g.deliver()
+        priors = g.outputs("prediction", "prior")
+        assert [p.header.frame_seq for p in priors] == [0, 1]
+        return priors[1]
+
+
+def test_prediction_takes_the_odometry_sample_by_stamp_not_the_last_to_arrive():
+    before, after = DT_NS - 10 * MS, DT_NS + 5 * MS  # around frame 1's capture stamp
+    prior = _prior_of_frame_1([(before, 0.2), (after, 3.0)])
+    t0 = prior.header.stamp_ns - DT_NS
+    assert prior.header.feedback["odometry"] == t0 + before  # noted, so a replay repeats the choice
+    # Eq. 7: R_k grows with the ego speed; the sample stamped after the frame must not count.
+    same = _prior_of_frame_1([(before, 0.2)])
+    assert np.array_equal(prior.innovation_cov, same.innovation_cov)
+    fast = _prior_of_frame_1([(before, 3.0)])
+    assert fast.innovation_cov[0, 0] > prior.innovation_cov[0, 0]
+
+
+# --------------------------------------------------------------------------- re-ID (with prediction, template)
+
+
+def _run_reid(frames: list[tuple[np.ndarray, list]], *overrides: str) -> InProcessGraph:
+    g = InProcessGraph(tracking_graph(*overrides), nodes=["prediction", "reid", "template"])
+    t0 = g.now_ns
+    for k, (bgr, boxes) in enumerate(frames):
+        stamp = t0 + k * DT_NS
+        g.run_until(stamp)
+        g.inject("capture/frame", frame_msg(k, stamp, bgr))
+        g.inject("detection/detections", dets_msg(k, stamp, *boxes))
+        g.deliver()
+    g.close()
+    return g
+
+
+def test_reid_initialises_on_the_detection_nearest_the_bottom_centre_and_goes_lost_after_lost_after_ms():
+    target = (150, 120, 24, 80)
+    bystander = (20, 10, 20, 60)  # far from the bottom centre
+    frames = [(person_frame((150 + 2 * k, 120, 24, 80)), [(150 + 2 * k, 120, 24, 80)] + ([bystander] if k == 0
+                                                                                         else []))
+              for k in range(8)]
+    still = person_frame((164, 120, 24, 80))  # then it stands still, undetected: no detection, no motion
+    frames += [(still, [])] * 12
+    g = _run_reid(frames, "reid.lost_after_ms=200")
+    meas = g.outputs("reid", "measurement")
+    assert len(meas) == 20
+    assert meas[0].init_box is not None and tuple(meas[0].init_box) == target
+    assert states(meas[:8]) == ["TRACKING"] * 8 and all(m.accepted for m in meas[:8])
+    # OCCLUDED while no more than 200 ms have passed since the last accepted frame (7), LOST after.
+    lost = [k for k in range(8, 20) if (k - 7) * DT_NS > 200 * MS]
+    assert states(meas[8:]) == ["OCCLUDED" if k not in lost else "LOST" for k in range(8, 20)]
+    assert states(g.outputs("prediction", "track")) == states(meas)
+    # The feedback edge: frame k's re-ID used the template learnt on frame k-1.
+    assert [m.header.feedback.get("template") for m in meas] == [-1] + list(range(19))
+
+
+def test_reid_gate_drops_a_detection_far_from_the_prior():
+    far = (20, 20, 24, 80)
+    frames = [(person_frame((150 + 2 * k, 120, 24, 80)), [(150 + 2 * k, 120, 24, 80)]) for k in range(6)]
+    # Frame 6: the same-looking figure, but far outside the χ² gate of the prior; frame 7: where expected.
+    frames.append((person_frame(far), [far]))
+    frames.append((person_frame((164, 120, 24, 80)), [(164, 120, 24, 80)]))
+    meas = _run_reid(frames).outputs("reid", "measurement")
+    assert not meas[6].accepted and meas[6].state == "OCCLUDED"
+    assert far not in [tuple(c[:4]) for c in meas[6].candidates]
+    assert meas[7].accepted and tuple(meas[7].box) == (164, 120, 24, 80)
+    # Without the gate the look-alike far away is taken: the gate is what kept it out.
+    ungated = _run_reid(frames, "reid.use_gate=false").outputs("reid", "measurement")
+    assert ungated[6].accepted and tuple(ungated[6].box) == far
+
+
+# --------------------------------------------------------------------------- template
+
+
+def test_template_freezes_under_occlusion():
+    box = (150.0, 120.0, 24.0, 80.0)
+    steps = [  # (frame, measurement state, accepted box, best (rejected) box)
+        (person_frame((150, 120, 24, 80)), "TRACKING", box, None),  # initialisation
+        (person_frame((150, 120, 24, 80), shirt=(40, 200, 40)), "TRACKING", box, None),
+        (person_frame((150, 120, 24, 80), shirt=(200, 40, 40)), "OCCLUDED", None, None),
+        (person_frame((150, 120, 24, 80), shirt=(200, 40, 40)), "OCCLUDED", None, box),  # a rejected candidate
+        (person_frame((150, 120, 24, 80), shirt=(40, 200, 40)), "TRACKING", box, None),
+    ]
+    with InProcessGraph(tracking_graph(), nodes=["template"]) as g:
+        t0 = g.now_ns
+        for k, (bgr, state, accepted, best) in enumerate(steps):
+            stamp = t0 + k * DT_NS
+            g.inject("capture/frame", frame_msg(k, stamp, bgr))
+            g.inject("reid/measurement", measurement(k, stamp, state, accepted, init=k == 0, best_box=best))
+            g.run_until(stamp + DT_NS)
+        out = g.outputs("template", "template")
+    assert [t.header.frame_seq for t in out] == [0, 1, 2, 3, 4]
+    assert all(t.initialised for t in out)
+    assert out[0].eta == 0.0  # initialised from the box, nothing blended
+    assert out[1].eta > 0.0 and not np.array_equal(out[1].hist, out[0].hist)
+    # Occluded (Eq. 10): η = 0 and M is exactly the last one learnt, whatever the frame shows.
+    for occluded in out[2:4]:
+        assert occluded.eta == 0.0 and np.array_equal(occluded.hist, out[1].hist)
+    assert out[4].eta > 0.0 and not np.array_equal(out[4].hist, out[1].hist)
+
+
+# --------------------------------------------------------------------------- motor
+
+
+def _track(k: int, stamp_ns: int, state: str = "TRACKING") -> Track:
+    box = np.array([280.0, 120.0, 80.0, 240.0]) if state != "LOST" else None
+    return stamped(Track(state=state, box=box, filtered_box=box), k, stamp_ns)
+
+
+def _is_zero(cmd) -> bool:
+    return cmd.vx_mps == 0.0 and cmd.vy_mps == 0.0 and cmd.wz_radps == 0.0 and not np.any(cmd.wheel_radps)
+
+
+@pytest.mark.parametrize("stamp_offset_ns", [0, 3600 * 1_000_000_000, -400 * MS],
+                         ids=["stamped-now", "stamped-an-hour-ahead", "stamped-400ms-ago"])
+def test_motor_watchdog_stops_within_200ms_of_simulated_time_after_the_last_track(stamp_offset_ns):
+    with InProcessGraph(tracking_graph(), nodes=["motor"]) as g:
+        t0 = g.now_ns
+        for k in range(10):  # tracks keep it going: no stop meanwhile
+            g.run_until(t0 + k * DT_NS)
+            g.inject("prediction/track", _track(k, g.now_ns + stamp_offset_ns))
+            g.deliver()
+        last_rx = g.now_ns
+        g.run_until(last_rx + 400 * MS)
+        cmds = g.outputs("motor", "command")
+    moving = [c for c in cmds if c.header.pub_ns <= last_rx]
+    assert len(moving) == 10 and all(c.reason != "watchdog" and not _is_zero(c) for c in moving)
+    stops = [c for c in cmds if c.reason == "watchdog"]
+    assert stops, "the watchdog never stopped the robot"
+    first = stops[0]
+    assert _is_zero(first)
+    assert 130 * MS <= first.header.pub_ns - last_rx <= 200 * MS  # not before its timeout, within the promise
+    assert all(_is_zero(c) for c in cmds if c.header.pub_ns >= first.header.pub_ns)
+
+
+def test_motor_stops_at_once_on_a_lost_target():
+    with InProcessGraph(tracking_graph(), nodes=["motor"]) as g:
+        t0 = g.now_ns
+        g.inject("prediction/track", _track(0, t0))
+        g.deliver()
+        g.run_until(t0 + DT_NS)
+        g.inject("prediction/track", _track(1, g.now_ns, "LOST"))
+        g.deliver()
+        cmds = g.outputs("motor", "command")
+    assert not _is_zero(cmds[0])
+    assert _is_zero(cmds[-1]) and cmds[-1].header.frame_seq == 1 and cmds[-1].header.pub_ns == t0 + DT_NS
+
+
+def test_motor_odometry_ticks_on_the_simulated_clock():
+    with InProcessGraph(tracking_graph(), nodes=["motor"]) as g:
+        t0 = g.now_ns
+        g.run_until(t0 + 100 * MS)
+        odom = g.outputs("motor", "odometry")
+    assert [o.header.stamp_ns - t0 for o in odom] == [10 * MS * i for i in range(1, 11)]
+
+
+# --------------------------------------------------------------------------- the whole graph
+
+
+def _scene_graph(frames: int, *extra: str):
+    return tracking_graph("detection.backend=simulated", "capture.source=scene:wall-occlusion",
+                          f"capture.max_frames={frames}", *extra)
+
+
+def test_whole_graph_runs_bit_identically_twice():
+    runs = []
+    for _ in range(2):
+        with InProcessGraph(_scene_graph(60), record=["prediction/track", "motor/command", "reid/measurement",
+                                                      "template/template"]) as g:
+            assert g.run_frames(60) == 60
+            runs.append({t: g.payloads(*t.split("/")) for t in ("prediction/track", "motor/command",
+                                                                 "reid/measurement", "template/template")})
+            tracks = g.outputs("prediction", "track")
+    assert len(runs[0]["prediction/track"]) == 60 and runs[0]["motor/command"]
+    assert {"TRACKING", "OCCLUDED"} <= set(states(tracks))  # the run exercises more than straight tracking
+    for topic, payloads in runs[0].items():
+        assert payloads == runs[1][topic], f"{topic} differs between two runs"
+
+
+def test_whole_graph_agrees_with_the_in_process_tracker():
+    """tracking/tracker.py (what `followbus eval` runs) is a hand-kept copy of the graph's data order: the
+    graph's own nodes, run here (motor left out: no odometry, v_ego = 0, as eval's graph check), must give the
+    same boxes, bit for bit."""
+    from followbus.evaluation.runner import FollowbusFollower, open_sequence
+    from followbus.vision.detectors import SimulatedDetector
+
+    n = 60
+    seq = open_sequence("scene:wall-occlusion", max_frames=n)
+    detector, follower = SimulatedDetector(seed=0), FollowbusFollower()  # the detection node's defaults
+    expected, init_box = [], None
+    for item in seq.frames():
+        box, _ = follower.step(item.bgr, detector.detect(item.bgr, item.truth), item.t_ns, (0.0, 0.0),
+                               None if init_box else item.gt_box)
+        init_box = init_box or list(item.gt_box)
+        expected.append(box)
+    graph = _scene_graph(n, f"reid.init_box={init_box}")
+    with InProcessGraph(graph, nodes=["capture", "detection", "prediction", "reid", "template"],
+                        record=["prediction/track"]) as g:
+        g.run_frames(n)
+        got = [None if t.box is None else tuple(float(v) for v in t.box) for t in g.outputs("prediction", "track")]
+    assert len(got) == n
+    assert got == expected
+
+
+# --------------------------------------------------------------------------- runtime semantics
+
+
+def _relay_graph(queue: int, policy: str):
+    text = f"""
+name: t
+nodes:
+  ticker: {{run: followbus.nodes.diagnostics, outputs: [tick]}}
+  relay:
+    run: followbus.nodes.diagnostics_relay
+    inputs: {{tick: {{from: ticker/tick, queue: {queue}, policy: {policy}}}}}
+    outputs: [tick]
+  sink:
+    run: followbus.nodes.diagnostics_sink
+    inputs: {{tick: {{from: relay/tick, sync: none}}}}
+"""
+    return load_graph("<test>", text=text)
+
+
+def _ticks(g: InProcessGraph, n: int) -> None:
+    for k in range(n):
+        g.inject("ticker/tick", stamped(Tick(value=k), k, g.now_ns + k * MS))
+
+
+def test_drop_oldest_queue_keeps_the_newest_of_a_burst():
+    with InProcessGraph(_relay_graph(1, "drop_oldest"), nodes=["relay", "sink"]) as g:
+        _ticks(g, 3)  # a burst larger than the queue, before the relay gets to run
+        g.deliver()
+        assert [m.value for m in g.outputs("relay", "tick")] == [2]
+        assert g.status("relay")["topics"]["fb/ticker/tick"]["drops"] == 2
+        assert g.node("sink").received == 1
+
+
+def test_block_queue_loses_nothing():
+    with InProcessGraph(_relay_graph(1, "block"), nodes=["relay", "sink"]) as g:
+        _ticks(g, 3)
+        g.deliver()
+        assert [m.value for m in g.outputs("relay", "tick")] == [0, 1, 2]
+        assert g.node("sink").last_value == 2
+
+
+def test_malformed_message_is_counted_and_dropped():
+    with InProcessGraph(_relay_graph(4, "drop_oldest"), nodes=["relay", "sink"]) as g:
+        g.inject_bytes("ticker/tick", b"not a followbus message")
+        g.inject_bytes("ticker/tick", encode(stamped(Detections(), 0, g.now_ns)))  # the wrong type
+        _ticks(g, 1)
+        g.deliver()
+        assert g.status("relay")["topics"]["fb/ticker/tick"]["decode_errors"] == 2
+        assert g.status("relay")["extra"]["handler_errors"] == 0
+        assert [m.value for m in g.outputs("relay", "tick")] == [0]
+
+
+def test_stamps_clock_follows_replay_hints():
+    with InProcessGraph(tracking_graph(), nodes=["prediction"], clock="stamps") as g:
+        box = (100.0, 60.0, 30.0, 80.0)
+        t0 = EPOCH_NS
+        g.hint("prediction", stamped(ReplayHint(skip=True), 1, t0 + DT_NS))  # the live run skipped frame 1
+        g.inject("detection/detections", dets_msg(0, t0, box))
+        g.inject("reid/measurement", measurement(0, t0, "TRACKING", box, init=True))
+        g.inject("detection/detections", dets_msg(1, t0 + DT_NS, box))
+        g.inject("detection/detections", dets_msg(2, t0 + 2 * DT_NS, box))
+        g.deliver()
+        priors = g.outputs("prediction", "prior")
+        assert [p.header.frame_seq for p in priors] == [0, 2]
+        assert priors[1].header.feedback["measurement"] == 0
+        assert g.node("prediction").now_ns() == t0 + 2 * DT_NS  # the node clock is the newest stamp
+
+
+def test_a_node_that_cannot_start_is_an_error_not_an_exit():
+    graph = load_graph("<test>", text="""
+name: t
+nodes:
+  capture: {run: followbus.nodes.capture, outputs: [frame]}
+  detection:
+    run: followbus.nodes.detection
+    inputs: {frame: capture/frame}
+    outputs: [detections]
+    params: {backend: simulated}
+""")
+    g = InProcessGraph(graph, nodes=["detection"])
+    with pytest.raises(InProcessError, match="detection"):
+        g.start()  # simulated detections need the ground_truth input: live, the node exits with status 1
+
+
+def test_unknown_node_or_topic_is_refused():
+    graph = tracking_graph()
+    with pytest.raises(GraphError, match="no node named 'nope'"):
+        InProcessGraph(graph, nodes=["nope"])
+    with InProcessGraph(graph, nodes=["motor"]) as g, pytest.raises(ValueError, match="no topic"):
+        g.inject("prediction/nope", _track(0, g.now_ns))
