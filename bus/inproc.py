@@ -32,10 +32,11 @@ hints.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from typing import Any
 
 from followbus.bus.codec import DecodeError
@@ -49,11 +50,21 @@ log = logging.getLogger(__name__)
 
 DEFAULT_CLOCK_START_NS = 1_700_000_000_000_000_000  # a plausible wall time (2023-11-14), ns
 MAX_ROUNDS = 10_000  # delivery rounds at one instant before a message loop is called runaway
-MAX_STEPS_PER_INSTANT = 100_000  # steps without the clock moving (a source polling with delay 0 forever)
+MAX_IDLE_STEPS = 10_000  # steps with neither the clock moving nor a message (a source polling with delay 0)
 
 
 class InProcessError(RuntimeError):
     """The in-process run cannot go on: a node's setup failed, or messages or polls never settle."""
+
+
+@contextlib.contextmanager
+def _exit_is_an_error(host: NodeHost) -> Iterator[None]:
+    """A handler that exits (SystemExit: live, its process would end and be restarted) must not end this
+    process: the run stops with an InProcessError naming the node."""
+    try:
+        yield
+    except SystemExit as exc:
+        raise InProcessError(f"node {host.spec.name!r} exited (status {exc.code})") from exc
 
 
 class _Queue:
@@ -296,16 +307,17 @@ class InProcessGraph:
             if not batch:
                 return handled
             for host, items in batch:
-                for name, msg in items:
-                    if host.stopped:
-                        break
-                    host._dispatch(name, msg)
-                    self._check_stopped(host)
-                if not host.stopped:
-                    host._emit_ready()
-                    if self.clock_mode == "stamps":  # as NodeRuntime: the timer follows the newest stamp
-                        host.run_timer(host.clock.now_ns())
-                    self._check_stopped(host)
+                with _exit_is_an_error(host):
+                    for name, msg in items:
+                        if host.stopped:
+                            break
+                        host._dispatch(name, msg)
+                        self._check_stopped(host)
+                    if not host.stopped:
+                        host._emit_ready()
+                        if self.clock_mode == "stamps":  # as NodeRuntime: the timer follows the newest stamp
+                            host.run_timer(host.clock.now_ns())
+                        self._check_stopped(host)
                 handled += len(items)
         raise InProcessError(f"messages still flowing after {MAX_ROUNDS} delivery rounds at one instant "
                              "(a cycle of nodes that answer every message with another?)")
@@ -338,13 +350,14 @@ class InProcessGraph:
         for host in self.hosts.values():
             if host.stopped:
                 continue
-            if self.clock_mode == "sim":
-                host._emit_ready()  # frame sets whose deadline passed go on without what they waited for
-                host.run_timer(t)
-            if host.next_poll_ns is not None and host.next_poll_ns <= t:
-                delay = host._guarded("poll", host.node.poll, host.clock.now_ns())
-                host.next_poll_ns = None if delay is None else t + max(0, round(delay * 1e9))
-            self._check_stopped(host)
+            with _exit_is_an_error(host):
+                if self.clock_mode == "sim":
+                    host._emit_ready()  # frame sets whose deadline passed go on without what they waited for
+                    host.run_timer(t)
+                if host.next_poll_ns is not None and host.next_poll_ns <= t:
+                    delay = host._guarded("poll", host.node.poll, host.clock.now_ns())
+                    host.next_poll_ns = None if delay is None else t + max(0, round(delay * 1e9))
+                self._check_stopped(host)
         self.deliver()
         return True
 
@@ -373,15 +386,16 @@ class InProcessGraph:
 
     def _loop(self, go_on) -> None:
         self.start()
-        last_t, same = self.now_ns, 0
+        last, idle = None, 0
         while go_on():
             if not self.step():
                 return
-            same = same + 1 if self.now_ns == last_t else 0
-            last_t = self.now_ns
-            if same > MAX_STEPS_PER_INSTANT:
-                raise InProcessError(f"{MAX_STEPS_PER_INSTANT} steps without the clock moving (a source that "
-                                     "polls again at once and publishes nothing?)")
+            progress = (self.now_ns, sum(self.published.values()))
+            idle = idle + 1 if progress == last else 0
+            last = progress
+            if idle > MAX_IDLE_STEPS:
+                raise InProcessError(f"{MAX_IDLE_STEPS} steps without the clock moving or a message published "
+                                     "(a source that polls again at once and publishes nothing?)")
 
     def _frame_topic(self) -> str:
         for host in self.hosts.values():
