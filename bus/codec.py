@@ -1,16 +1,22 @@
-"""msgpack codec with numpy arrays.
+"""The followbus frame: the one definition of the bytes of a bus message (encode, decode, peek).
 
-Wire format: ``b"FB1" | u32 little-endian length N | msgpack map (N bytes) | array blobs``.
-The map is ``{"_t": type name, "_v": schema version, ...fields}``. Small arrays travel inline as
-ext type 1 (``dtype \\0 shape-json \\0 bytes``); arrays of 4 KiB and more travel out of band as
-ext type 2 (``[dtype, shape, offset, nbytes]`` into the blob area), so a 720p frame is copied
-once on encode and decoded zero-copy (``np.frombuffer``): decoded arrays are read-only views.
+Everything that reads or writes message bytes goes through this module: the typed messages
+(bus/schemas.py), the recorder, replay and the MCAP reader. :data:`FRAME_FORMAT` is the normative
+description of the layout; it is stored as the schema of every bus channel of a recording, so a
+reader needs nothing else. In short: ``b"FB1" | u32 little-endian length N | msgpack map (N bytes) |
+array blobs``; the map is ``{"_t": type name, "_v": schema version, "header": [...], ...fields}``;
+small arrays travel inline as ext type 1, arrays of 4 KiB and more out of band as ext type 2
+referencing the blob area, so a 720p frame is copied once on encode and decoded zero-copy
+(``np.frombuffer``): decoded arrays are read-only views.
 """
 
 from __future__ import annotations
 
 import json
-from typing import Any
+import struct
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 import msgpack
 import numpy as np
@@ -18,15 +24,127 @@ import numpy as np
 NDARRAY_EXT = 1
 NDARRAY_REF_EXT = 2
 MAGIC = b"FB1"
+LENGTH_BYTES = 4
+HEAD_OFFSET = len(MAGIC) + LENGTH_BYTES
+_PREFIX = struct.Struct(f"<{len(MAGIC)}sI")  # magic, head length N
 INLINE_MAX_BYTES = 4096
 _ALLOWED_DTYPES = frozenset(
     {"|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8", "|b1"}
 )
+TYPE_KEY, VERSION_KEY, HEADER_KEY = "_t", "_v", "header"
 
 
 class DecodeError(ValueError):
     """A payload that is not a valid followbus message. Subscribers count and drop these."""
 
+
+# --- the header every message carries --------------------------------------------------------------
+
+@dataclass
+class Header:
+    """``stamp_ns`` is the capture stamp of the camera frame the message derives from (so latency = now -
+    stamp_ns, and replays are deterministic), ``frame_seq`` that frame's sequence number, ``pub_ns`` the
+    wall-clock time of publication. ``epoch_ns`` names the numbering ``frame_seq`` belongs to (the start
+    time of the capture session that numbered the frame). ``feedback``: for each feedback input of a
+    frame-synchronised output, the frame_seq of the message the node used (-1: none)."""
+
+    seq: int = 0
+    stamp_ns: int = 0
+    frame_seq: int = -1
+    source: str = ""
+    pub_ns: int = 0
+    epoch_ns: int = 0  # 0: unknown (messages not derived from a camera frame, old recordings)
+    feedback: dict[str, int] = field(default_factory=dict)
+
+    def to_wire(self) -> list[Any]:
+        return [self.seq, self.stamp_ns, self.frame_seq, self.source, self.pub_ns, self.epoch_ns, self.feedback]
+
+
+# (name, wire type, meaning): the order of the header array. The first LEGACY_HEADER_FIELDS are all that
+# recordings made before epoch and provenance existed carry.
+HEADER_FIELDS: tuple[tuple[str, str, str], ...] = (
+    ("seq", "int", "per-publisher message counter"),
+    ("stamp_ns", "int", "capture stamp of the camera frame the message derives from, ns since the Unix epoch"),
+    ("frame_seq", "int", "sequence number of that frame, -1 when not derived from a frame"),
+    ("source", "str", "name of the publishing node"),
+    ("pub_ns", "int", "publication wall clock, ns since the Unix epoch"),
+    ("epoch_ns", "int", "start time of the capture session that numbered frame_seq, 0 when unknown"),
+    ("feedback", "map str -> int", "feedback input name -> frame_seq of the message joined (-1: none)"),
+)
+LEGACY_HEADER_FIELDS = 5
+
+
+def _header_error(value: Any) -> DecodeError:
+    for (name, kind, _meaning), element in zip(HEADER_FIELDS, value, strict=False):  # a 5-element header too
+        wanted = int if kind == "int" else str if kind == "str" else dict
+        if type(element) is not wanted:
+            return DecodeError(f"header.{name}: expected {kind}, got {type(element).__name__}")
+    return DecodeError("header.feedback must map input names to frame numbers")
+
+
+def header_from_wire(value: Any) -> tuple[Header, bool]:
+    """(Header, whether it carries epoch and provenance) of a decoded header array; DecodeError if malformed."""
+    n = len(value) if isinstance(value, (list, tuple)) else 0
+    if n not in (LEGACY_HEADER_FIELDS, len(HEADER_FIELDS)):
+        raise DecodeError(f"header: expected a {LEGACY_HEADER_FIELDS}- or {len(HEADER_FIELDS)}-element header")
+    # Spelled out rather than looped over HEADER_FIELDS: every message of a replay is peeked several times.
+    # `type(x) is int`, not isinstance: a bool is not a number here.
+    v = value
+    if not (type(v[0]) is int and type(v[1]) is int and type(v[2]) is int and type(v[3]) is str
+            and type(v[4]) is int):
+        raise _header_error(v)
+    if n == LEGACY_HEADER_FIELDS:
+        return Header(v[0], v[1], v[2], v[3], v[4]), False
+    feedback = v[6]
+    if not (type(v[5]) is int and type(feedback) is dict
+            and (not feedback or all(type(k) is str and type(f) is int for k, f in feedback.items()))):
+        raise _header_error(v)
+    return Header(v[0], v[1], v[2], v[3], v[4], v[5], feedback), True
+
+
+# --- the normative description ---------------------------------------------------------------------
+
+def _header_lines() -> str:
+    return "\n".join(f"    {i}. {name} ({kind}): {meaning}" for i, (name, kind, meaning) in enumerate(HEADER_FIELDS))
+
+
+FRAME_FORMAT = f"""\
+FRAME FORMAT (followbus frame, version 1)
+
+One message is one frame of bytes. Fixed-width integers are unsigned and little-endian.
+
+  offset  bytes  content
+  0       {len(MAGIC)}      magic: the ASCII bytes "{MAGIC.decode()}"
+  {len(MAGIC)}       {LENGTH_BYTES}      N: uint32 little-endian, the byte length of the head
+  {HEAD_OFFSET}       N      head: exactly one MessagePack value (https://msgpack.org), a map
+  {HEAD_OFFSET}+N     rest   blob area: array bytes referenced from the head (empty when none are)
+
+Head map. Keys are MessagePack str; text values are str (UTF-8), byte strings bin:
+  "{TYPE_KEY}"      str: the message type name (the schema name without its "followbus." prefix)
+  "{VERSION_KEY}"      int: the version of the message type's field list (VERSION under FIELDS)
+  "{HEADER_KEY}"  array of {len(HEADER_FIELDS)} elements, in this order (recordings made before epoch_ns existed
+            carry only the first {LEGACY_HEADER_FIELDS}; read epoch_ns as 0 and feedback as an empty map):
+{_header_lines()}
+  then one key per field of the message type (listed under FIELDS); nil where a field is optional
+  and absent. Writers put "{TYPE_KEY}", "{VERSION_KEY}" and "{HEADER_KEY}" first (a reader may stop after them).
+
+Arrays (numpy n-dimensional arrays, elements in C order) are MessagePack ext values, in one of
+two forms, either of which may appear wherever a field holds an array:
+  ext type {NDARRAY_EXT} (inline): ext data = dtype, a 0x00 byte, shape, a 0x00 byte, then the element bytes;
+      dtype is ASCII, shape is a JSON array of non-negative ints in ASCII (e.g. [480, 640, 3]).
+  ext type {NDARRAY_REF_EXT} (out of band): ext data = a MessagePack array [dtype (str), shape (array of int),
+      offset (int), nbytes (int)]; the elements are the blob area's bytes offset .. offset+nbytes-1
+      (offsets count from the start of the blob area, not of the frame).
+  In both forms the element bytes number product(shape) * itemsize; shape [] is one element.
+  dtype is a numpy array-interface type string: byte order ("<" little-endian, "|" single byte),
+  kind (u unsigned int, i signed int, f IEEE 754 float, b bool stored as one byte 0 or 1) and
+  itemsize in bytes. Allowed: {" ".join(sorted(_ALLOWED_DTYPES))}.
+  Writers put arrays of fewer than {INLINE_MAX_BYTES} bytes inline, larger ones out of band, blobs in the
+  order the head references them; numpy scalars are written as plain MessagePack numbers.
+"""
+
+
+# --- pack / unpack: the frame around any map -------------------------------------------------------
 
 def _array_meta(arr: np.ndarray) -> np.ndarray:
     arr = np.ascontiguousarray(arr)
@@ -46,8 +164,8 @@ def _check_meta(dtype_str: Any, shape: Any) -> tuple[np.dtype, tuple[int, ...], 
     return dtype, tuple(shape), int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
 
 
-def pack(obj: dict[str, Any]) -> bytes:
-    """Encode a plain dict (values: scalars, str, bytes, lists, dicts, numpy arrays)."""
+def pack(obj: Mapping[str, Any]) -> bytes:
+    """Frame a plain map (values: scalars, str, bytes, lists, dicts, numpy arrays)."""
     blobs: list[np.ndarray] = []
     offset = 0
 
@@ -67,18 +185,27 @@ def pack(obj: dict[str, Any]) -> bytes:
         raise TypeError(f"cannot encode {type(value).__name__}")
 
     head = msgpack.packb(obj, default=default, use_bin_type=True)
-    return b"".join([MAGIC, len(head).to_bytes(4, "little"), head, *(memoryview(b).cast("B") for b in blobs)])
+    # One join: each large array is copied exactly once, into the frame.
+    return b"".join([MAGIC, len(head).to_bytes(LENGTH_BYTES, "little"), head,
+                     *(memoryview(b).cast("B") for b in blobs)])
+
+
+def _split(data: bytes | bytearray | memoryview) -> tuple[memoryview, memoryview]:
+    """(head, blob area) views of a frame."""
+    if len(data) < HEAD_OFFSET:
+        raise DecodeError("not a followbus message (too short)")
+    magic, head_len = _PREFIX.unpack_from(data)
+    if magic != MAGIC:
+        raise DecodeError("not a followbus message (bad magic)")
+    if HEAD_OFFSET + head_len > len(data):
+        raise DecodeError(f"truncated message: header of {head_len} bytes, {len(data) - HEAD_OFFSET} present")
+    view = memoryview(data)
+    return view[HEAD_OFFSET:HEAD_OFFSET + head_len], view[HEAD_OFFSET + head_len:]
 
 
 def unpack(data: bytes | bytearray | memoryview) -> dict[str, Any]:
-    """Decode bytes produced by :func:`pack`; raises :class:`DecodeError` on anything malformed."""
-    view = memoryview(data)
-    if len(view) < 7 or bytes(view[:3]) != MAGIC:
-        raise DecodeError("not a followbus message (bad magic)")
-    head_len = int.from_bytes(view[3:7], "little")
-    if 7 + head_len > len(view):
-        raise DecodeError(f"truncated message: header of {head_len} bytes, {len(view) - 7} present")
-    blob_area = view[7 + head_len :]
+    """Decode a frame's map; raises :class:`DecodeError` on anything malformed."""
+    head, blob_area = _split(data)
 
     def ext_hook(code: int, ext: bytes) -> Any:
         if code == NDARRAY_EXT:
@@ -105,7 +232,7 @@ def unpack(data: bytes | bytearray | memoryview) -> dict[str, Any]:
         raise DecodeError(f"unknown msgpack extension type {code}")
 
     try:
-        obj = msgpack.unpackb(view[7 : 7 + head_len], ext_hook=ext_hook, raw=False, strict_map_key=True)
+        obj = msgpack.unpackb(head, ext_hook=ext_hook, raw=False, strict_map_key=True)
     except DecodeError:
         raise
     except Exception as exc:  # msgpack raises a zoo of exception types on garbage
@@ -113,3 +240,58 @@ def unpack(data: bytes | bytearray | memoryview) -> dict[str, Any]:
     if not isinstance(obj, dict):
         raise DecodeError(f"expected a map at top level, got {type(obj).__name__}")
     return obj
+
+
+# --- messages: type, version, header and fields ----------------------------------------------------
+
+class Decoded(NamedTuple):
+    type_name: Any  # as found: the caller checks it against its message types
+    version: Any
+    header: Header | None  # None: the map has no header
+    fields: dict[str, Any]  # everything else
+
+
+class Peeked(NamedTuple):
+    type_name: str
+    version: Any
+    header: Header
+    provenance: bool  # the header carries epoch_ns and feedback (False: an old recording's 5-element header)
+
+
+def encode_message(type_name: str, version: int, header: Header, fields: Mapping[str, Any]) -> bytes:
+    """A message's frame: type, version and header first (what :func:`peek` reads), then the fields."""
+    return pack({TYPE_KEY: type_name, VERSION_KEY: version, HEADER_KEY: header.to_wire(), **fields})
+
+
+def decode_message(data: bytes | bytearray | memoryview) -> Decoded:
+    """Split a frame into type name, version, header and the remaining fields (arrays decoded)."""
+    obj = unpack(data)
+    raw_header = obj.pop(HEADER_KEY, None)
+    header = None if raw_header is None else header_from_wire(raw_header)[0]
+    return Decoded(obj.pop(TYPE_KEY, None), obj.pop(VERSION_KEY, None), header, obj)
+
+
+def peek(data: bytes | bytearray | memoryview) -> Peeked:
+    """Type, version and header of a frame without decoding its fields or arrays; DecodeError if it has none."""
+    head, _ = _split(data)
+    unpacker = msgpack.Unpacker(raw=False, strict_map_key=True)
+    unpacker.feed(head)
+    found: dict[str, Any] = {}
+    try:
+        for _ in range(unpacker.read_map_header()):
+            key = unpacker.unpack()
+            if key in (TYPE_KEY, VERSION_KEY, HEADER_KEY):
+                found[key] = unpacker.unpack()
+                if len(found) == 3:
+                    break
+            else:
+                unpacker.skip()  # skipped, not decoded: the arrays of a field cost nothing here
+    except (ValueError, TypeError, msgpack.UnpackException, msgpack.OutOfData) as exc:
+        raise DecodeError(f"not msgpack: {exc}") from exc
+    type_name = found.get(TYPE_KEY)
+    if not isinstance(type_name, str):
+        raise DecodeError(f"no message type ({TYPE_KEY!r}: {type_name!r})")
+    if HEADER_KEY not in found:
+        raise DecodeError(f"{type_name}: no header")
+    header, provenance = header_from_wire(found[HEADER_KEY])
+    return Peeked(type_name, found.get(VERSION_KEY), header, provenance)

@@ -27,20 +27,10 @@ from typing import Any, ClassVar, TypeVar, Union
 
 import numpy as np
 
-from followbus.bus.codec import DecodeError, pack, unpack
+# Header is part of the frame layout, which bus/codec.py owns; re-exported here with the messages.
+from followbus.bus.codec import DecodeError, Header, decode_message, encode_message
 
 SCHEMA_VERSION = 1
-
-
-@dataclass
-class Header:
-    seq: int = 0
-    stamp_ns: int = 0
-    frame_seq: int = -1
-    source: str = ""
-    pub_ns: int = 0
-    epoch_ns: int = 0  # 0: unknown (messages not derived from a camera frame, old recordings)
-    feedback: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass
@@ -272,47 +262,18 @@ def _check(value: Any, hint: Any, where: str) -> Any:
         if not isinstance(value, dict):
             raise DecodeError(f"{where}: expected map, got {type(value).__name__}")
         return value
-    if hint is Header:
-        # 5 elements: recordings made before epoch and provenance existed.
-        if not isinstance(value, (list, tuple)) or len(value) not in (5, 7):
-            raise DecodeError(f"{where}: expected a 5- or 7-element header")
-        header = Header(
-            seq=_check(value[0], int, "header.seq"),
-            stamp_ns=_check(value[1], int, "header.stamp_ns"),
-            frame_seq=_check(value[2], int, "header.frame_seq"),
-            source=_check(value[3], str, "header.source"),
-            pub_ns=_check(value[4], int, "header.pub_ns"),
-        )
-        if len(value) == 7:
-            header.epoch_ns = _check(value[5], int, "header.epoch_ns")
-            feedback = _check(value[6], dict, "header.feedback")
-            if not all(isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool)
-                       for k, v in feedback.items()):
-                raise DecodeError(f"{where}: header.feedback must map input names to frame numbers")
-            header.feedback = feedback
-        return header
     return value
 
 
 def encode(msg: Message) -> bytes:
-    """Serialise a message (type tag, version, header, fields) to msgpack bytes."""
-    h = msg.header
-    out: dict[str, Any] = {
-        "_t": msg.TYPE,
-        "_v": SCHEMA_VERSION,
-        "header": [h.seq, h.stamp_ns, h.frame_seq, h.source, h.pub_ns, h.epoch_ns, h.feedback],
-    }
-    for f in dataclasses.fields(msg):
-        if f.name != "header":
-            out[f.name] = getattr(msg, f.name)
-    return pack(out)
+    """Serialise a message (type tag, version, header, fields) into a followbus frame (bus/codec.py)."""
+    fields = {f.name: getattr(msg, f.name) for f in dataclasses.fields(msg) if f.name != "header"}
+    return encode_message(msg.TYPE, SCHEMA_VERSION, msg.header, fields)
 
 
 def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None) -> M:
     """Parse bytes into the typed message; raise DecodeError on anything that does not fit."""
-    obj = unpack(data)
-    type_name = obj.pop("_t", None)
-    version = obj.pop("_v", None)
+    type_name, version, header, obj = decode_message(data)
     cls = SCHEMAS.get(type_name) if isinstance(type_name, str) else None
     if cls is None:
         raise DecodeError(f"unknown message type {type_name!r}")
@@ -320,9 +281,13 @@ def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None
         raise DecodeError(f"{type_name}: schema version {version!r}, this build reads {SCHEMA_VERSION}")
     if expected is not None and cls is not expected:
         raise DecodeError(f"expected {expected.TYPE}, got {type_name}")
+    if header is None:
+        raise DecodeError(f"{type_name}: missing field 'header'")
     hints = _hints(cls)
-    kwargs: dict[str, Any] = {}
+    kwargs: dict[str, Any] = {"header": header}
     for f in dataclasses.fields(cls):
+        if f.name == "header":
+            continue
         if f.name not in obj:
             raise DecodeError(f"{type_name}: missing field {f.name!r}")
         kwargs[f.name] = _check(obj.pop(f.name), hints[f.name], f"{type_name}.{f.name}")

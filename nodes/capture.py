@@ -212,34 +212,33 @@ class McapFrameSource:
         return self.frames()
 
     def frames(self):
-        from mcap.reader import make_reader
-
+        from followbus.bus.recording import iter_bus_messages  # here: a camera-fed capture never loads mcap
         from followbus.vision.sources import SourceFrame
 
         truth: dict[int, GroundTruth] = {}
         first_stamp: int | None = None
         index = 0
-        topics = [self.frame_key] + ([self.truth_key] if self.has_ground_truth else [])
-        with self.path.open("rb") as f:
-            for _schema, _channel, record in make_reader(f).iter_messages(topics=topics, log_time_order=True):
-                try:
-                    msg = decode(record.data)
-                except DecodeError:
-                    continue  # not a bus message (e.g. a Foxglove channel of the same name)
-                if isinstance(msg, GroundTruth):
-                    truth[msg.header.frame_seq] = msg
-                    continue
-                if not isinstance(msg, Frame) or msg.encoding != "bgr8":
-                    continue
-                first_stamp = msg.header.stamp_ns if first_stamp is None else first_stamp
-                gt = truth.pop(msg.header.frame_seq, None)
-                extras: dict[str, Any] = {"recorded_frame_seq": msg.header.frame_seq}
-                if gt is not None and gt.available:
-                    extras.update(visible_fraction=gt.visible_fraction, distractor_boxes=gt.others.tolist(),
-                                  distractor_visible_fractions=gt.others_visible.tolist())
-                box = None if gt is None or gt.box is None else tuple(float(v) for v in gt.box)
-                yield SourceFrame(index, msg.header.stamp_ns - first_stamp, np.array(msg.data), box, extras)
-                index += 1
+        keys = [self.frame_key] + ([self.truth_key] if self.has_ground_truth else [])
+        # The shared reader (bus/recording.py): bus channels only, whichever label the recording gives them.
+        for record in iter_bus_messages(self.path, keys):
+            try:
+                msg = decode(record.data)
+            except DecodeError:
+                continue  # a corrupt recorded message: skipped, the next frame follows
+            if isinstance(msg, GroundTruth):
+                truth[msg.header.frame_seq] = msg
+                continue
+            if not isinstance(msg, Frame) or msg.encoding != "bgr8":
+                continue
+            first_stamp = msg.header.stamp_ns if first_stamp is None else first_stamp
+            gt = truth.pop(msg.header.frame_seq, None)
+            extras: dict[str, Any] = {"recorded_frame_seq": msg.header.frame_seq}
+            if gt is not None and gt.available:
+                extras.update(visible_fraction=gt.visible_fraction, distractor_boxes=gt.others.tolist(),
+                              distractor_visible_fractions=gt.others_visible.tolist())
+            box = None if gt is None or gt.box is None else tuple(float(v) for v in gt.box)
+            yield SourceFrame(index, msg.header.stamp_ns - first_stamp, np.array(msg.data), box, extras)
+            index += 1
 
     def close(self) -> None:
         pass

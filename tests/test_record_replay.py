@@ -177,7 +177,7 @@ def test_record_holds_every_published_message(recorded: Recorded):
     assert len(relayed) == recorded.relay_published == recorded.sink_received == TICKS
     for channel, message in topics["t/ticker/tick"] + topics["t/relay/tick"]:
         msg = decode(message.data)
-        assert channel.message_encoding == "msgpack" and channel.metadata["type"] == "Tick"
+        assert channel.message_encoding == "x-followbus-frame/1" and channel.metadata["type"] == "Tick"
         assert message.log_time == message.publish_time == msg.header.stamp_ns > 0
         assert message.sequence == msg.header.seq
     for key in ("t/capture/frame", "t/detection/detections", "t/prediction/prior", "t/prediction/track"):
@@ -195,7 +195,7 @@ def test_record_holds_every_published_message(recorded: Recorded):
     info = run_followbus("info", str(recorded.path))
     assert info.returncode == 0, info.stderr
     row = next(line.split() for line in info.stdout.splitlines() if line.startswith("t/ticker/tick "))
-    assert row[1:4] == ["followbus.Tick", "msgpack", str(TICKS)]
+    assert row[1:4] == ["followbus.Tick", "x-followbus-frame/1", str(TICKS)]
     assert "compression lz4" in info.stdout
 
 

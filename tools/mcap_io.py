@@ -3,10 +3,12 @@ the Foxglove channels beside them, metadata, reading, ``followbus info`` and ``f
 
 Layout of a recording:
 
-- bus channels: topic = the bus key (``fb/capture/frame``), message encoding ``msgpack``, schema
-  ``followbus.<TYPE>`` with encoding ``followbus-msgpack`` whose data is a JSON description of the
-  wire format and the fields. ``sequence`` = header.seq, log_time = publish_time = header.stamp_ns
-  (receive time only when the stamp is 0).
+- bus channels: topic = the bus key (``fb/capture/frame``), message encoding ``x-followbus-frame/1``
+  (the exact bytes of the followbus frame), schema ``followbus.<TYPE>`` with encoding
+  ``x-followbus-schema/1`` whose data is a text document of the frame layout and the type's fields
+  (bus/recording.py, which also reads recordings: nodes use it too). ``sequence`` = header.seq,
+  log_time = publish_time = header.stamp_ns (receive time only when the stamp is 0). Recordings made
+  before carry ``msgpack`` on the same bytes, read as an alias.
 - Foxglove channels: ``<key>/image`` (foxglove.CompressedImage) for every Frame key and
   ``<key>/annotations`` (foxglove.ImageAnnotations) for Detections / Prior / Track keys, JSON encoded.
 - metadata records ``followbus`` (version, git commit, host, start time, ...), ``graph`` (graph.yaml
@@ -17,16 +19,13 @@ Layout of a recording:
 from __future__ import annotations
 
 import contextlib
-import dataclasses
-import json
 import logging
 import os
 import struct
 import sys
 import time
-import typing
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -35,7 +34,6 @@ from typing import IO, Any
 from mcap.data_stream import ReadDataStream, RecordBuilder
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.reader import make_reader
 from mcap.records import (
     Attachment,
     Channel,
@@ -55,55 +53,30 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from followbus import __version__
-from followbus.bus import codec
-from followbus.bus.schemas import SCHEMA_VERSION, SCHEMAS
+from followbus.bus.recording import (  # noqa: F401 (reading is re-exported for the tools)
+    BUS_MESSAGE_ENCODING,
+    BUS_SCHEMA_ENCODING,
+    BUS_SCHEMA_PREFIX,
+    BusMessage,
+    RecordingError,
+    bus_channels,
+    is_bus_channel,
+    iter_bus_messages,
+    open_recording,
+    read_metadata,
+    read_summary,
+    schema_document,
+)
 from followbus.tools import foxglove_schemas as fox
 
 log = logging.getLogger("followbus.mcap")
 
-BUS_MESSAGE_ENCODING = "msgpack"
-BUS_SCHEMA_ENCODING = "followbus-msgpack"
-BUS_SCHEMA_PREFIX = "followbus."
 PROFILE = ""  # no ROS profile: our own channels plus Foxglove's JSON ones
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 # lz4 keeps up with 720p bgr8 at 30 Hz (write thread 46% busy); zstd level 3, the mcap writer's, saturates
 # its thread. Figures and command: tools/record.py docstring.
 DEFAULT_COMPRESSION = "lz4"
 DEFAULT_CHUNK_BYTES = 4 * 1024 * 1024
-
-
-class RecordingError(Exception):
-    """A recording that cannot be read for the requested purpose (exit status 2)."""
-
-
-# --- schemas ---------------------------------------------------------------------------------------
-
-def _type_text(hint: Any) -> str:
-    origin = typing.get_origin(hint)
-    if origin is not None:
-        args = ", ".join(_type_text(a) for a in typing.get_args(hint))
-        name = getattr(origin, "__name__", str(origin))
-        return f"{'Optional' if name in ('Union', 'UnionType') else name}[{args}]"
-    if hint is type(None):
-        return "None"
-    return {"ndarray": "ndarray"}.get(getattr(hint, "__name__", ""), getattr(hint, "__name__", str(hint)))
-
-
-def bus_schema_data(type_name: str) -> bytes:
-    """The JSON text stored as the schema of a bus channel: wire format plus the dataclass fields."""
-    cls = SCHEMAS.get(type_name)
-    desc: dict[str, Any] = {
-        "title": BUS_SCHEMA_PREFIX + type_name,
-        "schema_version": SCHEMA_VERSION,
-        "wire_format": (codec.__doc__ or "").strip(),
-        "decode": "followbus.bus.schemas.decode(message.data)",
-    }
-    if cls is not None:
-        hints = typing.get_type_hints(cls)
-        desc["doc"] = (cls.__doc__ or "").strip()
-        desc["header"] = ["seq", "stamp_ns", "frame_seq", "source", "pub_ns"]
-        desc["fields"] = {f.name: _type_text(hints[f.name]) for f in dataclasses.fields(cls) if f.name != "header"}
-    return json.dumps(desc, indent=1).encode()
 
 
 # --- writing ---------------------------------------------------------------------------------------
@@ -171,7 +144,7 @@ class RecordingWriter:
             meta = {"bus_key": key}
             if type_name:
                 schema_id = self.schema(BUS_SCHEMA_PREFIX + type_name, BUS_SCHEMA_ENCODING,
-                                        bus_schema_data(type_name))
+                                        schema_document(type_name))
                 meta["type"] = type_name
             cid = self._register_channel(key, BUS_MESSAGE_ENCODING, schema_id, meta)
             self._channels[ident] = cid
@@ -374,79 +347,6 @@ def _append_summary(f: IO[bytes], good: int, cut: int, chunk_indexes: list[Chunk
                           cut_bytes=cut, file_bytes=f.tell())
 
 
-# --- reading ---------------------------------------------------------------------------------------
-
-@dataclass
-class BusMessage:
-    key: str
-    type_name: str
-    log_time: int
-    data: bytes
-    sequence: int = 0
-
-
-def _open(path: str | Path) -> IO[bytes]:
-    try:
-        return open(path, "rb")
-    except OSError as exc:
-        raise RecordingError(f"{path}: {exc.strerror}") from exc
-
-
-def is_bus_channel(channel: Channel) -> bool:
-    return channel.message_encoding == BUS_MESSAGE_ENCODING
-
-
-def read_summary(path: str | Path):
-    """The summary of a finalised recording; RecordingError for a file that was never finalised."""
-    with _open(path) as f:
-        try:
-            summary = make_reader(f).get_summary()
-        except (McapError, struct.error, ValueError) as exc:
-            raise RecordingError(f"{path}: not a finalised MCAP file ({exc}); a recorder that was killed leaves "
-                                 f"one that `followbus recover {path}` repairs") from exc
-    if summary is None:
-        raise RecordingError(f"{path}: MCAP file without summary; `followbus recover {path}` rewrites it")
-    return summary
-
-
-def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
-    """Every metadata record by name (the last one wins); works on unfinalised files too."""
-    out: dict[str, dict[str, str]] = {}
-    with _open(path) as f:
-        try:
-            for record in StreamReader(f, emit_chunks=True).records:
-                if isinstance(record, Metadata):
-                    out[record.name] = dict(record.metadata)
-        except (McapError, struct.error, ValueError, EOFError):
-            pass  # a truncated file: whatever came before the cut
-    return out
-
-
-def bus_channels(path: str | Path) -> dict[str, str]:
-    """Bus key -> message type of every bus channel in a finalised recording."""
-    summary = read_summary(path)
-    out = {}
-    for ch in summary.channels.values():
-        if is_bus_channel(ch):
-            out[ch.topic] = ch.metadata.get("type", "")
-    return out
-
-
-def iter_bus_messages(path: str | Path, keys: Iterable[str] | None = None) -> Iterator[BusMessage]:
-    """Bus messages in log-time order (ties: recording order), optionally only the given keys."""
-    summary = read_summary(path)
-    wanted = None if keys is None else set(keys)
-    topics = sorted({ch.topic for ch in summary.channels.values() if is_bus_channel(ch)
-                     and (wanted is None or ch.topic in wanted)})
-    if not topics:
-        return
-    with _open(path) as f:
-        for _schema, channel, msg in make_reader(f).iter_messages(topics=topics, log_time_order=True):
-            if is_bus_channel(channel):
-                yield BusMessage(channel.topic, channel.metadata.get("type", ""), msg.log_time, msg.data,
-                                 msg.sequence)
-
-
 # --- recover ---------------------------------------------------------------------------------------
 
 @dataclass
@@ -463,7 +363,7 @@ class RecoverResult:
 def recover(in_path: str | Path, out_path: str | Path, compression: str | None = None) -> RecoverResult:
     """Rewrite every complete chunk (and metadata) of a possibly truncated MCAP file into a valid one."""
     result = RecoverResult()
-    with _open(in_path) as f:
+    with open_recording(in_path) as f:
         records = StreamReader(f, emit_chunks=True, record_size_limit=1 << 31).records
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
@@ -589,9 +489,10 @@ def cmd_info(args) -> int:
         rows.append((ch.topic, schema.name if schema else "-", ch.message_encoding, n,
                      n / duration if duration > 0 else 0.0))
     width = max([len(r[0]) for r in rows] + [5])
-    print(f"\n{'topic':<{width}}  {'schema':<26} {'encoding':<8} {'count':>7} {'rate Hz':>8}")
+    enc_width = max([len(r[2]) for r in rows] + [8])
+    print(f"\n{'topic':<{width}}  {'schema':<26} {'encoding':<{enc_width}} {'count':>7} {'rate Hz':>8}")
     for topic, schema_name, enc, n, rate in sorted(rows):
-        print(f"{topic:<{width}}  {schema_name:<26} {enc:<8} {n:>7} {rate:>8.1f}")
+        print(f"{topic:<{width}}  {schema_name:<26} {enc:<{enc_width}} {n:>7} {rate:>8.1f}")
     return 0
 
 

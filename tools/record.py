@@ -52,7 +52,7 @@ import numpy as np
 import zenoh
 
 from followbus import __version__
-from followbus.bus.codec import DecodeError, unpack
+from followbus.bus.codec import DecodeError, Header, peek
 from followbus.bus.node import RECORDER_NAME
 from followbus.bus.pubsub import RateLimitedLog, direct_callback, payload_bytes
 from followbus.bus.schemas import Frame, decode
@@ -165,7 +165,7 @@ class _Item:
     data: bytes
     recv_ns: int
     type_name: str | None = None
-    header: list[Any] | None = None
+    header: Header | None = None
     log_time: int = 0
     views: list[tuple[str, str, bytes]] = field(default_factory=list)  # Foxglove (topic, schema, payload)
 
@@ -283,14 +283,11 @@ class Recorder:
 
     def _convert(self, item: _Item) -> None:
         try:
-            obj = unpack(item.data)
-            item.type_name = obj.get("_t") if isinstance(obj.get("_t"), str) else None
-            raw_header = obj.get("header")
-            if isinstance(raw_header, list) and len(raw_header) in (5, 7):  # 7: with epoch and provenance
-                item.header = raw_header
+            head = peek(item.data)  # the fields and arrays are stored as they came, never decoded here
+            item.type_name, item.header = head.type_name, head.header
         except DecodeError:
             pass
-        stamp = item.header[1] if item.header and isinstance(item.header[1], int) else 0
+        stamp = item.header.stamp_ns if item.header else 0
         item.log_time = stamp if stamp > 0 else item.recv_ns  # the bus stamp; receive time only without one
         if self.opts.foxglove and item.type_name in ("Frame", *fox.ANNOTATORS):
             try:
@@ -364,13 +361,13 @@ class Recorder:
         header = item.header
         if item.type_name is None:
             self.report.undecodable += 1
-        seq = header[0] if header and isinstance(header[0], int) else 0
+        seq = header.seq if header else 0
         self.writer.write(self.writer.bus_channel(item.key, item.type_name), item.log_time, item.data, sequence=seq)
         stats = self.report.keys[item.key]
         stats.written += 1
         stats.type_name = item.type_name or "?"
         if header is not None:
-            self._track_seq(stats, item.key, str(header[3]), seq)
+            self._track_seq(stats, item.key, header.source, seq)
         for topic, schema, payload in item.views:
             self.writer.write(self.writer.foxglove_channel(topic, schema, item.key), item.log_time, payload,
                               sequence=seq)

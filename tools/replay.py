@@ -37,17 +37,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import msgpack
 import numpy as np
 import yaml
 
-from followbus.bus.codec import MAGIC, DecodeError
+from followbus.bus.codec import DecodeError, Peeked, peek
 from followbus.bus.graph import Graph, GraphError, NodeSpec, load_graph
 from followbus.bus.schemas import Message, decode
 from followbus.tools.mcap_io import (
     BusMessage,
     RecordingError,
     bus_channels,
+    is_bus_channel,
     iter_bus_messages,
     read_metadata,
     read_summary,
@@ -270,43 +270,29 @@ class ReplayReport:
         return not verify or not (self.mismatch_count or self.missing or self.extra or not self.outputs_compared)
 
 
-def _peek_header(data: bytes) -> list[Any] | None:
-    """The header list of a stored bus message without decoding its fields: ``encode`` writes the type,
-    the version and the header first, and the large arrays live after the msgpack map anyway."""
-    view = memoryview(data)
-    if len(view) < 7 or bytes(view[:3]) != MAGIC:
-        return None
-    head_len = int.from_bytes(view[3:7], "little")
-    unpacker = msgpack.Unpacker(raw=False, ext_hook=lambda _code, _data: None)
-    unpacker.feed(view[7:7 + head_len])
+def _peek_header(data: bytes) -> Peeked | None:
+    """Type and header of a stored bus message without decoding its fields (None: not a followbus frame)."""
     try:
-        for _ in range(unpacker.read_map_header()):
-            if unpacker.unpack() == "header":
-                head = unpacker.unpack()
-                return head if isinstance(head, list) and len(head) in (5, 7) else None
-            unpacker.skip()
-    except (ValueError, msgpack.UnpackException, msgpack.OutOfData):
+        return peek(data)
+    except DecodeError:
         return None
-    return None
 
 
 def _header(data: bytes) -> tuple[int, int]:
     """(frame_seq, stamp_ns) of a stored bus message."""
     head = _peek_header(data)
-    if head is not None and isinstance(head[2], int) and isinstance(head[1], int):
-        return head[2], head[1]
-    return -1, 0
+    return (head.header.frame_seq, head.header.stamp_ns) if head is not None else (-1, 0)
 
 
 def _provenance(data: bytes) -> dict[str, int] | None:
     """header.feedback of a stored bus message (None: recorded before provenance existed)."""
     head = _peek_header(data)
-    return head[6] if head is not None and len(head) == 7 and isinstance(head[6], dict) else None
+    return head.header.feedback if head is not None and head.provenance else None
 
 
 def _pub_ns(data: bytes) -> int:
     head = _peek_header(data)
-    return head[4] if head is not None and isinstance(head[4], int) else 0
+    return head.header.pub_ns if head is not None else 0
 
 
 def recording_first_frame(path: Path, look_at: int = 200) -> int | None:
@@ -690,7 +676,7 @@ class Replayer:
         primary = next((f"{self.recorded_ns}/{i.topic}" for i in self.spec.inputs.values()
                         if i.sync == "frame" and not i.offset and not i.optional), None)
         for ch in summary.channels.values():
-            if ch.topic == primary and ch.message_encoding == "msgpack":
+            if ch.topic == primary and is_bus_channel(ch):
                 total += counts.get(ch.id, 0)
         if self.opts.max_frames:
             total = min(total, self.opts.max_frames) if total else self.opts.max_frames

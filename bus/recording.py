@@ -1,0 +1,150 @@
+"""Bus messages in MCAP files: the channel labels, the schema document, and reading.
+
+Shared by the tools (record, play, replay, info: tools/mcap_io.py writes) and by nodes (capture reads a
+recording as its source), so it lives in bus/: it knows the frame (bus/codec.py) and the message types,
+nothing of tracking.
+
+A bus channel is labelled ``message_encoding: x-followbus-frame/1``: a custom encoding in the MCAP
+spec's sense (custom values take the ``x-`` prefix), because the bytes are a followbus frame (magic,
+length, MessagePack head, array blobs), not plain MessagePack: ``msgpack.unpackb`` of one raises
+ExtraData. Its schema ``followbus.<Type>``, encoding ``x-followbus-schema/1``, is a UTF-8 text
+document: the frame layout (:data:`followbus.bus.codec.FRAME_FORMAT`) and the type's fields, enough to
+write a decoder from. Recordings made before this carried ``msgpack`` (schema encoding
+``followbus-msgpack``) on the same bytes: read as an alias on channels the recorder made (``bus_key``
+in the channel metadata).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import struct
+import types
+import typing
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.records import Channel, Metadata
+from mcap.stream_reader import StreamReader
+
+from followbus.bus.codec import FRAME_FORMAT
+from followbus.bus.schemas import SCHEMA_VERSION, SCHEMAS
+
+BUS_MESSAGE_ENCODING = "x-followbus-frame/1"
+BUS_SCHEMA_ENCODING = "x-followbus-schema/1"
+BUS_SCHEMA_PREFIX = "followbus."
+LEGACY_MESSAGE_ENCODING = "msgpack"  # what recordings said before; the bytes were the same frame
+
+
+class RecordingError(Exception):
+    """A recording that cannot be read for the requested purpose (exit status 2)."""
+
+
+# --- the schema document ---------------------------------------------------------------------------
+
+def _wire_type(hint: Any) -> str:
+    """A field's annotation in the frame's terms (what a reader finds in the head map)."""
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        kinds = [_wire_type(a) for a in args if a is not type(None)]
+        return " or ".join(kinds) + (" or nil" if type(None) in args else "")
+    if origin is list:
+        return f"array of {_wire_type(args[0])}" if args else "array"
+    if origin is dict:
+        return f"map {_wire_type(args[0])} -> {_wire_type(args[1])}" if args else "map"
+    return {int: "int", float: "float (an int is accepted)", bool: "bool", str: "str",
+            typing.Any: "any"}.get(hint, "numpy array (ext type)" if getattr(hint, "__name__", "") == "ndarray"
+                                   else getattr(hint, "__name__", str(hint)))
+
+
+def schema_document(type_name: str) -> bytes:
+    """The schema data of a bus channel: how to decode its messages, as UTF-8 text."""
+    cls = SCHEMAS.get(type_name)
+    lines = [f"{BUS_SCHEMA_PREFIX}{type_name}",
+             f"Messages of channels with message_encoding \"{BUS_MESSAGE_ENCODING}\" and this schema "
+             f"(encoding \"{BUS_SCHEMA_ENCODING}\": this text).", "", FRAME_FORMAT]
+    if cls is None:
+        lines.append(f"FIELDS of {type_name}: unknown to the recorder (a type of a newer or other build).")
+    else:
+        hints = typing.get_type_hints(cls)
+        lines.append(f"FIELDS of {type_name} (VERSION {SCHEMA_VERSION}), the head keys after the header:")
+        lines += [f"  {f.name}: {_wire_type(hints[f.name])}" for f in dataclasses.fields(cls) if f.name != "header"]
+        doc = " ".join((cls.__doc__ or "").split())
+        if doc and not doc.startswith(f"{cls.__name__}("):  # not the dataclass's generated signature
+            lines += ["", doc]
+    return ("\n".join(lines) + "\n").encode()
+
+
+def is_bus_channel(channel: Channel) -> bool:
+    """A channel of followbus frames: the current label, or the old one on a channel our recorder made."""
+    return channel.message_encoding == BUS_MESSAGE_ENCODING or (
+        channel.message_encoding == LEGACY_MESSAGE_ENCODING and "bus_key" in channel.metadata)
+
+
+# --- reading ---------------------------------------------------------------------------------------
+
+@dataclass
+class BusMessage:
+    key: str
+    type_name: str
+    log_time: int
+    data: bytes
+    sequence: int = 0
+
+
+def open_recording(path: str | Path) -> IO[bytes]:
+    try:
+        return open(path, "rb")
+    except OSError as exc:
+        raise RecordingError(f"{path}: {exc.strerror}") from exc
+
+
+def read_summary(path: str | Path):
+    """The summary of a finalised recording; RecordingError for a file that was never finalised."""
+    with open_recording(path) as f:
+        try:
+            summary = make_reader(f).get_summary()
+        except (McapError, struct.error, ValueError) as exc:
+            raise RecordingError(f"{path}: not a finalised MCAP file ({exc}); a recorder that was killed leaves "
+                                 f"one that `followbus recover {path}` repairs") from exc
+    if summary is None:
+        raise RecordingError(f"{path}: MCAP file without summary; `followbus recover {path}` rewrites it")
+    return summary
+
+
+def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
+    """Every metadata record by name (the last one wins); works on unfinalised files too."""
+    out: dict[str, dict[str, str]] = {}
+    with open_recording(path) as f:
+        try:
+            for record in StreamReader(f, emit_chunks=True).records:
+                if isinstance(record, Metadata):
+                    out[record.name] = dict(record.metadata)
+        except (McapError, struct.error, ValueError, EOFError):
+            pass  # a truncated file: whatever came before the cut
+    return out
+
+
+def bus_channels(path: str | Path) -> dict[str, str]:
+    """Bus key -> message type of every bus channel in a finalised recording."""
+    summary = read_summary(path)
+    return {ch.topic: ch.metadata.get("type", "") for ch in summary.channels.values() if is_bus_channel(ch)}
+
+
+def iter_bus_messages(path: str | Path, keys: Iterable[str] | None = None) -> Iterator[BusMessage]:
+    """Bus messages in log-time order (ties: recording order), optionally only the given keys."""
+    summary = read_summary(path)
+    wanted = None if keys is None else set(keys)
+    topics = sorted({ch.topic for ch in summary.channels.values() if is_bus_channel(ch)
+                     and (wanted is None or ch.topic in wanted)})
+    if not topics:
+        return
+    with open_recording(path) as f:
+        for _schema, channel, msg in make_reader(f).iter_messages(topics=topics, log_time_order=True):
+            if is_bus_channel(channel):  # not a Foxglove channel that shares the topic
+                yield BusMessage(channel.topic, channel.metadata.get("type", ""), msg.log_time, msg.data,
+                                 msg.sequence)
