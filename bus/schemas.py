@@ -196,11 +196,47 @@ class ReplayHint(Message):
     feedback: dict[str, int] = field(default_factory=dict)
 
 
+@dataclass
+class GroundPoints(Message):
+    """One frame's people on the floor (groundplane node): robot frame (x forward, y left) and the fixed
+    odometry frame (seed 004 Eq. 4, with the robot pose used), one row per kept detection."""
+
+    TYPE: ClassVar[str] = "GroundPoints"
+    points_robot_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    points_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # odometry frame
+    covs_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))  # odometry frame
+    scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    robot_x_m: float = 0.0
+    robot_y_m: float = 0.0
+    robot_theta_rad: float = 0.0
+    odometry_stamp_ns: int = -1  # the odometry sample the pose came from (-1: none yet, the origin)
+
+
+@dataclass
+class GroupState(Message):
+    """The followed group for one frame (seed 004 ME-CGT-UGV): odometry frame unless named ``_robot``."""
+
+    TYPE: ClassVar[str] = "GroupState"
+    valid: bool = False  # False: no group yet (the other fields are zeros)
+    lost: bool = False  # no member seen this frame: the state is the prediction
+    centre_m: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    velocity_mps: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    orientation_rad: float = 0.0  # main axis of the group's extent
+    centre_robot_m: np.ndarray = field(default_factory=lambda: np.zeros(2))  # at this frame's pose: what motor follows
+    ellipse_centres_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    ellipse_extents_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    ellipse_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    members_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # the points selected this frame
+    others_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # the points left out (disturbers)
+    step_ms: float = 0.0  # tracker cost of this frame
+
+
 SCHEMAS: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (
         Frame, GroundTruth, Detections, Prior, Measurement, Track, Template, MotorCommand, Odometry,
         NodeStatus, Tick, ReplayHint,
+        GroundPoints, GroupState,
     )
 }
 
@@ -354,6 +390,23 @@ def validate(msg: Message) -> Message:
     elif isinstance(msg, Prior) and (msg.state.shape != (4,) or msg.covariance.shape != (4, 4)
                                      or msg.innovation_cov.shape != (2, 2)):
         raise DecodeError(f"{where}: state, covariance or innovation covariance of the wrong shape")
+    elif isinstance(msg, GroundPoints):
+        n = len(msg.points_m)
+        if (msg.points_m.shape != (n, 2) or msg.points_robot_m.shape != (n, 2) or msg.covs_m2.shape != (n, 2, 2)
+                or msg.scores.shape != (n,)):
+            raise DecodeError(f"{where}: points N x 2, covariances N x 2 x 2 and scores N must agree")
+        if n and (msg.covs_m2[:, [0, 1], [0, 1]] < 0).any():
+            raise DecodeError(f"{where}.covs_m2: negative variance")
+    elif isinstance(msg, GroupState):
+        n = len(msg.ellipse_weights)
+        if (msg.centre_m.shape != (2,) or msg.velocity_mps.shape != (2,) or msg.centre_robot_m.shape != (2,)
+                or msg.ellipse_centres_m.shape != (n, 2) or msg.ellipse_extents_m2.shape != (n, 2, 2)
+                or msg.ellipse_weights.shape != (n,) or msg.members_m.ndim != 2 or msg.members_m.shape[1] != 2
+                or msg.others_m.ndim != 2 or msg.others_m.shape[1] != 2):
+            raise DecodeError(f"{where}: centre, velocity or ellipses of the wrong shape")
+        if n and ((msg.ellipse_weights < 0).any() or (msg.ellipse_weights > 1).any()
+                  or (msg.ellipse_extents_m2[:, [0, 1], [0, 1]] < 0).any()):
+            raise DecodeError(f"{where}: ellipse weight outside [0, 1] or negative extent")
     return msg
 
 

@@ -20,6 +20,10 @@ Track states (see ``followbus.bus.schemas.Measurement.state``):
   frozen, so an extrapolation error cannot wind them up.
 * ``LOST`` / ``UNINITIALISED`` / no box: zero twist immediately (reason ``"target-lost"``).
 
+A group's centre (seed 004, graph.group.yaml) is followed with the same law through ``on_position``: the
+target is a robot-frame point (forward, left) m, range = its distance, bearing = its angle; the states and
+every safety rule below are the same.
+
 Safety: every stop (lost target, invalid box, watchdog) is commanded *at once* — it bypasses the
 acceleration limiter, which only shapes motion commands. The chassis's own deceleration limits
 what happens physically; a late stop is worse than an abrupt one. After a stop, motion ramps up
@@ -216,6 +220,29 @@ class FollowController:
         range_m = width_based_range_m(w, p.focal_px, p.person_width_m)
         cx_px = p.cx_px if p.cx_px is not None else p.image_width_px / 2.0
         bear = bearing_rad(x + w / 2.0, cx_px, p.focal_px)
+        return self._follow(t_ns, state, range_m, bear)
+
+    def on_position(self, t_ns: int, state: str, position_m: Sequence[float] | np.ndarray | None,
+                    received_ns: int | None = None) -> FollowCommand:
+        """Command for a target at ``position_m`` = (forward, left) m in the robot frame (a group's centre,
+        seed 004) in ``state``: the same law and limits as :meth:`on_track`, with range = ‖p‖ and
+        bearing = atan2(left, forward). A target not ahead of the robot (forward ≤ 0: the camera cannot see
+        it) stops, like an invalid box."""
+        t_ns = int(t_ns)
+        self._last_track_rx_ns = t_ns if received_ns is None else int(received_ns)
+        if position_m is None or state in STOP_STATES:
+            return self._stop(t_ns, "target-lost")
+        if state not in FOLLOW_STATES and state not in PREDICTED_STATES:
+            log.warning("unknown target state %r; stopping", state)
+            return self._stop(t_ns, f"unknown-state:{state}")
+        pos = np.asarray(position_m, dtype=float).reshape(-1)
+        if pos.shape != (2,) or not np.all(np.isfinite(pos)) or pos[0] <= 0:
+            log.warning("invalid target position %r; stopping", position_m)
+            return self._stop(t_ns, "invalid-target")
+        return self._follow(t_ns, state, math.hypot(pos[0], pos[1]), math.atan2(pos[1], pos[0]))
+
+    def _follow(self, t_ns: int, state: str, range_m: float, bear: float) -> FollowCommand:
+        p = self.params
         predicted = state in PREDICTED_STATES
         scale = p.occluded_speed_scale if predicted else 1.0
         integrate = not predicted  # a predicted box is a guess: don't integrate its error

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from followbus.bus.node import Node, ParamError
-from followbus.bus.schemas import Message, MotorCommand, Odometry, Track
+from followbus.bus.schemas import GroupState, Message, MotorCommand, Odometry, Track
 from followbus.control.drivers import SerialDriver, SimDriver
 from followbus.control.follow import FollowCommand, FollowController, FollowParams
 from followbus.nodes.common import split_params
@@ -84,17 +84,22 @@ class Motor(Node):
     def on_message(self, name: str, msg: Message) -> None:
         if not isinstance(msg, Track):
             return
-        # Controller time is the track stamp (replay-deterministic); the watchdog uses the receive time on
-        # this process's monotonic clock (live) so that no stamp can hold it off.
-        received_ns = None
-        if self.live:
-            received_ns = self.monotonic_ns()
-            max_age_ms = self.motor_params.max_track_age_ms
-            if max_age_ms and (self.wall_ns() - msg.header.stamp_ns) > max_age_ms * 1e6:
-                self.too_old += 1
-                return
+        fresh, received_ns = self._receive(msg)
+        if not fresh:
+            return
         cmd = self.controller.on_track(msg.header.stamp_ns, msg.state, msg.box, received_ns=received_ns)
         self._command(cmd, like=msg)
+
+    def _receive(self, msg: Message) -> tuple[bool, int | None]:
+        """(act on it?, receive time). Controller time is the message stamp (replay-deterministic); the watchdog
+        uses the receive time on this process's monotonic clock (live) so that no stamp can hold it off."""
+        if not self.live:
+            return True, None
+        max_age_ms = self.motor_params.max_track_age_ms
+        if max_age_ms and (self.wall_ns() - msg.header.stamp_ns) > max_age_ms * 1e6:
+            self.too_old += 1
+            return False, None
+        return True, self.monotonic_ns()
 
     def on_timer(self, now_ns: int) -> None:
         cmd = self.controller.on_tick(now_ns, self.monotonic_ns() if self.live else None)
@@ -139,6 +144,28 @@ class Motor(Node):
         last = self.last_cmd
         return {"commands": self.commands, "too_old": self.too_old, "reason": last.reason if last else "",
                 "vx_mps": round(last.vx_mps, 3) if last else 0.0, "wz_radps": round(last.wz_radps, 3) if last else 0.0}
+
+
+class GroupMotor(Motor):
+    """motor following a group's centre (seed 004; graph.group.yaml runs it as followbus.nodes.group_motor).
+
+    Input ``group``: the group node's state. Valid → follow ``centre_robot_m`` (state TRACKING), coasting on
+    the prediction (no member seen this frame) → OCCLUDED (half speed, integrators frozen), no group → an
+    immediate zero. The watchdog, the age limit and every stop are Motor's, unchanged."""
+
+    INPUTS = {"group": GroupState}
+    REQUIRED_INPUTS = frozenset({"group"})
+
+    def on_message(self, name: str, msg: Message) -> None:
+        if not isinstance(msg, GroupState):
+            return
+        fresh, received_ns = self._receive(msg)
+        if not fresh:
+            return
+        state = "LOST" if not msg.valid else "OCCLUDED" if msg.lost else "TRACKING"
+        cmd = self.controller.on_position(msg.header.stamp_ns, state, msg.centre_robot_m if msg.valid else None,
+                                          received_ns=received_ns)
+        self._command(cmd, like=msg)
 
 
 NODE = Motor

@@ -61,6 +61,14 @@ def _sample_messages() -> list[schemas.Message]:
         schemas.NodeStatus(node="n", pid=42, uptime_s=3.5, topics={"k": {"rate_hz": 30.0}}, extra={"a": 1}),
         schemas.Tick(value=7, payload=np.arange(5000, dtype=np.uint8)),
         schemas.ReplayHint(skip=False, feedback={"template": 8}),
+        schemas.GroundPoints(points_robot_m=rng.random((3, 2)), points_m=rng.random((3, 2)),
+                             covs_m2=np.stack([np.eye(2) * 0.1] * 3), scores=np.full(3, 0.8), robot_x_m=0.5,
+                             robot_theta_rad=0.1, odometry_stamp_ns=120),
+        schemas.GroupState(valid=True, centre_m=np.array([4.0, 0.5]), velocity_mps=np.array([0.4, 0.0]),
+                           orientation_rad=0.2, centre_robot_m=np.array([3.5, 0.4]),
+                           ellipse_centres_m=rng.random((2, 2)), ellipse_extents_m2=np.stack([np.eye(2)] * 2),
+                           ellipse_weights=np.array([0.6, 0.4]), members_m=rng.random((4, 2)),
+                           others_m=rng.random((1, 2)), step_ms=1.5),
     ]
 
 

@@ -247,6 +247,33 @@ def test_watchdog_trusts_receive_times_not_stamps() -> None:
     assert cmd is not None and cmd.reason == "watchdog" and cmd.is_zero
 
 
+def test_follow_a_position_uses_the_same_law_as_a_box() -> None:
+    """on_position (a group's centre, seed 004): range = distance, bearing = angle; a person straight ahead
+    at 3 m gives the same command as its box; left turns left; lost, invalid and behind stop at once."""
+    by_box, by_pos = FollowController(_params()), FollowController(_params())
+    for k in range(20):
+        a = by_box.on_track(k * 33 * MS, "TRACKING", _box(3.0))
+        b = by_pos.on_position(k * 33 * MS, "TRACKING", [3.0, 0.0])
+    assert (b.vx_mps, b.wz_radps, b.range_m, b.reason) == pytest.approx((a.vx_mps, a.wz_radps, 3.0, "tracking"))
+    left = FollowController(_params()).on_position(0, "TRACKING", [2.0, 1.0])
+    assert left.bearing_rad == pytest.approx(math.atan2(1.0, 2.0)) and left.wz_radps > 0
+    assert left.range_m == pytest.approx(math.hypot(2.0, 1.0))
+    fast = _params(max_accel_mps2=100.0, max_yaw_accel_radps2=100.0)
+    occluded = FollowController(fast).on_position(0, "OCCLUDED", [2.5, 0.0])
+    tracking = FollowController(fast).on_position(0, "TRACKING", [2.5, 0.0])
+    assert occluded.reason == "occluded" and tracking.vx_mps > 0
+    assert occluded.vx_mps == pytest.approx(0.5 * tracking.vx_mps)
+    assert by_pos.on_position(21 * 33 * MS, "LOST", [3.0, 0.0]).reason == "target-lost"
+    for bad in ([-2.0, 0.5], [math.nan, 0.0], [1.0]):
+        for k in range(5):
+            by_pos.on_position(k * 33 * MS, "TRACKING", [3.0, 0.0])
+        cmd = by_pos.on_position(6 * 33 * MS, "TRACKING", bad)
+        assert cmd.is_zero and cmd.reason == "invalid-target", bad
+    # The watchdog is the same: no position for watchdog_timeout_ms -> zero.
+    by_pos.on_position(0, "TRACKING", [3.0, 0.0])
+    assert by_pos.on_tick(100 * MS) is None and by_pos.on_tick(140 * MS).reason == "watchdog"
+
+
 # -------------------------------------------------------------------------------- drivers
 def _forward(v_mps: float) -> tuple[float, float, float, float]:
     return mecanum_wheel_speeds(v_mps, 0.0, 0.0, **GEOM)

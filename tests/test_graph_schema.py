@@ -35,7 +35,7 @@ from .conftest import REPO
 jsonschema = pytest.importorskip("jsonschema", reason="jsonschema not installed (pip install -e '.[dev]')")
 
 SCHEMA_FILE = REPO / "docs" / "graph.schema.json"
-SHIPPED = [REPO / "graph.yaml", REPO / "graph.robot.yaml"]
+SHIPPED = [REPO / "graph.yaml", REPO / "graph.robot.yaml", REPO / "graph.group.yaml"]
 MODELINE = "# yaml-language-server: $schema=docs/graph.schema.json"
 NODES_PACKAGE = "followbus.nodes"
 

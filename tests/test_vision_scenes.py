@@ -31,7 +31,7 @@ def _torso_mean(frame: SceneFrame) -> np.ndarray:
 
 def test_catalogue_is_complete_and_unknown_names_fail() -> None:
     assert set(SCENES) == {"corridor-occlusion", "lookalike", "wall-occlusion", "night-puddles", "sun-shadow",
-                           "ego-motion", "lost-target"}
+                           "ego-motion", "lost-target", "group-walk"}
     assert make_scene("corridor-occlusion").n_frames == 600
     assert make_scene("wall-occlusion").n_frames == 240
     assert make_scene("wall-occlusion", fps=10).n_frames == 80
@@ -168,3 +168,25 @@ def test_people_feed_the_simulated_detector() -> None:
         dets = det.detect(f.bgr, f.people())
         assert len(dets) == 1 + len(f.distractor_boxes)
         assert best_iou(dets, f.target_box) > 0.8
+
+
+def test_group_walk_ground_truth_and_the_hidden_member() -> None:
+    """group-walk: the ground truth is the members' floor positions (a level camera 1.1 m up sees each one's
+    feet at row cy + f·1.1/forward), the centre their mean; member 5 is hidden ~6.5-11 s, the others never."""
+    scene = make_scene("group-walk", fps=10)
+    assert scene.target_style is not None and make_scene("wall-occlusion").group_truth_m(1.0) is None
+    cam = scene.camera
+    hidden = []
+    for f in scene.frames():
+        centre, members = scene.group_truth_m(f.t_ns * 1e-9)
+        assert members.shape == (5, 2) and np.allclose(centre, members.mean(axis=0))
+        # Boxes are clipped to the image; the first four are members 1-4 (sorted by actor), all in view.
+        feet = sorted(b[1] + b[3] for b in f.distractor_boxes[:4])
+        expected = sorted(cam.cy + cam.f_px * cam.height_m / members[:4, 0])
+        assert np.allclose(feet, expected, atol=2.0)
+        vis = f.distractor_visible_fractions
+        assert min(vis[:4]) > 0.8
+        if len(vis) < 5 or vis[4] < 0.3:
+            hidden.append(f.t_ns * 1e-9)
+    assert hidden and 6.0 < min(hidden) < 7.0 and 10.5 < max(hidden) < 12.0, (min(hidden), max(hidden))
+    assert 0.5 * len(hidden) / 10 < max(hidden) - min(hidden) < 1.1 * len(hidden) / 10  # one contiguous stretch

@@ -51,6 +51,8 @@ SCENES: dict[str, str] = {
     "ego-motion": "10 s corridor seen from a strafing, yawing, vibrating robot: the whole image shifts, "
     "ego velocity non-zero",
     "lost-target": "8 s hall: target walks out of view to the right at ~3.5 s and never returns",
+    "group-walk": "20 s hall: a group of 5 walks away together (no single target; follow the group, seed 004), "
+    "one member is hidden behind another for ~4.5 s, a passer-by walks towards the robot beside them",
 }
 DEFAULT_SCENE = "corridor-occlusion"
 
@@ -128,7 +130,7 @@ class _Camera:
 
 @dataclass
 class _Actor:
-    role: str  # "target" or "distractor"
+    role: str  # "target", "distractor" or "member" (of the followed group: boxes like distractors)
     style: PersonStyle
     keyframes: list[tuple[float, float, float]]  # (t_s, x_m, z_m), piecewise linear, absent outside
     sway_m: float = 0.0  # lateral body sway of a walker seen from behind
@@ -447,7 +449,48 @@ def _spec(name: str) -> _Spec:
             _Actor("target", _TARGET, [(0.0, 0.0, 3.0), (1.5, 0.1, 3.5), (6.0, 5.5, 4.5)], sway_m=0.05),
             _Actor("distractor", _BYSTANDER, [(0.0, -2.2, 7.0), (8.0, -1.2, 9.5)], sway_m=0.04),
         ])
+    if name == "group-walk":
+        return _Spec(name, 20.0, _HALL, _group_walk_actors())
     raise ValueError(f"unknown scene {name!r}; available: {', '.join(SCENES)}")
+
+
+_GROUP_STYLES = [
+    PersonStyle(shirt_bgr=(42, 48, 190), trousers_bgr=(78, 50, 32), height_m=1.85),
+    PersonStyle(shirt_bgr=(170, 120, 60), trousers_bgr=(50, 50, 55), height_m=1.70),
+    PersonStyle(shirt_bgr=(60, 150, 190), trousers_bgr=(40, 40, 45), height_m=1.76),
+    PersonStyle(shirt_bgr=(140, 60, 120), trousers_bgr=(90, 80, 70), height_m=1.66),
+    PersonStyle(shirt_bgr=(200, 200, 205), trousers_bgr=(60, 45, 35), height_m=1.58),
+]
+
+
+def _group_walk_actors() -> list[_Actor]:
+    """group-walk: five members around a centre walking away at 0.32 m/s with a slight drift to the right.
+    Member 5 (the shortest) steps onto the ray of member 1 (the tallest), 1.2 m behind it, from 5-7 s and
+    back out from 10.5-12.5 s, so it is hidden from ~6.5 to ~11 s; a passer-by walks towards the robot 1.5-2 m to the
+    right of the group."""
+
+    def centre(t: float) -> tuple[float, float]:
+        return 0.5 * t / 20.0, 3.4 + 0.32 * t
+
+    offsets = [(-0.6, -0.5), (0.6, -0.4), (-0.1, 0.5), (1.5, 0.6)]
+
+    def member(k: int, t: float) -> tuple[float, float]:
+        cx, cz = centre(t)
+        return cx + offsets[k][0], cz + offsets[k][1]
+
+    def hidden_member(t: float) -> tuple[float, float]:
+        x1, z1 = member(0, t)
+        z_on, cx, cz = z1 + 1.2, *centre(t)
+        x_on = x1 * z_on / z1  # on member 1's camera ray: behind it in the image
+        a = min(1.0, max(0.0, (t - 5.0) / 2.0)) - min(1.0, max(0.0, (t - 10.5) / 2.0))
+        return (1 - a) * (cx - 1.35) + a * x_on, (1 - a) * (cz + 0.3) + a * z_on
+
+    times = [0.25 * i for i in range(81)]
+    paths = [[member(k, t) for t in times] for k in range(4)] + [[hidden_member(t) for t in times]]
+    actors = [_Actor("member", style, [(t, x, z) for t, (x, z) in zip(times, path, strict=True)])
+              for style, path in zip(_GROUP_STYLES, paths, strict=True)]
+    actors.append(_Actor("distractor", _PASSER, [(2.0, 3.6, 15.0), (16.0, 3.0, 1.2)], sway_m=0.03))
+    return actors
 
 
 # ----------------------------------------------------------------------------- scene
@@ -481,7 +524,18 @@ class Scene:
 
     @property
     def target_style(self) -> PersonStyle:
-        return next(st.style for st, _ in self._actors if st.role == "target")
+        """The target's clothes; in a group scene (no single target) the first member's."""
+        return next(st.style for st, _ in self._actors if st.role in ("target", "member"))
+
+    def group_truth_m(self, t_s: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """Ground truth of a group scene at ``t_s``: (centre (2,), members (N, 2)) on the floor in the robot
+        frame (x forward, y left, metres from the camera); None when the scene has no group member in view."""
+        x_cam = self._ego(t_s)[0]
+        members = [a.position(t_s) for a, _ in self._actors if a.role == "member"]
+        pts = np.array([(z, -(x - x_cam)) for x, z in (m for m in members if m is not None)]).reshape(-1, 2)
+        if not len(pts):
+            return None
+        return pts.mean(axis=0), pts
 
     def __len__(self) -> int:
         return self.n_frames

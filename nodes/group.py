@@ -1,0 +1,103 @@
+"""group: the group-target tracker of seed 004 (ME-CGT-UGV, :mod:`followbus.tracking.group`) on the bus.
+
+Each frame's ground points (odometry frame, groundplane node) go through one tracker step: DBSCAN
+initialisation, data selection against the predicted multi-ellipse shape, the variational-Bayes shape and
+group-centre Kalman update. The node publishes the group centre, velocity, main orientation, the ellipses,
+which points were taken as members and which were left out, and the centre in the robot frame at that
+frame's pose (what motor follows). ``step_ms`` is the tracker's cost on that frame; ``status`` reports its
+mean and worst.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from followbus.bus.node import Node, ParamError
+from followbus.bus.schemas import GroundPoints, GroupState, Message
+from followbus.nodes.common import split_params
+from followbus.tracking.groundplane import to_robot_frame
+from followbus.tracking.group import GroupParams, MultiEllipseGroupTracker, SingleEllipseGroupTracker
+
+
+@dataclass
+class GroupNodeParams:
+    shape: str = "multi"  # multi: ME-CGT-UGV | single: one ellipse (RM-CGT-UGV), the ablation
+
+
+class Group(Node):
+    INPUTS = {"points": GroundPoints}
+    REQUIRED_INPUTS = frozenset({"points"})
+    OUTPUTS = {"group": GroupState}
+
+    @classmethod
+    def params_classes(cls) -> tuple[type, ...]:
+        return (GroupNodeParams, GroupParams)
+
+    @classmethod
+    def parse_params(cls, raw: dict[str, Any]) -> tuple[GroupNodeParams, GroupParams]:
+        node, group = split_params(raw, *cls.params_classes())
+        if node.shape not in ("multi", "single"):
+            raise ParamError("shape", f"shape must be 'multi' or 'single', not {node.shape!r}")
+        if group.n_ellipses < 1 or group.dbscan_min_samples < 1:
+            raise ParamError("n_ellipses", "n_ellipses and dbscan_min_samples must be >= 1")
+        return node, group
+
+    def setup(self) -> None:
+        node, group = self.params
+        self.tracker = (MultiEllipseGroupTracker if node.shape == "multi" else SingleEllipseGroupTracker)(group)
+        self.frames = 0
+        self.valid_frames = 0
+        self.step_ms_total = 0.0
+        self.step_ms_max = 0.0
+        self.rejected = 0  # estimates that came out non-finite (dropped, the tracker restarts)
+
+    def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
+        msg = inputs["points"]
+        assert isinstance(msg, GroundPoints)
+        t0 = time.perf_counter()
+        est = self.tracker.step(msg.header.stamp_ns * 1e-9, msg.points_m, msg.covs_m2)
+        step_ms = (time.perf_counter() - t0) * 1e3
+        self.frames += 1
+        self.step_ms_total += step_ms
+        self.step_ms_max = max(self.step_ms_max, step_ms)
+        out = GroupState(step_ms=step_ms)
+        pts = msg.points_m
+        selected = est.selected if len(est.selected) == len(pts) else np.zeros(len(pts), dtype=bool)
+        if est.valid:
+            numbers = [est.centre_m, est.velocity_mps, np.array([est.orientation_rad])]
+            numbers += [np.concatenate([e.centre_m, e.extent_m2.ravel(), [e.weight]]) for e in est.ellipses]
+            if not all(np.isfinite(a).all() for a in numbers):
+                self.rejected += 1
+                self.log.warning("the group estimate is not finite; restarting the tracker")
+                self.tracker = type(self.tracker)(self.tracker.p)
+            else:
+                self.valid_frames += 1
+                out.valid, out.lost = True, bool(est.lost)
+                out.centre_m = np.asarray(est.centre_m, dtype=np.float64)
+                out.velocity_mps = np.asarray(est.velocity_mps, dtype=np.float64)
+                out.orientation_rad = float(est.orientation_rad)
+                out.centre_robot_m = to_robot_frame(out.centre_m, msg.robot_x_m, msg.robot_y_m,
+                                                    msg.robot_theta_rad)[0]
+                out.ellipse_centres_m = np.array([e.centre_m for e in est.ellipses], dtype=np.float64).reshape(-1, 2)
+                out.ellipse_extents_m2 = np.array([e.extent_m2 for e in est.ellipses],
+                                                  dtype=np.float64).reshape(-1, 2, 2)
+                out.ellipse_weights = np.clip(np.array([e.weight for e in est.ellipses], dtype=np.float64), 0, 1)
+        out.members_m = pts[selected].reshape(-1, 2)
+        out.others_m = pts[~selected].reshape(-1, 2)
+        self.publish("group", out, like=msg)
+
+    def status_extra(self) -> dict[str, Any]:
+        mean = self.step_ms_total / self.frames if self.frames else 0.0
+        return {"frames": self.frames, "valid_frames": self.valid_frames, "rejected": self.rejected,
+                "step_ms_mean": round(mean, 3), "step_ms_max": round(self.step_ms_max, 3),
+                "components": self.tracker.n_components if self.tracker.initialised else 0,
+                "orientation_deg": None if not self.tracker.initialised
+                else round(math.degrees(self.tracker.estimate().orientation_rad), 1)}
+
+
+NODE = Group
