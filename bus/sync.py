@@ -3,8 +3,8 @@
 
 **Frame sets.** The same-frame inputs (``offset = 0``) of one frame_seq form a set. A set is emitted
 when every input is present; after ``timeout_ns`` it is emitted without its missing *optional* inputs,
-or dropped if a required one is missing. Sets are emitted in frame order; an incomplete set is dropped
-as soon as a newer set has all its same-frame inputs.
+or dropped if a required one is missing (wherever it stands in frame order). Sets are emitted in frame
+order; an incomplete set is dropped as soon as a newer set has all its same-frame inputs.
 
 **Feedback.** A feedback input (``offset = -1``) contributes to frame k's set the message of the
 *previous frame this node handled* (k-1 when no frame was skipped upstream): the re-ID of frame k
@@ -252,6 +252,15 @@ class FrameSynchronizer:
         newest_complete = max((s.stamp_ns for s in self._slots.values()
                                if s.stamp_ns is not None and not self._missing_same_frame(s)), default=None)
         behind = False  # a set was skipped for lag: waiting any longer for feedback only adds to it
+        # A set still without a required input at its deadline is dropped wherever it stands, not only once it
+        # is first in line: a set waiting for its feedback must not shield sets numbered ahead of the stream
+        # that will never complete (a flood): they would fill the table, and the overflow would evict the
+        # stream's own sets (the oldest numbers) before their wait ends, until its numbering caught up.
+        for seq in [s for s, slot in self._slots.items()
+                    if self._missing_required(slot) and now_ns >= self._deadline(slot)]:
+            del self._slots[seq]
+            self._skipped.discard(seq)
+            self.dropped += 1
         for seq in sorted(self._slots):
             slot = self._slots[seq]
             if seq in self._skipped:
@@ -307,6 +316,9 @@ class FrameSynchronizer:
     def _deadline(self, slot: _Slot) -> int:
         # A set cannot be handled before its predecessor went out, so its wait starts then.
         return max(slot.first_ns, self._last_emit_ns) + self.timeout_ns
+
+    def _missing_required(self, slot: _Slot) -> bool:
+        return any(name not in slot.msgs for name, spec in self.inputs.items() if not spec.offset and not spec.optional)
 
     def _missing_same_frame(self, slot: _Slot) -> bool:
         return any(name not in slot.msgs for name, spec in self.inputs.items() if not spec.offset)

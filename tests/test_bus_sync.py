@@ -186,3 +186,41 @@ def test_waiting_for_feedback_ends_when_the_node_falls_behind():
     # Frame 1 is more than 100 ms behind frame 5: skipped; 2..5 go on at once, long before the 1 s timeout.
     assert [s for s, _ in sync.poll(5 * 33 * MS)] == [2, 3, 4, 5]
     assert sync.late == 1 and sync.feedback_lost
+
+
+
+
+def test_sets_ahead_of_the_stream_expire_while_an_older_set_waits_for_feedback():
+    """Issue 14 (bench chaos flood: re-ID silent for ~8 s). A flood of frames numbered ahead of the camera
+    leaves sets that can never complete in time (frame only: no detections or prior for them). They must
+    expire on their own even while an older set waits for a lost feedback: if they do not, they fill the
+    pending table, the overflow evicts the camera's sets (the lowest numbers) before their wait ends, and
+    nothing is handled until the camera's numbering catches up with the flood's."""
+    inputs = [SyncInput("frame"), SyncInput("dets"), SyncInput("prior"), SyncInput("template", -1, optional=True)]
+    sync = FrameSynchronizer(inputs, 300 * MS, max_pending=64, max_lag_ns=150 * MS)
+    period, handled = 33 * MS, []
+
+    def offer(seq: int, t: int, names: tuple[str, ...]) -> None:
+        for name in names:
+            sync.add(name, seq, f"{name}{seq}", t, stamp_ns=t)
+        handled.extend(s for s, _ in sync.poll(t))
+
+    for seq in range(5):  # steady state: each frame joins the template learnt on the one before
+        offer(seq, seq * period, ("frame", "dets", "prior"))
+        if seq < 4:
+            sync.add("template", seq, f"t{seq}", seq * period + MS)
+    assert handled == [0, 1, 2, 3, 4]
+    # From t0, 300 frames 5..304 flood in 5 ms apart. The camera goes on every 33 ms, its detections and
+    # priors only after the flood (the detector was swamped), and the template of frame 4 never comes (its
+    # producer was flooded too).
+    t0, flood_end = 5 * period, 5 * period + 299 * 5 * MS
+    events = [(t0 + i * 5 * MS, 5 + i, ("frame",)) for i in range(300)]
+    events += [(seq * period, seq, ("frame", "dets", "prior") if seq * period > flood_end else ("frame",))
+               for seq in range(5, 120)]
+    for t, seq, names in sorted(events):
+        offer(seq, t, names)
+    resumed = [seq for seq in handled if seq * period > flood_end]
+    assert resumed, sync.counters()
+    # Handled again within a timeout and a lag bound of the flood's end, not when the numbering catches up.
+    assert resumed[0] * period <= flood_end + (300 + 150) * MS + period, (handled, sync.counters())
+    assert handled[-1] == 119 and sync.pending == 0
