@@ -804,7 +804,7 @@ def _faults() -> dict[str, Fault]:
 FAULTS: dict[str, Fault] = _faults()
 ALIASES = {"capture-restart": "kill-capture", "burners-2": "burners"}
 CI_FAULTS = ("future-stamp-track", "future-seq-frame", "future-seq-detections", "nan-measurement", "kill-capture",
-             "kill-reid", "malformed")
+             "kill-reid", "malformed", "flood")
 
 
 def resolve_faults(spec: str | None, *, record: bool, detector: str) -> list[Fault]:
