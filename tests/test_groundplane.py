@@ -11,6 +11,7 @@ from followbus.tracking.groundplane import (
     CameraGeometry,
     GroundPlaneParams,
     boxes_to_ground,
+    floor_to_image,
     to_odometry_frame,
     to_robot_frame,
 )
@@ -48,6 +49,19 @@ def test_tilted_camera():
     assert out.points_m[0, 0] == pytest.approx(3.0, abs=1e-9)
     # u = 320 (box centre) is straight ahead.
     assert out.points_m[0, 1] == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 12.0])
+def test_floor_to_image_inverts_the_foot_projection(tilt_deg):
+    """The web view draws floor shapes into the video: a floor point goes to the pixel whose foot row and
+    column project back onto it; a point behind the camera has no pixel."""
+    cam = CameraGeometry(focal_px=500, cx_px=320, cy_px=200, camera_height_m=1.2,
+                         camera_tilt_rad=math.radians(tilt_deg), camera_forward_m=0.3)
+    floor = np.array([[2.5, 0.4], [4.0, -1.1], [9.0, 2.0]])
+    uv = floor_to_image(floor, cam)
+    boxes = np.array([[u - 20, v - 120, 40.0, 120.0, 0.9] for u, v in uv])  # foot at (u, v)
+    np.testing.assert_allclose(boxes_to_ground(boxes, cam, GroundPlaneParams()).points_m, floor, atol=1e-9)
+    assert np.isnan(floor_to_image(np.array([[-1.0, 0.0]]), cam)).all()
 
 
 def test_width_based_range_is_seed_001_eq_1():

@@ -1,21 +1,31 @@
 """The web view as an operator's screen: who may open it (token rule, real HTTP on loopback), what it says
 (waiting / source ended / robot unreachable, labelled health rows), and the page in headless Chromium against
-a real capture node. The live two-column page and the README screenshot: tests/test_monitor.py."""
+a real capture node; with the group graph (seed 004) running, the group's ellipses drawn top down and in the
+video (docs/webview-group.png). The live two-column page and the README screenshot: tests/test_monitor.py."""
 
 from __future__ import annotations
 
+import html
 import http.client
 import json
+import math
+import re
 import socket
 import subprocess
 import threading
 
+import cv2
+import numpy as np
 import pytest
 
+from followbus.bus.schemas import GroundPoints, GroupState
+from followbus.tools.monitor import GraphInfo, _group_line, group_view
 from followbus.tools.webview import health_rows, is_loopback_bind, screen_state, web_token
+from followbus.tracking.groundplane import floor_to_image, to_odometry_frame
 
-from .chromium import element_text, have_chromium, page_layout, render_dom, require_chromium
+from .chromium import element_text, have_chromium, page_layout, render_dom, require_chromium, screenshot
 from .conftest import REPO, followbus_argv, free_port, wait_until
+from .test_graph_group import _graph_copies
 from .test_monitor import Launch, _interrupt, robot_graph
 
 TOKEN = "s3cret-token-for-tests"
@@ -261,6 +271,8 @@ def test_page_says_unreachable_then_waiting_then_source_ended(tmp_path):
             dom = render_dom(url, tmp_path, budget_ms=2000)
             assert element_text(dom, "banner") == ("ended", "source ended after 12 frames; last frame shown")
             assert element_text(dom, "frames")[1] == "frames: 1 (seq 11)"  # drawn once, not redrawn per poll
+            # No group on the bus: the person view only, the group panel stays hidden.
+            assert re.search(r'<div id="groundbox" hidden', dom) and page_layout(dom)["ground"]["bottom"] == 0
     finally:
         if consumer is not None:
             _interrupt(consumer)
@@ -269,3 +281,99 @@ def test_page_says_unreachable_then_waiting_then_source_ended(tmp_path):
         _interrupt(proc)
     if not browser:
         require_chromium()  # the states held over HTTP; say that the page itself was not rendered
+
+
+def test_group_view_puts_the_odometry_frame_state_in_the_robot_frame():
+    """GroupState is in the odometry frame; the view places it around the robot with the pose of the same
+    frame's ground points (inverse of seed 004 Eq. 4), and projects the floor shapes into the image."""
+    info = GraphInfo.load(str(REPO / "graph.group.yaml"))
+    assert info.keys["group"] == "fb/group/group" and info.keys["points"] == "fb/groundplane/points"
+    assert info.camera is not None and info.camera.focal_px == 512.0 and info.camera.camera_height_m == 1.1
+    assert GraphInfo.load(str(REPO / "graph.yaml")).camera is None  # the person graph: nothing to project
+
+    pose = (1.5, -0.4, math.radians(30))
+    robot_pts = np.array([[3.0, 0.5], [3.4, -0.6], [4.1, 0.1], [2.5, -2.5]])
+    odom_pts, _ = to_odometry_frame(robot_pts, np.zeros((4, 2, 2)), *pose)
+    extent_robot = np.array([[0.5, 0.2], [0.2, 0.3]])
+    rot = np.array([[math.cos(pose[2]), -math.sin(pose[2])], [math.sin(pose[2]), math.cos(pose[2])]])
+    group = GroupState(valid=True, centre_m=odom_pts[:3].mean(axis=0), velocity_mps=np.array([0.3, 0.4]),
+                       centre_robot_m=robot_pts[:3].mean(axis=0), ellipse_centres_m=odom_pts[:2],
+                       ellipse_extents_m2=np.stack([rot @ extent_robot @ rot.T] * 2),
+                       ellipse_weights=np.array([.6, .4]),
+                       members_m=odom_pts[:3], others_m=odom_pts[3:], orientation_rad=pose[2] + 0.2)
+    group.header.frame_seq = 7
+    points = GroundPoints(points_robot_m=robot_pts, points_m=odom_pts)
+    view = group_view(group, pose, points, info.camera)
+    assert view["posed"] and view["members"] == 3 and view["others"] == 1 and view["speed_mps"] == 0.5
+    np.testing.assert_allclose([e["centre_m"] for e in view["ellipses"]], robot_pts[:2], atol=1e-3)
+    np.testing.assert_allclose(view["ellipses"][0]["extent_m2"], extent_robot, atol=1e-4)
+    np.testing.assert_allclose(view["members_robot_m"], robot_pts[:3], atol=1e-3)
+    np.testing.assert_allclose(view["others_robot_m"], robot_pts[3:], atol=1e-3)
+    assert view["orientation_robot_rad"] == pytest.approx(0.2)
+    np.testing.assert_allclose(view["centre_px"], floor_to_image(robot_pts[:3].mean(axis=0), info.camera)[0],
+                               atol=0.1)
+    # The outline in the image: the 2-sigma floor ellipse projected, around the centre's own pixel.
+    outline = np.array(view["ellipses"][0]["outline_px"], dtype=float)
+    centre_px = floor_to_image(robot_pts[:1], info.camera)[0]
+    assert outline.shape == (32, 2) and np.all(outline.min(axis=0) < centre_px) and np.all(outline.max(axis=0) >
+                                                                                            centre_px)
+    assert "3 members, 1 left out, 2 ellipses" in _group_line(view)  # the terminal dashboard's row
+    # Without the frame's pose the shape is not placed: the centre only (the group node's robot frame).
+    bare = group_view(group, None, None, info.camera)
+    assert "ellipses" not in bare and "members_robot_m" not in bare and bare["centre_robot_m"] == pytest.approx(
+        robot_pts[:3].mean(axis=0).tolist())
+    assert group_view(GroupState(), pose, None)["valid"] is False
+
+
+def _magenta(png: np.ndarray, box: dict) -> int:
+    """Pixels of the ellipses' colour (#f0f) inside a layout box of a screenshot."""
+    part = png[box["top"]:box["bottom"], box["left"]:box["right"]].astype(int)
+    b, g, r = part[..., 0], part[..., 1], part[..., 2]
+    return int(np.count_nonzero((r > 180) & (b > 180) & (g < 90)))
+
+
+@pytest.mark.slow
+def test_group_graph_page_draws_the_ellipses(tmp_path, port):
+    """graph.group.yaml for real (simulated detector, scene group-walk) and the web view in headless Chromium:
+    the top-down panel appears and draws the tracker's ellipses, members and centre, and the ellipses are on
+    the floor in the video (a pixel count of their colour in a screenshot, which is the README's picture)."""
+    graph = _graph_copies(tmp_path, port)
+    web_port = free_port()
+    launch = Launch(graph, "--set", "detection.backend=simulated", "--set", "capture.loop=true")
+    proc = None
+    try:
+        launch.wait_ready()
+        proc, lines = _web_view(web_port, "--graph", str(graph))
+
+        def group() -> dict:
+            try:
+                return json.loads(_request(web_port, "/state.json")[2]).get("group") or {}
+            except (OSError, ValueError):
+                return {}
+
+        # Past the first seconds, when the shape has settled: several people, ellipses placed with the pose.
+        assert wait_until(lambda: group().get("frame_seq", 0) > 90 and len(group().get("ellipses", [])) >= 1
+                          and group().get("members", 0) >= 3, 40), (group(), "".join(launch.lines[-20:]))
+        require_chromium()
+        window = "1280,1000"
+        dom = render_dom(f"http://127.0.0.1:{web_port}/", tmp_path, budget_ms=3000, window=window)
+        assert '<div id="groundbox">' in dom, dom[:3000]  # shown (not hidden) with a group on the bus
+        drawn = json.loads(html.unescape(re.search(r'id="ground"[^>]*data-drawn="([^"]*)"', dom).group(1)))
+        assert drawn["ellipses"] >= 1 and drawn["members"] >= 3, drawn
+        assert element_text(dom, "state")[1].startswith("group frame "), element_text(dom, "state")
+        layout = page_layout(dom)
+        ground, video = layout["ground"], layout["video"]
+        assert ground["top"] >= video["bottom"] and ground["bottom"] <= 1000, layout
+        shot = REPO / "docs" / "webview-group.png"
+        assert screenshot(f"http://127.0.0.1:{web_port}/", shot, tmp_path, budget_ms=3000, window=window) == (
+            1280, 1000)
+        png = cv2.imread(str(shot))
+        # The ellipses' colour appears in the panel and in the video, and nowhere else on the page.
+        in_panel, in_video = _magenta(png, ground), _magenta(png, video)
+        everywhere = _magenta(png, {"top": 0, "bottom": 1000, "left": 0, "right": 1280})
+        assert in_panel > 100 and in_video > 50, (in_panel, in_video)
+        assert everywhere - in_panel - in_video < 20, (everywhere, in_panel, in_video)
+    finally:
+        if proc is not None:
+            _interrupt(proc)
+        launch.stop()

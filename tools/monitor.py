@@ -2,6 +2,7 @@
 
 :class:`BusMonitor` joins the robot's bus as a Zenoh *client* and keeps the latest state: node health from
 liveliness tokens and NodeStatus, the target (Track/Prior/Measurement), eta_k (Template), the motor command,
+the followed group of a group graph (GroupState, placed with the pose of its frame's GroundPoints),
 and one minute of history (eta_k, end-to-end latency, centre error against ground truth). It only ever
 subscribes, never to raw frames, and its callbacks only copy small objects under a lock, so the robot never
 waits on the laptop. When the robot disappears it says since when, and it reopens the session until the robot
@@ -19,7 +20,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,9 @@ from followbus.bus.health import HealthWatcher
 from followbus.bus.pubsub import direct_callback, payload_bytes
 from followbus.bus.schemas import (
     Frame,
+    GroundPoints,
     GroundTruth,
+    GroupState,
     Measurement,
     Message,
     MotorCommand,
@@ -46,6 +49,7 @@ from followbus.bus.schemas import (
     decode,
 )
 from followbus.bus.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
+from followbus.tracking.groundplane import CameraGeometry, floor_to_image, rotation, to_robot_frame
 
 log = logging.getLogger("followbus.monitor")
 
@@ -54,10 +58,13 @@ REOPEN_AFTER_S = 5.0  # unreachable this long: close the session and open a fres
 # Which output carries what, and the node that publishes it in graph.yaml (overridden from --graph).
 WATCHED = {"track": ("prediction", Track), "prior": ("prediction", Prior), "measurement": ("reid", Measurement),
            "template": ("template", Template), "command": ("motor", MotorCommand),
-           "ground_truth": ("capture", GroundTruth)}
+           "ground_truth": ("capture", GroundTruth),
+           # group following (graph.group.yaml, seed 004): absent in the person graph, then nothing is shown
+           "group": ("group", GroupState), "points": ("groundplane", GroundPoints)}
 PREVIEW = ("capture", "preview")
 DEFAULT_SOURCE_WIDTH = 640
 RATE_SETTLE_S = 2.0
+GROUP_SIGMA = 2.0  # the web view draws each group ellipse at 2 standard deviations of its extent (~86 % of members)
 SEPARATOR = "=" * 72  # between snapshots when stdout is not a terminal
 
 
@@ -111,6 +118,7 @@ class GraphInfo:
     keys: dict[str, str] = field(default_factory=dict)  # watched output name -> bus key
     preview_key: str = ""
     source_width: int = DEFAULT_SOURCE_WIDTH
+    camera: CameraGeometry | None = None  # the groundplane node's camera: group shapes drawn into the video
 
     @classmethod
     def load(cls, graph_path: str | None, namespace: str | None = None) -> GraphInfo:
@@ -134,11 +142,22 @@ class GraphInfo:
                 width = (spec.params or {}).get("image_width_px")
                 if isinstance(width, (int, float)) and width > 0:
                     info.source_width = int(width)
+                if "points" in outputs:
+                    info.camera = _camera(spec.params or {})
         if namespace:
             info.namespace = namespace
         info.keys = {out: f"{info.namespace}/{node}/{out}" for out, node in owners.items()}
         info.preview_key = f"{info.namespace}/{preview_owner}/preview"
         return info
+
+
+def _camera(params: dict[str, Any]) -> CameraGeometry | None:
+    known = {f.name for f in fields(CameraGeometry)}
+    try:
+        return CameraGeometry(**{k: v for k, v in params.items() if k in known})
+    except (TypeError, ValueError) as exc:  # the node itself will refuse it; the view just draws no projection
+        log.warning("groundplane camera not usable for the video overlay: %s", exc)
+        return None
 
 
 @dataclass
@@ -166,6 +185,62 @@ def _box(value: Any) -> list[float] | None:
 def _centre(box: Any) -> tuple[float, float]:
     b = np.asarray(box, dtype=float).reshape(-1)
     return float(b[0] + b[2] / 2), float(b[1] + b[3] / 2)
+
+
+def _rounded(a: Any, nd: int = 3) -> list:
+    return np.round(np.asarray(a, dtype=float), nd).tolist()
+
+
+
+def _ellipse_outline(centre: np.ndarray, extent: np.ndarray, n: int = 32) -> np.ndarray:
+    """GROUP_SIGMA times the extent's standard ellipse {c + L u : |u| = 1}, L Lᵀ = extent, as n floor points."""
+    w, v = np.linalg.eigh(0.5 * (extent + extent.T))
+    axes = v * (GROUP_SIGMA * np.sqrt(np.clip(w, 0.0, None)))
+    t = np.linspace(0.0, 2 * math.pi, n)
+    return centre + np.stack([np.cos(t), np.sin(t)], axis=1) @ axes.T
+
+
+def _pixels(points_m: np.ndarray, camera: CameraGeometry | None) -> list | None:
+    if camera is None:
+        return None
+    uv = floor_to_image(points_m, camera)
+    return [None if not np.isfinite(p).all() else [round(float(p[0]), 1), round(float(p[1]), 1)] for p in uv]
+
+
+def group_view(group: GroupState, pose: tuple[float, float, float] | None, points: GroundPoints | None,
+               camera: CameraGeometry | None = None) -> dict[str, Any]:
+    """The followed group in the robot frame (x forward, y left; the robot at the origin), for the web view,
+    and with ``camera`` (the groundplane node's geometry) its floor shapes in image pixels too.
+
+    GroupState is in the odometry frame; the pose of the same frame's GroundPoints (by frame_seq) takes it into
+    the robot frame (inverse of seed 004 Eq. 4: p_r = Rᵀ(p − t), extents Rᵀ X R). Without that pose (its points
+    not received) the shape is not placed: only the centre, which the group node gives in the robot frame."""
+    out: dict[str, Any] = {"frame_seq": group.header.frame_seq, "valid": bool(group.valid), "lost": bool(group.lost),
+                           "step_ms": round(float(group.step_ms), 2), "posed": pose is not None,
+                           "sigma": GROUP_SIGMA}
+    if points is not None:  # the latest detections on the floor, whatever the tracker made of them
+        out["points"] = {"frame_seq": points.header.frame_seq, "robot_m": _rounded(points.points_robot_m)}
+    if not group.valid:
+        return out
+    centre = np.asarray(group.centre_robot_m, dtype=float).reshape(2)
+    out.update(centre_robot_m=_rounded(centre), speed_mps=round(float(np.hypot(*group.velocity_mps)), 3),
+               members=int(len(group.members_m)), others=int(len(group.others_m)))
+    out["centre_px"] = (_pixels(centre, camera) or [None])[0]
+    if pose is None:
+        return out
+    x, y, theta = pose
+    rot = rotation(theta)
+    ellipses = []
+    for m, ext, w in zip(group.ellipse_centres_m, group.ellipse_extents_m2, group.ellipse_weights, strict=True):
+        c_r, ext_r = to_robot_frame(m, x, y, theta)[0], rot.T @ ext @ rot
+        ellipses.append({"centre_m": _rounded(c_r), "extent_m2": _rounded(ext_r, 4), "weight": round(float(w), 4),
+                         "outline_px": _pixels(_ellipse_outline(c_r, ext_r), camera)})
+    out["ellipses"] = ellipses
+    out["members_robot_m"] = _rounded(to_robot_frame(group.members_m, x, y, theta))
+    out["others_robot_m"] = _rounded(to_robot_frame(group.others_m, x, y, theta))
+    out["members_px"] = _pixels(to_robot_frame(group.members_m, x, y, theta), camera)
+    out["orientation_robot_rad"] = round(float(group.orientation_rad - theta), 4)
+    return out
 
 
 class BusMonitor:
@@ -197,6 +272,7 @@ class BusMonitor:
         self.last_error = ""
         self._tracks: dict[int, Track] = {}
         self._truth: dict[int, GroundTruth] = {}
+        self._poses: dict[int, tuple[float, float, float]] = {}  # frame_seq -> robot pose of that frame's points
         self.history: dict[str, deque[tuple[float, float]]] = {
             "eta": deque(maxlen=4000), "latency_ms": deque(maxlen=4000), "centre_error_px": deque(maxlen=4000)}
         self._session: zenoh.Session | None = None
@@ -328,7 +404,9 @@ class BusMonitor:
             elif isinstance(msg, GroundTruth) and msg.available:
                 self._truth[msg.header.frame_seq] = msg
                 self._centre_error(msg.header.frame_seq, now)
-            for cache in (self._tracks, self._truth):
+            elif isinstance(msg, GroundPoints):
+                self._poses[msg.header.frame_seq] = (msg.robot_x_m, msg.robot_y_m, msg.robot_theta_rad)
+            for cache in (self._tracks, self._truth, self._poses):
                 while len(cache) > 256:
                     cache.pop(next(iter(cache)))
             self._trim(now)
@@ -434,6 +512,11 @@ class BusMonitor:
                                   "reason": command.reason, "frame_seq": command.header.frame_seq,
                                   "latency_ms": ((command.header.pub_ns - command.header.stamp_ns) / 1e6
                                                  if command.header.stamp_ns > 0 else None)}
+            group = self.latest.get("group")
+            if isinstance(group, GroupState):
+                points = self.latest.get("points")
+                out["group"] = group_view(group, self._poses.get(group.header.frame_seq),
+                                          points if isinstance(points, GroundPoints) else None, self.info.camera)
             err = self.history["centre_error_px"]
             out["centre_error_px"] = err[-1][1] if err else None
             if self.preview is not None:
@@ -477,6 +560,15 @@ def _table(columns: list[str], rows: list[list[str | Text]]) -> Table:
     return table
 
 
+def _group_line(group: dict[str, Any]) -> str:
+    if not group.get("valid"):
+        return f"(no group yet)  frame {group['frame_seq']}"
+    fwd, left = group["centre_robot_m"]
+    return (f"{'LOST ' if group['lost'] else ''}{group['members']} members, {group['others']} left out, "
+            f"{len(group.get('ellipses', []))} ellipses  centre {fwd:.2f} m ahead {left:+.2f} m left  "
+            f"{group['speed_mps']:.2f} m/s  step {group['step_ms']:.1f} ms  frame {group['frame_seq']}")
+
+
 def render(snap: dict[str, Any]) -> Group:
     """The dashboard: a status line, node health, per-topic statistics, the target and the motor command."""
     if snap["connected"]:
@@ -506,6 +598,9 @@ def render(snap: dict[str, Any]) -> Group:
         ["motor", f"vx {cmd['vx_mps']:+.2f} m/s  vy {cmd['vy_mps']:+.2f} m/s  wz {cmd['wz_radps']:+.2f} rad/s  "
                   f"[{cmd['reason']}]  capture->command {_num(cmd['latency_ms'])} ms" if cmd else "(no command yet)"],
     ]
+    group = snap.get("group")
+    if group:  # group following (graph.group.yaml)
+        state.insert(0, ["group", _group_line(group)])
     if snap["decode_errors"]:
         state.append(["monitor", Text(f"{snap['decode_errors']} decode errors", "red")])
     return Group(head, "", _table(["node", "state", "for s", "restarts", "pid", "uptime s", "errs", "check"], nodes),

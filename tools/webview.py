@@ -9,6 +9,9 @@ slow a browser or the Wi-Fi is, nothing flows back to the robot. Each browser fe
 The page: video with overlays on the left, state, plots and the health table (a row per topic, labelled
 columns) on the right at laptop width, one column on narrow screens; a banner over the video says what the
 operator is looking at: waiting for the first frame, source ended, no new frame (frozen), robot unreachable.
+With a group graph on the bus (graph.group.yaml: group/group GroupState, groundplane/points) the page adds
+a top-down panel of the group in the robot frame (ellipses, members, disturbers, centre) and draws the
+ellipses on the floor in the video; without one the person view is all there is.
 
 Access: a loopback bind is open. Any other bind requires a token (``--web-token`` or a generated one printed
 once at start as a ``?token=`` URL), checked on every request; the first visit with ``?token=`` sets a cookie.
@@ -369,6 +372,7 @@ table{border-collapse:collapse;font-size:12px;width:100%}
 td,th{border-bottom:1px solid #333;padding:2px 6px;text-align:right;vertical-align:top}
 th{color:#aaa;font-weight:normal} td.l,th.l{text-align:left} tr.first td{border-top:1px solid #555}
 td.topic{white-space:nowrap}
+#ground{display:block;width:100%;height:320px;background:#1a1a1a;border:1px solid #333}
 .up{color:#6c6} .down{color:#e55} .dir{color:#888} .na{color:#555}
 </style></head><body>
 <header><h1>followbus monitor</h1><span id="screen" data-state="waiting">waiting for the monitor's first state</span>
@@ -381,6 +385,12 @@ td.topic{white-space:nowrap}
   <p class="legend">green: target box, cyan: gate ellipse (prior, chi2), yellow: candidates (score).
    Boxes are scaled by preview width / source width (<span id="srcw">source width not known yet</span>;
    override with ?source_width=N).</p>
+  <div id="groundbox" hidden><canvas id="ground" width="640" height="320"></canvas>
+   <p class="legend">The followed group (seed 004), top down in the robot frame: the robot at the bottom
+    facing up, rings every metre. Magenta: the tracker's ellipses at <span id="gsigma">2</span> standard
+    deviations of each sub-target's extent (weight %), also drawn on the floor in the video; green: members;
+    red: points left out (disturbers); grey: this frame's detections on the floor; white cross: the group
+    centre the motor follows.</p></div>
  </section>
  <section id="right">
   <div id="state">no state yet: target, eta_k and motor command appear here</div>
@@ -411,7 +421,8 @@ function box(el) { const r = el.getBoundingClientRect();
 function probe() {
   // Where things ended up, for tests and for anyone debugging the layout from the DOM alone.
   document.body.dataset.layout = JSON.stringify({width: innerWidth, video: box(document.getElementById("video")),
-    health: box(document.getElementById("nodes")), state: box(document.getElementById("state"))});
+    health: box(document.getElementById("nodes")), state: box(document.getElementById("state")),
+    ground: box(document.getElementById("ground"))});
 }
 
 function setScreen(code, text) {
@@ -446,9 +457,91 @@ function drawOverlay() {
                 0, 2 * Math.PI);
     ctx.stroke();
   }
+  const g = state.group;
+  if (g && g.valid) {
+    // The group's floor shapes projected through the groundplane camera (source pixels, scaled like boxes).
+    ctx.strokeStyle = GROUP_COLOUR; ctx.lineWidth = 2;
+    for (const e of g.ellipses || []) {
+      if (!e.outline_px) continue;
+      ctx.beginPath(); let pen = false;
+      for (const q of e.outline_px) {
+        if (!q) { pen = false; continue; }
+        if (pen) ctx.lineTo(q[0]*s, q[1]*s); else ctx.moveTo(q[0]*s, q[1]*s);
+        pen = true;
+      }
+      ctx.stroke();
+    }
+    ctx.fillStyle = "#3e3";
+    for (const q of g.members_px || []) if (q) { ctx.beginPath(); ctx.arc(q[0]*s, q[1]*s, 3, 0, 2*Math.PI);
+      ctx.fill(); }
+    if (g.centre_px) cross(ctx, g.centre_px[0]*s, g.centre_px[1]*s, 7);
+    ctx.lineWidth = 1;
+  }
   const t = state.target;
   if (t && t.box) { ctx.strokeStyle = "#3e3"; ctx.lineWidth = 2;
     ctx.strokeRect(t.box[0]*s, t.box[1]*s, t.box[2]*s, t.box[3]*s); ctx.lineWidth = 1; }
+}
+
+const GROUP_COLOUR = "#f0f";
+
+function cross(g, x, y, r) {
+  g.strokeStyle = "#fff"; g.lineWidth = 2; g.beginPath();
+  g.moveTo(x - r, y); g.lineTo(x + r, y); g.moveTo(x, y - r); g.lineTo(x, y + r); g.stroke();
+  g.beginPath(); g.arc(x, y, r * 0.7, 0, 2 * Math.PI); g.stroke(); g.lineWidth = 1;
+}
+
+function outline(e, sigma) {
+  // sigma * the extent's standard ellipse: c + sigma (sqrt(l1) cos t e1 + sqrt(l2) sin t e2), robot frame.
+  const [[a, b], [, d]] = e.extent_m2, m = (a + d) / 2, r = Math.sqrt(Math.max(((a - d) / 2) ** 2 + b * b, 0));
+  const l1 = m + r, l2 = Math.max(m - r, 0), ang = 0.5 * Math.atan2(2 * b, a - d);
+  const e1 = [Math.cos(ang), Math.sin(ang)], e2 = [-Math.sin(ang), Math.cos(ang)], pts = [];
+  for (let i = 0; i <= 48; i++) { const t = i / 48 * 2 * Math.PI;
+    const u = sigma * Math.sqrt(l1) * Math.cos(t), v = sigma * Math.sqrt(l2) * Math.sin(t);
+    pts.push([e.centre_m[0] + u * e1[0] + v * e2[0], e.centre_m[1] + u * e1[1] + v * e2[1]]); }
+  return pts;
+}
+
+function drawGround(g) {
+  // Top-down robot frame (x forward = up, y left = left), the robot at the bottom centre.
+  const c = document.getElementById("ground");
+  if (c.width !== c.clientWidth || c.height !== c.clientHeight) { c.width = c.clientWidth; c.height = c.clientHeight; }
+  const k = c.getContext("2d"), W = c.width, H = c.height;
+  k.clearRect(0, 0, W, H); k.fillStyle = "#1a1a1a"; k.fillRect(0, 0, W, H);
+  const ells = (g.valid && g.ellipses) || [], shapes = ells.map(e => outline(e, g.sigma));
+  const pts = [].concat(...shapes, (g.points && g.points.robot_m) || [], g.members_robot_m || [],
+                        g.others_robot_m || [], g.valid ? [g.centre_robot_m] : []);
+  const far = Math.min(25, Math.max(6, ...pts.map(p => p[0] + 1)));
+  const side = Math.max(3, ...pts.map(p => Math.abs(p[1]) + 1));
+  const ppm = Math.min((H - 28) / far, (W / 2 - 8) / side), ox = W / 2, oy = H - 14;
+  const X = p => ox - p[1] * ppm, Y = p => oy - p[0] * ppm;
+  k.strokeStyle = "#333"; k.fillStyle = "#777"; k.font = "11px monospace";
+  for (let r = 1; r <= far; r++) { k.beginPath(); k.arc(ox, oy, r * ppm, Math.PI, 2 * Math.PI); k.stroke();
+    if (r % 2 === 0) k.fillText(`${r} m`, ox + 3, oy - r * ppm + 11); }
+  k.fillStyle = "#fff"; k.beginPath(); k.moveTo(ox, oy - 10); k.lineTo(ox - 6, oy + 6); k.lineTo(ox + 6, oy + 6);
+  k.closePath(); k.fill();
+  k.fillStyle = "#888";
+  for (const p of (g.points && g.points.robot_m) || []) { k.beginPath(); k.arc(X(p), Y(p), 5, 0, 2 * Math.PI);
+    k.fill(); }
+  k.strokeStyle = GROUP_COLOUR; k.lineWidth = 2; k.fillStyle = GROUP_COLOUR;
+  shapes.forEach((sh, i) => { k.beginPath(); sh.forEach((p, j) => j ? k.lineTo(X(p), Y(p)) : k.moveTo(X(p), Y(p)));
+    k.stroke(); const cm = ells[i].centre_m;
+    k.fillText(`${Math.round(ells[i].weight * 100)}%`, X(cm) + 4, Y(cm) - 4); });
+  k.lineWidth = 1; k.fillStyle = "#3e3";
+  for (const p of g.members_robot_m || []) { k.beginPath(); k.arc(X(p), Y(p), 3, 0, 2 * Math.PI); k.fill(); }
+  k.strokeStyle = "#e55"; k.lineWidth = 2;
+  for (const p of g.others_robot_m || []) { k.beginPath(); k.moveTo(X(p) - 4, Y(p) - 4); k.lineTo(X(p) + 4, Y(p) + 4);
+    k.moveTo(X(p) + 4, Y(p) - 4); k.lineTo(X(p) - 4, Y(p) + 4); k.stroke(); }
+  if (g.valid) {
+    const cp = g.centre_robot_m;
+    k.strokeStyle = "#aaa"; k.lineWidth = 1; k.setLineDash([4, 4]); k.beginPath(); k.moveTo(ox, oy);
+    k.lineTo(X(cp), Y(cp)); k.stroke(); k.setLineDash([]);
+    cross(k, X(cp), Y(cp), 8);
+  }
+  k.fillStyle = "#aaa";
+  k.fillText(g.valid ? `frame ${g.frame_seq}${g.lost ? " LOST (predicted)" : ""}` : "no group yet", 6, 14);
+  // What was drawn, for tests and for debugging from the DOM alone.
+  c.dataset.drawn = JSON.stringify({frame_seq: g.frame_seq, ellipses: shapes.length,
+    members: (g.members_robot_m || []).length, others: (g.others_robot_m || []).length, metres_per_px: 1 / ppm});
 }
 
 async function pollPreview() {
@@ -526,8 +619,15 @@ function render() {
   setScreen(s.screen.code, s.screen.text);
   const srcw = sourceWidth(s.preview);
   document.getElementById("srcw").textContent = srcw ? `source width ${srcw} px` : "source width not known yet";
-  const t = s.target, c = s.command;
+  const t = s.target, c = s.command, g = s.group;
+  document.getElementById("groundbox").hidden = !g;  // the person graph has no group: no panel
+  if (g) { document.getElementById("gsigma").textContent = g.sigma; drawGround(g); }
   const lines = [
+    ...(!g ? [] : !g.valid ? [`group (none yet) frame ${g.frame_seq}`] : [
+      `group ${g.lost ? "LOST " : ""}frame ${g.frame_seq}: ${g.members} members, ${g.others} left out, ` +
+        `${(g.ellipses || []).length} ellipses`,
+      `  centre ${fmt(g.centre_robot_m[0], 2)} m ahead ${fmt(g.centre_robot_m[1], 2)} m left, ` +
+        `${fmt(g.speed_mps, 2)} m/s, tracker ${fmt(g.step_ms, 1)} ms/frame`]),
     t ? `target ${t.state} frame ${t.frame_seq} box [${t.box ? t.box.map(v => v.toFixed(0)).join(", ") : "-"}]`
       : "target (no track yet)",
     `velocity ${t ? t.velocity.join(", ") : "-"} px/s  centre error ${fmt(s.centre_error_px, 1)} px`,

@@ -136,6 +136,23 @@ def boxes_to_ground(boxes: np.ndarray, cam: CameraGeometry, params: GroundPlaneP
     return GroundPoints(pts[keep], covs[keep], b[keep, 4].copy(), index)
 
 
+def floor_to_image(points_m: np.ndarray, cam: CameraGeometry) -> np.ndarray:
+    """Robot-frame floor points (N×2, m) → pixels (N×2, u right, v down); NaN where a point is not in front of
+    the camera. The inverse of the foot projection above: the point is (right, down, forward) =
+    (−left, h, fwd) in the level frame, R_θᵀ takes it into the pitched camera, then the pinhole. The web
+    view draws the group's floor shapes into the video with it."""
+    p = np.asarray(points_m, dtype=float).reshape(-1, 2)
+    fwd, left = p[:, 0] - cam.camera_forward_m, p[:, 1] - cam.camera_left_m
+    c, s = math.cos(cam.camera_tilt_rad), math.sin(cam.camera_tilt_rad)
+    h = cam.camera_height_m
+    y_c, z_c = c * h - s * fwd, s * h + c * fwd
+    front = z_c > 1e-6
+    z = np.where(front, z_c, 1.0)
+    uv = np.stack([cam.cx_px - cam.focal_px * left / z, cam.cy_px + cam.focal_px * y_c / z], axis=1)
+    uv[~front] = np.nan
+    return uv
+
+
 def to_odometry_frame(points_m: np.ndarray, covs_m2: np.ndarray, x_m: float, y_m: float, theta_rad: float
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Seed 004 Eq. 4: robot-frame points and covariances into the odometry frame, robot pose (x, y, θ)."""
