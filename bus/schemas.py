@@ -231,12 +231,27 @@ class GroupState(Message):
     step_ms: float = 0.0  # tracker cost of this frame
 
 
+@dataclass
+class CameraMotion(Message):
+    """Global image motion from the frame stamped ``from_stamp_ns`` to this one: p_k = M p_prev + t (px).
+
+    ``valid`` False: no trustworthy estimate for this frame (``reason`` says why); consumers go without."""
+
+    TYPE: ClassVar[str] = "CameraMotion"
+    valid: bool = False
+    matrix: np.ndarray = field(default_factory=lambda: np.eye(2, 3))  # 2x3 [M | t]
+    inliers: int = 0  # points consistent with the matrix
+    tracked: int = 0  # points the fit was made from
+    from_stamp_ns: int = 0
+    reason: str = ""
+
+
 SCHEMAS: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (
         Frame, GroundTruth, Detections, Prior, Measurement, Track, Template, MotorCommand, Odometry,
         NodeStatus, Tick, ReplayHint,
-        GroundPoints, GroupState,
+        GroundPoints, GroupState, CameraMotion,
     )
 }
 
@@ -390,6 +405,11 @@ def validate(msg: Message) -> Message:
     elif isinstance(msg, Prior) and (msg.state.shape != (4,) or msg.covariance.shape != (4, 4)
                                      or msg.innovation_cov.shape != (2, 2)):
         raise DecodeError(f"{where}: state, covariance or innovation covariance of the wrong shape")
+    elif isinstance(msg, CameraMotion):
+        if msg.matrix.shape != (2, 3) or not 0 <= msg.inliers <= msg.tracked:
+            raise DecodeError(f"{where}: matrix must be 2 x 3 and 0 <= inliers <= tracked")
+        if msg.valid and not 0 <= msg.from_stamp_ns < h.stamp_ns:
+            raise DecodeError(f"{where}.from_stamp_ns: {msg.from_stamp_ns} is not before the frame's stamp")
     elif isinstance(msg, GroundPoints):
         n = len(msg.points_m)
         if (msg.points_m.shape != (n, 2) or msg.points_robot_m.shape != (n, 2) or msg.covs_m2.shape != (n, 2, 2)

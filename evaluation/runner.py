@@ -39,6 +39,9 @@ ABLATIONS: dict[str, dict[str, bool]] = {
     "followbus w/o gate": {"use_gate": False},
     "followbus w/o update suspension": {"suspend_updates": False},
     "followbus w/o adaptive η": {"adaptive_eta": False},
+    # seed 002 §3.3, not a Table 6 row and a switch turned on, not off: the prior warped by the camera's image
+    # motion (off by default until graph.yaml runs the egomotion node; TrackerParams.camera_motion_compensation)
+    "followbus + camera-motion compensation": {"camera_motion_compensation": True},
 }
 LOW_VISIBILITY = 0.5  # scene frames with less of the target visible are shaded as (partial) occlusion
 

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from followbus.bus import schemas
+from followbus.tracking.egomotion import CameraMotion
 from followbus.tracking.kalman import Posterior, Prior
 from followbus.tracking.reid import Candidate, ReidResult, TrackState
 
@@ -108,3 +109,18 @@ def make_track(state: str, output_box: Any, posterior: Posterior | None) -> sche
         velocity=np.zeros(2) if posterior is None else np.asarray(posterior.velocity_px_s, dtype=np.float64),
         measured=bool(posterior is not None and posterior.measured),
     )
+
+
+def camera_motion_to_msg(motion: CameraMotion | None, reason: str = "") -> schemas.CameraMotion:
+    if motion is None:
+        return schemas.CameraMotion(valid=False, reason=reason)
+    return schemas.CameraMotion(valid=True, matrix=np.asarray(motion.matrix, dtype=np.float64),
+                                inliers=int(motion.inliers), tracked=int(motion.tracked),
+                                from_stamp_ns=int(motion.from_t_ns))
+
+
+def msg_to_camera_motion(msg: schemas.CameraMotion | None) -> CameraMotion | None:
+    if msg is None or not msg.valid:
+        return None
+    return CameraMotion(np.array(msg.matrix, dtype=np.float64), int(msg.inliers), int(msg.tracked),
+                        int(msg.from_stamp_ns), int(msg.header.stamp_ns))

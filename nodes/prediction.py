@@ -5,7 +5,8 @@ covariance and the χ² gate (Eq. 8). Its measurement input is joined with offse
 computed after frame k-1's re-ID result was folded in, in the same order as the in-process tracker.
 Each re-ID result is applied as soon as it arrives (measurement update, or suspension when the
 target is occluded) and the posterior track is published at once, so motor control is not held
-back a frame. Odometry feeds the ego-motion-aware measurement noise R_k = R0 + κ‖v_ego‖² I (Eq. 7):
+back a frame. An optional same-frame ``transform`` (the egomotion node's camera motion, seed 002 §3.3) warps
+the prior before it is published. Odometry feeds the ego-motion-aware measurement noise R_k = R0 + κ‖v_ego‖² I (Eq. 7):
 for frame k the newest odometry sample stamped at or before frame k's capture is used, never "whatever
 arrived last", so a live run and its lockstep replay compute the same R_k.
 
@@ -24,9 +25,9 @@ from typing import Any
 import numpy as np
 
 from followbus.bus.node import Node
-from followbus.bus.schemas import Detections, Measurement, Message, Odometry, Prior, Track
+from followbus.bus.schemas import CameraMotion, Detections, Measurement, Message, Odometry, Prior, Track
 from followbus.nodes.common import split_params
-from followbus.nodes.convert import make_track, msg_to_reid, prior_to_msg
+from followbus.nodes.convert import make_track, msg_to_camera_motion, msg_to_reid, prior_to_msg
 from followbus.tracking.kalman import Predictor
 from followbus.tracking.params import TrackerParams
 from followbus.tracking.tracker import output_box
@@ -39,7 +40,7 @@ class PredictionParams:
 
 
 class Prediction(Node):
-    INPUTS = {"detections": Detections, "measurement": Measurement, "odometry": Odometry}
+    INPUTS = {"detections": Detections, "measurement": Measurement, "odometry": Odometry, "transform": CameraMotion}
     REQUIRED_INPUTS = frozenset({"detections", "measurement"})
     OUTPUTS = {"prior": Prior, "track": Track}
 
@@ -123,7 +124,10 @@ class Prediction(Node):
         last = self.predictor.kf.t_ns if self.predictor.initialised else None
         if last is not None and not 0 <= stamp - last <= self.node_params.max_predict_gap_ms * 1e6:
             self._reset_filter(f"frame stamp jumped by {(stamp - last) / 1e6:.0f} ms")
-        prior = self.predictor.predict(stamp, self._v_ego(stamp, frame_seq, "odometry"))
+        # The egomotion node's transform of this frame, when it came in time: the prior warped by the camera's
+        # motion (seed 002 §3.3); without it (no such node, late, no trustworthy fit) the prior is not warped.
+        motion = msg_to_camera_motion(inputs.get("transform"))  # type: ignore[arg-type]
+        prior = self.predictor.predict(stamp, self._v_ego(stamp, frame_seq, "odometry"), motion)
         if not self._filter_ok():
             self._reset_filter("the prediction left a non-finite state")
             prior = None
@@ -132,7 +136,8 @@ class Prediction(Node):
 
     def status_extra(self) -> dict[str, Any]:
         return {"state": self.last_state, "initialised": self.predictor.initialised,
-                "filter_resets": self.filter_resets}
+                "filter_resets": self.filter_resets, "priors_warped": self.predictor.warped,
+                "camera_motion_mismatched": self.predictor.motion_mismatched}
 
 
 NODE = Prediction

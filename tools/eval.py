@@ -396,7 +396,13 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
 
         def detect(item):
             return real.detect(item.bgr)
-    follower = FollowbusFollower()
+    import yaml
+
+    from followbus.tracking.params import TrackerParams
+
+    # The graph warps the prior by camera motion only where an egomotion node publishes it; in-process likewise.
+    has_egomotion = "egomotion" in yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]
+    follower = FollowbusFollower(TrackerParams(camera_motion_compensation=has_egomotion))
     inproc: list[Any] = []
     init_box: list[float] | None = None
     for item in seq.frames():

@@ -21,6 +21,7 @@ import numpy as np
 from followbus.tracking.params import TrackerParams
 
 if TYPE_CHECKING:
+    from followbus.tracking.egomotion import CameraMotion
     from followbus.tracking.reid import ReidResult
 
 logger = logging.getLogger(__name__)
@@ -198,6 +199,26 @@ class KalmanCV:
         P = A @ self.P @ A.T + process_noise(dt_s, self.accel_std_px_s2)
         self.P = 0.5 * (P + P.T)
 
+    def warp(self, matrix: np.ndarray) -> None:
+        """Carry the state into the next frame's pixels after the camera moved: p' = M p + t (2x3 [M | t]).
+
+        The centre is mapped by the full transform, the velocity (a difference of positions) by M only, the
+        covariance by T P Tᵀ with T = diag(M, M) (the linear map of the state), the box size by the scale
+        sqrt|det M|: the prior then sits where the background-stabilised target is (seed 002 §3.3, with the
+        image motion measured on the background, tracking/egomotion.py).
+        """
+        A = np.asarray(matrix, dtype=np.float64)
+        M, t = A[:, :2], A[:, 2]
+        T = np.zeros((4, 4))
+        T[:2, :2] = M
+        T[2:, 2:] = M
+        self.x = T @ self.x
+        self.x[:2] += t
+        P = T @ self.P @ T.T
+        self.P = 0.5 * (P + P.T)
+        s = math.sqrt(abs(float(np.linalg.det(M))))
+        self.size = (self.size[0] * s, self.size[1] * s)
+
     def measurement_noise(self, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> np.ndarray:
         """Eq. 7: R_k = R0 + κ‖v_ego‖² I — vibration at speed makes the image centre less reliable."""
         speed2 = float(v_ego_mps[0]) ** 2 + float(v_ego_mps[1]) ** 2
@@ -275,6 +296,10 @@ class Predictor:
     def __init__(self, params: TrackerParams | None = None) -> None:
         self.params = params or TrackerParams()
         self.kf = KalmanCV.from_params(self.params)
+        # Priors warped by the camera motion, and motions not applied because they do not start at the
+        # filter's stamp (a frame the motion estimate or this filter did not see).
+        self.warped = 0
+        self.motion_mismatched = 0
 
     @property
     def initialised(self) -> bool:
@@ -283,11 +308,23 @@ class Predictor:
     def reset(self) -> None:
         self.kf = KalmanCV.from_params(self.params)
 
-    def predict(self, t_ns: int, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> Prior | None:
-        """Prior of frame ``t_ns``; None before initialisation."""
+    def predict(self, t_ns: int, v_ego_mps: Sequence[float] = (0.0, 0.0),
+                camera_motion: CameraMotion | None = None) -> Prior | None:
+        """Prior of frame ``t_ns``; None before initialisation.
+
+        ``camera_motion`` (frame k-1 → k image motion) warps the predicted state before it is published
+        and gated, when ``camera_motion_compensation`` is on and the motion starts at the filter's stamp.
+        """
         if not self.kf.initialised:
             return None
+        from_t_ns = self.kf.t_ns
         self.kf.predict(t_ns)
+        if camera_motion is not None and self.params.camera_motion_compensation:
+            if camera_motion.from_t_ns == from_t_ns and camera_motion.t_ns == int(t_ns):
+                self.kf.warp(camera_motion.matrix)
+                self.warped += 1
+            else:
+                self.motion_mismatched += 1
         R = self.kf.measurement_noise(v_ego_mps)  # Eq. 7 with the current ego speed
         return Prior(
             t_ns=int(t_ns),

@@ -71,6 +71,13 @@ class TrackerParams:
     # a camera panning with the target changes 30-55 % (otb-couple).
     motion_max_changed_fraction: float = 0.2
 
+    # Seed 002 §3.3 (optical-flow-corrected Kalman): warp the prior by the frame-to-frame image motion
+    # measured on the background (tracking/egomotion.py) before gating, so a panning, turning or zooming
+    # camera does not carry the target out of a gate that is only right in a still image. Off by default
+    # only because graph.yaml does not run the egomotion node yet (the in-process tracker must compute what
+    # the graph computes); `followbus eval --ablations` scores it as "followbus + camera-motion compensation".
+    camera_motion_compensation: bool = False
+
     # --- ablation switches (paper Table 6) ------------------------------------------------
     use_geometry: bool = True  # False: S_geo off, ω = 1 (M_fuse = S_color)
     use_gate: bool = True  # False: no Mahalanobis gate, every detection/blob is a candidate

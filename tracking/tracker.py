@@ -3,7 +3,8 @@
 The data order is exactly the process graph's, so evaluation in one process and the running
 graph produce identical numbers. For frame k:
 
-    prior_k    = predictor.predict(t_k, v_ego_k)           # after frame k-1's measurement
+    C_k        = egomotion.step(frame_k, dets_k, t_k)      # camera motion k-1 → k (seed 002 §3.3), or None
+    prior_k    = predictor.predict(t_k, v_ego_k, C_k)      # after frame k-1's measurement, warped by C_k
     reid_k     = reid.step(frame_k, dets_k, prior_k, M_{k-1}, t_k)
     predictor.apply(reid_k, v_ego_k)                        # update only if accepted (Eq. 7 R_k)
     M_k, η_k   = template.step(frame_k, reid_k)
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from followbus.tracking.egomotion import CameraMotion, EgoMotionEstimator, EgoMotionParams
 from followbus.tracking.kalman import Box, Posterior, Predictor, Prior
 from followbus.tracking.params import TrackerParams
 from followbus.tracking.reid import ReIdentifier, ReidResult, TrackState
@@ -36,6 +38,7 @@ class FrameResult:
     template_hist: np.ndarray | None
     eta_k: float
     p_specular: float
+    camera_motion: CameraMotion | None = None
 
 
 def output_box(reid: ReidResult, prior: Prior | None) -> Box | None:
@@ -50,11 +53,13 @@ def output_box(reid: ReidResult, prior: Prior | None) -> Box | None:
 
 
 class TargetTracker:
-    def __init__(self, params: TrackerParams | None = None) -> None:
+    def __init__(self, params: TrackerParams | None = None, egomotion: EgoMotionParams | None = None) -> None:
         self.params = params or TrackerParams()
         self.predictor = Predictor(self.params)
         self.reid = ReIdentifier(self.params)
         self.template = TemplateUpdater(self.params)
+        # The graph's egomotion node; not run at all when compensation is off (it would cost for nothing).
+        self.egomotion = EgoMotionEstimator(egomotion) if self.params.camera_motion_compensation else None
 
     def step(
         self,
@@ -64,7 +69,8 @@ class TargetTracker:
         v_ego_mps: Sequence[float] = (0.0, 0.0),
         init_box: Sequence[float] | None = None,
     ) -> FrameResult:
-        prior = self.predictor.predict(t_ns, v_ego_mps)
+        motion = None if self.egomotion is None else self.egomotion.step(frame_bgr, detections, t_ns)
+        prior = self.predictor.predict(t_ns, v_ego_mps, motion)
         reid = self.reid.step(frame_bgr, detections, prior, self.template.hist, t_ns, init_box=init_box)
         posterior = self.predictor.apply(reid, v_ego_mps)
         hist, eta, p_specular = self.template.step(frame_bgr, reid)
@@ -78,4 +84,5 @@ class TargetTracker:
             template_hist=hist,
             eta_k=eta,
             p_specular=p_specular,
+            camera_motion=motion,
         )

@@ -1,0 +1,57 @@
+"""egomotion: the camera's image motion between consecutive frames (seed 002 §3.3, tracking/egomotion.py).
+
+For each frame that has detections it fits a similarity to Lucas–Kanade flow of background corners (outside
+the frame's person boxes) between the previous frame it handled and this one, and publishes it as
+``transform`` (2x3 matrix, inlier count, the previous frame's stamp), or ``valid: false`` with the reason when
+the fit is not trustworthy. Prediction warps its prior by it (an optional same-frame input): without this node
+the prior is simply not warped. Ticked by frame + detections, like prediction, so it sees the frames prediction
+sees and the transform spans exactly prediction's step.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from followbus.bus.node import Node
+from followbus.bus.schemas import CameraMotion, Detections, Frame, Message
+from followbus.nodes.convert import camera_motion_to_msg
+from followbus.tracking.egomotion import EgoMotionEstimator, EgoMotionParams
+
+
+class EgoMotion(Node):
+    INPUTS = {"frame": Frame, "detections": Detections}
+    REQUIRED_INPUTS = frozenset({"frame", "detections"})
+    OUTPUTS = {"transform": CameraMotion}
+    Params = EgoMotionParams
+
+    def setup(self) -> None:
+        self.estimator = EgoMotionEstimator(self.params)
+        self.epoch_ns = 0
+        self.step_ms_total = 0.0
+        self.steps = 0
+
+    def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
+        frame, dets = inputs["frame"], inputs["detections"]
+        assert isinstance(frame, Frame) and isinstance(dets, Detections)
+        if frame.encoding != "bgr8":
+            self.log.warning("frame %d is %s, not bgr8: no camera motion", frame_seq, frame.encoding)
+            self.publish("transform", camera_motion_to_msg(None, "not_bgr8"), like=frame)
+            return
+        if frame.header.epoch_ns != self.epoch_ns:
+            self.epoch_ns = frame.header.epoch_ns  # a restarted capture: its first frame has no predecessor
+            self.estimator.reset()
+        t0 = time.perf_counter()
+        motion = self.estimator.step(frame.data, np.asarray(dets.boxes), frame.header.stamp_ns)
+        self.step_ms_total += (time.perf_counter() - t0) * 1e3
+        self.steps += 1
+        self.publish("transform", camera_motion_to_msg(motion, self.estimator.last_reason), like=frame)
+
+    def status_extra(self) -> dict[str, Any]:
+        return {"counts": dict(self.estimator.counts),
+                "step_ms_mean": round(self.step_ms_total / self.steps, 3) if self.steps else None}
+
+
+NODE = EgoMotion
