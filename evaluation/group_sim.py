@@ -145,8 +145,9 @@ _DESCRIPTIONS = {
     "formation": "8 walk straight, contract to half spacing (8-12 s), expand to 1.5× (16-22 s) (Fig. 2b,c)",
     "turning": "8 walk straight, turn 90° left on a 6 m radius, walk on (Fig. 2d)",
     "double-column": "8 in two columns 4 m apart, the robot between them (Fig. 2e, §5.3)",
-    "disturbance": "8 walk straight; 5 non-members cross, oncome, stand by, get overtaken (§4.5.1)",
-    "occlusion": "9 walk straight in a deep file; 10° occlusion angle (§4.5.2)",
+    "disturbance": "straight (Fig. 2a: join at 8-12 s, leave at 18 s) plus 5 non-members crossing, oncoming, "
+                   "standing by, overtaken (§4.5.1, Table 3 n = 5)",
+    "occlusion": "straight (Fig. 2a: join at 8-12 s, leave at 18 s) with a 10° occlusion angle (§4.5.2, Table 3)",
 }
 
 
@@ -171,13 +172,12 @@ def make_scenario(name: str, seed: int = 0, duration_s: float = 30.0, p_miss: fl
     left = np.stack([-np.sin(head), np.cos(head)], axis=1)
 
     n_members = 8
+    # Seed 004 runs its disturbance and occlusion experiments on the Fig. 2a scenario (Table 3's n = 2 / 5° rows
+    # are Table 2's numbers): the same squad, joiner and leaver, with disturbers added or the angle widened.
+    base_straight = name in ("straight", "disturbance", "occlusion")
     if name == "occlusion":
-        n_members = 9
-        slots = np.array([[-1.2 * (i // 3), 0.9 * (i % 3 - 1)] for i in range(9)], dtype=float)
-        slots += rng.normal(0, 0.15, slots.shape)
-        slots -= slots.mean(axis=0)
         occ = 10.0 if occlusion_deg is None else occlusion_deg
-    elif name == "double-column":
+    if name == "double-column":
         slots = _double_column(n_members)
         follow_m = 0.0
     else:
@@ -193,7 +193,7 @@ def make_scenario(name: str, seed: int = 0, duration_s: float = 30.0, p_miss: fl
         member.append(always.copy())
         present.append(always.copy())
 
-    if name == "straight":
+    if base_straight:
         # Joiner: walks in from 9 m to the left, reaches its slot (rear-left) at 12 s, member from then.
         slot = np.array([-3.6, 1.4])
         own = _slot_walker(path_pos, path_vel, slot, scale, rng)
