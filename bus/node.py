@@ -557,7 +557,10 @@ class NodeRuntime(NodeHost):
             self.subscribers.append(Subscriber(self.session, graph.replay_hint_key(name), self._on_hint,
                                                schema=ReplayHint, logger=self.log))
         self._token = self.session.liveliness().declare_token(graph.health_key(self.spec.name))
-        self._status_pub = Publisher(self.session, graph.status_key(self.spec.name), self.spec.name)
+        # Status is periodic: under congestion the next one will do. Blocking here could stall the node on a
+        # slow subscriber (a busy monitor): zenoh's put holds the caller until the link drains.
+        self._status_pub = Publisher(self.session, graph.status_key(self.spec.name), self.spec.name,
+                                     congestion="drop")
         self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
 
     def _enqueuer(self, queue: InputQueue):
