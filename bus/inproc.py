@@ -39,7 +39,7 @@ from collections import deque
 from collections.abc import Iterable, Iterator
 from typing import Any
 
-from followbus.bus.codec import DecodeError
+from followbus.bus.codec import DecodeError, peek
 from followbus.bus.graph import Graph, GraphError
 from followbus.bus.node import Clock, Node, NodeHost, validate_node
 from followbus.bus.pubsub import MAX_PAYLOAD_BYTES, RateLimitedLog
@@ -268,7 +268,7 @@ class InProcessGraph:
             raise ValueError(f"no topic {topic!r} in the graph (topics: {', '.join(sorted(self.topics))})")
         self.start()
         try:
-            stamp_ns = decode(payload).header.stamp_ns
+            stamp_ns = peek(payload).header.stamp_ns  # the header only: each subscriber decodes the rest
         except DecodeError:
             stamp_ns = 0
         return self._route(topic, payload, stamp_ns, None)

@@ -1,7 +1,8 @@
 """Recording and replay, end to end with real processes on a private loopback port: record a launched
-diagnostic graph (ticker -> relay -> sink) and count what was published, lockstep-replay the relay with
---verify (identical, then a changed parameter), recover the file of a SIGKILLed recorder, and check the
-Foxglove channels with an independent reader (the official @mcap/core + @foxglove/schemas, run by node)."""
+diagnostic graph (ticker -> relay -> sink) and count what was published, replay the relay with --verify
+(in-process and as its own process: identical, then a changed parameter), recover the file of a SIGKILLed
+recorder, and check the Foxglove channels with an independent reader (the official @mcap/core +
+@foxglove/schemas, run by node)."""
 
 from __future__ import annotations
 
@@ -207,8 +208,24 @@ def test_replay_verify_reproduces_the_relay(recorded: Recorded, tmp_path):
     report = json.loads(report_path.read_text())
     assert report["frames"] == TICKS and report["outputs_compared"] == TICKS == report["matched"]
     assert report["mismatch_count"] == 0 and not report["missing"] and not report["extra"]
-    assert not report["timeouts"] and report["node_exit"] == 0
+    assert report["mode"] == "in-process" and report["node_exit"] is None  # no process was started
+    assert report["handler_s"] > 0 and "node time:" in result.stdout
     assert "verify: OK" in result.stdout
+
+
+def test_replay_isolated_runs_the_deployed_node(recorded: Recorded, tmp_path):
+    """--isolated: the relay as its own process over Zenoh on a private loopback port, same verdict."""
+    report_path = tmp_path / "replay.json"
+    result = run_followbus("replay", str(recorded.path), "--node", "relay", "--isolated", "--verify", "--report",
+                           str(report_path), timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    report = json.loads(report_path.read_text())
+    assert report["mode"] == "isolated" and report["node_exit"] == 0 and not report["timeouts"]
+    assert report["frames"] == TICKS and report["outputs_compared"] == TICKS == report["matched"]
+    changed = run_followbus("replay", str(recorded.path), "--node", "relay", "--isolated", "--param", "add=5",
+                            "--verify", timeout=120)
+    assert changed.returncode == 1, changed.stdout + changed.stderr
+    assert "first mismatch: frame 0, key t/relay/tick (#0), field value: recorded 0, replayed 5" in changed.stdout
 
 
 def test_replay_with_changed_param_reports_the_field(recorded: Recorded, tmp_path):

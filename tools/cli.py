@@ -24,7 +24,7 @@ examples:
   followbus nodes                         node health from liveliness tokens
   followbus bench bus                     bus latency/throughput vs raw zenoh
   followbus record -o recordings/run.mcap  record the bus (opens in Foxglove)
-  followbus replay recordings/run.mcap --node reid --verify   lockstep regression replay
+  followbus replay recordings/run.mcap --node reid --verify   regression replay of a node
   followbus eval all --ablations         score followers on ../shared/data (results/results.md)
   followbus bench pipeline                capture -> motor command latency through the graph
   followbus bench chaos                   kill, stall, load and spoof the graph: does it recover?
@@ -350,16 +350,23 @@ def _add_recording_parsers(sub) -> None:
     _connect_arg(p)
 
     p = sub.add_parser(
-        "replay", help="lockstep replay of a recording into one node (regression test with --verify)",
+        "replay", help="replay a recording into one node or a few (regression test with --verify)",
         formatter_class=fmt,
-        description="Start one node in a private graph (its spec and params as recorded, --param overrides) with its "
-                    "clock driven by message stamps; feed it its recorded inputs frame by frame, waiting for its "
-                    "outputs of each frame before the next. --verify diffs its outputs with the recorded ones "
-                    "(exact for integers and strings, --rtol/--atol for floats) and exits 1 on a difference.",
+        description="Host the node in this process (its spec and params as recorded, --param overrides) with its "
+                    "clock driven by message stamps and feed it its recorded inputs in the order they were "
+                    "published, with what the live run did (skipped frames, feedback joined). --isolated runs the "
+                    "deployed node as a process in a private graph over Zenoh instead. --verify diffs its outputs "
+                    "with the recorded ones (exact for integers and strings, --rtol/--atol for floats) and exits 1 "
+                    "on a difference.",
         epilog="examples:\n  followbus replay recordings/run1.mcap --node reid --verify\n"
+               "  followbus replay recordings/run1.mcap --node reid,prediction --verify\n"
+               "  followbus replay recordings/run1.mcap --node reid --verify --isolated\n"
                "  followbus replay recordings/run1.mcap --node prediction --param gate_chi2=5.99 --report out.json")
     p.add_argument("file", help="MCAP recording")
-    p.add_argument("--node", required=True, help="node to replay")
+    p.add_argument("--node", required=True,
+                   help="node to replay; several, comma-separated, run together (their edges in-process)")
+    p.add_argument("--isolated", action="store_true",
+                   help="run the node as its own process over Zenoh (the deployed node), not in-process")
     p.add_argument("--graph", default=None, help="graph file (default: the graph.yaml stored in the recording)")
     p.add_argument("--param", action="append", metavar="KEY=VALUE", help="override a parameter (YAML value)")
     p.add_argument("--verify", action="store_true", help="compare outputs with the recording; exit 1 on a mismatch")
@@ -367,9 +374,9 @@ def _add_recording_parsers(sub) -> None:
     p.add_argument("--rtol", type=float, default=1e-6, help="relative tolerance for floats (default 1e-6)")
     p.add_argument("--atol", type=float, default=1e-6, help="absolute tolerance for floats (default 1e-6)")
     p.add_argument("--timeout", type=float, default=5.0, metavar="S",
-                   help="seconds to wait for a frame's outputs (default 5)")
+                   help="--isolated: seconds to wait for a frame's outputs (default 5)")
     p.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
-                   help="seconds to wait for the node to come up (default 60)")
+                   help="--isolated: seconds to wait for the node to come up (default 60)")
     p.add_argument("--max-frames", type=int, default=0, metavar="N", help="only the first N frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 

@@ -1,16 +1,23 @@
-"""``followbus replay FILE --node NAME``: lockstep replay of a recording into one node.
+"""``followbus replay FILE --node NAME``: a recording fed into one node (or a few), outputs diffed.
 
-The node runs as its own process (``followbus node NAME --clock stamps``) in a private graph: a
-private namespace on a private loopback port, its spec as recorded (graph.yaml text and effective
-params from the file's metadata, or ``--graph``), params overridden by ``--param``. Frame by frame,
-in the recording's order (log time, then recording order), the recorded messages that are its
-inputs are published with their original bytes; then the replayer waits until the node has produced,
-on each output, as many messages for that frame as the recording holds, before sending the next
-frame. The node's clock follows the message stamps, so nothing depends on the wall clock.
+The node is the graph's own class, hosted in this process by the in-process runtime (bus/inproc.py, the
+same NodeHost as on the bus) on a clock that follows the message stamps; its spec is the recorded one
+(graph.yaml text and effective params from the file's metadata, or ``--graph``), params overridden by
+``--param``. The recording is read once, in the order its messages were published; each input of the
+node is handed over and delivered before the next, so the node sees its inputs in the live order and
+handles each as soon as it can. What the live run decided under time pressure is given to the node as
+replay hints (bus.schemas.ReplayHint) before the frame they concern: frames it skipped, the feedback each
+set joined, choices it noted; the runtime holds back a feedback message the live node received late.
+``--node reid,prediction`` runs several nodes together, the edges between them in-process.
 
-``--verify`` diffs each produced output against the recorded one field by field: exact for
-integers, strings, booleans and integer arrays, ``--rtol``/``--atol`` for floats; header.seq,
-header.source and header.pub_ns are ignored. A recording thus becomes a regression test.
+``--isolated`` runs the node as the deployed process instead (``followbus node NAME --clock stamps`` in a
+private graph: private namespace, private loopback port) and feeds it over Zenoh, with the same order and
+hints. When to send the next input is not guessed: the in-process run of the same node, fed alongside,
+says how many outputs the process must have published by then (it runs the same code).
+
+``--verify`` diffs each produced output against the recorded one field by field: exact for integers,
+strings, booleans and integer arrays, ``--rtol``/``--atol`` for floats; header.seq, header.source and
+header.pub_ns are ignored. A recording thus becomes a regression test.
 """
 
 from __future__ import annotations
@@ -31,18 +38,20 @@ import sys
 import tempfile
 import threading
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import numpy as np
 import yaml
 
-from followbus.bus.codec import DecodeError, Peeked, peek
+from followbus.bus.codec import HEADER_KEY, DecodeError, Peeked, _split, peek
 from followbus.bus.graph import Graph, GraphError, NodeSpec, load_graph
-from followbus.bus.schemas import Message, decode
+from followbus.bus.inproc import InProcessError, InProcessGraph
+from followbus.bus.schemas import Message, ReplayHint, decode
 from followbus.tools.mcap_io import (
     BusMessage,
     RecordingError,
@@ -56,12 +65,12 @@ from followbus.tools.mcap_io import (
 log = logging.getLogger("followbus.replay")
 
 IGNORED_HEADER_FIELDS = ("seq", "source", "pub_ns")
-LOCKSTEP_QUEUE = 64  # inputs queue deep and block: lockstep never drops, whatever the live policy was
-PREFETCH = 64  # recorded messages read ahead
+_IGNORED_HEADER_INDEXES = (0, 3, 4)  # their places in the header array (bus.codec.HEADER_FIELDS)
+LOCKSTEP_QUEUE = 64  # --isolated: inputs queue deep and block, whatever the live policy was
+PREFETCH = 64  # recorded messages read ahead by the reading thread
+LOOKAHEAD_BYTES = 256 * 1024 * 1024  # inputs held back while reading ahead for what live did with a frame
 MAX_REPORTED = 1000  # mismatch details kept in the report (the count is always exact)
 REPLAY_SHM_BYTES = 256 * 1024 * 1024
-QUIET_S = 0.3  # no output and no CPU for this long: the node waits for input (or is done)
-IDLE_CPU_TICKS = 3  # clock ticks (10 ms) a waiting node may still spend in that time (zenoh, status thread)
 
 
 # --- field-by-field comparison ---------------------------------------------------------------------
@@ -168,107 +177,31 @@ def diff_messages(recorded: Message, replayed: Message, tol: Tolerance) -> Diffe
     return None
 
 
-# --- the private graph -----------------------------------------------------------------------------
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def parse_param_overrides(items: list[str]) -> dict[str, Any]:
-    out = {}
-    for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"--param {item!r} must look like key=value (value in YAML syntax)")
-        try:
-            out[key.strip()] = yaml.safe_load(raw) if raw.strip() else ""
-        except yaml.YAMLError as exc:
-            raise ValueError(f"--param {item!r}: value is not valid YAML ({exc})") from exc
-    return out
+def _same_bytes(a: bytes, b: bytes) -> bool:
+    """Identical but for the ignored header fields, judged on the frames without decoding any array: most
+    outputs of a replay are, and this costs microseconds where a field-by-field diff costs a decode."""
+    try:
+        (head_a, blobs_a), (head_b, blobs_b) = _split(a), _split(b)
+        map_a, map_b = msgpack.unpackb(head_a), msgpack.unpackb(head_b)
+        for m in (map_a, map_b):
+            header = m[HEADER_KEY]
+            for i in _IGNORED_HEADER_INDEXES:
+                header[i] = None
+    except Exception:  # malformed: the decoding diff reports it
+        return False
+    return map_a == map_b and blobs_a == blobs_b
 
 
-def private_graph_text(graph: Graph, spec: NodeSpec, params: dict[str, Any], namespace: str, port: int) -> str:
-    """graph.yaml of the node under test plus stand-ins for its producers (their outputs only)."""
-    endpoint = f"tcp/127.0.0.1:{port}"
-    inputs = {}
-    producers: dict[str, list[str]] = defaultdict(list)
-    for inp in spec.inputs.values():
-        inputs[inp.name] = {"from": inp.topic, "queue": max(inp.queue, LOCKSTEP_QUEUE), "policy": "block",
-                            "sync": inp.sync, "offset": inp.offset, "optional": inp.optional}
-        if inp.source_output not in producers[inp.source_node]:
-            producers[inp.source_node].append(inp.source_output)
-    nodes: dict[str, Any] = {}
-    for name, outputs in producers.items():
-        if name != spec.name:
-            nodes[name] = {"run": graph.nodes[name].run, "outputs": outputs}
-    node_outputs = list(dict.fromkeys(spec.outputs + producers.get(spec.name, [])))
-    nodes[spec.name] = {"run": spec.run, "inputs": inputs, "outputs": node_outputs, "params": params,
-                        "sync_timeout_ms": spec.sync_timeout_ms, "restart": "never"}
-    doc = {"name": f"replay-{spec.name}", "namespace": namespace,
-           "zenoh": {"mode": "peer", "listen": [endpoint], "connect": [endpoint], "multicast_scouting": False,
-                     "shm": graph.zenoh.shm},
-           "nodes": nodes}
-    return yaml.safe_dump(doc, sort_keys=False)
+def compare_output(recorded: bytes, replayed: bytes, tol: Tolerance) -> Difference | None:
+    if _same_bytes(recorded, replayed):
+        return None
+    try:
+        return diff_messages(decode(recorded), decode(replayed), tol)
+    except DecodeError as exc:
+        return Difference("<decode>", "decodable", str(exc))
 
 
-def _die_with_parent() -> None:  # runs in the child between fork and exec: the node never outlives us
-    import ctypes
-
-    with contextlib.suppress(OSError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-
-
-# --- the replay ------------------------------------------------------------------------------------
-
-@dataclass
-class ReplayOptions:
-    node: str
-    graph_path: str | None = None
-    params: dict[str, Any] = field(default_factory=dict)
-    verify: bool = False
-    tolerance: Tolerance = field(default_factory=Tolerance)
-    frame_timeout_s: float = 5.0
-    startup_timeout_s: float = 60.0
-    max_frames: int = 0
-    progress: bool = True
-
-
-@dataclass
-class ReplayReport:
-    file: str
-    node: str
-    params: dict[str, Any] = field(default_factory=dict)
-    frames: int = 0
-    recording_first_frame: int | None = None  # the run's first recorded frame; > 0: recorded mid-run
-    inputs_sent: int = 0
-    outputs_expected: int = 0
-    outputs_received: int = 0
-    outputs_compared: int = 0
-    matched: int = 0
-    mismatch_count: int = 0
-    mismatches: list[dict[str, Any]] = field(default_factory=list)  # the first MAX_REPORTED
-    missing: list[dict[str, Any]] = field(default_factory=list)  # recorded, never produced
-    extra: list[dict[str, Any]] = field(default_factory=list)  # produced, not in the recording
-    beyond_end: int = 0  # produced for frames after the recording's last output on that key (not compared)
-    timeouts: list[int] = field(default_factory=list)  # frames whose outputs did not all come in time
-    deferred_frames: int = 0  # frames not awaited at once: their set waited for a later stamp
-    late_inputs: int = 0
-    hints: int = 0  # frames told to skip, or to join the feedback the live run joined (a live fallback)
-    startup_s: float = 0.0
-    wall_s: float = 0.0
-    recorded_span_s: float = 0.0
-    speed_x: float = 0.0
-    node_exit: int | None = None
-    error: str = ""
-
-    def ok(self, verify: bool) -> bool:
-        if self.error:
-            return False
-        # Nothing compared proves nothing: a verify that checked no output must not pass.
-        return not verify or not (self.mismatch_count or self.missing or self.extra or not self.outputs_compared)
-
+# --- reading the recording -------------------------------------------------------------------------
 
 def _peek_header(data: bytes) -> Peeked | None:
     """Type and header of a stored bus message without decoding its fields (None: not a followbus frame)."""
@@ -284,17 +217,6 @@ def _header(data: bytes) -> tuple[int, int]:
     return (head.header.frame_seq, head.header.stamp_ns) if head is not None else (-1, 0)
 
 
-def _provenance(data: bytes) -> dict[str, int] | None:
-    """header.feedback of a stored bus message (None: recorded before provenance existed)."""
-    head = _peek_header(data)
-    return head.header.feedback if head is not None and head.provenance else None
-
-
-def _pub_ns(data: bytes) -> int:
-    head = _peek_header(data)
-    return head.header.pub_ns if head is not None else 0
-
-
 def recording_first_frame(path: Path, look_at: int = 200) -> int | None:
     """The lowest frame_seq among the recording's first messages (log time = capture stamp, so the run's
     first recorded frame is among them); None when none carries a frame."""
@@ -308,7 +230,17 @@ def recording_first_frame(path: Path, look_at: int = 200) -> int | None:
     return min(seqs) if seqs else None
 
 
-def causal_order(messages: Iterable[BusMessage]) -> Iterator[BusMessage]:
+@dataclass
+class Input:
+    """A recorded input message and its header, peeked once."""
+
+    msg: BusMessage
+    frame_seq: int
+    stamp_ns: int
+    pub_ns: int
+
+
+def causal_order(messages: Iterable[Input]) -> Iterator[Input]:
     """Messages in the order they were published (header.pub_ns, one host's clock).
 
     The recording is in log-time order, log time being the capture stamp of the frame a message derives
@@ -321,19 +253,20 @@ def causal_order(messages: Iterable[BusMessage]) -> Iterator[BusMessage]:
     a replay repeats the live choice (provenance notes), so handing each over at the earliest moment it
     could have existed is safe, whereas its publication time under load could make it late.
     """
-    heap: list[tuple[int, int, int, BusMessage]] = []
-    for counter, msg in enumerate(messages):
+    heap: list[tuple[int, int, int, Input]] = []
+    for counter, item in enumerate(messages):
+        msg = item.msg
         while heap and heap[0][0] < msg.log_time:
             yield heapq.heappop(heap)[3]
-        pub = msg.log_time if _header(msg.data)[0] < 0 else (_pub_ns(msg.data) or msg.log_time)
-        heapq.heappush(heap, (max(pub, msg.log_time), msg.sequence, counter, msg))
+        pub = msg.log_time if item.frame_seq < 0 else (item.pub_ns or msg.log_time)
+        heapq.heappush(heap, (max(pub, msg.log_time), msg.sequence, counter, item))
     while heap:
         yield heapq.heappop(heap)[3]
 
 
 def prefetch(items: Iterable[Any], depth: int) -> Iterator[Any]:
     """Iterate in a thread ``depth`` items ahead: reading and decompressing the recording overlaps with
-    the node's work on the frame in flight."""
+    the node's work (lz4 releases the GIL)."""
     box: queue.Queue[Any] = queue.Queue(maxsize=depth)
     done = object()
     stop = threading.Event()
@@ -367,476 +300,601 @@ def prefetch(items: Iterable[Any], depth: int) -> Iterator[Any]:
         stop.set()
 
 
-class Replayer:
+# --- options, plan, report -------------------------------------------------------------------------
+
+def parse_param_overrides(items: list[str]) -> dict[str, Any]:
+    out = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--param {item!r} must look like key=value (value in YAML syntax)")
+        try:
+            out[key.strip()] = yaml.safe_load(raw) if raw.strip() else ""
+        except yaml.YAMLError as exc:
+            raise ValueError(f"--param {item!r}: value is not valid YAML ({exc})") from exc
+    return out
+
+
+@dataclass
+class ReplayOptions:
+    nodes: list[str]
+    graph_path: str | None = None
+    params: dict[str, Any] = field(default_factory=dict)  # one node: key -> value; several: "node.key" -> value
+    verify: bool = False
+    isolated: bool = False
+    tolerance: Tolerance = field(default_factory=Tolerance)
+    frame_timeout_s: float = 5.0
+    startup_timeout_s: float = 60.0
+    max_frames: int = 0
+    progress: bool = True
+
+
+@dataclass
+class ReplayReport:
+    file: str
+    node: str  # the replayed node(s), comma-separated
+    mode: str = "in-process"  # or "isolated"
+    params: dict[str, Any] = field(default_factory=dict)  # the node's; several nodes: node -> params
+    frames: int = 0
+    recording_first_frame: int | None = None  # the run's first recorded frame; > 0: recorded mid-run
+    inputs_sent: int = 0
+    outputs_expected: int = 0
+    outputs_received: int = 0
+    outputs_compared: int = 0
+    matched: int = 0
+    mismatch_count: int = 0
+    mismatches: list[dict[str, Any]] = field(default_factory=list)  # the first MAX_REPORTED
+    missing: list[dict[str, Any]] = field(default_factory=list)  # recorded, never produced
+    extra: list[dict[str, Any]] = field(default_factory=list)  # produced, not in the recording
+    beyond_end: int = 0  # produced for frames after the recording's last output on that key (not compared)
+    timeouts: list[int] = field(default_factory=list)  # --isolated: frames whose outputs did not come in time
+    late_inputs: int = 0
+    hints: int = 0  # frames told to skip, or to join the feedback the live run joined (a live fallback)
+    startup_s: float = 0.0
+    wall_s: float = 0.0  # reading, feeding, the node's work and the diff (not the process start-up)
+    handler_s: float = 0.0  # in-process: the node's handlers (and what they publish)
+    decode_s: float = 0.0  # in-process: decoding its inputs
+    recorded_span_s: float = 0.0
+    speed_x: float = 0.0
+    node_exit: int | None = None  # --isolated: the process's exit status
+    error: str = ""
+
+    def ok(self, verify: bool) -> bool:
+        if self.error:
+            return False
+        # Nothing compared proves nothing: a verify that checked no output must not pass.
+        return not verify or not (self.mismatch_count or self.missing or self.extra or not self.outputs_compared)
+
+
+class ReplayPlan:
+    """What is replayed: the graph as recorded (params applied), the nodes, and which recorded keys are
+    their inputs (produced outside them) and their outputs."""
+
     def __init__(self, path: Path, options: ReplayOptions):
         self.path = path
-        self.opts = options
         meta = read_metadata(path)
-        fb = meta.get("followbus", {})
         if options.graph_path:
             self.graph = load_graph(options.graph_path)
-            recorded_params = None  # an explicit graph brings its own params
+            recorded_params: dict[str, str] = {}  # an explicit graph brings its own params
         else:
             text = meta.get("graph", {}).get("yaml")
             if not text:
                 raise RecordingError(f"{path}: no graph.yaml in the recording's metadata; pass --graph")
             self.graph = load_graph(f"{path}#graph.yaml", text)
-            recorded_params = meta.get("params", {}).get(options.node)
-        if options.node not in self.graph.nodes:
-            raise RecordingError(f"no node {options.node!r} in the graph (nodes: {', '.join(self.graph.nodes)})")
-        self.spec = self.graph.nodes[options.node]
-        if not self.spec.inputs:
-            raise RecordingError(f"node {options.node!r} has no inputs: there is nothing to replay into it")
-        params = dict(self.spec.params) if recorded_params is None else json.loads(recorded_params)
-        params.update(options.params)
-        self.params = params
-        self.recorded_ns = fb.get("namespace") or self.graph.namespace
-        self.private_ns = f"replay_{secrets.token_hex(4)}"
-        self.port = free_port()
+            recorded_params = meta.get("params", {})
+        self.nodes = list(dict.fromkeys(options.nodes))
+        for name in self.nodes:
+            if name not in self.graph.nodes:
+                raise RecordingError(f"no node {name!r} in the graph (nodes: {', '.join(self.graph.nodes)})")
+        overrides = self._split_overrides(options.params)
+        self.params: dict[str, dict[str, Any]] = {}
+        for name in self.nodes:
+            spec = self.graph.nodes[name]
+            params = json.loads(recorded_params[name]) if name in recorded_params else dict(spec.params)
+            params.update(overrides.get(name, {}))
+            spec.params = params  # what the runtime builds the node with
+            self.params[name] = params
+        self.recorded_ns = (meta.get("followbus", {}).get("namespace")) or self.graph.namespace
+        replayed = set(self.nodes)
+        # recorded key -> graph topic (node/output): inputs produced outside the replayed nodes, and their outputs
+        self.inputs: dict[str, str] = {}
+        for name in self.nodes:
+            for inp in self.graph.nodes[name].inputs.values():
+                if inp.source_node not in replayed:
+                    self.inputs[f"{self.recorded_ns}/{inp.topic}"] = inp.topic
+        self.outputs = {f"{self.recorded_ns}/{name}/{out}": f"{name}/{out}"
+                        for name in self.nodes for out in self.graph.nodes[name].outputs}
+        if not self.inputs:
+            raise RecordingError(f"{', '.join(self.nodes)}: no inputs from outside: there is nothing to replay into")
         recorded = bus_channels(path)
-        # recorded input key -> the node's input names it feeds; recorded output key -> output name
-        self.input_keys: dict[str, list[str]] = defaultdict(list)
-        for inp in self.spec.inputs.values():
-            self.input_keys[f"{self.recorded_ns}/{inp.topic}"].append(inp.name)
-        self.output_keys = {f"{self.recorded_ns}/{self.spec.name}/{out}": out for out in self.spec.outputs}
-        for key in self.input_keys:
+        for key in self.inputs:
             if key not in recorded:
-                log.warning("the recording has no messages on %s (input %s)", key, ", ".join(self.input_keys[key]))
-        if not any(key in recorded for key in self.input_keys):
-            raise RecordingError(f"{path}: none of {options.node}'s inputs were recorded "
-                                 f"({', '.join(self.input_keys)})")
-        self.report = ReplayReport(file=str(path), node=options.node, params=params)
-        self._cond = threading.Condition()
-        self._produced: dict[tuple[str, int], list[bytes]] = defaultdict(list)
-        self._expected: dict[tuple[str, int], list[bytes]] = defaultdict(list)
-        self._compared: dict[tuple[str, int], int] = defaultdict(int)
-        self._newest: dict[str, int] = {}  # newest frame_seq produced on each output
-        self._last_output = 0.0
-        self.proc: subprocess.Popen | None = None
+                log.warning("the recording has no messages on %s", key)
+        if not any(key in recorded for key in self.inputs):
+            raise RecordingError(f"{path}: none of the inputs were recorded ({', '.join(self.inputs)})")
+        # Nodes whose live decisions are replayed: those with feedback inputs (bus.sync).
+        self.feedback_inputs = {name: [i.name for i in self.graph.nodes[name].inputs.values()
+                                       if i.sync == "frame" and i.offset] for name in self.nodes}
+        self.feedback_inputs = {n: names for n, names in self.feedback_inputs.items() if names}
 
-    # --- bus side ---------------------------------------------------------------------------------
-    def _on_output(self, out: str):
+    def _split_overrides(self, params: dict[str, Any]) -> dict[str, dict[str, Any]]:
+        if len(self.nodes) == 1:
+            return {self.nodes[0]: dict(params)}
+        out: dict[str, dict[str, Any]] = defaultdict(dict)
+        for key, value in params.items():
+            node, dot, param = key.partition(".")
+            if not dot or node not in self.nodes:
+                raise ValueError(f"--param {key}=...: with several nodes, name the node (node.param=value, "
+                                 f"nodes: {', '.join(self.nodes)})")
+            out[node][param] = value
+        return out
+
+    def output_node(self, key: str) -> str:
+        return self.outputs[key].split("/", 1)[0]
+
+
+# --- the feed: the recording read once -------------------------------------------------------------
+
+class Feed:
+    """The recording read once. Outputs of the replayed nodes become the expected outputs and the replay
+    hints as they are read (log-time order: once the reader is past a frame's stamp, every output of that
+    frame has been seen); inputs come out in publication order (:func:`causal_order`), grouped by frame,
+    each group only once the reader knows what the live run did up to the next frame each node handled
+    (a skipped frame is one with no output before a later handled one; whether a feedback message came
+    late depends on that next frame's hint)."""
+
+    def __init__(self, plan: ReplayPlan, report: ReplayReport):
+        self.plan = plan
+        self.report = report
+        self.expected: dict[tuple[str, int], list[bytes]] = defaultdict(list)
+        self.hints: list[tuple[str, ReplayHint]] = []  # ready to be handed over
+        self.eof = False
+        self._log_time = -1  # of the newest message read
+        self._open: dict[str, tuple[int, int, dict[str, int] | None]] = {}  # node -> (frame, stamp, provenance)
+        self._handled: dict[str, int] = {}  # node -> newest frame whose hint is final
+        self._previous: dict[str, int] = {}  # node -> newest frame handled live (for counting fallbacks)
+        self._warned = False
+
+    # outputs -> expected and hints
+    def _read(self, messages: Iterable[BusMessage]) -> Iterator[Input]:
+        for msg in messages:
+            if msg.log_time > self._log_time:
+                self._log_time = msg.log_time
+                self._close_frames(msg.log_time)
+            head = _peek_header(msg.data)
+            frame_seq = head.header.frame_seq if head is not None else -1
+            if msg.key not in self.plan.outputs:
+                yield (Input(msg, frame_seq, head.header.stamp_ns, head.header.pub_ns) if head is not None
+                       else Input(msg, -1, 0, 0))
+                continue
+            self.expected[(self.plan.outputs[msg.key], frame_seq)].append(msg.data)
+            self.report.outputs_expected += 1
+            node = self.plan.output_node(msg.key)
+            if frame_seq < 0 or node not in self.plan.feedback_inputs or head is None:
+                continue
+            used = dict(head.header.feedback) if head.provenance else None
+            open_ = self._open.get(node)
+            if open_ is not None and open_[0] == frame_seq:
+                if used:  # a frame's outputs together: the prior's feedback and notes, the track's notes
+                    self._open[node] = (frame_seq, open_[1], {**(open_[2] or {}), **used})
+            elif frame_seq > self._handled.get(node, -1) and (open_ is None or frame_seq > open_[0]):
+                if open_ is not None:
+                    self._finish(node, *open_)
+                self._open[node] = (frame_seq, head.header.stamp_ns, used or None)
+        self.eof = True
+        for node, open_ in list(self._open.items()):
+            self._finish(node, *open_)
+        self._open.clear()
+
+    def _close_frames(self, log_time: int) -> None:
+        for node, open_ in list(self._open.items()):
+            if open_[1] < log_time:
+                self._finish(node, *open_)
+                del self._open[node]
+
+    def _finish(self, node: str, frame_seq: int, _stamp: int, used: dict[str, int] | None) -> None:
+        """The hints of the frames up to ``frame_seq``: those in between were skipped live."""
+        last = self._handled.get(node)
+        if last is not None:
+            for skipped in range(last + 1, frame_seq):
+                self._hint(node, skipped, True, None)
+        self._hint(node, frame_seq, False, used)
+        self._handled[node] = frame_seq
+
+    def _hint(self, node: str, frame_seq: int, skip: bool, used: dict[str, int] | None) -> None:
+        if not (skip or used):
+            return
+        hint = ReplayHint(skip=skip, feedback=dict(used or {}))
+        hint.header.frame_seq = frame_seq
+        self.hints.append((node, hint))
+        previous = self._previous.get(node)
+        fallback = used is not None and previous is not None and any(
+            used.get(name, previous) != previous for name in self.plan.feedback_inputs[node])
+        self.report.hints += skip or fallback
+        if not skip:
+            self._previous[node] = frame_seq
+
+    def _known(self, frame_seq: int) -> bool:
+        """Does the reader know what each node did up to the next frame after ``frame_seq`` it handled?"""
+        return self.eof or all(self._handled.get(node, -1) > frame_seq for node in self.plan.feedback_inputs)
+
+    # inputs -> frame groups
+    def groups(self) -> Iterator[tuple[list[tuple[str, ReplayHint]], int, list[Input]]]:
+        """(hints to hand over first, frame_seq, the group's input messages: no-frame ones first)."""
+        keys = set(self.plan.inputs) | set(self.plan.outputs)
+        stream = causal_order(self._read(prefetch(iter_bus_messages(self.plan.path, keys), PREFETCH)))
+        ready: deque[tuple[int, list[Input], int]] = deque()  # (frame_seq, messages, bytes)
+        held = 0
+        group: list[Input] = []
+        group_seq: int | None = None
+        done: set[int] = set()
+
+        def release(force: bool):
+            nonlocal held
+            while ready and (force or self._known(ready[0][0]) or held > LOOKAHEAD_BYTES):
+                if held > LOOKAHEAD_BYTES and not self._known(ready[0][0]) and not self._warned:
+                    self._warned = True
+                    log.warning("no output of the replayed node for %d MB of recording after frame %d: going "
+                                "on without knowing whether live skipped the frames in between",
+                                LOOKAHEAD_BYTES >> 20, ready[0][0])
+                frame_seq, messages, size = ready.popleft()
+                held -= size
+                hints, self.hints = self.hints, []
+                # Messages of no frame (odometry) first: a node picks among them by stamp, and what it picked
+                # live is replayed from the hint, which needs the sample there before the frame's set.
+                yield hints, frame_seq, sorted(messages, key=lambda m: m.frame_seq >= 0)
+
+        for item in stream:
+            frame_seq = item.frame_seq
+            if frame_seq >= 0:
+                if group_seq is not None and frame_seq > group_seq:
+                    ready.append((group_seq, group, sum(len(m.msg.data) for m in group)))
+                    held += ready[-1][2]
+                    done.add(group_seq)
+                    group, group_seq = [], None
+                if group_seq is not None and frame_seq < group_seq or frame_seq in done:
+                    self.report.late_inputs += 1  # out of stamp order: goes with the frame being assembled
+                if group_seq is None:
+                    group_seq = frame_seq
+            group.append(item)  # messages of no frame (-1) go with the frame being assembled
+            yield from release(False)
+        if group:
+            ready.append((group_seq if group_seq is not None else -1, group, 0))
+        yield from release(True)
+
+
+# --- the targets: in-process, or the deployed node as a process -----------------------------------
+
+class InProcessTarget:
+    """The nodes hosted here (bus.inproc), on the stamps clock; every input is delivered before the next."""
+
+    def __init__(self, plan: ReplayPlan):
+        self.plan = plan
+        self.graph = InProcessGraph(plan.graph, nodes=plan.nodes, clock="stamps", record=plan.outputs.values())
+        self.handler_s = 0.0
+        self.decode_s = 0.0
+
+    def start(self) -> None:
+        self.graph.start()
+
+    def hint(self, node: str, hint: ReplayHint) -> None:
+        self.graph.hint(node, hint)
+
+    def send(self, topic: str, data: bytes, stamp_ns: int, frame_seq: int) -> None:
+        t0 = time.perf_counter()
+        self.graph.inject_bytes(topic, data)  # decoded by each subscribed node
+        t1 = time.perf_counter()
+        self.graph.deliver()
+        self.decode_s += t1 - t0
+        self.handler_s += time.perf_counter() - t1
+
+    def published(self, topic: str) -> int:
+        return self.graph.published[topic]
+
+    def produced(self) -> dict[str, list[bytes]]:
+        return {t: self.graph.payloads(*t.split("/", 1)) for t in self.plan.outputs.values()}
+
+    def close(self) -> None:
+        self.graph.close()
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def private_graph_text(graph: Graph, spec: NodeSpec, params: dict[str, Any], namespace: str, port: int) -> str:
+    """graph.yaml of the node under test plus stand-ins for its producers (their outputs only)."""
+    endpoint = f"tcp/127.0.0.1:{port}"
+    inputs = {}
+    producers: dict[str, list[str]] = defaultdict(list)
+    for inp in spec.inputs.values():
+        inputs[inp.name] = {"from": inp.topic, "queue": max(inp.queue, LOCKSTEP_QUEUE), "policy": "block",
+                            "sync": inp.sync, "offset": inp.offset, "optional": inp.optional}
+        if inp.source_output not in producers[inp.source_node]:
+            producers[inp.source_node].append(inp.source_output)
+    nodes: dict[str, Any] = {}
+    for name, outputs in producers.items():
+        if name != spec.name:
+            nodes[name] = {"run": graph.nodes[name].run, "outputs": outputs}
+    node_outputs = list(dict.fromkeys(spec.outputs + producers.get(spec.name, [])))
+    nodes[spec.name] = {"run": spec.run, "inputs": inputs, "outputs": node_outputs, "params": params,
+                        "sync_timeout_ms": spec.sync_timeout_ms, "restart": "never"}
+    doc = {"name": f"replay-{spec.name}", "namespace": namespace,
+           "zenoh": {"mode": "peer", "listen": [endpoint], "connect": [endpoint], "multicast_scouting": False,
+                     "shm": graph.zenoh.shm},
+           "nodes": nodes}
+    return yaml.safe_dump(doc, sort_keys=False)
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec: the node never outlives us
+    import ctypes
+
+    with contextlib.suppress(OSError):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+class IsolatedTarget:
+    """The node as the deployed process (``followbus node NAME --clock stamps``) in a private graph over
+    Zenoh. The in-process run of the same node, fed alongside, says how many outputs the process must have
+    published before the next input goes out: lockstep without guessing when the process is idle."""
+
+    def __init__(self, plan: ReplayPlan, report: ReplayReport, options: ReplayOptions, tmp: Path):
+        if len(plan.nodes) != 1:
+            raise ValueError("--isolated replays one node (several run in-process only)")
+        self.plan = plan
+        self.report = report
+        self.opts = options
+        self.reference = InProcessTarget(plan)
+        self.name = plan.nodes[0]
+        self.spec = plan.graph.nodes[self.name]
+        self.private_ns = f"replay_{secrets.token_hex(4)}"
+        self.tmp = tmp
+        self.proc: subprocess.Popen | None = None
+        self._cond = threading.Condition()
+        self._received: dict[str, list[bytes]] = {t: [] for t in plan.outputs.values()}
+        self._subs: list[Any] = []
+        self._pubs: dict[str, Any] = {}
+        self._session: Any = None
+        self._watcher: Any = None
+        self.log_path = tmp / "node.log"
+
+    def start(self) -> None:
+        from followbus.bus.health import HealthWatcher
+        from followbus.bus.pubsub import Publisher, ShmPool, direct_callback
+        from followbus.bus.session import open_session
+
+        self.reference.start()
+        graph_path = self.tmp / "graph.yaml"
+        graph_path.write_text(private_graph_text(self.plan.graph, self.spec, self.plan.params[self.name],
+                                                 self.private_ns, free_port()))
+        private = load_graph(graph_path)
+        self._session = open_session(private.zenoh)  # takes the private port first; the node connects to it
+        for topic in self.plan.outputs.values():
+            # Direct callbacks keep the order of samples across keys (bus.pubsub.direct_callback).
+            self._subs.append(self._session.declare_subscriber(private.key(*topic.split("/", 1)),
+                                                               direct_callback(self._on_output(topic))))
+        shm = ShmPool(REPLAY_SHM_BYTES) if private.zenoh.shm else None
+        for topic in self.plan.inputs.values():
+            self._pubs[topic] = Publisher(self._session, private.key(*topic.split("/", 1)), "replay", shm=shm)
+        self._hint_pub = Publisher(self._session, private.replay_hint_key(self.name), "replay")
+        self._watcher = HealthWatcher(self._session, self.private_ns, watch_status=False)
+        with open(self.log_path, "wb") as node_log:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "followbus.tools.cli", "node", self.name, "--graph", str(graph_path),
+                 "--clock", "stamps"],
+                stdout=node_log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=_die_with_parent)
+        t0 = time.perf_counter()
+        missing = self._watcher.wait_for({self.name}, self.opts.startup_timeout_s)
+        self.report.startup_s = time.perf_counter() - t0
+        if self.proc.poll() is not None:
+            raise RuntimeError(f"node {self.name} exited with status {self.proc.poll()}")
+        if missing:
+            raise RuntimeError(f"node {self.name} did not come up within {self.opts.startup_timeout_s:.0f} s")
+
+    def _on_output(self, topic: str):
         def callback(sample) -> None:
             from followbus.bus.pubsub import payload_bytes
 
             data = payload_bytes(sample)
-            frame_seq, _ = _header(data)
             with self._cond:
-                self._produced[(out, frame_seq)].append(data)
-                self._newest[out] = max(self._newest.get(out, -1), frame_seq)
-                self._last_output = time.monotonic()
-                self.report.outputs_received += 1
+                self._received[topic].append(data)
                 self._cond.notify_all()
 
         return callback
 
-    def _private_key(self, recorded_key: str) -> str:
-        return self.private_ns + recorded_key[len(self.recorded_ns):]
+    def hint(self, node: str, hint: ReplayHint) -> None:
+        self.reference.hint(node, hint)
+        self._hint_pub.put(hint)
 
-    # --- frame bookkeeping ------------------------------------------------------------------------
-    def _recorded_hints(self) -> tuple[dict[int, dict[str, int]], set[int]]:
-        """(feedback each recorded output joined, frames with any recorded output) of the node: what the
-        live run did, told to the replayed node frame by frame (bus.schemas.ReplayHint)."""
-        provenance: dict[int, dict[str, int]] = {}
-        handled: set[int] = set()
-        for msg in iter_bus_messages(self.path, set(self.output_keys)):
-            frame_seq, _ = _header(msg.data)
-            if frame_seq < 0:
-                continue
-            handled.add(frame_seq)
-            used = _provenance(msg.data)
-            if used:  # a frame's outputs together: the prior's feedback and notes, the track's notes
-                provenance.setdefault(frame_seq, {}).update(used)
-        return provenance, handled
+    def send(self, topic: str, data: bytes, stamp_ns: int, frame_seq: int) -> None:
+        self.reference.send(topic, data, stamp_ns, frame_seq)
+        self._pubs[topic].put_bytes(data, stamp_ns)
+        if not self._wait_caught_up(self.opts.frame_timeout_s):
+            self.report.timeouts.append(frame_seq)
+            if self.proc is not None and self.proc.poll() is not None:
+                raise RuntimeError(f"node {self.name} exited with status {self.proc.returncode}")
 
-    def _hint_for(self, frame_seq: int) -> tuple[bool, dict[str, int] | None]:
-        """What the live run did with this frame: (skipped, feedback joined and choices noted)."""
-        if not self._feedback_sent or not self._live_handled:
-            return False, None  # nothing to reproduce: no feedback inputs, or no outputs recorded
-        skip = frame_seq not in self._live_handled and frame_seq > min(self._live_handled)
-        return skip, None if skip else self._live_feedback.get(frame_seq)
-
-    def _send_hints(self) -> None:
-        """Tell the node what the live run did with every frame, before any input: whether a feedback message
-        must wait for a later set (it reached the live node after that set) depends on the hints of frames
-        whose inputs have not been sent yet. Counts the frames where live did not do the ordinary thing."""
-        from followbus.bus.schemas import ReplayHint
-
-        if not self._feedback_sent or not self._live_handled:
-            return
-        previous = None
-        for frame_seq in range(min(self._live_handled), max(self._live_handled) + 1):
-            skip, used = self._hint_for(frame_seq)
-            if not (skip or used):
-                continue
-            hint = ReplayHint(skip=skip, feedback=dict(used or {}))
-            hint.header.frame_seq = frame_seq
-            self._hint_pub.put(hint)
-            fallback = used is not None and previous is not None and any(
-                used.get(name, previous) != previous for name in self._feedback_sent)
-            self.report.hints += skip or fallback
-            if not skip:
-                previous = frame_seq
-
-    def _frame_inputs_complete(self, names: set[str], last_handled: int | None,
-                               forced: dict[str, int] | None = None) -> tuple[bool, bool]:
-        """(complete, required same-frame inputs present) of a frame set, as the node's synchroniser sees it."""
-        complete = required = True
-        for inp in self.spec.inputs.values():
-            if inp.sync != "frame":
-                continue
-            if inp.offset:
-                wanted = forced[inp.name] if forced and inp.name in forced else last_handled
-                if wanted is not None and wanted >= 0 and wanted not in self._feedback_sent[inp.name]:
-                    complete = False
-            elif inp.name not in names:
-                complete = False
-                required = required and inp.optional
-        return complete, required
-
-    def _compare(self, out: str, frame_seq: int) -> None:
-        """Compare what is new for (output, frame) since the last call."""
-        with self._cond:
-            produced = list(self._produced.get((out, frame_seq), []))
-        expected = self._expected.get((out, frame_seq), [])
-        done = self._compared[(out, frame_seq)]
-        key = f"{self.recorded_ns}/{self.spec.name}/{out}"
-        for i in range(done, min(len(produced), len(expected))):
-            self.report.outputs_compared += 1
-            try:
-                diff = diff_messages(decode(expected[i]), decode(produced[i]), self.opts.tolerance)
-            except DecodeError as exc:
-                diff = Difference("<decode>", "decodable", str(exc))
-            if diff is None:
-                self.report.matched += 1
-                continue
-            self.report.mismatch_count += 1
-            if len(self.report.mismatches) < MAX_REPORTED:
-                self.report.mismatches.append({"frame_seq": frame_seq, "key": key, "index": i, "field": diff.field,
-                                               "recorded": _show(diff.recorded), "replayed": _show(diff.replayed)})
-        self._compared[(out, frame_seq)] = max(done, min(len(produced), len(expected)))
-
-    def _outputs_ready(self, frame_seq: int) -> bool:
-        """All recorded outputs of the frame produced, or passed: a node emits each output in frame order,
-        so once it produced a later frame on an output, what it did not produce for this one never comes."""
-        return all(len(self._produced.get((out, frame_seq), [])) >= len(self._expected.get((out, frame_seq), []))
-                   or self._newest.get(out, -1) > frame_seq
-                   for out in self.output_keys.values())
-
-    def _wait_outputs_published_before(self, frame_seq: int, pub_ns: int, timeout_s: float) -> bool:
-        """Wait until the node produced this frame's outputs that, live, were published before an input
-        published at ``pub_ns``: live, prior k existed before measurement k was computed, so sending both
-        at once would let the node see them in an order that never happened."""
-        if not pub_ns:
-            return True
-        need = {out: sum(_pub_ns(data) < pub_ns for data in self._expected.get((out, frame_seq), []))
-                for out in self.output_keys.values()}
-        if not any(need.values()):
-            return True
+    def _wait_caught_up(self, timeout_s: float) -> bool:
+        """Wait until the process published what the in-process run published by now."""
+        want = {t: self.reference.published(t) for t in self._received}
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while not all(len(self._produced.get((out, frame_seq), [])) >= n or self._newest.get(out, -1) > frame_seq
-                          for out, n in need.items()):
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or (self.proc is not None and self.proc.poll() is not None):
-                    return False
-                self._cond.wait(min(remaining, 0.05))
-        return True
-
-    def _cpu_ticks(self) -> int | None:
-        """utime + stime of the node process (Linux), None where /proc is not available."""
-        if self.proc is None:
-            return None
-        try:
-            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
-            return int(fields[11]) + int(fields[12])
-        except (OSError, IndexError, ValueError):
-            return None
-
-    def _node_idle(self, since: float, ticks: int | None) -> bool:
-        """True when, since ``since``, the node produced nothing and spent (almost) no CPU."""
-        now_ticks = self._cpu_ticks()
-        return (ticks is not None and now_ticks is not None and now_ticks - ticks < IDLE_CPU_TICKS
-                and self._last_output < since)
-
-    def _await_frame(self, frame_seq: int, timeout_s: float) -> str:
-        """'ready', 'idle' (the node waits for later input: a set held until a later stamp times it out)
-        or 'timeout'."""
-        deadline = time.monotonic() + timeout_s
-        window, ticks = time.monotonic(), self._cpu_ticks()
-        with self._cond:
-            while not self._outputs_ready(frame_seq):
-                now = time.monotonic()
-                if now >= deadline or (self.proc is not None and self.proc.poll() is not None):
-                    return "timeout"
-                if now - window >= QUIET_S:
-                    if self._node_idle(window, ticks):
-                        return "idle"
-                    window, ticks = now, self._cpu_ticks()
-                self._cond.wait(min(deadline - now, 0.05))
-        return "ready"
-
-    def _wait_quiet(self, quiet_s: float, timeout_s: float) -> None:
-        """Wait until the node has been idle for ``quiet_s`` (at most ``timeout_s``)."""
-        deadline = time.monotonic() + timeout_s
-        window, ticks = time.monotonic(), self._cpu_ticks()
-        while time.monotonic() < deadline:
-            time.sleep(quiet_s)
-            if ticks is None and self._last_output < window or self._node_idle(window, ticks):
-                return
-            window, ticks = time.monotonic(), self._cpu_ticks()
-
-    def _wait_outputs(self, frame_seq: int, timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while not self._outputs_ready(frame_seq):
+            while not all(len(self._received[t]) >= n for t, n in want.items()):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or (self.proc is not None and self.proc.poll() is not None):
                     return False
                 self._cond.wait(min(remaining, 0.2))
         return True
 
-    def _finish_frame(self, frame_seq: int) -> None:
-        for out in self.output_keys.values():
-            self._compare(out, frame_seq)
+    def produced(self) -> dict[str, list[bytes]]:
+        with self._cond:
+            return {t: list(v) for t, v in self._received.items()}
 
-    # --- main -------------------------------------------------------------------------------------
+    def close(self) -> None:
+        if self.proc is not None:
+            if self.proc.poll() is None:
+                self.proc.send_signal(signal.SIGTERM)
+                try:
+                    self.proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait()
+            self.report.node_exit = self.proc.returncode
+            if self.report.error or self.report.node_exit not in (0, None):
+                tail = self.log_path.read_text(errors="replace").splitlines()[-30:] if self.log_path.exists() else []
+                if tail:
+                    log.error("node log (last lines):\n%s", "\n".join(tail))
+        for sub in self._subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        if self._watcher is not None:
+            self._watcher.close()
+        if self._session is not None:
+            with contextlib.suppress(Exception):
+                self._session.close()
+        self.reference.close()
+
+
+# --- the replay ------------------------------------------------------------------------------------
+
+class Replayer:
+    def __init__(self, path: Path, options: ReplayOptions):
+        self.path = path
+        self.opts = options
+        self.plan = ReplayPlan(path, options)
+        params: dict[str, Any] = (self.plan.params[self.plan.nodes[0]] if len(self.plan.nodes) == 1
+                                  else dict(self.plan.params))
+        self.report = ReplayReport(file=str(path), node=",".join(self.plan.nodes),
+                                   mode="isolated" if options.isolated else "in-process", params=params)
+        if options.isolated and len(self.plan.nodes) != 1:
+            raise ValueError("--isolated replays one node (several run in-process only)")
+        # Built now: a --param the node does not take is the user's mistake, said before anything runs.
+        self._inproc = None if options.isolated else InProcessTarget(self.plan)
+
     def run(self) -> ReplayReport:
-        from followbus.bus.health import HealthWatcher
-        from followbus.bus.pubsub import Publisher, ShmPool, direct_callback
-        from followbus.bus.session import open_session
-
         with tempfile.TemporaryDirectory(prefix="followbus-replay-") as tmp:
-            graph_path = Path(tmp) / "graph.yaml"
-            graph_path.write_text(private_graph_text(self.graph, self.spec, self.params, self.private_ns, self.port))
-            private = load_graph(graph_path)
-            session = open_session(private.zenoh)  # takes the private port first; the node connects to it
-            subs, pubs, watcher = [], {}, None
-            log_path = Path(tmp) / "node.log"
+            target = self._inproc or IsolatedTarget(self.plan, self.report, self.opts, Path(tmp))
             try:
-                for key, out in self.output_keys.items():
-                    # Direct callbacks keep the order of samples across keys (bus.pubsub.direct_callback).
-                    subs.append(session.declare_subscriber(self._private_key(key),
-                                                           direct_callback(self._on_output(out))))
-                # Deferred frames keep a few dozen frames in flight: room for them in shared memory.
-                shm = ShmPool(REPLAY_SHM_BYTES) if private.zenoh.shm else None
-                for key in self.input_keys:
-                    pubs[key] = Publisher(session, self._private_key(key), "replay", shm=shm)
-                self._hint_pub = Publisher(session, private.replay_hint_key(self.spec.name), "replay")
-                watcher = HealthWatcher(session, self.private_ns, watch_status=False)
-                with open(log_path, "wb") as node_log:
-                    self.proc = subprocess.Popen(
-                        [sys.executable, "-m", "followbus.tools.cli", "node", self.spec.name, "--graph",
-                         str(graph_path), "--clock", "stamps"],
-                        stdout=node_log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                        env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=_die_with_parent)
-                t0 = time.perf_counter()
-                missing = watcher.wait_for({self.spec.name}, self.opts.startup_timeout_s)
-                self.report.startup_s = time.perf_counter() - t0
-                if missing or self.proc.poll() is not None:
-                    self.report.error = (f"node {self.spec.name} did not come up within "
-                                         f"{self.opts.startup_timeout_s:.0f} s" if self.proc.poll() is None
-                                         else f"node {self.spec.name} exited with status {self.proc.poll()}")
-                else:
-                    self.report.recording_first_frame = recording_first_frame(self.path)
-                    self._lockstep(pubs)
+                target.start()
+                self.report.recording_first_frame = recording_first_frame(self.path)
+                self._feed(target)
+            except (RuntimeError, InProcessError) as exc:
+                self.report.error = str(exc)
             finally:
-                self._stop_node()
-                if self.report.error or (self.report.node_exit not in (0, None)):
-                    tail = log_path.read_text(errors="replace").splitlines()[-30:] if log_path.exists() else []
-                    if tail:
-                        log.error("node log (last lines):\n%s", "\n".join(tail))
-                for sub in subs:
-                    with contextlib.suppress(Exception):
-                        sub.undeclare()
-                if watcher is not None:
-                    watcher.close()
-                with contextlib.suppress(Exception):
-                    session.close()
+                target.close()
         return self.report
 
-    def _stop_node(self) -> None:
-        if self.proc is None:
-            return
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self.report.node_exit = self.proc.returncode
+    def _feed(self, target: InProcessTarget | IsolatedTarget) -> None:
+        feed = Feed(self.plan, self.report)
+        bar = self._progress()
+        started = time.perf_counter()
+        first_stamp = last_stamp = None
+        done_frames: set[int] = set()
+        try:
+            for hints, frame_seq, messages in feed.groups():
+                if self.opts.max_frames and frame_seq >= 0 and self.report.frames >= self.opts.max_frames:
+                    break
+                for node, hint in hints:
+                    target.hint(node, hint)
+                for item in messages:
+                    stamp = item.stamp_ns
+                    target.send(self.plan.inputs[item.msg.key], item.msg.data, stamp, frame_seq)
+                    self.report.inputs_sent += 1
+                    if stamp:
+                        first_stamp = stamp if first_stamp is None else min(first_stamp, stamp)
+                        last_stamp = stamp if last_stamp is None else max(last_stamp, stamp)
+                if frame_seq >= 0:
+                    self.report.frames += 1
+                    done_frames.add(frame_seq)
+                    bar.update(1)
+        finally:
+            bar.close()
+            produced = target.produced()
+            self._compare(feed.expected, produced, done_frames)
+            self.report.wall_s = time.perf_counter() - started
+        if isinstance(target, InProcessTarget):
+            self.report.handler_s, self.report.decode_s = target.handler_s, target.decode_s
+        if first_stamp is not None and last_stamp is not None:
+            self.report.recorded_span_s = (last_stamp - first_stamp) / 1e9
+        if self.report.wall_s > 0:
+            self.report.speed_x = self.report.recorded_span_s / self.report.wall_s
+
+    def _compare(self, expected: dict[tuple[str, int], list[bytes]], produced: dict[str, list[bytes]],
+                 done_frames: set[int]) -> None:
+        """Diff what was produced with what was recorded, frame by frame and output by output; then list
+        recorded-but-never-produced and produced-but-not-recorded outputs."""
+        by_frame: dict[tuple[str, int], list[bytes]] = defaultdict(list)
+        for topic, items in produced.items():
+            self.report.outputs_received += len(items)
+            for data in items:
+                by_frame[(topic, _header(data)[0])].append(data)
+        last_recorded: dict[str, int] = {}
+        for topic, fs in expected:
+            last_recorded[topic] = max(last_recorded.get(topic, -1), fs)
+        key = {topic: f"{self.plan.recorded_ns}/{topic}" for topic in self.plan.outputs.values()}
+        for (topic, fs), recorded in sorted(expected.items()):
+            if self.opts.max_frames and fs not in done_frames:
+                continue  # beyond --max-frames
+            replayed = by_frame.get((topic, fs), [])
+            for i in range(min(len(recorded), len(replayed))):
+                self.report.outputs_compared += 1
+                diff = compare_output(recorded[i], replayed[i], self.opts.tolerance)
+                if diff is None:
+                    self.report.matched += 1
+                    continue
+                self.report.mismatch_count += 1
+                if len(self.report.mismatches) < MAX_REPORTED:
+                    self.report.mismatches.append({"frame_seq": fs, "key": key[topic], "index": i,
+                                                   "field": diff.field, "recorded": _show(diff.recorded),
+                                                   "replayed": _show(diff.replayed)})
+            for i in range(len(replayed), len(recorded)):
+                self.report.missing.append({"frame_seq": fs, "key": key[topic], "index": i})
+        for (topic, fs), replayed in sorted(by_frame.items()):
+            n_exp = len(expected.get((topic, fs), []))
+            if fs > last_recorded.get(topic, -1):
+                # The recording stopped between this frame's inputs and its outputs: nothing to compare.
+                self.report.beyond_end += len(replayed) - n_exp
+                continue
+            for i in range(n_exp, len(replayed)):
+                self.report.extra.append({"frame_seq": fs, "key": key[topic], "index": i})
 
     def _progress(self):
         from tqdm import tqdm
 
         summary = read_summary(self.path)
         counts = summary.statistics.channel_message_counts if summary.statistics else {}
-        total = 0
-        primary = next((f"{self.recorded_ns}/{i.topic}" for i in self.spec.inputs.values()
-                        if i.sync == "frame" and not i.offset and not i.optional), None)
-        for ch in summary.channels.values():
-            if ch.topic == primary and is_bus_channel(ch):
-                total += counts.get(ch.id, 0)
+        primary = next((f"{self.plan.recorded_ns}/{i.topic}" for n in self.plan.nodes
+                        for i in self.plan.graph.nodes[n].inputs.values()
+                        if i.sync == "frame" and not i.offset and not i.optional
+                        and f"{self.plan.recorded_ns}/{i.topic}" in self.plan.inputs), None)
+        total = sum(counts.get(ch.id, 0) for ch in summary.channels.values()
+                    if ch.topic == primary and is_bus_channel(ch))
         if self.opts.max_frames:
             total = min(total, self.opts.max_frames) if total else self.opts.max_frames
-        return tqdm(total=total or None, unit="frame", desc=f"replay {self.spec.name}", file=sys.stderr,
+        return tqdm(total=total or None, unit="frame", desc=f"replay {self.report.node}", file=sys.stderr,
                     disable=None if self.opts.progress else True, dynamic_ncols=True)  # None: TTY only
-
-    def _lockstep(self, pubs: dict[str, Any]) -> None:
-        self._feedback_sent: dict[str, set[int]] = {i.name: set() for i in self.spec.inputs.values() if i.offset}
-        self._live_feedback, self._live_handled = self._recorded_hints() if self._feedback_sent else ({}, set())
-        self._send_hints()
-        last_handled: int | None = None
-        # Frames whose outputs the node can only emit once later stamps arrive (a set waiting for an
-        # optional input, or blocked behind such a set): in stamp order, oldest first.
-        pending: list[int] = []
-        group: list[tuple[str, bytes, int, int]] = []
-        group_seq: int | None = None
-        done_frames: set[int] = set()
-        first_stamp = last_stamp = None
-        bar = self._progress()
-        started = time.perf_counter()
-
-        def check_node() -> None:
-            if self.proc is not None and self.proc.poll() is not None:
-                raise RuntimeError(f"node {self.spec.name} exited with status {self.proc.returncode}")
-
-        def resolve_pending(deadline: float | None = None) -> None:
-            """Finish pending frames whose outputs are in; with a deadline, wait for all of them until then."""
-            while pending:
-                fs = pending[0]
-                if not self._outputs_ready_locked(fs):
-                    if deadline is None:
-                        return  # sets are emitted in frame order: later ones wait behind this one
-                    if not self._wait_outputs(fs, max(0.0, deadline - time.monotonic())):
-                        self.report.timeouts.append(fs)
-                        check_node()
-                pending.pop(0)
-                self._finish_frame(fs)
-
-        def send_group() -> None:
-            nonlocal last_handled, first_stamp, last_stamp
-            assert group_seq is not None
-            names: set[str] = set()
-            skipped, forced = self._hint_for(group_seq)
-            # Messages of no frame (odometry) first: a node picks among them by stamp, and what it picked live
-            # is replayed from the hint, which needs the sample there before the frame's set is handled.
-            for key, data, fs, stamp in sorted(group, key=lambda item: item[2] >= 0):
-                if fs == group_seq and not self._wait_outputs_published_before(fs, _pub_ns(data),
-                                                                              self.opts.frame_timeout_s):
-                    check_node()
-                pubs[key].put_bytes(data, stamp)
-                self.report.inputs_sent += 1
-                for name in self.input_keys[key]:
-                    names.add(name)
-                    if name in self._feedback_sent:
-                        self._feedback_sent[name].add(fs)
-                if stamp:
-                    first_stamp = stamp if first_stamp is None else min(first_stamp, stamp)
-                    last_stamp = stamp if last_stamp is None else max(last_stamp, stamp)
-            complete, required = self._frame_inputs_complete(names, last_handled, forced)
-            if required and not skipped:
-                last_handled = group_seq
-            self.report.frames += 1
-            done_frames.add(group_seq)
-            bar.update(1)
-            resolve_pending()
-            if (pending or not complete) and not self._outputs_ready_locked(group_seq):
-                # The node can only emit this set once later stamps time it out (an optional input is
-                # missing), or it is queued behind such a set: go on without waiting. Flow control is
-                # not needed here: the node pops its input queues while its synchroniser waits.
-                pending.append(group_seq)
-                self.report.deferred_frames += 1
-                return
-            state = self._await_frame(group_seq, self.opts.frame_timeout_s)
-            if state == "idle":
-                # The node needs a later stamp before it emits this set (it waits for an optional input
-                # that the recording does not have): go on, the set comes out with a later frame.
-                pending.append(group_seq)
-                self.report.deferred_frames += 1
-                return
-            if state == "timeout":
-                self.report.timeouts.append(group_seq)
-                check_node()
-            self._finish_frame(group_seq)
-
-        try:
-            stream = causal_order(iter_bus_messages(self.path, set(self.input_keys) | set(self.output_keys)))
-            for msg in prefetch(stream, PREFETCH):
-                frame_seq, stamp = _header(msg.data)
-                if msg.key in self.output_keys:
-                    self._expected[(self.output_keys[msg.key], frame_seq)].append(msg.data)
-                    self.report.outputs_expected += 1
-                    continue
-                if frame_seq >= 0:
-                    if group_seq is not None and frame_seq > group_seq:
-                        send_group()
-                        group, group_seq = [], None
-                        if self.opts.max_frames and self.report.frames >= self.opts.max_frames:
-                            break
-                    if group_seq is not None and frame_seq < group_seq or frame_seq in done_frames:
-                        self.report.late_inputs += 1  # out of stamp order: goes with the frame being assembled
-                    if group_seq is None:
-                        group_seq = frame_seq
-                # messages of no frame (frame_seq -1) go with the frame being assembled, in log-time order
-                group.append((msg.key, msg.data, frame_seq, stamp))
-            if group and group_seq is not None and (not self.opts.max_frames
-                                                    or self.report.frames < self.opts.max_frames):
-                send_group()
-            resolve_pending(deadline=time.monotonic() + self.opts.frame_timeout_s)
-            self.report.wall_s = time.perf_counter() - started
-            self._wait_quiet(QUIET_S, self.opts.frame_timeout_s)  # stragglers: outputs nobody recorded are extra
-        except RuntimeError as exc:
-            self.report.error = str(exc)
-            self.report.wall_s = time.perf_counter() - started
-        finally:
-            bar.close()
-        self._account_leftovers(done_frames)
-        if first_stamp is not None and last_stamp is not None:
-            self.report.recorded_span_s = (last_stamp - first_stamp) / 1e9
-        if self.report.wall_s > 0:
-            self.report.speed_x = self.report.recorded_span_s / self.report.wall_s
-
-    def _outputs_ready_locked(self, frame_seq: int) -> bool:
-        with self._cond:
-            return self._outputs_ready(frame_seq)
-
-    def _account_leftovers(self, done_frames: set[int]) -> None:
-        """Compare what is left, then list recorded-but-never-produced and produced-but-not-recorded outputs."""
-        with self._cond:
-            produced = {k: list(v) for k, v in self._produced.items()}
-        for out, fs in list(self._expected):
-            self._compare(out, fs)
-        for (out, fs), items in sorted(self._expected.items()):
-            if fs not in done_frames and self.opts.max_frames:
-                continue  # beyond --max-frames
-            n_prod = len(produced.get((out, fs), []))
-            key = f"{self.recorded_ns}/{self.spec.name}/{out}"
-            for i in range(n_prod, len(items)):
-                self.report.missing.append({"frame_seq": fs, "key": key, "index": i})
-        last_recorded: dict[str, int] = {}
-        for out, fs in self._expected:
-            last_recorded[out] = max(last_recorded.get(out, -1), fs)
-        for (out, fs), items in sorted(produced.items()):
-            n_exp = len(self._expected.get((out, fs), []))
-            key = f"{self.recorded_ns}/{self.spec.name}/{out}"
-            if fs > last_recorded.get(out, -1):
-                # The recording stopped between this frame's inputs and its outputs: nothing to compare.
-                self.report.beyond_end += len(items) - n_exp
-                continue
-            for i in range(n_exp, len(items)):
-                self.report.extra.append({"frame_seq": fs, "key": key, "index": i})
 
 
 # --- command ---------------------------------------------------------------------------------------
 
 def _print_summary(report: ReplayReport, verify: bool) -> None:
-    print(f"replayed {report.frames} frames ({report.inputs_sent} input messages) into {report.node} in "
-          f"{report.wall_s:.2f} s: {report.speed_x:.1f}x real time over {report.recorded_span_s:.2f} s recorded")
+    print(f"replayed {report.frames} frames ({report.inputs_sent} input messages) into {report.node} "
+          f"({report.mode}) in {report.wall_s:.2f} s: {report.speed_x:.1f}x real time over "
+          f"{report.recorded_span_s:.2f} s recorded")
+    if report.mode == "in-process" and report.wall_s > 0:
+        node_s = report.handler_s + report.decode_s
+        print(f"node time: {report.handler_s:.2f} s handlers + {report.decode_s:.2f} s decoding = {node_s:.2f} s; "
+              f"replay time {report.wall_s / node_s if node_s else math.inf:.2f}x that "
+              f"(the rest: reading the recording, ordering, diffing)")
+    elif report.startup_s:
+        print(f"node process up in {report.startup_s:.2f} s (not counted above)")
     print(f"outputs: {report.outputs_expected} recorded, {report.outputs_received} produced, "
           f"{report.outputs_compared} compared, {report.matched} identical, {report.mismatch_count} differing, "
-          f"{len(report.missing)} missing, {len(report.extra)} extra; {len(report.timeouts)} frame timeouts")
+          f"{len(report.missing)} missing, {len(report.extra)} extra"
+          + (f"; {len(report.timeouts)} frame timeouts" if report.mode == "isolated" else ""))
     if report.hints:
         print(f"live fallbacks reproduced: {report.hints} frames skipped or joined older feedback live "
               "(a late feedback, a skipped backlog), and were replayed the same way")
@@ -867,10 +925,12 @@ def _print_summary(report: ReplayReport, verify: bool) -> None:
 def cmd_replay(args) -> int:
     try:
         options = ReplayOptions(
-            node=args.node, graph_path=args.graph, params=parse_param_overrides(args.param or []),
-            verify=args.verify, tolerance=Tolerance(args.rtol, args.atol), frame_timeout_s=args.timeout,
-            startup_timeout_s=args.startup_timeout, max_frames=args.max_frames or 0,
-            progress=not args.no_progress)
+            nodes=[n.strip() for n in args.node.split(",") if n.strip()], graph_path=args.graph,
+            params=parse_param_overrides(args.param or []), verify=args.verify, isolated=args.isolated,
+            tolerance=Tolerance(args.rtol, args.atol), frame_timeout_s=args.timeout,
+            startup_timeout_s=args.startup_timeout, max_frames=args.max_frames or 0, progress=not args.no_progress)
+        if not options.nodes:
+            raise ValueError("--node: name a node (or several, comma-separated)")
         replayer = Replayer(Path(args.file), options)
     except (RecordingError, ValueError, GraphError) as exc:
         print(f"followbus: {exc}", file=sys.stderr)
