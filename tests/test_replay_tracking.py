@@ -1,5 +1,6 @@
-"""A recording of the tracking graph is a regression test: lockstep replay of the re-ID and prediction
-nodes reproduces every recorded output, and a changed parameter is reported as a mismatch."""
+"""A recording of the tracking graph is a regression test: replay of the re-ID and prediction nodes (in-process,
+both together, and re-ID as its own process) reproduces every recorded output, and a changed parameter is
+reported as a mismatch."""
 
 from __future__ import annotations
 
@@ -72,6 +73,35 @@ def test_replay_verifies_with_zero_mismatches(recording, node, tmp_path):
     assert report["frames"] > 100 and report["recording_first_frame"] == 0 and "mid-run" not in result.stdout
     assert report["outputs_compared"] > 100 and report["mismatch_count"] == 0
     assert not report["missing"] and not report["extra"] and not report["timeouts"]
+
+
+def test_isolated_replay_of_the_deployed_node_verifies(recording, tmp_path):
+    """--isolated: reid as its own process on a private loopback port, stepped in lockstep with the in-process
+    run of the same node; same verdict, no frame waited for in vain."""
+    report_path = tmp_path / "report.json"
+    result = run_followbus("replay", str(recording), "--node", "reid", "--isolated", "--verify", "--report",
+                           str(report_path), timeout=180)
+    assert result.returncode == 0, result.stdout + result.stderr[-2000:]
+    report = json.loads(report_path.read_text())
+    assert report["mode"] == "isolated" and report["node_exit"] == 0 and not report["timeouts"]
+    assert report["outputs_compared"] > 100 and report["mismatch_count"] == 0
+    assert not report["missing"] and not report["extra"]
+
+
+def test_two_nodes_replay_together(recording, tmp_path):
+    """reid and prediction in one replay: the prior and the measurement go between them in-process, only
+    detections, frames and templates come from the recording; every output of both is reproduced."""
+    report_path = tmp_path / "report.json"
+    result = run_followbus("replay", str(recording), "--node", "reid,prediction", "--verify", "--report",
+                           str(report_path), timeout=180)
+    assert result.returncode == 0, result.stdout + result.stderr[-2000:]
+    report = json.loads(report_path.read_text())
+    assert set(report["params"]) == {"reid", "prediction"}
+    assert report["outputs_compared"] > 300 and report["mismatch_count"] == 0
+    assert not report["missing"] and not report["extra"]
+    changed = run_followbus("replay", str(recording), "--node", "reid,prediction", "--verify", "--param",
+                            "prediction.gate_chi2=0.5", timeout=180)
+    assert changed.returncode == 1, changed.stdout
 
 
 def test_changed_parameter_is_reported_as_a_mismatch(recording, tmp_path):
