@@ -261,16 +261,17 @@ class InProcessGraph:
         the subscribed nodes at the next step. False if refused (size)."""
         return self.inject_bytes(topic, encode(msg))
 
-    def inject_bytes(self, topic: str, payload: bytes) -> bool:
+    def inject_bytes(self, topic: str, payload: bytes, stamp_ns: int | None = None) -> bool:
         """Publish an encoded message (a recording's) on ``topic``; a malformed one is counted by each
-        subscriber as a decode error and dropped, as on the bus."""
+        subscriber as a decode error and dropped, as on the bus. ``stamp_ns``: its header's, if known."""
         if topic not in self.topics:
             raise ValueError(f"no topic {topic!r} in the graph (topics: {', '.join(sorted(self.topics))})")
         self.start()
-        try:
-            stamp_ns = peek(payload).header.stamp_ns  # the header only: each subscriber decodes the rest
-        except DecodeError:
-            stamp_ns = 0
+        if stamp_ns is None:
+            try:
+                stamp_ns = peek(payload).header.stamp_ns  # the header only: each subscriber decodes the rest
+            except DecodeError:
+                stamp_ns = 0
         return self._route(topic, payload, stamp_ns, None)
 
     def hint(self, node: str, hint: ReplayHint) -> None:

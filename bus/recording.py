@@ -143,8 +143,86 @@ def iter_bus_messages(path: str | Path, keys: Iterable[str] | None = None) -> It
                      and (wanted is None or ch.topic in wanted)})
     if not topics:
         return
+    if summary.chunk_indexes:
+        yield from _iter_chunked(path, summary, {cid for cid, ch in summary.channels.items()
+                                                 if is_bus_channel(ch) and ch.topic in topics})
+        return
     with open_recording(path) as f:
         for _schema, channel, msg in make_reader(f).iter_messages(topics=topics, log_time_order=True):
             if is_bus_channel(channel):  # not a Foxglove channel that shares the topic
                 yield BusMessage(channel.topic, channel.metadata.get("type", ""), msg.log_time, msg.data,
                                  msg.sequence)
+
+
+_CHUNK_HEAD = struct.Struct("<QQQQII")  # record length, start, end, uncompressed size, crc, compression length
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+_OP_MESSAGE = 0x05
+
+
+def _iter_chunked(path: str | Path, summary: Any, channel_ids: set[int]) -> Iterator[BusMessage]:
+    """What mcap's reader does in log-time order (a heap over chunks and their messages, ties by position),
+    read straight from the chunk bytes: only chunks holding a wanted channel are decompressed and only wanted
+    messages are copied. Several times faster than the generic reader on a recording of raw frames, where
+    replaying a light node is bound by reading."""
+    import heapq
+    import mmap
+
+    chunks = [c for c in summary.chunk_indexes if channel_ids & set(c.message_index_offsets)]
+    heap: list[tuple[int, int, int, Any]] = [(c.message_start_time, c.chunk_start_offset, -1, c) for c in chunks]
+    heapq.heapify(heap)
+    with open_recording(path) as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+        while heap:
+            log_time, offset, index, item = heapq.heappop(heap)
+            if index >= 0:
+                yield item
+                continue
+            for i, msg in enumerate(_chunk_messages(mapped, str(path), item, summary, channel_ids)):
+                heapq.heappush(heap, (msg.log_time, offset, i, msg))
+
+
+def _chunk_messages(mapped: Any, name: str, index: Any, summary: Any, channel_ids: set[int]) -> list[BusMessage]:
+    """The wanted messages of one chunk (a list: no view of the mapped file outlives this call)."""
+    with memoryview(mapped) as whole:
+        raw = whole[index.chunk_start_offset + 1:index.chunk_start_offset + index.chunk_length]  # past the opcode
+        try:
+            return list(_parse_chunk(raw, name, index, summary, channel_ids))
+        finally:
+            raw.release()
+
+
+def _parse_chunk(raw: memoryview, name: str, index: Any, summary: Any, channel_ids: set[int]) -> Iterator[BusMessage]:
+    try:
+        _length, _start, _end, size, _crc, name_len = _CHUNK_HEAD.unpack_from(raw)
+        pos = _CHUNK_HEAD.size
+        compression = bytes(raw[pos:pos + name_len]).decode()
+        pos += name_len
+        (records_len,) = struct.unpack_from("<Q", raw, pos)
+        pos += 8
+        records = raw[pos:pos + records_len]
+        if compression == "lz4":
+            import lz4.frame
+
+            data = memoryview(lz4.frame.decompress(records))
+        elif compression == "zstd":
+            import zstandard
+
+            data = memoryview(zstandard.ZstdDecompressor().decompress(records, max_output_size=size))
+        elif compression == "":
+            data = records
+        else:
+            raise RecordingError(f"{name}: chunk compression {compression!r} is not supported")
+    except (struct.error, RuntimeError, ValueError) as exc:
+        raise RecordingError(f"{name}: chunk at {index.chunk_start_offset} unreadable ({exc})") from exc
+    pos, end = 0, len(data)
+    while pos + _RECORD_HEAD.size <= end:
+        op, length = _RECORD_HEAD.unpack_from(data, pos)
+        body = pos + _RECORD_HEAD.size
+        pos = body + length
+        if op != _OP_MESSAGE:
+            continue
+        channel_id, sequence, log_time, _publish = _MESSAGE_HEAD.unpack_from(data, body)
+        if channel_id in channel_ids:
+            channel = summary.channels[channel_id]
+            yield BusMessage(channel.topic, channel.metadata.get("type", ""), log_time,
+                             bytes(data[body + _MESSAGE_HEAD.size:pos]), sequence)

@@ -38,6 +38,8 @@ class Message:
     """Base of all payloads; subclasses set TYPE and add fields."""
 
     TYPE: ClassVar[str] = ""
+    # Fields that measure the run that produced the message (a wall time): `followbus replay` does not compare them.
+    MEASURED: ClassVar[frozenset[str]] = frozenset()
     header: Header = field(default_factory=Header)
 
     def encode(self) -> bytes:
@@ -74,6 +76,7 @@ class GroundTruth(Message):
 @dataclass
 class Detections(Message):
     TYPE: ClassVar[str] = "Detections"
+    MEASURED: ClassVar[frozenset[str]] = frozenset({"infer_ms"})
     boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))  # x,y,w,h,score
     backend: str = ""
     infer_ms: float = 0.0
@@ -217,6 +220,7 @@ class GroupState(Message):
     """The followed group for one frame (seed 004 ME-CGT-UGV): odometry frame unless named ``_robot``."""
 
     TYPE: ClassVar[str] = "GroupState"
+    MEASURED: ClassVar[frozenset[str]] = frozenset({"step_ms"})
     valid: bool = False  # False: no group yet (the other fields are zeros)
     lost: bool = False  # no member seen this frame: the state is the prediction
     centre_m: np.ndarray = field(default_factory=lambda: np.zeros(2))

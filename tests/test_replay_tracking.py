@@ -116,7 +116,7 @@ def test_a_recording_started_mid_run_is_named_as_such(recording, tmp_path):
     """A recorder attached to a running graph misses the node's history: replay says so instead of leaving
     the user with an unexplained mismatch."""
     from followbus.tools.mcap_io import RecordingWriter, bus_channels, iter_bus_messages, read_metadata
-    from followbus.tools.replay import _header
+    from followbus.tools.replay_feed import _header
 
     cut = 40
     late = tmp_path / "late.mcap"

@@ -22,55 +22,35 @@ header.pub_ns are ignored. A recording thus becomes a regression test.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import heapq
 import json
 import logging
 import math
-import os
-import queue
-import secrets
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
-import threading
 import time
-from collections import defaultdict, deque
-from collections.abc import Iterable, Iterator
+from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import msgpack
 import numpy as np
 import yaml
 
-from followbus.bus.codec import HEADER_KEY, DecodeError, Peeked, _split, peek
-from followbus.bus.graph import Graph, GraphError, NodeSpec, load_graph
+from followbus.bus.codec import HEADER_KEY, DecodeError, _split
+from followbus.bus.graph import GraphError, load_graph
 from followbus.bus.inproc import InProcessError, InProcessGraph
+from followbus.bus.node import load_node_class
 from followbus.bus.schemas import Message, ReplayHint, decode
-from followbus.tools.mcap_io import (
-    BusMessage,
-    RecordingError,
-    bus_channels,
-    is_bus_channel,
-    iter_bus_messages,
-    read_metadata,
-    read_summary,
-)
+from followbus.tools.mcap_io import RecordingError, bus_channels, is_bus_channel, read_metadata, read_summary
+from followbus.tools.replay_feed import Feed, _header, recording_first_frame
 
 log = logging.getLogger("followbus.replay")
 
 IGNORED_HEADER_FIELDS = ("seq", "source", "pub_ns")
 _IGNORED_HEADER_INDEXES = (0, 3, 4)  # their places in the header array (bus.codec.HEADER_FIELDS)
-LOCKSTEP_QUEUE = 64  # --isolated: inputs queue deep and block, whatever the live policy was
-PREFETCH = 64  # recorded messages read ahead by the reading thread
-LOOKAHEAD_BYTES = 256 * 1024 * 1024  # inputs held back while reading ahead for what live did with a frame
 MAX_REPORTED = 1000  # mismatch details kept in the report (the count is always exact)
-REPLAY_SHM_BYTES = 256 * 1024 * 1024
 
 
 # --- field-by-field comparison ---------------------------------------------------------------------
@@ -159,7 +139,8 @@ def diff_values(path: str, a: Any, b: Any, tol: Tolerance) -> Difference | None:
 
 
 def diff_messages(recorded: Message, replayed: Message, tol: Tolerance) -> Difference | None:
-    """First differing field of two messages; header.seq/source/pub_ns are not compared."""
+    """First differing field of two messages; header.seq/source/pub_ns and measured times (``MEASURED``, e.g.
+    Detections.infer_ms) are not compared."""
     if recorded.TYPE != replayed.TYPE:
         return Difference("type", recorded.TYPE, replayed.TYPE)
     for f in dataclasses.fields(recorded.header):
@@ -169,7 +150,7 @@ def diff_messages(recorded: Message, replayed: Message, tol: Tolerance) -> Diffe
         if a != b:
             return Difference(f"header.{f.name}", a, b)
     for f in dataclasses.fields(recorded):
-        if f.name == "header":
+        if f.name == "header" or f.name in recorded.MEASURED:
             continue
         d = diff_values(f.name, getattr(recorded, f.name), getattr(replayed, f.name), tol)
         if d is not None:
@@ -199,105 +180,6 @@ def compare_output(recorded: bytes, replayed: bytes, tol: Tolerance) -> Differen
         return diff_messages(decode(recorded), decode(replayed), tol)
     except DecodeError as exc:
         return Difference("<decode>", "decodable", str(exc))
-
-
-# --- reading the recording -------------------------------------------------------------------------
-
-def _peek_header(data: bytes) -> Peeked | None:
-    """Type and header of a stored bus message without decoding its fields (None: not a followbus frame)."""
-    try:
-        return peek(data)
-    except DecodeError:
-        return None
-
-
-def _header(data: bytes) -> tuple[int, int]:
-    """(frame_seq, stamp_ns) of a stored bus message."""
-    head = _peek_header(data)
-    return (head.header.frame_seq, head.header.stamp_ns) if head is not None else (-1, 0)
-
-
-def recording_first_frame(path: Path, look_at: int = 200) -> int | None:
-    """The lowest frame_seq among the recording's first messages (log time = capture stamp, so the run's
-    first recorded frame is among them); None when none carries a frame."""
-    seqs = []
-    for k, msg in enumerate(iter_bus_messages(path)):
-        if k >= look_at:
-            break
-        frame_seq = _header(msg.data)[0]
-        if frame_seq >= 0:
-            seqs.append(frame_seq)
-    return min(seqs) if seqs else None
-
-
-@dataclass
-class Input:
-    """A recorded input message and its header, peeked once."""
-
-    msg: BusMessage
-    frame_seq: int
-    stamp_ns: int
-    pub_ns: int
-
-
-def causal_order(messages: Iterable[Input]) -> Iterator[Input]:
-    """Messages in the order they were published (header.pub_ns, one host's clock).
-
-    The recording is in log-time order, log time being the capture stamp of the frame a message derives
-    from; the order a node saw its inputs is the order they were published (the odometry sample sent
-    5 ms after frame k's capture comes before the measurement of frame k sent 22 ms after it). A message
-    is published after its capture (pub_ns >= log_time), so once the stream reaches log time L every
-    buffered message published before L is final: the reorder buffer holds only the in-flight window.
-
-    Messages of no frame (odometry) keep their stamp order instead: a node picks among them by stamp and
-    a replay repeats the live choice (provenance notes), so handing each over at the earliest moment it
-    could have existed is safe, whereas its publication time under load could make it late.
-    """
-    heap: list[tuple[int, int, int, Input]] = []
-    for counter, item in enumerate(messages):
-        msg = item.msg
-        while heap and heap[0][0] < msg.log_time:
-            yield heapq.heappop(heap)[3]
-        pub = msg.log_time if item.frame_seq < 0 else (item.pub_ns or msg.log_time)
-        heapq.heappush(heap, (max(pub, msg.log_time), msg.sequence, counter, item))
-    while heap:
-        yield heapq.heappop(heap)[3]
-
-
-def prefetch(items: Iterable[Any], depth: int) -> Iterator[Any]:
-    """Iterate in a thread ``depth`` items ahead: reading and decompressing the recording overlaps with
-    the node's work (lz4 releases the GIL)."""
-    box: queue.Queue[Any] = queue.Queue(maxsize=depth)
-    done = object()
-    stop = threading.Event()
-
-    def run() -> None:
-        try:
-            for item in items:
-                while not stop.is_set():
-                    try:
-                        box.put(item, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-        except BaseException as exc:  # handed to the consumer
-            box.put(exc)
-        box.put(done)
-
-    thread = threading.Thread(target=run, name="replay-read", daemon=True)
-    thread.start()
-    try:
-        while True:
-            item = box.get()
-            if item is done:
-                return
-            if isinstance(item, BaseException):
-                raise item
-            yield item
-    finally:
-        stop.set()
 
 
 # --- options, plan, report -------------------------------------------------------------------------
@@ -347,6 +229,7 @@ class ReplayReport:
     missing: list[dict[str, Any]] = field(default_factory=list)  # recorded, never produced
     extra: list[dict[str, Any]] = field(default_factory=list)  # produced, not in the recording
     beyond_end: int = 0  # produced for frames after the recording's last output on that key (not compared)
+    timer_outputs: int = 0  # recorded outputs of a node's timer (no frame): wall-clock ticks live, not compared
     timeouts: list[int] = field(default_factory=list)  # --isolated: frames whose outputs did not come in time
     late_inputs: int = 0
     hints: int = 0  # frames told to skip, or to join the feedback the live run joined (a live fallback)
@@ -416,6 +299,10 @@ class ReplayPlan:
         self.feedback_inputs = {name: [i.name for i in self.graph.nodes[name].inputs.values()
                                        if i.sync == "frame" and i.offset] for name in self.nodes}
         self.feedback_inputs = {n: names for n, names in self.feedback_inputs.items() if names}
+        # Outputs of no frame from a node with a timer (motor's odometry and watchdog stops) come from ticks of
+        # the wall clock live and of the stamps in a replay: not comparable, counted apart.
+        self.timer_topics = {topic for key, topic in self.outputs.items()
+                             if self._has_timer(self.output_node(key))}
 
     def _split_overrides(self, params: dict[str, Any]) -> dict[str, dict[str, Any]]:
         if len(self.nodes) == 1:
@@ -429,141 +316,22 @@ class ReplayPlan:
             out[node][param] = value
         return out
 
+    def _has_timer(self, node: str) -> bool:
+        return bool(load_node_class(self.graph.nodes[node].run).TIMER_PERIOD_MS)
+
     def output_node(self, key: str) -> str:
         return self.outputs[key].split("/", 1)[0]
 
 
-# --- the feed: the recording read once -------------------------------------------------------------
+# --- the targets: in-process here, or the deployed node as a process (tools/replay_isolated.py) ---------
 
-class Feed:
-    """The recording read once. Outputs of the replayed nodes become the expected outputs and the replay
-    hints as they are read (log-time order: once the reader is past a frame's stamp, every output of that
-    frame has been seen); inputs come out in publication order (:func:`causal_order`), grouped by frame,
-    each group only once the reader knows what the live run did up to the next frame each node handled
-    (a skipped frame is one with no output before a later handled one; whether a feedback message came
-    late depends on that next frame's hint)."""
+class Target(Protocol):
+    def start(self) -> None: ...
+    def hint(self, node: str, hint: ReplayHint) -> None: ...
+    def send(self, topic: str, data: bytes, stamp_ns: int, frame_seq: int) -> None: ...
+    def produced(self) -> dict[str, list[bytes]]: ...
+    def close(self) -> None: ...
 
-    def __init__(self, plan: ReplayPlan, report: ReplayReport):
-        self.plan = plan
-        self.report = report
-        self.expected: dict[tuple[str, int], list[bytes]] = defaultdict(list)
-        self.hints: list[tuple[str, ReplayHint]] = []  # ready to be handed over
-        self.eof = False
-        self._log_time = -1  # of the newest message read
-        self._open: dict[str, tuple[int, int, dict[str, int] | None]] = {}  # node -> (frame, stamp, provenance)
-        self._handled: dict[str, int] = {}  # node -> newest frame whose hint is final
-        self._previous: dict[str, int] = {}  # node -> newest frame handled live (for counting fallbacks)
-        self._warned = False
-
-    # outputs -> expected and hints
-    def _read(self, messages: Iterable[BusMessage]) -> Iterator[Input]:
-        for msg in messages:
-            if msg.log_time > self._log_time:
-                self._log_time = msg.log_time
-                self._close_frames(msg.log_time)
-            head = _peek_header(msg.data)
-            frame_seq = head.header.frame_seq if head is not None else -1
-            if msg.key not in self.plan.outputs:
-                yield (Input(msg, frame_seq, head.header.stamp_ns, head.header.pub_ns) if head is not None
-                       else Input(msg, -1, 0, 0))
-                continue
-            self.expected[(self.plan.outputs[msg.key], frame_seq)].append(msg.data)
-            self.report.outputs_expected += 1
-            node = self.plan.output_node(msg.key)
-            if frame_seq < 0 or node not in self.plan.feedback_inputs or head is None:
-                continue
-            used = dict(head.header.feedback) if head.provenance else None
-            open_ = self._open.get(node)
-            if open_ is not None and open_[0] == frame_seq:
-                if used:  # a frame's outputs together: the prior's feedback and notes, the track's notes
-                    self._open[node] = (frame_seq, open_[1], {**(open_[2] or {}), **used})
-            elif frame_seq > self._handled.get(node, -1) and (open_ is None or frame_seq > open_[0]):
-                if open_ is not None:
-                    self._finish(node, *open_)
-                self._open[node] = (frame_seq, head.header.stamp_ns, used or None)
-        self.eof = True
-        for node, open_ in list(self._open.items()):
-            self._finish(node, *open_)
-        self._open.clear()
-
-    def _close_frames(self, log_time: int) -> None:
-        for node, open_ in list(self._open.items()):
-            if open_[1] < log_time:
-                self._finish(node, *open_)
-                del self._open[node]
-
-    def _finish(self, node: str, frame_seq: int, _stamp: int, used: dict[str, int] | None) -> None:
-        """The hints of the frames up to ``frame_seq``: those in between were skipped live."""
-        last = self._handled.get(node)
-        if last is not None:
-            for skipped in range(last + 1, frame_seq):
-                self._hint(node, skipped, True, None)
-        self._hint(node, frame_seq, False, used)
-        self._handled[node] = frame_seq
-
-    def _hint(self, node: str, frame_seq: int, skip: bool, used: dict[str, int] | None) -> None:
-        if not (skip or used):
-            return
-        hint = ReplayHint(skip=skip, feedback=dict(used or {}))
-        hint.header.frame_seq = frame_seq
-        self.hints.append((node, hint))
-        previous = self._previous.get(node)
-        fallback = used is not None and previous is not None and any(
-            used.get(name, previous) != previous for name in self.plan.feedback_inputs[node])
-        self.report.hints += skip or fallback
-        if not skip:
-            self._previous[node] = frame_seq
-
-    def _known(self, frame_seq: int) -> bool:
-        """Does the reader know what each node did up to the next frame after ``frame_seq`` it handled?"""
-        return self.eof or all(self._handled.get(node, -1) > frame_seq for node in self.plan.feedback_inputs)
-
-    # inputs -> frame groups
-    def groups(self) -> Iterator[tuple[list[tuple[str, ReplayHint]], int, list[Input]]]:
-        """(hints to hand over first, frame_seq, the group's input messages: no-frame ones first)."""
-        keys = set(self.plan.inputs) | set(self.plan.outputs)
-        stream = causal_order(self._read(prefetch(iter_bus_messages(self.plan.path, keys), PREFETCH)))
-        ready: deque[tuple[int, list[Input], int]] = deque()  # (frame_seq, messages, bytes)
-        held = 0
-        group: list[Input] = []
-        group_seq: int | None = None
-        done: set[int] = set()
-
-        def release(force: bool):
-            nonlocal held
-            while ready and (force or self._known(ready[0][0]) or held > LOOKAHEAD_BYTES):
-                if held > LOOKAHEAD_BYTES and not self._known(ready[0][0]) and not self._warned:
-                    self._warned = True
-                    log.warning("no output of the replayed node for %d MB of recording after frame %d: going "
-                                "on without knowing whether live skipped the frames in between",
-                                LOOKAHEAD_BYTES >> 20, ready[0][0])
-                frame_seq, messages, size = ready.popleft()
-                held -= size
-                hints, self.hints = self.hints, []
-                # Messages of no frame (odometry) first: a node picks among them by stamp, and what it picked
-                # live is replayed from the hint, which needs the sample there before the frame's set.
-                yield hints, frame_seq, sorted(messages, key=lambda m: m.frame_seq >= 0)
-
-        for item in stream:
-            frame_seq = item.frame_seq
-            if frame_seq >= 0:
-                if group_seq is not None and frame_seq > group_seq:
-                    ready.append((group_seq, group, sum(len(m.msg.data) for m in group)))
-                    held += ready[-1][2]
-                    done.add(group_seq)
-                    group, group_seq = [], None
-                if group_seq is not None and frame_seq < group_seq or frame_seq in done:
-                    self.report.late_inputs += 1  # out of stamp order: goes with the frame being assembled
-                if group_seq is None:
-                    group_seq = frame_seq
-            group.append(item)  # messages of no frame (-1) go with the frame being assembled
-            yield from release(False)
-        if group:
-            ready.append((group_seq if group_seq is not None else -1, group, 0))
-        yield from release(True)
-
-
-# --- the targets: in-process, or the deployed node as a process -----------------------------------
 
 class InProcessTarget:
     """The nodes hosted here (bus.inproc), on the stamps clock; every input is delivered before the next."""
@@ -582,7 +350,7 @@ class InProcessTarget:
 
     def send(self, topic: str, data: bytes, stamp_ns: int, frame_seq: int) -> None:
         t0 = time.perf_counter()
-        self.graph.inject_bytes(topic, data)  # decoded by each subscribed node
+        self.graph.inject_bytes(topic, data, stamp_ns)  # decoded by each subscribed node
         t1 = time.perf_counter()
         self.graph.deliver()
         self.decode_s += t1 - t0
@@ -596,166 +364,6 @@ class InProcessTarget:
 
     def close(self) -> None:
         self.graph.close()
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def private_graph_text(graph: Graph, spec: NodeSpec, params: dict[str, Any], namespace: str, port: int) -> str:
-    """graph.yaml of the node under test plus stand-ins for its producers (their outputs only)."""
-    endpoint = f"tcp/127.0.0.1:{port}"
-    inputs = {}
-    producers: dict[str, list[str]] = defaultdict(list)
-    for inp in spec.inputs.values():
-        inputs[inp.name] = {"from": inp.topic, "queue": max(inp.queue, LOCKSTEP_QUEUE), "policy": "block",
-                            "sync": inp.sync, "offset": inp.offset, "optional": inp.optional}
-        if inp.source_output not in producers[inp.source_node]:
-            producers[inp.source_node].append(inp.source_output)
-    nodes: dict[str, Any] = {}
-    for name, outputs in producers.items():
-        if name != spec.name:
-            nodes[name] = {"run": graph.nodes[name].run, "outputs": outputs}
-    node_outputs = list(dict.fromkeys(spec.outputs + producers.get(spec.name, [])))
-    nodes[spec.name] = {"run": spec.run, "inputs": inputs, "outputs": node_outputs, "params": params,
-                        "sync_timeout_ms": spec.sync_timeout_ms, "restart": "never"}
-    doc = {"name": f"replay-{spec.name}", "namespace": namespace,
-           "zenoh": {"mode": "peer", "listen": [endpoint], "connect": [endpoint], "multicast_scouting": False,
-                     "shm": graph.zenoh.shm},
-           "nodes": nodes}
-    return yaml.safe_dump(doc, sort_keys=False)
-
-
-def _die_with_parent() -> None:  # runs in the child between fork and exec: the node never outlives us
-    import ctypes
-
-    with contextlib.suppress(OSError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-
-
-class IsolatedTarget:
-    """The node as the deployed process (``followbus node NAME --clock stamps``) in a private graph over
-    Zenoh. The in-process run of the same node, fed alongside, says how many outputs the process must have
-    published before the next input goes out: lockstep without guessing when the process is idle."""
-
-    def __init__(self, plan: ReplayPlan, report: ReplayReport, options: ReplayOptions, tmp: Path):
-        if len(plan.nodes) != 1:
-            raise ValueError("--isolated replays one node (several run in-process only)")
-        self.plan = plan
-        self.report = report
-        self.opts = options
-        self.reference = InProcessTarget(plan)
-        self.name = plan.nodes[0]
-        self.spec = plan.graph.nodes[self.name]
-        self.private_ns = f"replay_{secrets.token_hex(4)}"
-        self.tmp = tmp
-        self.proc: subprocess.Popen | None = None
-        self._cond = threading.Condition()
-        self._received: dict[str, list[bytes]] = {t: [] for t in plan.outputs.values()}
-        self._subs: list[Any] = []
-        self._pubs: dict[str, Any] = {}
-        self._session: Any = None
-        self._watcher: Any = None
-        self.log_path = tmp / "node.log"
-
-    def start(self) -> None:
-        from followbus.bus.health import HealthWatcher
-        from followbus.bus.pubsub import Publisher, ShmPool, direct_callback
-        from followbus.bus.session import open_session
-
-        self.reference.start()
-        graph_path = self.tmp / "graph.yaml"
-        graph_path.write_text(private_graph_text(self.plan.graph, self.spec, self.plan.params[self.name],
-                                                 self.private_ns, free_port()))
-        private = load_graph(graph_path)
-        self._session = open_session(private.zenoh)  # takes the private port first; the node connects to it
-        for topic in self.plan.outputs.values():
-            # Direct callbacks keep the order of samples across keys (bus.pubsub.direct_callback).
-            self._subs.append(self._session.declare_subscriber(private.key(*topic.split("/", 1)),
-                                                               direct_callback(self._on_output(topic))))
-        shm = ShmPool(REPLAY_SHM_BYTES) if private.zenoh.shm else None
-        for topic in self.plan.inputs.values():
-            self._pubs[topic] = Publisher(self._session, private.key(*topic.split("/", 1)), "replay", shm=shm)
-        self._hint_pub = Publisher(self._session, private.replay_hint_key(self.name), "replay")
-        self._watcher = HealthWatcher(self._session, self.private_ns, watch_status=False)
-        with open(self.log_path, "wb") as node_log:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "followbus.tools.cli", "node", self.name, "--graph", str(graph_path),
-                 "--clock", "stamps"],
-                stdout=node_log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=_die_with_parent)
-        t0 = time.perf_counter()
-        missing = self._watcher.wait_for({self.name}, self.opts.startup_timeout_s)
-        self.report.startup_s = time.perf_counter() - t0
-        if self.proc.poll() is not None:
-            raise RuntimeError(f"node {self.name} exited with status {self.proc.poll()}")
-        if missing:
-            raise RuntimeError(f"node {self.name} did not come up within {self.opts.startup_timeout_s:.0f} s")
-
-    def _on_output(self, topic: str):
-        def callback(sample) -> None:
-            from followbus.bus.pubsub import payload_bytes
-
-            data = payload_bytes(sample)
-            with self._cond:
-                self._received[topic].append(data)
-                self._cond.notify_all()
-
-        return callback
-
-    def hint(self, node: str, hint: ReplayHint) -> None:
-        self.reference.hint(node, hint)
-        self._hint_pub.put(hint)
-
-    def send(self, topic: str, data: bytes, stamp_ns: int, frame_seq: int) -> None:
-        self.reference.send(topic, data, stamp_ns, frame_seq)
-        self._pubs[topic].put_bytes(data, stamp_ns)
-        if not self._wait_caught_up(self.opts.frame_timeout_s):
-            self.report.timeouts.append(frame_seq)
-            if self.proc is not None and self.proc.poll() is not None:
-                raise RuntimeError(f"node {self.name} exited with status {self.proc.returncode}")
-
-    def _wait_caught_up(self, timeout_s: float) -> bool:
-        """Wait until the process published what the in-process run published by now."""
-        want = {t: self.reference.published(t) for t in self._received}
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while not all(len(self._received[t]) >= n for t, n in want.items()):
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or (self.proc is not None and self.proc.poll() is not None):
-                    return False
-                self._cond.wait(min(remaining, 0.2))
-        return True
-
-    def produced(self) -> dict[str, list[bytes]]:
-        with self._cond:
-            return {t: list(v) for t, v in self._received.items()}
-
-    def close(self) -> None:
-        if self.proc is not None:
-            if self.proc.poll() is None:
-                self.proc.send_signal(signal.SIGTERM)
-                try:
-                    self.proc.wait(10)
-                except subprocess.TimeoutExpired:
-                    self.proc.kill()
-                    self.proc.wait()
-            self.report.node_exit = self.proc.returncode
-            if self.report.error or self.report.node_exit not in (0, None):
-                tail = self.log_path.read_text(errors="replace").splitlines()[-30:] if self.log_path.exists() else []
-                if tail:
-                    log.error("node log (last lines):\n%s", "\n".join(tail))
-        for sub in self._subs:
-            with contextlib.suppress(Exception):
-                sub.undeclare()
-        if self._watcher is not None:
-            self._watcher.close()
-        if self._session is not None:
-            with contextlib.suppress(Exception):
-                self._session.close()
-        self.reference.close()
 
 
 # --- the replay ------------------------------------------------------------------------------------
@@ -776,7 +384,13 @@ class Replayer:
 
     def run(self) -> ReplayReport:
         with tempfile.TemporaryDirectory(prefix="followbus-replay-") as tmp:
-            target = self._inproc or IsolatedTarget(self.plan, self.report, self.opts, Path(tmp))
+            target: Target
+            if self._inproc is not None:
+                target = self._inproc
+            else:
+                from followbus.tools.replay_isolated import IsolatedTarget
+
+                target = IsolatedTarget(self.plan, self.report, self.opts, Path(tmp))
             try:
                 target.start()
                 self.report.recording_first_frame = recording_first_frame(self.path)
@@ -787,8 +401,8 @@ class Replayer:
                 target.close()
         return self.report
 
-    def _feed(self, target: InProcessTarget | IsolatedTarget) -> None:
-        feed = Feed(self.plan, self.report)
+    def _feed(self, target: Target) -> None:
+        feed = Feed(self.plan)
         bar = self._progress()
         started = time.perf_counter()
         first_stamp = last_stamp = None
@@ -815,6 +429,8 @@ class Replayer:
             produced = target.produced()
             self._compare(feed.expected, produced, done_frames)
             self.report.wall_s = time.perf_counter() - started
+            self.report.outputs_expected = feed.outputs_expected
+            self.report.hints, self.report.late_inputs = feed.hints_reproduced, feed.late_inputs
         if isinstance(target, InProcessTarget):
             self.report.handler_s, self.report.decode_s = target.handler_s, target.decode_s
         if first_stamp is not None and last_stamp is not None:
@@ -836,6 +452,9 @@ class Replayer:
             last_recorded[topic] = max(last_recorded.get(topic, -1), fs)
         key = {topic: f"{self.plan.recorded_ns}/{topic}" for topic in self.plan.outputs.values()}
         for (topic, fs), recorded in sorted(expected.items()):
+            if fs < 0 and topic in self.plan.timer_topics:
+                self.report.timer_outputs += len(recorded)
+                continue
             if self.opts.max_frames and fs not in done_frames:
                 continue  # beyond --max-frames
             replayed = by_frame.get((topic, fs), [])
@@ -853,6 +472,8 @@ class Replayer:
             for i in range(len(replayed), len(recorded)):
                 self.report.missing.append({"frame_seq": fs, "key": key[topic], "index": i})
         for (topic, fs), replayed in sorted(by_frame.items()):
+            if fs < 0 and topic in self.plan.timer_topics:
+                continue
             n_exp = len(expected.get((topic, fs), []))
             if fs > last_recorded.get(topic, -1):
                 # The recording stopped between this frame's inputs and its outputs: nothing to compare.
@@ -895,6 +516,9 @@ def _print_summary(report: ReplayReport, verify: bool) -> None:
           f"{report.outputs_compared} compared, {report.matched} identical, {report.mismatch_count} differing, "
           f"{len(report.missing)} missing, {len(report.extra)} extra"
           + (f"; {len(report.timeouts)} frame timeouts" if report.mode == "isolated" else ""))
+    if report.timer_outputs:
+        print(f"not compared: {report.timer_outputs} recorded outputs of the node's timer (no frame: odometry, "
+              "watchdog stops); live it ticks on the wall clock, a replay on the message stamps")
     if report.hints:
         print(f"live fallbacks reproduced: {report.hints} frames skipped or joined older feedback live "
               "(a late feedback, a skipped backlog), and were replayed the same way")

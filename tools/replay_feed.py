@@ -1,0 +1,265 @@
+"""The recording as a replay reads it: once, outputs of the replayed nodes kept as the expected outputs and
+turned into replay hints, inputs handed out in the order they were published, frame by frame. Shared by
+the in-process and the ``--isolated`` replay (tools/replay.py)."""
+
+from __future__ import annotations
+
+import heapq
+import logging
+import queue
+import threading
+from collections import defaultdict, deque
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from followbus.bus.codec import DecodeError, Peeked, peek
+from followbus.bus.recording import BusMessage, iter_bus_messages
+from followbus.bus.schemas import ReplayHint
+
+if TYPE_CHECKING:
+    from followbus.tools.replay import ReplayPlan
+
+log = logging.getLogger("followbus.replay")
+
+PREFETCH = 8  # batches of recorded messages read ahead by the reading thread
+PREFETCH_BATCH = 32
+LOOKAHEAD_BYTES = 256 * 1024 * 1024  # inputs held back while reading ahead for what live did with a frame
+
+
+def _peek_header(data: bytes) -> Peeked | None:
+    """Type and header of a stored bus message without decoding its fields (None: not a followbus frame)."""
+    try:
+        return peek(data)
+    except DecodeError:
+        return None
+
+
+def _header(data: bytes) -> tuple[int, int]:
+    """(frame_seq, stamp_ns) of a stored bus message."""
+    head = _peek_header(data)
+    return (head.header.frame_seq, head.header.stamp_ns) if head is not None else (-1, 0)
+
+
+def recording_first_frame(path: Path, look_at: int = 200) -> int | None:
+    """The lowest frame_seq among the recording's first messages (log time = capture stamp, so the run's
+    first recorded frame is among them); None when none carries a frame."""
+    seqs = []
+    for k, msg in enumerate(iter_bus_messages(path)):
+        if k >= look_at:
+            break
+        frame_seq = _header(msg.data)[0]
+        if frame_seq >= 0:
+            seqs.append(frame_seq)
+    return min(seqs) if seqs else None
+
+
+@dataclass
+class Input:
+    """A recorded input message and its header, peeked once."""
+
+    msg: BusMessage
+    frame_seq: int
+    stamp_ns: int
+    pub_ns: int
+
+
+def causal_order(messages: Iterable[Input]) -> Iterator[Input]:
+    """Messages in the order they were published (header.pub_ns, one host's clock).
+
+    The recording is in log-time order, log time being the capture stamp of the frame a message derives
+    from; the order a node saw its inputs is the order they were published (the odometry sample sent
+    5 ms after frame k's capture comes before the measurement of frame k sent 22 ms after it). A message
+    is published after its capture (pub_ns >= log_time), so once the stream reaches log time L every
+    buffered message published before L is final: the reorder buffer holds only the in-flight window.
+
+    Messages of no frame (odometry) keep their stamp order instead: a node picks among them by stamp and
+    a replay repeats the live choice (provenance notes), so handing each over at the earliest moment it
+    could have existed is safe, whereas its publication time under load could make it late.
+    """
+    heap: list[tuple[int, int, int, Input]] = []
+    for counter, item in enumerate(messages):
+        msg = item.msg
+        while heap and heap[0][0] < msg.log_time:
+            yield heapq.heappop(heap)[3]
+        pub = msg.log_time if item.frame_seq < 0 else (item.pub_ns or msg.log_time)
+        heapq.heappush(heap, (max(pub, msg.log_time), msg.sequence, counter, item))
+    while heap:
+        yield heapq.heappop(heap)[3]
+
+
+def prefetch(items: Iterable[Any], depth: int) -> Iterator[Any]:
+    """Iterate in a thread ``depth`` items ahead: reading and decompressing the recording overlaps with
+    the node's work (lz4 releases the GIL)."""
+    box: queue.Queue[Any] = queue.Queue(maxsize=depth)
+    done = object()
+    stop = threading.Event()
+
+    def put(batch: list[Any]) -> bool:
+        while not stop.is_set():
+            try:
+                box.put(batch, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def run() -> None:
+        batch: list[Any] = []
+        try:
+            for item in items:
+                batch.append(item)
+                if len(batch) >= PREFETCH_BATCH:  # a handover per batch, not per message: the locks cost
+                    if not put(batch):
+                        return
+                    batch = []
+            if batch and not put(batch):
+                return
+        except BaseException as exc:  # handed to the consumer
+            box.put([exc])
+        box.put(done)
+
+    thread = threading.Thread(target=run, name="replay-read", daemon=True)
+    thread.start()
+    try:
+        while True:
+            got = box.get()
+            if got is done:
+                return
+            for item in got:
+                if isinstance(item, BaseException):
+                    raise item
+                yield item
+    finally:
+        stop.set()
+
+
+class Feed:
+    """The recording read once. Outputs of the replayed nodes become the expected outputs and the replay
+    hints as they are read (log-time order: once the reader is past a frame's stamp, every output of that
+    frame has been seen); inputs come out in publication order (:func:`causal_order`), grouped by frame,
+    each group only once the reader knows what the live run did up to the next frame each node handled
+    (a skipped frame is one with no output before a later handled one; whether a feedback message came
+    late depends on that next frame's hint)."""
+
+    def __init__(self, plan: ReplayPlan):
+        self.plan = plan
+        self.outputs_expected = 0
+        self.hints_reproduced = 0  # frames skipped, or joining other feedback than the previous handled frame
+        self.late_inputs = 0  # inputs out of stamp order (handed over with the frame being assembled)
+        self.expected: dict[tuple[str, int], list[bytes]] = defaultdict(list)
+        self.hints: list[tuple[str, ReplayHint]] = []  # ready to be handed over
+        self.eof = False
+        self._log_time = -1  # of the newest message read
+        self._open: dict[str, tuple[int, int, dict[str, int] | None]] = {}  # node -> (frame, stamp, provenance)
+        self._handled: dict[str, int] = {}  # node -> newest frame whose hint is final
+        self._previous: dict[str, int] = {}  # node -> newest frame handled live (for counting fallbacks)
+        self._warned = False
+
+    # outputs -> expected and hints
+    def _read(self, messages: Iterable[BusMessage]) -> Iterator[Input]:
+        for msg in messages:
+            if msg.log_time > self._log_time:
+                self._log_time = msg.log_time
+                self._close_frames(msg.log_time)
+            head = _peek_header(msg.data)
+            frame_seq = head.header.frame_seq if head is not None else -1
+            if msg.key not in self.plan.outputs:
+                yield (Input(msg, frame_seq, head.header.stamp_ns, head.header.pub_ns) if head is not None
+                       else Input(msg, -1, 0, 0))
+                continue
+            self.expected[(self.plan.outputs[msg.key], frame_seq)].append(msg.data)
+            self.outputs_expected += 1
+            node = self.plan.output_node(msg.key)
+            if frame_seq < 0 or node not in self.plan.feedback_inputs or head is None:
+                continue
+            used = dict(head.header.feedback) if head.provenance else None
+            open_ = self._open.get(node)
+            if open_ is not None and open_[0] == frame_seq:
+                if used:  # a frame's outputs together: the prior's feedback and notes, the track's notes
+                    self._open[node] = (frame_seq, open_[1], {**(open_[2] or {}), **used})
+            elif frame_seq > self._handled.get(node, -1) and (open_ is None or frame_seq > open_[0]):
+                if open_ is not None:
+                    self._finish(node, *open_)
+                self._open[node] = (frame_seq, head.header.stamp_ns, used or None)
+        self.eof = True
+        for node, open_ in list(self._open.items()):
+            self._finish(node, *open_)
+        self._open.clear()
+
+    def _close_frames(self, log_time: int) -> None:
+        for node, open_ in list(self._open.items()):
+            if open_[1] < log_time:
+                self._finish(node, *open_)
+                del self._open[node]
+
+    def _finish(self, node: str, frame_seq: int, _stamp: int, used: dict[str, int] | None) -> None:
+        """The hints of the frames up to ``frame_seq``: those in between were skipped live."""
+        last = self._handled.get(node)
+        if last is not None:
+            for skipped in range(last + 1, frame_seq):
+                self._hint(node, skipped, True, None)
+        self._hint(node, frame_seq, False, used)
+        self._handled[node] = frame_seq
+
+    def _hint(self, node: str, frame_seq: int, skip: bool, used: dict[str, int] | None) -> None:
+        if not (skip or used):
+            return
+        hint = ReplayHint(skip=skip, feedback=dict(used or {}))
+        hint.header.frame_seq = frame_seq
+        self.hints.append((node, hint))
+        previous = self._previous.get(node)
+        fallback = used is not None and previous is not None and any(
+            used.get(name, previous) != previous for name in self.plan.feedback_inputs[node])
+        self.hints_reproduced += skip or fallback
+        if not skip:
+            self._previous[node] = frame_seq
+
+    def _known(self, frame_seq: int) -> bool:
+        """Does the reader know what each node did up to the next frame after ``frame_seq`` it handled?"""
+        return self.eof or all(self._handled.get(node, -1) > frame_seq for node in self.plan.feedback_inputs)
+
+    # inputs -> frame groups
+    def groups(self) -> Iterator[tuple[list[tuple[str, ReplayHint]], int, list[Input]]]:
+        """(hints to hand over first, frame_seq, the group's input messages: no-frame ones first)."""
+        keys = set(self.plan.inputs) | set(self.plan.outputs)
+        stream = causal_order(self._read(prefetch(iter_bus_messages(self.plan.path, keys), PREFETCH)))
+        ready: deque[tuple[int, list[Input], int]] = deque()  # (frame_seq, messages, bytes)
+        held = 0
+        group: list[Input] = []
+        group_seq: int | None = None
+        done: set[int] = set()
+
+        def release(force: bool):
+            nonlocal held
+            while ready and (force or self._known(ready[0][0]) or held > LOOKAHEAD_BYTES):
+                if held > LOOKAHEAD_BYTES and not self._known(ready[0][0]) and not self._warned:
+                    self._warned = True
+                    log.warning("no output of the replayed node for %d MB of recording after frame %d: going "
+                                "on without knowing whether live skipped the frames in between",
+                                LOOKAHEAD_BYTES >> 20, ready[0][0])
+                frame_seq, messages, size = ready.popleft()
+                held -= size
+                hints, self.hints = self.hints, []
+                # Messages of no frame (odometry) first: a node picks among them by stamp, and what it picked
+                # live is replayed from the hint, which needs the sample there before the frame's set.
+                yield hints, frame_seq, sorted(messages, key=lambda m: m.frame_seq >= 0)
+
+        for item in stream:
+            frame_seq = item.frame_seq
+            if frame_seq >= 0:
+                if group_seq is not None and frame_seq > group_seq:
+                    ready.append((group_seq, group, sum(len(m.msg.data) for m in group)))
+                    held += ready[-1][2]
+                    done.add(group_seq)
+                    group, group_seq = [], None
+                if group_seq is not None and frame_seq < group_seq or frame_seq in done:
+                    self.late_inputs += 1  # out of stamp order: goes with the frame being assembled
+                if group_seq is None:
+                    group_seq = frame_seq
+            group.append(item)  # messages of no frame (-1) go with the frame being assembled
+            yield from release(False)
+        if group:
+            ready.append((group_seq if group_seq is not None else -1, group, 0))
+        yield from release(True)

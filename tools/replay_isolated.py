@@ -1,0 +1,190 @@
+"""``followbus replay --isolated``: the node as the deployed process (``followbus node NAME --clock stamps``)
+in a private graph (private namespace, private loopback port), fed over Zenoh with the same order and hints
+as the in-process replay (tools/replay_feed.py)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from followbus.bus.graph import Graph, NodeSpec, load_graph
+from followbus.bus.schemas import ReplayHint
+from followbus.tools.replay import InProcessTarget, ReplayOptions, ReplayPlan, ReplayReport
+
+log = logging.getLogger("followbus.replay")
+
+LOCKSTEP_QUEUE = 64  # inputs queue deep and block, whatever the live policy was
+REPLAY_SHM_BYTES = 256 * 1024 * 1024
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def private_graph_text(graph: Graph, spec: NodeSpec, params: dict[str, Any], namespace: str, port: int) -> str:
+    """graph.yaml of the node under test plus stand-ins for its producers (their outputs only)."""
+    endpoint = f"tcp/127.0.0.1:{port}"
+    inputs = {}
+    producers: dict[str, list[str]] = defaultdict(list)
+    for inp in spec.inputs.values():
+        inputs[inp.name] = {"from": inp.topic, "queue": max(inp.queue, LOCKSTEP_QUEUE), "policy": "block",
+                            "sync": inp.sync, "offset": inp.offset, "optional": inp.optional}
+        if inp.source_output not in producers[inp.source_node]:
+            producers[inp.source_node].append(inp.source_output)
+    nodes: dict[str, Any] = {}
+    for name, outputs in producers.items():
+        if name != spec.name:
+            nodes[name] = {"run": graph.nodes[name].run, "outputs": outputs}
+    node_outputs = list(dict.fromkeys(spec.outputs + producers.get(spec.name, [])))
+    nodes[spec.name] = {"run": spec.run, "inputs": inputs, "outputs": node_outputs, "params": params,
+                        "sync_timeout_ms": spec.sync_timeout_ms, "restart": "never"}
+    doc = {"name": f"replay-{spec.name}", "namespace": namespace,
+           "zenoh": {"mode": "peer", "listen": [endpoint], "connect": [endpoint], "multicast_scouting": False,
+                     "shm": graph.zenoh.shm},
+           "nodes": nodes}
+    return yaml.safe_dump(doc, sort_keys=False)
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec: the node never outlives us
+    import ctypes
+
+    with contextlib.suppress(OSError):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+class IsolatedTarget:
+    """The node as the deployed process (``followbus node NAME --clock stamps``) in a private graph over
+    Zenoh. The in-process run of the same node, fed alongside, says how many outputs the process must have
+    published before the next input goes out: lockstep without guessing when the process is idle."""
+
+    def __init__(self, plan: ReplayPlan, report: ReplayReport, options: ReplayOptions, tmp: Path):
+        if len(plan.nodes) != 1:
+            raise ValueError("--isolated replays one node (several run in-process only)")
+        self.plan = plan
+        self.report = report
+        self.opts = options
+        self.reference = InProcessTarget(plan)
+        self.name = plan.nodes[0]
+        self.spec = plan.graph.nodes[self.name]
+        self.private_ns = f"replay_{secrets.token_hex(4)}"
+        self.tmp = tmp
+        self.proc: subprocess.Popen | None = None
+        self._cond = threading.Condition()
+        self._received: dict[str, list[bytes]] = {t: [] for t in plan.outputs.values()}
+        self._subs: list[Any] = []
+        self._pubs: dict[str, Any] = {}
+        self._session: Any = None
+        self._watcher: Any = None
+        self.log_path = tmp / "node.log"
+
+    def start(self) -> None:
+        from followbus.bus.health import HealthWatcher
+        from followbus.bus.pubsub import Publisher, ShmPool, direct_callback
+        from followbus.bus.session import open_session
+
+        self.reference.start()
+        graph_path = self.tmp / "graph.yaml"
+        graph_path.write_text(private_graph_text(self.plan.graph, self.spec, self.plan.params[self.name],
+                                                 self.private_ns, free_port()))
+        private = load_graph(graph_path)
+        self._session = open_session(private.zenoh)  # takes the private port first; the node connects to it
+        for topic in self.plan.outputs.values():
+            # Direct callbacks keep the order of samples across keys (bus.pubsub.direct_callback).
+            self._subs.append(self._session.declare_subscriber(private.key(*topic.split("/", 1)),
+                                                               direct_callback(self._on_output(topic))))
+        shm = ShmPool(REPLAY_SHM_BYTES) if private.zenoh.shm else None
+        for topic in self.plan.inputs.values():
+            self._pubs[topic] = Publisher(self._session, private.key(*topic.split("/", 1)), "replay", shm=shm)
+        self._hint_pub = Publisher(self._session, private.replay_hint_key(self.name), "replay")
+        self._watcher = HealthWatcher(self._session, self.private_ns, watch_status=False)
+        with open(self.log_path, "wb") as node_log:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "followbus.tools.cli", "node", self.name, "--graph", str(graph_path),
+                 "--clock", "stamps"],
+                stdout=node_log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=_die_with_parent)
+        t0 = time.perf_counter()
+        missing = self._watcher.wait_for({self.name}, self.opts.startup_timeout_s)
+        self.report.startup_s = time.perf_counter() - t0
+        if self.proc.poll() is not None:
+            raise RuntimeError(f"node {self.name} exited with status {self.proc.poll()}")
+        if missing:
+            raise RuntimeError(f"node {self.name} did not come up within {self.opts.startup_timeout_s:.0f} s")
+
+    def _on_output(self, topic: str):
+        def callback(sample) -> None:
+            from followbus.bus.pubsub import payload_bytes
+
+            data = payload_bytes(sample)
+            with self._cond:
+                self._received[topic].append(data)
+                self._cond.notify_all()
+
+        return callback
+
+    def hint(self, node: str, hint: ReplayHint) -> None:
+        self.reference.hint(node, hint)
+        self._hint_pub.put(hint)
+
+    def send(self, topic: str, data: bytes, stamp_ns: int, frame_seq: int) -> None:
+        self.reference.send(topic, data, stamp_ns, frame_seq)
+        self._pubs[topic].put_bytes(data, stamp_ns)
+        if not self._wait_caught_up(self.opts.frame_timeout_s):
+            self.report.timeouts.append(frame_seq)
+            if self.proc is not None and self.proc.poll() is not None:
+                raise RuntimeError(f"node {self.name} exited with status {self.proc.returncode}")
+
+    def _wait_caught_up(self, timeout_s: float) -> bool:
+        """Wait until the process published what the in-process run published by now."""
+        want = {t: self.reference.published(t) for t in self._received}
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not all(len(self._received[t]) >= n for t, n in want.items()):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or (self.proc is not None and self.proc.poll() is not None):
+                    return False
+                self._cond.wait(min(remaining, 0.2))
+        return True
+
+    def produced(self) -> dict[str, list[bytes]]:
+        with self._cond:
+            return {t: list(v) for t, v in self._received.items()}
+
+    def close(self) -> None:
+        if self.proc is not None:
+            if self.proc.poll() is None:
+                self.proc.send_signal(signal.SIGTERM)
+                try:
+                    self.proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait()
+            self.report.node_exit = self.proc.returncode
+            if self.report.error or self.report.node_exit not in (0, None):
+                tail = self.log_path.read_text(errors="replace").splitlines()[-30:] if self.log_path.exists() else []
+                if tail:
+                    log.error("node log (last lines):\n%s", "\n".join(tail))
+        for sub in self._subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        if self._watcher is not None:
+            self._watcher.close()
+        if self._session is not None:
+            with contextlib.suppress(Exception):
+                self._session.close()
+        self.reference.close()
