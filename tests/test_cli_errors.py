@@ -387,3 +387,29 @@ def test_replay_verify_with_nothing_compared_fails(tmp_path):
     assert "0 compared" in result.stdout
     assert result.stdout.strip().splitlines()[-1].startswith("verify: FAILED: nothing compared"), result.stdout
     assert "verify: OK" not in result.stdout
+
+
+def test_replay_mistakes_are_one_line(tmp_path):
+    graph = ("name: test\nnamespace: t\nnodes:\n  ticker: {run: followbus.nodes.diagnostics, outputs: [tick]}\n"
+             "  relay: {run: followbus.nodes.diagnostics_relay, inputs: {tick: ticker/tick}, outputs: [tick]}\n"
+             "  sink: {run: followbus.nodes.diagnostics_sink, inputs: {tick: relay/tick}}\n")
+    path = tmp_path / "r.mcap"
+    writer = RecordingWriter(path)
+    writer.metadata("graph", {"yaml": graph})
+    writer.metadata("followbus", {"namespace": "t"})
+    tick = Tick(value=0)
+    tick.header.stamp_ns, tick.header.frame_seq = 1_700_000_000_000_000_000, 0
+    writer.write(writer.bus_channel("t/ticker/tick", "Tick"), tick.header.stamp_ns, tick.encode())
+    writer.finish()
+    cases = {
+        ("--node", "relay,sink", "--isolated"): "followbus: --isolated replays one node (several run in-process only)",
+        ("--node", "relay,sink", "--param", "add=1"): "followbus: --param add=...: with several nodes, name the node "
+                                                      "(node.param=value, nodes: relay, sink)",
+        ("--node", "ticker"): "followbus: ticker: no inputs from outside: there is nothing to replay into",
+        ("--node", "relay", "--param", "add=[1"): "followbus: --param 'add=[1': value is not valid YAML (expected ',' "
+                                                  "or ']', but got '<stream end>')",
+    }
+    for args, expected in cases.items():
+        assert one_error_line(run_followbus("replay", str(path), *args, "--no-progress")) == expected, args
+    line = one_error_line(run_followbus("replay", str(tmp_path / "missing.mcap"), "--node", "relay"))
+    assert line == f"followbus: {tmp_path / 'missing.mcap'}: No such file or directory"

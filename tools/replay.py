@@ -193,7 +193,8 @@ def parse_param_overrides(items: list[str]) -> dict[str, Any]:
         try:
             out[key.strip()] = yaml.safe_load(raw) if raw.strip() else ""
         except yaml.YAMLError as exc:
-            raise ValueError(f"--param {item!r}: value is not valid YAML ({exc})") from exc
+            problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+            raise ValueError(f"--param {item!r}: value is not valid YAML ({problem})") from exc
     return out
 
 
@@ -255,6 +256,7 @@ class ReplayPlan:
 
     def __init__(self, path: Path, options: ReplayOptions):
         self.path = path
+        recorded = bus_channels(path)  # first: a file that is not a finalised recording is named as such
         meta = read_metadata(path)
         if options.graph_path:
             self.graph = load_graph(options.graph_path)
@@ -289,7 +291,6 @@ class ReplayPlan:
                         for name in self.nodes for out in self.graph.nodes[name].outputs}
         if not self.inputs:
             raise RecordingError(f"{', '.join(self.nodes)}: no inputs from outside: there is nothing to replay into")
-        recorded = bus_channels(path)
         for key in self.inputs:
             if key not in recorded:
                 log.warning("the recording has no messages on %s", key)
