@@ -23,6 +23,7 @@ import yaml
 from followbus.bus.graph import Graph, NodeSpec, load_graph
 from followbus.bus.schemas import ReplayHint
 from followbus.tools.replay import InProcessTarget, ReplayOptions, ReplayPlan, ReplayReport
+from followbus.tools.replay_feed import _header
 
 log = logging.getLogger("followbus.replay")
 
@@ -86,6 +87,10 @@ class IsolatedTarget:
         self.proc: subprocess.Popen | None = None
         self._cond = threading.Condition()
         self._received: dict[str, list[bytes]] = {t: [] for t in plan.outputs.values()}
+        # Awaited outputs per topic. A timer's outputs of no frame (motor's odometry) tick on each side's own
+        # schedule: only frame-bound ones are awaited on those topics.
+        self._awaited: dict[str, int] = dict.fromkeys(plan.outputs.values(), 0)
+        self._reference_seen: dict[str, tuple[int, int]] = dict.fromkeys(plan.outputs.values(), (0, 0))
         self._subs: list[Any] = []
         self._pubs: dict[str, Any] = {}
         self._session: Any = None
@@ -131,8 +136,10 @@ class IsolatedTarget:
             from followbus.bus.pubsub import payload_bytes
 
             data = payload_bytes(sample)
+            awaited = topic not in self.plan.timer_topics or _header(data)[0] >= 0
             with self._cond:
                 self._received[topic].append(data)
+                self._awaited[topic] += awaited
                 self._cond.notify_all()
 
         return callback
@@ -151,15 +158,24 @@ class IsolatedTarget:
 
     def _wait_caught_up(self, timeout_s: float) -> bool:
         """Wait until the process published what the in-process run published by now."""
-        want = {t: self.reference.published(t) for t in self._received}
+        want = {t: self._reference_awaited(t) for t in self._received}
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while not all(len(self._received[t]) >= n for t, n in want.items()):
+            while not all(self._awaited[t] >= n for t, n in want.items()):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or (self.proc is not None and self.proc.poll() is not None):
                     return False
                 self._cond.wait(min(remaining, 0.2))
         return True
+
+    def _reference_awaited(self, topic: str) -> int:
+        if topic not in self.plan.timer_topics:
+            return self.reference.published(topic)
+        seen, count = self._reference_seen[topic]
+        payloads = self.reference.graph.payloads(*topic.split("/", 1))
+        count += sum(_header(p)[0] >= 0 for p in payloads[seen:])
+        self._reference_seen[topic] = (len(payloads), count)
+        return count
 
     def produced(self) -> dict[str, list[bytes]]:
         with self._cond:
