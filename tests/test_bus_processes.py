@@ -70,7 +70,7 @@ def _sample_messages() -> list[schemas.Message]:
                            ellipse_weights=np.array([0.6, 0.4]), members_m=rng.random((4, 2)),
                            others_m=rng.random((1, 2)), step_ms=1.5),
         schemas.CameraMotion(valid=True, matrix=np.array([[1.01, 0.02, -3.5], [-0.02, 1.01, 1.25]]), inliers=40,
-                             tracked=55, from_stamp_ns=1234, reason=""),
+                             tracked=55, from_stamp_ns=90, reason=""),
     ]
 
 
