@@ -368,7 +368,8 @@ def _add_recording_parsers(sub) -> None:
     p.add_argument("--isolated", action="store_true",
                    help="run the node as its own process over Zenoh (the deployed node), not in-process")
     p.add_argument("--graph", default=None, help="graph file (default: the graph.yaml stored in the recording)")
-    p.add_argument("--param", action="append", metavar="KEY=VALUE", help="override a parameter (YAML value)")
+    p.add_argument("--param", action="append", metavar="KEY=VALUE",
+                   help="override a parameter (YAML value); with several nodes NODE.KEY=VALUE")
     p.add_argument("--verify", action="store_true", help="compare outputs with the recording; exit 1 on a mismatch")
     p.add_argument("--report", metavar="FILE", help="write a JSON summary")
     p.add_argument("--rtol", type=float, default=1e-6, help="relative tolerance for floats (default 1e-6)")

@@ -381,17 +381,16 @@ class Replayer:
         if options.isolated and len(self.plan.nodes) != 1:
             raise ValueError("--isolated replays one node (several run in-process only)")
         # Built now: a --param the node does not take is the user's mistake, said before anything runs.
-        self._inproc = None if options.isolated else InProcessTarget(self.plan)
+        # (--isolated: the in-process run that steps the process.)
+        self._inproc = InProcessTarget(self.plan)
 
     def run(self) -> ReplayReport:
         with tempfile.TemporaryDirectory(prefix="followbus-replay-") as tmp:
-            target: Target
-            if self._inproc is not None:
-                target = self._inproc
-            else:
+            target: Target = self._inproc
+            if self.opts.isolated:
                 from followbus.tools.replay_isolated import IsolatedTarget
 
-                target = IsolatedTarget(self.plan, self.report, self.opts, Path(tmp))
+                target = IsolatedTarget(self._inproc, self.report, self.opts, Path(tmp))
             try:
                 target.start()
                 self.report.recording_first_frame = recording_first_frame(self.path)

@@ -22,7 +22,7 @@ import yaml
 
 from followbus.bus.graph import Graph, NodeSpec, load_graph
 from followbus.bus.schemas import ReplayHint
-from followbus.tools.replay import InProcessTarget, ReplayOptions, ReplayPlan, ReplayReport
+from followbus.tools.replay import InProcessTarget, ReplayOptions, ReplayReport
 from followbus.tools.replay_feed import _header
 
 log = logging.getLogger("followbus.replay")
@@ -73,13 +73,14 @@ class IsolatedTarget:
     Zenoh. The in-process run of the same node, fed alongside, says how many outputs the process must have
     published before the next input goes out: lockstep without guessing when the process is idle."""
 
-    def __init__(self, plan: ReplayPlan, report: ReplayReport, options: ReplayOptions, tmp: Path):
+    def __init__(self, reference: InProcessTarget, report: ReplayReport, options: ReplayOptions, tmp: Path):
+        plan = reference.plan
         if len(plan.nodes) != 1:
             raise ValueError("--isolated replays one node (several run in-process only)")
         self.plan = plan
         self.report = report
         self.opts = options
-        self.reference = InProcessTarget(plan)
+        self.reference = reference
         self.name = plan.nodes[0]
         self.spec = plan.graph.nodes[self.name]
         self.private_ns = f"replay_{secrets.token_hex(4)}"
