@@ -274,7 +274,14 @@ class FollowController:
                 return None
             if self._last_cmd is None or self._last_cmd.reason != "watchdog":
                 log.warning("watchdog: no track for %.0f ms; stopping", age_ms)
-        return self._stop(t_ns, "watchdog")
+            return self._stop(t_ns, "watchdog")
+        # Before any track the robot has never moved: the stop is not remembered as the command to ramp from.
+        # It is stamped on the timer's clock, later than the capture stamp of the first track, which would
+        # hold that track's command at zero (dt 0); and a replay, with no tick before its first stamp, starts
+        # from rest: the two must agree.
+        cmd = self._stop(t_ns, "watchdog")
+        self._last_cmd = None
+        return cmd
 
     # ------------------------------------------------------------------------------------------
     def _rate_limit(self, t_ns: int, vx: float, vy: float, wz: float) -> tuple[float, float, float]:
