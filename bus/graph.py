@@ -31,7 +31,7 @@ from typing import Any
 
 import yaml
 
-from followbus.bus.session import ZenohSettings
+from .session import ZenohSettings
 
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
 NAMESPACE_RE = re.compile(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")

@@ -32,7 +32,7 @@ import typing
 from collections.abc import Iterable
 from typing import Any
 
-from followbus.bus.graph import (
+from .graph import (
     DEFAULT_MAX_LAG_MS,
     INPUT_KEYS,
     NAME_RE,
@@ -47,7 +47,7 @@ from followbus.bus.graph import (
     NodeSpec,
     RestartPolicy,
 )
-from followbus.bus.session import MODES, ZenohSettings
+from .session import MODES, ZenohSettings
 
 DRAFT = "http://json-schema.org/draft-07/schema#"
 DEFAULT_NAMESPACE = "fb"  # bus.graph.load_graph's default
@@ -339,7 +339,7 @@ def graph_schema(runs: dict[str, tuple[type, ...]]) -> dict[str, Any]:
 
 def node_runs(package: str) -> dict[str, tuple[type, ...]]:
     """Every module of ``package`` that exports a NODE class, with that class's params dataclasses."""
-    from followbus.bus.node import Node
+    from .node import Node
 
     pkg = importlib.import_module(package)
     runs: dict[str, tuple[type, ...]] = {}

@@ -22,9 +22,9 @@ from typing import Any
 
 import zenoh
 
-from followbus.bus.codec import DecodeError
-from followbus.bus.pubsub import direct_callback, payload_bytes
-from followbus.bus.schemas import NodeStatus, decode
+from .codec import DecodeError
+from .pubsub import direct_callback, payload_bytes
+from .schemas import NodeStatus, decode
 
 log = logging.getLogger(__name__)
 

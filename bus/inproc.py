@@ -39,12 +39,12 @@ from collections import deque
 from collections.abc import Iterable, Iterator
 from typing import Any
 
-from followbus.bus.codec import DecodeError, peek
-from followbus.bus.graph import Graph, GraphError
-from followbus.bus.node import Clock, Node, NodeHost, validate_node
-from followbus.bus.pubsub import MAX_PAYLOAD_BYTES, RateLimitedLog
-from followbus.bus.schemas import Frame, Message, ReplayHint, decode, encode, validate
-from followbus.bus.stats import TopicStats
+from .codec import DecodeError, peek
+from .graph import Graph, GraphError
+from .node import Clock, Node, NodeHost, validate_node
+from .pubsub import MAX_PAYLOAD_BYTES, RateLimitedLog
+from .schemas import Frame, Message, ReplayHint, decode, encode, validate
+from .stats import TopicStats
 
 log = logging.getLogger(__name__)
 

@@ -31,12 +31,12 @@ from typing import Any, ClassVar
 
 import zenoh
 
-from followbus.bus.graph import Graph, GraphError, NodeSpec
-from followbus.bus.pubsub import InputQueue, Publisher, RateLimitedLog, ShmPool, Subscriber
-from followbus.bus.schemas import Frame, Message, NodeStatus, ReplayHint
-from followbus.bus.session import open_session
-from followbus.bus.stats import TopicStats
-from followbus.bus.sync import IMPLAUSIBLE, RESYNCED, STALE, FrameSynchronizer, SequenceGuard, SyncInput
+from .graph import Graph, GraphError, NodeSpec
+from .pubsub import InputQueue, Publisher, RateLimitedLog, ShmPool, Subscriber
+from .schemas import Frame, Message, NodeStatus, ReplayHint
+from .session import open_session
+from .stats import TopicStats
+from .sync import IMPLAUSIBLE, RESYNCED, STALE, FrameSynchronizer, SequenceGuard, SyncInput
 
 STATUS_PERIOD_S = 1.0
 RESET_AFTER_FAILURES = 5  # consecutive on_frame failures after which a node's state is rebuilt
@@ -158,7 +158,7 @@ class DownstreamBarrier:
     """
 
     def __init__(self, runtime: NodeHost, timeout_s: float, settle_s: float):
-        from followbus.bus.health import HealthWatcher
+        from .health import HealthWatcher
 
         graph, name = runtime.graph, runtime.spec.name
         self.log = runtime.log
@@ -267,7 +267,8 @@ class Node:
     def note(self, key: str, value: int) -> None:
         """Record a choice this handler made that a replay must repeat (e.g. which odometry sample, by stamp,
         an unsynchronised input contributed): it travels in the ``header.feedback`` of what the handler
-        publishes next, and ``followbus replay`` hands it back through :meth:`replayed_choice`."""
+        publishes next, and ``followbus replay`` hands it back through :meth:`replayed_choice`. ``key`` must not
+        name a frame-synchronised input: those keys are the set's own provenance (bus.sync)."""
         if self.runtime.provenance is not None:
             self.runtime.provenance[key] = int(value)
 
@@ -500,6 +501,9 @@ class NodeHost:
     def _handle_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         used = {name: inputs.get(name) for name in self._feedback_inputs}
         self.provenance = {name: (m.header.frame_seq if m is not None else -1) for name, m in used.items()}
+        # An optional same-frame input the set went on without (not on time, or late): a replay lacks it too.
+        assert self.sync is not None  # frame sets come from it
+        self.provenance.update({name: -1 for name in self.sync.optional if inputs.get(name) is None})
         errors = self.handler_errors
         try:
             self._guarded("on_frame", self.node.on_frame, frame_seq, inputs)

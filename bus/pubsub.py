@@ -12,9 +12,9 @@ from typing import Any
 
 import zenoh
 
-from followbus.bus.codec import DecodeError
-from followbus.bus.schemas import Message, decode, encode, validate
-from followbus.bus.stats import TopicStats
+from .codec import DecodeError
+from .schemas import Message, decode, encode, validate
+from .stats import TopicStats
 
 log = logging.getLogger(__name__)
 

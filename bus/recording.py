@@ -30,8 +30,8 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Metadata
 from mcap.stream_reader import StreamReader
 
-from followbus.bus.codec import FRAME_FORMAT
-from followbus.bus.schemas import SCHEMA_VERSION, SCHEMAS
+from .codec import FRAME_FORMAT
+from .schemas import SCHEMA_VERSION, SCHEMAS
 
 BUS_MESSAGE_ENCODING = "x-followbus-frame/1"
 BUS_SCHEMA_ENCODING = "x-followbus-schema/1"

@@ -7,7 +7,8 @@ frame the message derives from (so latency = now - stamp_ns, and replays are det
 ``frame_seq`` belongs to (the start time of the capture session that numbered the frame), so a
 restarted camera that counts from 0 again is told apart from stale frames. ``feedback`` is the
 provenance of a frame-synchronised output: for each feedback input (``offset: -1``) the frame_seq of
-the message the node used (-1: none), so a replay reproduces what the live run did.
+the message the node used (-1: none), and -1 for each optional same-frame input the set went on without,
+so a replay reproduces what the live run did.
 
 Messages are checked twice on the way in: :func:`decode` checks the wire types, :func:`validate`
 the values (finite numbers, boxes of non-negative size, consistent frames); both raise DecodeError,
@@ -28,7 +29,7 @@ from typing import Any, ClassVar, TypeVar, Union
 import numpy as np
 
 # Header is part of the frame layout, which bus/codec.py owns; re-exported here with the messages.
-from followbus.bus.codec import DecodeError, Header, decode_message, encode_message
+from .codec import DecodeError, Header, decode_message, encode_message
 
 SCHEMA_VERSION = 1
 
@@ -192,7 +193,8 @@ class Tick(Message):
 class ReplayHint(Message):
     """What the live run did with frame ``header.frame_seq``, sent by ``followbus replay`` before the frame's
     inputs so the replayed node does the same: skip it (the live node skipped it: lag bound, lost input), or
-    join exactly these feedback frames (``header.feedback`` of the recorded output; -1: none)."""
+    join exactly these feedback frames (``header.feedback`` of the recorded output; -1: none) and go on without
+    the optional same-frame inputs marked -1."""
 
     TYPE: ClassVar[str] = "ReplayHint"
     skip: bool = False

@@ -2,9 +2,19 @@
 ``header.frame_seq``), with feedback inputs, bounded lag and sequence checks that heal themselves.
 
 **Frame sets.** The same-frame inputs (``offset = 0``) of one frame_seq form a set. A set is emitted
-when every input is present; after ``timeout_ns`` it is emitted without its missing *optional* inputs,
-or dropped if a required one is missing (wherever it stands in frame order). Sets are emitted in frame
-order; an incomplete set is dropped as soon as a newer set has all its same-frame inputs.
+when every input it waits for is present; after ``timeout_ns`` it is emitted without its missing *optional*
+inputs, or dropped if a required one is missing (wherever it stands in frame order). Sets are emitted in
+frame order; an incomplete set is dropped as soon as a newer set has all the same-frame inputs it waits for.
+
+**Optional same-frame inputs** are waited for only while they are *on time*, so a producer that is not
+running (or has stopped) costs one wait per outage, never one per frame. Before its first message ever an
+optional input is not on time: sets go on without it. It is on time once one of its messages arrives
+before its set's deadline: before the set was emitted, or after a set that did not wait for it went out
+(a producer that needs the set's required input, as egomotion needs the detections, always comes second;
+its message is dropped, but the next sets wait for it). A set that reached its deadline without it puts it
+off time again. Sets emitted without an optional input they did not wait for are counted
+(``without_optional``); the runtime notes each input a set lacked (-1 in the output's ``header.feedback``)
+and a replay's hint makes the replayed set lack it too, whatever the replay's arrival order.
 
 **Feedback.** A feedback input (``offset = -1``) contributes to frame k's set the message of the
 *previous frame this node handled* (k-1 when no frame was skipped upstream): the re-ID of frame k
@@ -147,7 +157,13 @@ class FrameSynchronizer:
         self._forced: dict[int, dict[str, int]] = {}  # replay: feedback a live run used for a frame
         self._forced_frames: list[int] = []  # its keys, sorted: a replay hints every frame up front
         self._skipped: set[int] = set()  # replay: frames the live run did not handle
-        self.timeouts = 0  # sets emitted without an optional input (feedback included)
+        # Optional same-frame inputs, and those not on time (not waited for): all of them until a first message.
+        self.optional = [i.name for i in inputs if i.optional and not i.offset]
+        self._off_time: set[str] = set(self.optional)
+        # Recent sets that went out without an optional input: frame -> (their deadline, the inputs they lacked).
+        self._lacked: dict[int, tuple[int, frozenset[str]]] = {}
+        self.timeouts = 0  # sets emitted without an input they waited for (feedback included)
+        self.without_optional = 0  # sets emitted without an optional same-frame input they did not wait for
         self.dropped = 0  # sets dropped: required input missing at timeout, superseded, or overflow
         self.late = 0  # sets dropped for lagging more than max_lag_ns behind a complete newer one
         self.feedback_fallbacks = 0  # sets that went on with older (or no) feedback
@@ -158,6 +174,12 @@ class FrameSynchronizer:
         """Offer one message; returns the verdict (``accepted``, ``stale``, ``implausible``, ``resynced``)."""
         if name in self._feedback:
             return self._add_feedback(name, frame_seq, msg, epoch_ns)
+        lacked = self._lacked.get(frame_seq)
+        if lacked is not None and name in lacked[1] and not self.guard.epoch_mismatch(epoch_ns):
+            # Its set already went out without it: too late for that set, but in time, the next ones wait for it.
+            if now_ns <= lacked[0]:
+                self._off_time.discard(name)
+            return STALE
         verdict = self.guard.check(frame_seq, stamp_ns, epoch_ns, self._last_emitted)
         if verdict in (STALE, IMPLAUSIBLE):
             return verdict
@@ -167,6 +189,7 @@ class FrameSynchronizer:
         if slot is None:
             slot = self._slots[frame_seq] = _Slot(first_ns=now_ns, stamp_ns=stamp_ns)
         slot.msgs[name] = msg
+        self._off_time.discard(name)  # arrived before its set went out: on time (a no-op for the others)
         while len(self._slots) > self.max_pending:
             del self._slots[min(self._slots)]
             self.dropped += 1
@@ -193,6 +216,7 @@ class FrameSynchronizer:
             store.clear()
         self._last_emitted = None
         self._feedback_lost = False
+        self._lacked.clear()
         self._forced.clear()
         self._forced_frames.clear()
 
@@ -231,10 +255,19 @@ class FrameSynchronizer:
         older = [s for s in store if s <= self._last_emitted]
         return (store[max(older)] if older else None), False
 
-    def _gather(self, seq: int, slot: _Slot) -> tuple[dict[str, Any], bool, bool]:
-        """(messages, same-frame inputs all present, exact feedback all present) of a slot."""
+    def _awaited(self, name: str, seq: int) -> bool:
+        """Does the set of frame ``seq`` wait for same-frame input ``name``?"""
+        if not self.inputs[name].optional:
+            return True
+        forced = self._forced.get(seq)
+        if forced is not None:  # replay: exactly when the live set had it (an older recording: always)
+            return forced.get(name) != -1
+        return name not in self._off_time
+
+    def _gather(self, seq: int, slot: _Slot) -> tuple[dict[str, Any], bool, bool, bool]:
+        """(messages, required same-frame inputs present, awaited optional ones present, exact feedback) of a slot."""
         msgs = dict(slot.msgs)
-        same_frame = exact = True
+        required = awaited = exact = True
         for name, spec in self.inputs.items():
             if spec.offset:
                 if self._last_emitted is None and seq not in self._forced:
@@ -242,15 +275,19 @@ class FrameSynchronizer:
                     continue
                 msgs[name], ok = self._feedback_for(name, seq)
                 exact = exact and ok
-            elif name not in msgs and not spec.optional:
-                same_frame = False
-        return msgs, same_frame, exact
+            elif not spec.optional:
+                required = required and name in msgs
+            elif self._forced.get(seq, {}).get(name) == -1:
+                msgs.pop(name, None)  # replay: the live set went out without it
+            elif name not in msgs and self._awaited(name, seq):
+                awaited = False
+        return msgs, required, awaited, exact
 
     def poll(self, now_ns: int) -> list[tuple[int, dict[str, Any]]]:
         """Sets ready to be handled, in frame order, as (frame_seq, {input: message or None})."""
         ready: list[tuple[int, dict[str, Any]]] = []
-        newest_complete = max((s.stamp_ns for s in self._slots.values()
-                               if s.stamp_ns is not None and not self._missing_same_frame(s)), default=None)
+        newest_complete = max((s.stamp_ns for seq, s in self._slots.items()
+                               if s.stamp_ns is not None and not self._missing_same_frame(s, seq)), default=None)
         behind = False  # a set was skipped for lag: waiting any longer for feedback only adds to it
         # A set still without a required input at its deadline is dropped wherever it stands, not only once it
         # is first in line: a set waiting for its feedback must not shield sets numbered ahead of the stream
@@ -273,9 +310,9 @@ class FrameSynchronizer:
                 self.late += 1
                 behind = True
                 continue
-            msgs, required, exact = self._gather(seq, slot)
-            all_present = required and all(name in slot.msgs for name, s in self.inputs.items() if not s.offset)
-            expired = now_ns >= self._deadline(slot)
+            msgs, required, awaited, exact = self._gather(seq, slot)
+            deadline = self._deadline(slot)
+            expired = now_ns >= deadline
             if not required:
                 if expired or self._newer_complete(seq):
                     # A required input never came, or this frame lost an input upstream (a detector that
@@ -284,8 +321,8 @@ class FrameSynchronizer:
                     self.dropped += 1
                     continue
                 break  # wait for it, bounded by its timeout
-            if not all_present and not expired and not self._newer_complete(seq):
-                break  # an optional same-frame input may still come
+            if not awaited and not expired and not self._newer_complete(seq):
+                break  # an optional same-frame input that is on time may still come
             if not exact and (seq in self._forced or not self._feedback_lost):
                 if not (expired or behind and seq not in self._forced):
                     break  # wait for the feedback of the previous frame, bounded by the timeout and the lag
@@ -295,8 +332,18 @@ class FrameSynchronizer:
                 self._feedback_lost = False
             else:
                 self.feedback_fallbacks += 1
-            if not all_present or not exact:
+            lacking = frozenset(name for name in self.optional if name not in msgs)
+            waited = {name for name in lacking if self._awaited(name, seq)}
+            if waited and expired and seq not in self._forced:
+                self._off_time |= waited  # missed its deadline: not waited for until on time again
+            if waited or not exact:
                 self.timeouts += 1
+            if lacking - waited:
+                self.without_optional += 1
+            if lacking:
+                self._lacked[seq] = (deadline, lacking)
+                while len(self._lacked) > FEEDBACK_KEEP:
+                    del self._lacked[min(self._lacked)]
             del self._slots[seq]
             done = bisect_right(self._forced_frames, seq)  # emitted, or never to be (dropped)
             for s in self._forced_frames[:done]:
@@ -320,11 +367,12 @@ class FrameSynchronizer:
     def _missing_required(self, slot: _Slot) -> bool:
         return any(name not in slot.msgs for name, spec in self.inputs.items() if not spec.offset and not spec.optional)
 
-    def _missing_same_frame(self, slot: _Slot) -> bool:
-        return any(name not in slot.msgs for name, spec in self.inputs.items() if not spec.offset)
+    def _missing_same_frame(self, slot: _Slot, seq: int) -> bool:
+        return any(name not in slot.msgs and self._awaited(name, seq)
+                   for name, spec in self.inputs.items() if not spec.offset)
 
     def _newer_complete(self, seq: int) -> bool:
-        return any(not self._missing_same_frame(self._slots[later]) for later in self._slots if later > seq)
+        return any(not self._missing_same_frame(self._slots[later], later) for later in self._slots if later > seq)
 
     def next_deadline_ns(self) -> int | None:
         if not self._slots:
@@ -343,4 +391,4 @@ class FrameSynchronizer:
         return {"sync_timeouts": self.timeouts, "sync_dropped": self.dropped, "sync_late": self.late,
                 "sync_stale": self.guard.stale, "sync_implausible": self.guard.implausible,
                 "sync_resyncs": self.guard.resyncs,
-                "sync_feedback_fallbacks": self.feedback_fallbacks}
+                "sync_feedback_fallbacks": self.feedback_fallbacks, "sync_without_optional": self.without_optional}

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from followbus.control.kinematics import mecanum_body_twist
+from .kinematics import mecanum_body_twist
 
 log = logging.getLogger(__name__)
 

@@ -49,8 +49,8 @@ from typing import Any
 
 import numpy as np
 
-from followbus.control.kinematics import bearing_rad, mecanum_wheel_speeds, width_based_range_m
-from followbus.control.pid import PID
+from .kinematics import bearing_rad, mecanum_wheel_speeds, width_based_range_m
+from .pid import PID
 
 log = logging.getLogger(__name__)
 

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from followbus.evaluation.metrics import Box, box_iou
+from .metrics import Box, box_iou
 
 log = logging.getLogger(__name__)
 

@@ -21,8 +21,8 @@ from typing import Literal
 
 import numpy as np
 
-from followbus.evaluation.metrics import Box
-from followbus.evaluation.mot_metrics import PEDESTRIAN_CLASS, load_mot_file, load_mot_regions
+from .metrics import Box
+from .mot_metrics import PEDESTRIAN_CLASS, load_mot_file, load_mot_regions
 
 log = logging.getLogger(__name__)
 

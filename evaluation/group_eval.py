@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from followbus.evaluation.group_sim import SCENARIOS, Scenario, make_scenario
-from followbus.tracking.group import METHODS, GroupEstimate
+from ..tracking.group import METHODS, GroupEstimate
+from .group_sim import SCENARIOS, Scenario, make_scenario
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from followbus.evaluation.runner import SequenceRun
+from .runner import SequenceRun
 
 log = logging.getLogger(__name__)
 

@@ -1,3 +1,5 @@
 """followbus: a person-following robot's perception-and-control graph over Eclipse Zenoh."""
 
-__version__ = "0.1.0"
+from importlib.metadata import version as _version
+
+__version__ = _version("followbus")  # pyproject's, the one place it is written

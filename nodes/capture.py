@@ -18,10 +18,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from followbus.bus.codec import DecodeError
-from followbus.bus.node import DownstreamBarrier, Node, ParamError
-from followbus.bus.schemas import Frame, GroundTruth, Message, Track, decode
-from followbus.vision.sources import SourceError, check_source, mcap_frame_channel, open_source
+from ..bus.codec import DecodeError
+from ..bus.node import DownstreamBarrier, Node, ParamError
+from ..bus.schemas import Frame, GroundTruth, Message, Track, decode
+from ..vision.sources import SourceError, check_source, mcap_frame_channel, open_source
 
 
 @dataclass
@@ -212,8 +212,8 @@ class McapFrameSource:
         return self.frames()
 
     def frames(self):
-        from followbus.bus.recording import iter_bus_messages  # here: a camera-fed capture never loads mcap
-        from followbus.vision.sources import SourceFrame
+        from ..bus.recording import iter_bus_messages  # here: a camera-fed capture never loads mcap
+        from ..vision.sources import SourceFrame
 
         truth: dict[int, GroundTruth] = {}
         first_stamp: int | None = None

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from followbus.bus.node import ParamError, params_from_dict
+from ..bus.node import ParamError, params_from_dict
 
 
 def split_params(raw: dict[str, Any], *classes: type) -> tuple[Any, ...]:

@@ -10,10 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from followbus.bus import schemas
-from followbus.tracking.egomotion import CameraMotion
-from followbus.tracking.kalman import Posterior, Prior
-from followbus.tracking.reid import Candidate, ReidResult, TrackState
+from ..bus import schemas
+from ..tracking.egomotion import CameraMotion
+from ..tracking.kalman import Posterior, Prior
+from ..tracking.reid import Candidate, ReidResult, TrackState
 
 # Track states as the re-ID node publishes them; "UNINITIALISED" before a target is chosen.
 STATES = tuple(s.value for s in TrackState)

@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from followbus.bus.node import Node, ParamError
-from followbus.bus.schemas import Detections, Frame, GroundTruth, Message
-from followbus.vision.detectors import BACKENDS, DetectorUnavailable, SimulatedDetector, make_detector
+from ..bus.node import Node, ParamError
+from ..bus.schemas import Detections, Frame, GroundTruth, Message
+from ..vision.detectors import BACKENDS, DetectorUnavailable, SimulatedDetector, make_detector
 
 
 @dataclass

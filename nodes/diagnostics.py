@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from followbus.bus.node import DownstreamBarrier, Node
-from followbus.bus.schemas import Message, Tick
+from ..bus.node import DownstreamBarrier, Node
+from ..bus.schemas import Message, Tick
 
 
 @dataclass

@@ -1,5 +1,5 @@
 """Relay node (see followbus.nodes.diagnostics)."""
 
-from followbus.nodes.diagnostics import Relay
+from .diagnostics import Relay
 
 NODE = Relay

@@ -1,5 +1,5 @@
 """Sink node (see followbus.nodes.diagnostics)."""
 
-from followbus.nodes.diagnostics import Sink
+from .diagnostics import Sink
 
 NODE = Sink

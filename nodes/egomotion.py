@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from followbus.bus.node import Node
-from followbus.bus.schemas import CameraMotion, Detections, Frame, Message
-from followbus.nodes.convert import camera_motion_to_msg
-from followbus.tracking.egomotion import EgoMotionEstimator, EgoMotionParams
+from ..bus.node import Node
+from ..bus.schemas import CameraMotion, Detections, Frame, Message
+from ..tracking.egomotion import EgoMotionEstimator, EgoMotionParams
+from .convert import camera_motion_to_msg
 
 
 class EgoMotion(Node):

@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from followbus.bus.node import Node
-from followbus.bus.schemas import Detections, GroundPoints, Message, Odometry
-from followbus.nodes.common import split_params
-from followbus.tracking.groundplane import CameraGeometry, GroundPlaneParams, boxes_to_ground, to_odometry_frame
+from ..bus.node import Node
+from ..bus.schemas import Detections, GroundPoints, Message, Odometry
+from ..tracking.groundplane import CameraGeometry, GroundPlaneParams, boxes_to_ground, to_odometry_frame
+from .common import split_params
 
 
 class GroundPlane(Node):

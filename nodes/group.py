@@ -17,11 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from followbus.bus.node import Node, ParamError
-from followbus.bus.schemas import GroundPoints, GroupState, Message
-from followbus.nodes.common import split_params
-from followbus.tracking.groundplane import to_robot_frame
-from followbus.tracking.group import GroupParams, MultiEllipseGroupTracker, SingleEllipseGroupTracker
+from ..bus.node import Node, ParamError
+from ..bus.schemas import GroundPoints, GroupState, Message
+from ..tracking.groundplane import to_robot_frame
+from ..tracking.group import GroupParams, MultiEllipseGroupTracker, SingleEllipseGroupTracker
+from .common import split_params
 
 
 @dataclass

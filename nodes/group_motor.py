@@ -1,5 +1,5 @@
 """group_motor: motor following a group's centre instead of a person's track (see nodes/motor.py GroupMotor)."""
 
-from followbus.nodes.motor import GroupMotor
+from .motor import GroupMotor
 
 NODE = GroupMotor

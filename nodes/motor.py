@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from followbus.bus.node import Node, ParamError
-from followbus.bus.schemas import GroupState, Message, MotorCommand, Odometry, Track
-from followbus.control.drivers import SerialDriver, SimDriver
-from followbus.control.follow import FollowCommand, FollowController, FollowParams
-from followbus.nodes.common import split_params
+from ..bus.node import Node, ParamError
+from ..bus.schemas import GroupState, Message, MotorCommand, Odometry, Track
+from ..control.drivers import SerialDriver, SimDriver
+from ..control.follow import FollowCommand, FollowController, FollowParams
+from .common import split_params
 
 
 @dataclass

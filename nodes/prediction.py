@@ -24,13 +24,13 @@ from typing import Any
 
 import numpy as np
 
-from followbus.bus.node import Node
-from followbus.bus.schemas import CameraMotion, Detections, Measurement, Message, Odometry, Prior, Track
-from followbus.nodes.common import split_params
-from followbus.nodes.convert import make_track, msg_to_camera_motion, msg_to_reid, prior_to_msg
-from followbus.tracking.kalman import Predictor
-from followbus.tracking.params import TrackerParams
-from followbus.tracking.tracker import output_box
+from ..bus.node import Node
+from ..bus.schemas import CameraMotion, Detections, Measurement, Message, Odometry, Prior, Track
+from ..tracking.kalman import Predictor
+from ..tracking.params import TrackerParams
+from ..tracking.tracker import output_box
+from .common import split_params
+from .convert import make_track, msg_to_camera_motion, msg_to_reid, prior_to_msg
 
 
 @dataclass

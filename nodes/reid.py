@@ -15,12 +15,12 @@ from typing import Any
 
 import numpy as np
 
-from followbus.bus.node import Node
-from followbus.bus.schemas import Detections, Frame, Measurement, Message, Prior, Template
-from followbus.nodes.common import split_params
-from followbus.nodes.convert import msg_to_prior, reid_to_msg
-from followbus.tracking.params import TrackerParams
-from followbus.tracking.reid import ReIdentifier
+from ..bus.node import Node
+from ..bus.schemas import Detections, Frame, Measurement, Message, Prior, Template
+from ..tracking.params import TrackerParams
+from ..tracking.reid import ReIdentifier
+from .common import split_params
+from .convert import msg_to_prior, reid_to_msg
 
 # init_box describes the target at the start of the source: a re-ID node (re)started later in the run, or
 # joining a capture that restarted long ago, re-acquires the target from its template instead.
@@ -45,7 +45,7 @@ class Reid(Node):
     def parse_params(cls, raw: dict[str, Any]) -> tuple[ReidParams, TrackerParams]:
         node_params, tracker_params = split_params(raw, *cls.params_classes())
         if node_params.init_box and len(node_params.init_box) != 4:
-            from followbus.bus.node import ParamError
+            from ..bus.node import ParamError
 
             raise ParamError("init_box", "init_box must be [x, y, w, h]")
         return node_params, tracker_params

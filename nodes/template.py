@@ -15,12 +15,12 @@ from typing import Any
 
 import numpy as np
 
-from followbus.bus.node import Node
-from followbus.bus.schemas import Frame, Measurement, Message, Template
-from followbus.nodes.common import split_params
-from followbus.nodes.convert import msg_to_reid
-from followbus.tracking.params import TrackerParams
-from followbus.tracking.template import TemplateUpdater
+from ..bus.node import Node
+from ..bus.schemas import Frame, Measurement, Message, Template
+from ..tracking.params import TrackerParams
+from ..tracking.template import TemplateUpdater
+from .common import split_params
+from .convert import msg_to_reid
 
 
 @dataclass

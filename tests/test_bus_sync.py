@@ -45,15 +45,78 @@ def test_missing_feedback_times_out_when_optional():
 
 def test_timeout_emits_without_optional_and_drops_without_required():
     sync = FrameSynchronizer([SyncInput("a"), SyncInput("b", optional=True)], timeout_ns=10 * MS)
+    sync.add("b", 1, "b1", 0)  # b's producer runs: b is on time
     sync.add("a", 1, "a1", 0)
-    assert sync.poll(9 * MS) == []
-    assert sync.poll(10 * MS) == [(1, {"a": "a1", "b": None})]
-    assert sync.timeouts == 1
+    assert sync.poll(0) == [(1, {"a": "a1", "b": "b1"})]
+    sync.add("a", 2, "a2", 1 * MS)
+    assert sync.poll(10 * MS) == []  # waits for b, bounded by the timeout
+    assert sync.poll(11 * MS) == [(2, {"a": "a2", "b": None})]
+    assert sync.timeouts == 1 and sync.without_optional == 0
 
     sync2 = FrameSynchronizer([SyncInput("a"), SyncInput("b")], timeout_ns=10 * MS)
     sync2.add("b", 1, "b1", 0)
     assert sync2.poll(11 * MS) == []
     assert sync2.dropped == 1 and sync2.pending == 0
+
+
+def test_an_optional_input_whose_producer_is_silent_is_not_waited_for():
+    sync = FrameSynchronizer([SyncInput("a"), SyncInput("b", optional=True)], timeout_ns=10 * MS)
+    for seq in range(1, 6):
+        sync.add("a", seq, f"a{seq}", seq * MS)
+        assert sync.poll(seq * MS) == [(seq, {"a": f"a{seq}", "b": None})]
+    assert sync.timeouts == 0 and sync.without_optional == 5
+    assert sync.counters()["sync_without_optional"] == 5
+
+
+def test_an_optional_producer_that_starts_later_is_waited_for_from_then():
+    """Its first message comes after its set went out (it needs that set's required input): dropped, but in
+    time, so the next sets wait for it. A message past its set's deadline does not count."""
+    sync = FrameSynchronizer([SyncInput("a"), SyncInput("b", optional=True)], timeout_ns=10 * MS)
+    sync.add("a", 1, "a1", 0)
+    assert sync.poll(0) == [(1, {"a": "a1", "b": None})]
+    assert sync.add("b", 1, "b1", 11 * MS) == "stale"  # past frame 1's deadline: still not waited for
+    sync.add("a", 2, "a2", 20 * MS)
+    assert sync.poll(20 * MS) == [(2, {"a": "a2", "b": None})]
+    assert sync.add("b", 2, "b2", 22 * MS) == "stale"  # in time for frame 2
+    sync.add("a", 3, "a3", 40 * MS)
+    assert sync.poll(40 * MS) == []
+    sync.add("b", 3, "b3", 42 * MS)
+    assert sync.poll(42 * MS) == [(3, {"a": "a3", "b": "b3"})]
+    assert sync.without_optional == 2 and sync.timeouts == 0 and sync.guard.stale == 0
+
+
+def test_an_optional_input_that_missed_a_deadline_is_not_waited_for_until_on_time_again():
+    sync = FrameSynchronizer([SyncInput("a"), SyncInput("b", optional=True)], timeout_ns=10 * MS)
+    sync.add("a", 1, "a1", 0)
+    sync.add("b", 1, "b1", 0)
+    assert sync.poll(0) == [(1, {"a": "a1", "b": "b1"})]
+    sync.add("a", 2, "a2", 20 * MS)  # b's producer stops
+    assert sync.poll(29 * MS) == []
+    assert sync.poll(30 * MS) == [(2, {"a": "a2", "b": None})]
+    for seq in (3, 4):  # one wait per outage, not one per frame
+        sync.add("a", seq, f"a{seq}", seq * 20 * MS)
+        assert sync.poll(seq * 20 * MS) == [(seq, {"a": f"a{seq}", "b": None})]
+    sync.add("b", 4, "b4", 81 * MS)  # back, in time for frame 4's deadline
+    sync.add("a", 5, "a5", 100 * MS)
+    assert sync.poll(100 * MS) == []
+    sync.add("b", 5, "b5", 101 * MS)
+    assert sync.poll(101 * MS) == [(5, {"a": "a5", "b": "b5"})]
+    assert sync.timeouts == 1 and sync.without_optional == 2
+
+
+def test_a_replay_lacks_exactly_the_optional_inputs_the_live_set_lacked():
+    """Live, frame 2 went out with b and frame 3 without it: the replay does the same, whatever its own
+    arrival order says about b being on time."""
+    sync = FrameSynchronizer([SyncInput("a"), SyncInput("b", optional=True)], timeout_ns=10 * MS)
+    sync.force_feedback(2, {})
+    sync.force_feedback(3, {"b": -1})
+    sync.add("a", 2, "a2", 0)  # b has not been seen yet (not on time), but the live set had it: wait
+    assert sync.poll(0) == []
+    sync.add("b", 2, "b2", 1 * MS)
+    assert sync.poll(1 * MS) == [(2, {"a": "a2", "b": "b2"})]
+    sync.add("a", 3, "a3", 2 * MS)
+    sync.add("b", 3, "b3", 2 * MS)  # on time, and there, but the live set went on without it
+    assert sync.poll(2 * MS) == [(3, {"a": "a3", "b": None})]
 
 
 def test_newer_complete_frame_supersedes_an_incomplete_one_and_late_data_is_stale():

@@ -19,7 +19,7 @@ SIZES = {"1KB": 1024, "100KB": 100 * 1024, "921KB": 640 * 480 * 3, "2.76MB": 128
 
 
 def _settings(port: int, listen: bool):
-    from followbus.bus.session import ZenohSettings
+    from ..bus.session import ZenohSettings
 
     endpoint = f"tcp/127.0.0.1:{port}"
     return ZenohSettings(mode="peer", listen=[endpoint] if listen else [], connect=[] if listen else [endpoint])
@@ -32,9 +32,9 @@ def _frame_shape(size: int) -> tuple[int, ...]:
 
 
 def _subscriber(port: int, ready, results, expected: int) -> None:
-    from followbus.bus.pubsub import Subscriber, direct_callback, payload_bytes
-    from followbus.bus.schemas import Frame
-    from followbus.bus.session import open_session
+    from ..bus.pubsub import Subscriber, direct_callback, payload_bytes
+    from ..bus.schemas import Frame
+    from ..bus.session import open_session
 
     session = open_session(_settings(port, listen=False))
     lat: dict[str, list[float]] = {}
@@ -68,9 +68,9 @@ def _subscriber(port: int, ready, results, expected: int) -> None:
 
 
 def run_bench_bus(args) -> int:
-    from followbus.bus.pubsub import Publisher, ShmPool
-    from followbus.bus.schemas import Frame
-    from followbus.bus.session import open_session
+    from ..bus.pubsub import Publisher, ShmPool
+    from ..bus.schemas import Frame
+    from ..bus.session import open_session
 
     ctx = mp.get_context("spawn")
     ready, results = ctx.Event(), ctx.Queue()

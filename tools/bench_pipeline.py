@@ -59,12 +59,12 @@ def _graph_text(scene: str, port: int, namespace: str, detector: str, sim_delay_
 
 
 def run_bench_pipeline(args) -> int:
-    from followbus.bus.graph import load_graph
-    from followbus.bus.pubsub import direct_callback, payload_bytes
-    from followbus.bus.schemas import NodeStatus, decode
-    from followbus.bus.session import open_session
-    from followbus.tools.launch import Launcher
-    from followbus.vision.models import find_model
+    from ..bus.graph import load_graph
+    from ..bus.pubsub import direct_callback, payload_bytes
+    from ..bus.schemas import NodeStatus, decode
+    from ..bus.session import open_session
+    from ..vision.models import find_model
+    from .launch import Launcher
 
     detector = args.detector
     if detector.startswith("yolox") and find_model(f"yolox_nano_{640 if detector == 'yolox640' else 416}.onnx") is None:
@@ -101,7 +101,7 @@ def run_bench_pipeline(args) -> int:
                         pub[stage].setdefault(h.frame_seq, (h.stamp_ns, h.pub_ns))
             return cb
 
-        from followbus.bus.schemas import Detections, Frame, Measurement, MotorCommand, Prior, Track
+        from ..bus.schemas import Detections, Frame, Measurement, MotorCommand, Prior, Track
 
         schemas = {("capture", "frame"): Frame, ("detection", "detections"): Detections,
                    ("prediction", "prior"): Prior, ("reid", "measurement"): Measurement,

@@ -8,7 +8,7 @@ import os
 import sys
 from pathlib import Path
 
-from followbus import __version__
+from . import __version__
 
 EXIT_BAD_INPUT = 2
 
@@ -239,7 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instead: run the scene(s) through the launched graph and in-process, require identical boxes")
     p.set_defaults(argv=None)
     _add_recording_parsers(sub)
-    from followbus.tools.models_cmd import add_parser as add_models_parser
+    from .models_cmd import add_parser as add_models_parser
 
     add_models_parser(sub)
     return parser
@@ -397,26 +397,26 @@ def _add_recording_parsers(sub) -> None:
 def _dispatch_recording(args) -> int:
     cmd = args.command
     if cmd == "record":
-        from followbus.bus.graph import apply_overrides
-        from followbus.tools.record import cmd_record
+        from ..bus.graph import apply_overrides
+        from .record import cmd_record
 
         graph = _load_graph(args.graph) if Path(args.graph).exists() else None
         if graph is not None:
             apply_overrides(graph, args.overrides)
         return cmd_record(args, _settings(args), graph)
     if cmd == "play":
-        from followbus.tools.play import cmd_play
+        from .play import cmd_play
 
         return cmd_play(args, _settings(args))
     if cmd == "replay":
-        from followbus.tools.replay import cmd_replay
+        from .replay import cmd_replay
 
         return cmd_replay(args)
     if cmd == "info":
-        from followbus.tools.mcap_io import cmd_info
+        from .mcap_io import cmd_info
 
         return cmd_info(args)
-    from followbus.tools.mcap_io import cmd_recover
+    from .mcap_io import cmd_recover
 
     return cmd_recover(args)
 
@@ -428,14 +428,14 @@ def _setup_logging(verbose: int) -> None:
 
 
 def _load_graph(path: str):
-    from followbus.bus.graph import load_graph
+    from ..bus.graph import load_graph
 
     return load_graph(path)
 
 
 def _settings(args):
     """Zenoh settings for tools: --connect wins, else the graph's, joined as a client of its endpoint."""
-    from followbus.bus.session import ZenohSettings
+    from ..bus.session import ZenohSettings
 
     if getattr(args, "connect", None):
         settings = ZenohSettings(mode="client", listen=[], connect=args.connect)
@@ -461,10 +461,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    from followbus.bus.graph import GraphError
-    from followbus.tools.connect import BusUnreachable, explain_connect_failure, is_connect_failure
-    from followbus.tools.errors import UsageError
-    from followbus.vision.models import ModelError
+    from ..bus.graph import GraphError
+    from ..vision.models import ModelError
+    from .connect import BusUnreachable, explain_connect_failure, is_connect_failure
+    from .errors import UsageError
 
     # A user's mistake (or a graph that is not running) is one line on stderr and exit status 2; a failure
     # found while running (a node crashed, nothing arrived, a replay differs) is reported by the command: 1.
@@ -492,8 +492,8 @@ def _validate(graph, overrides: list[str] | None = None, *, opened: set[str] | N
     all) would open (the capture source: Capture.check_params), before anything starts. A problem with a value given on
     the command line names the option (``labels``: node.param -> how it was given, else its --set); one from
     the file names its line (GraphError)."""
-    from followbus.bus.node import ParamError, validate_node
-    from followbus.tools.errors import UsageError
+    from ..bus.node import ParamError, validate_node
+    from .errors import UsageError
 
     given = {item.partition("=")[0].strip(): f"--set {item}" for item in overrides or []}
     given.update(labels or {})
@@ -519,7 +519,7 @@ def dispatch(args) -> int:
     if cmd == "schema":
         return cmd_schema(args)
     if cmd == "check":
-        from followbus.bus.graph import apply_overrides
+        from ..bus.graph import apply_overrides
 
         graph = _load_graph(args.graph)
         apply_overrides(graph, args.overrides)
@@ -527,8 +527,8 @@ def dispatch(args) -> int:
         print(f"{args.graph}: ok ({len(graph.nodes)} nodes)")
         return 0
     if cmd == "node":
-        from followbus.bus.graph import apply_overrides
-        from followbus.bus.node import run_node
+        from ..bus.graph import apply_overrides
+        from ..bus.node import run_node
 
         graph = _load_graph(args.graph)
         apply_overrides(graph, args.overrides)
@@ -542,46 +542,46 @@ def dispatch(args) -> int:
     if cmd in ("record", "play", "replay", "info", "recover"):
         return _dispatch_recording(args)
     if cmd == "router":
-        from followbus.tools.introspect import run_router
+        from .introspect import run_router
 
         return run_router(args.listen or ["tcp/127.0.0.1:7447"], args.duration)
     if cmd == "foxglove":
-        from followbus.tools.foxglove_bridge import run_foxglove
+        from .foxglove_bridge import run_foxglove
 
         return run_foxglove(args)
     if cmd == "monitor":
-        from followbus.tools.monitor import run_monitor
+        from .monitor import run_monitor
 
         return run_monitor(args)
     if cmd in ("topics", "echo", "hz", "nodes"):
-        from followbus.tools import introspect
+        from . import introspect
 
         return getattr(introspect, f"cmd_{cmd}")(args, _settings(args), _namespace(args))
     if cmd == "bench" and args.bench == "bus":
-        from followbus.tools.bench_bus import run_bench_bus
+        from .bench_bus import run_bench_bus
 
         return run_bench_bus(args)
     if cmd == "bench" and args.bench == "pipeline":
-        from followbus.tools.bench_pipeline import run_bench_pipeline
+        from .bench_pipeline import run_bench_pipeline
 
         return run_bench_pipeline(args)
     if cmd == "bench" and args.bench == "chaos":
-        from followbus.tools.chaos import run_bench_chaos
+        from .chaos import run_bench_chaos
 
         return run_bench_chaos(args)
     if cmd == "eval":
-        from followbus.tools.eval import cmd_eval
+        from .eval import cmd_eval
 
         return cmd_eval(args)
     if cmd == "models":
-        from followbus.tools.models_cmd import cmd_models
+        from .models_cmd import cmd_models
 
         return cmd_models(args)
     raise AssertionError(f"unhandled command {cmd!r}")
 
 
 def cmd_schema(args) -> int:
-    from followbus.bus.graph_schema import schema_text
+    from ..bus.graph_schema import schema_text
 
     text = schema_text("followbus.nodes")
     if not args.output:
@@ -597,8 +597,8 @@ def cmd_schema(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from followbus.bus.graph import apply_overrides
-    from followbus.tools.demo import run_demo
+    from ..bus.graph import apply_overrides
+    from .demo import run_demo
 
     graph = _load_graph(args.graph)
     overrides = list(args.overrides)
@@ -621,7 +621,7 @@ def _first_truth_box(graph) -> tuple[float, ...] | None:
     source = str(capture.params.get("source", "")) if capture else ""
     if not source or source.startswith(("scene:", "camera:")) or not Path(source).is_dir():
         return None
-    from followbus.vision.sources import ImageFolderSource
+    from ..vision.sources import ImageFolderSource
 
     folder = ImageFolderSource(Path(source))
     if not folder.has_ground_truth:
@@ -631,9 +631,9 @@ def _first_truth_box(graph) -> tuple[float, ...] | None:
 
 
 def cmd_launch(args) -> int:
-    from followbus.bus.graph import apply_overrides
-    from followbus.bus.node import RECORDER_NAME
-    from followbus.tools.launch import Launcher, install_stop_signals
+    from ..bus.graph import apply_overrides
+    from ..bus.node import RECORDER_NAME
+    from .launch import Launcher, install_stop_signals
 
     graph = _load_graph(args.graph)
     apply_overrides(graph, args.overrides)

@@ -15,7 +15,7 @@ from typing import Any
 
 import zenoh
 
-from followbus.bus.session import ZenohSettings, open_session
+from ..bus.session import ZenohSettings, open_session
 
 log = logging.getLogger(__name__)
 

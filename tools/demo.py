@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from followbus.bus.graph import Graph
-from followbus.bus.pubsub import Subscriber
-from followbus.bus.schemas import Detections, GroundTruth, MotorCommand, Template, Track
-from followbus.bus.session import open_session
-from followbus.evaluation.metrics import evaluate_single_target
-from followbus.tools.launch import Launcher, install_stop_signals
-from followbus.vision.detectors import DetectorUnavailable, resolve_detector_model
+from ..bus.graph import Graph
+from ..bus.pubsub import Subscriber
+from ..bus.schemas import Detections, GroundTruth, MotorCommand, Template, Track
+from ..bus.session import open_session
+from ..evaluation.metrics import evaluate_single_target
+from ..vision.detectors import DetectorUnavailable, resolve_detector_model
+from .launch import Launcher, install_stop_signals
 
 log = logging.getLogger("followbus.demo")
 
@@ -120,7 +120,7 @@ def run_log_path(directory: Path = DEMO_LOG_DIR) -> Path:
 
 def last_error_lines(log_path: Path, count: int = ERROR_LINES_SHOWN) -> list[str]:
     """The last lines of a node log that say why something stopped (logged errors, exceptions)."""
-    from followbus.tools.launch import ERROR_LINE_RE
+    from .launch import ERROR_LINE_RE
 
     try:
         lines = log_path.read_text(errors="replace").splitlines()

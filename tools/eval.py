@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from followbus.evaluation.metrics import SingleTargetMetrics, aggregate, format_markdown_table
-from followbus.evaluation.runner import SequenceRun
+from ..evaluation.metrics import SingleTargetMetrics, aggregate, format_markdown_table
+from ..evaluation.runner import SequenceRun
 
 log = logging.getLogger("followbus.eval")
 
@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def expand_sequences(specs: list[str]) -> list[str]:
     """``all`` → every sequence under the data root; ``scene:<name>`` and directories pass through."""
-    from followbus.evaluation.datasets import find_data_root, list_sequences, load_sequence
+    from ..evaluation.datasets import find_data_root, list_sequences, load_sequence
 
     out: list[str] = []
     for s in specs:
@@ -45,7 +45,7 @@ def expand_sequences(specs: list[str]) -> list[str]:
                 raise FileNotFoundError(f"'all': no sequences under {root}/sot or {root}/mot")
             out += found
         elif s.startswith("scene:"):
-            from followbus.vision.scenes import SCENES
+            from ..vision.scenes import SCENES
 
             if s.split(":", 1)[1] not in SCENES:
                 raise ValueError(f"unknown scene {s!r}; available: {', '.join(SCENES)}")
@@ -139,8 +139,8 @@ def summary_matrix(runs: list[SequenceRun], methods: list[str]) -> str:
 
 def mot_table(runs: list[SequenceRun], methods: list[str]) -> str:
     """MOTA/IDF1/HOTA of the multi-object trackers' whole output on the MOT sequences; "" when none ran."""
-    from followbus.evaluation.mot_metrics import evaluate_mot_combined
-    from followbus.evaluation.runner import gt_mot_frames
+    from ..evaluation.mot_metrics import evaluate_mot_combined
+    from ..evaluation.runner import gt_mot_frames
 
     mot_runs = [r for r in runs if any(mr.mot is not None for mr in r.runs.values())]
     if not mot_runs:
@@ -217,14 +217,14 @@ def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command
 
 
 def cmd_eval(args) -> int:
-    from followbus.evaluation.baselines import peer_available
-    from followbus.evaluation.plots import plot_sequence
-    from followbus.evaluation.runner import method_factories, open_sequence, run_sequence
+    from ..evaluation.baselines import peer_available
+    from ..evaluation.plots import plot_sequence
+    from ..evaluation.runner import method_factories, open_sequence, run_sequence
 
     command = "followbus " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if args.argv is None else args.argv
     if getattr(args, "group", False):
-        from followbus.evaluation.group_eval import cmd_eval_group
-        from followbus.evaluation.group_sim import SCENARIOS
+        from ..evaluation.group_eval import cmd_eval_group
+        from ..evaluation.group_sim import SCENARIOS
 
         # With --group the positional names are simulator scenarios (default: all of them).
         unknown = [s for s in args.sequences if s not in SCENARIOS]
@@ -279,7 +279,7 @@ def cmd_eval(args) -> int:
     out = Path(args.out)
     from tqdm import tqdm
 
-    from followbus.vision.models import ModelError
+    from ..vision.models import ModelError
 
     runs: list[SequenceRun] = []
     # delay: a run that fails at once (no model) shows its one line without a progress bar before it
@@ -368,8 +368,8 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
 
     Returns {"compared", "mismatches", "missing", "first_mismatch", "graph", "inproc", "detector"}.
     """
-    from followbus.evaluation.runner import FollowbusFollower, open_sequence
-    from followbus.vision.detectors import SimulatedDetector
+    from ..evaluation.runner import FollowbusFollower, open_sequence
+    from ..vision.detectors import SimulatedDetector
 
     is_scene = spec.startswith("scene:")
     detector = detector or ("simulated" if is_scene else "yolox")
@@ -388,7 +388,7 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
     else:
         import yaml
 
-        from followbus.nodes.detection import Detection, detector_from_params
+        from ..nodes.detection import Detection, detector_from_params
 
         # exactly the detector the graph's detection node builds (threads, thresholds, model)
         node_params = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]["detection"]["params"]
@@ -398,7 +398,7 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
             return real.detect(item.bgr)
     import yaml
 
-    from followbus.tracking.params import TrackerParams
+    from ..tracking.params import TrackerParams
 
     # The graph warps the prior by camera motion only where an egomotion node publishes it; in-process likewise.
     has_egomotion = "egomotion" in yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]
@@ -443,11 +443,11 @@ def _run_graph_once(source: str, port: int, init_box: list[float], n: int, max_i
                     log_file: Path | None, detector: str) -> dict[int, Any]:
     """Launch the derived graph once (motor omitted) and collect Track boxes by frame_seq. Capture publishes
     frame 0 only once every consuming node is listening (nodes/capture.py), so the lockstep always starts."""
-    from followbus.bus.graph import load_graph
-    from followbus.bus.pubsub import Subscriber
-    from followbus.bus.schemas import Track
-    from followbus.bus.session import open_session
-    from followbus.tools.launch import Launcher
+    from ..bus.graph import load_graph
+    from ..bus.pubsub import Subscriber
+    from ..bus.schemas import Track
+    from ..bus.session import open_session
+    from .launch import Launcher
 
     tracks: dict[int, Any] = {}
     done = threading.Event()

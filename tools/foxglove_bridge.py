@@ -20,12 +20,12 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from followbus.bus.codec import DecodeError
-from followbus.bus.pubsub import direct_callback, payload_bytes
-from followbus.bus.schemas import Frame, Measurement, Message, MotorCommand, NodeStatus, Prior, Track, decode, to_plain
-from followbus.bus.session import ZenohSettings, open_session
-from followbus.tools.introspect import wait_for
-from followbus.tools.monitor import GraphInfo
+from ..bus.codec import DecodeError
+from ..bus.pubsub import direct_callback, payload_bytes
+from ..bus.schemas import Frame, Measurement, Message, MotorCommand, NodeStatus, Prior, Track, decode, to_plain
+from ..bus.session import ZenohSettings, open_session
+from .introspect import wait_for
+from .monitor import GraphInfo
 
 log = logging.getLogger("followbus.foxglove")
 
@@ -156,7 +156,7 @@ class FoxgloveBridge:
 
 
 def run_foxglove(args: Any) -> int:
-    from followbus.tools.monitor import monitor_settings
+    from .monitor import monitor_settings
 
     try:
         import foxglove  # noqa: F401

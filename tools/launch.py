@@ -17,8 +17,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from followbus.bus.graph import Graph, NodeSpec
-from followbus.bus.health import (
+from ..bus.graph import Graph, NodeSpec
+from ..bus.health import (
     LAUNCHER_PERIOD_S,
     HealthWatcher,
     LaunchedProcess,
@@ -26,9 +26,9 @@ from followbus.bus.health import (
     launcher_key,
     process_table,
 )
-from followbus.bus.node import LAUNCHED_NODES_ENV
-from followbus.bus.pubsub import Publisher, direct_callback
-from followbus.bus.session import open_session
+from ..bus.node import LAUNCHED_NODES_ENV
+from ..bus.pubsub import Publisher, direct_callback
+from ..bus.session import open_session
 
 log = logging.getLogger("followbus.launch")
 

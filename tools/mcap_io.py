@@ -52,8 +52,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
-from followbus import __version__
-from followbus.bus.recording import (  # noqa: F401 (reading is re-exported for the tools)
+from ..bus.recording import (  # noqa: F401 (reading is re-exported for the tools)
     BUS_MESSAGE_ENCODING,
     BUS_SCHEMA_ENCODING,
     BUS_SCHEMA_PREFIX,
@@ -67,7 +66,8 @@ from followbus.bus.recording import (  # noqa: F401 (reading is re-exported for 
     read_summary,
     schema_document,
 )
-from followbus.tools import foxglove_schemas as fox
+from . import __version__
+from . import foxglove_schemas as fox
 
 log = logging.getLogger("followbus.mcap")
 

@@ -6,7 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
-from followbus.vision.models import (
+from ..vision.models import (
     MODEL_ROLES,
     MODELS_ENV,
     ModelCheck,

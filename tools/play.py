@@ -18,9 +18,9 @@ from pathlib import Path
 
 import zenoh
 
-from followbus.bus.pubsub import Publisher, ShmPool
-from followbus.tools.mcap_io import RecordingError, bus_channels, iter_bus_messages
-from followbus.tools.record import is_status_key
+from ..bus.pubsub import Publisher, ShmPool
+from .mcap_io import RecordingError, bus_channels, iter_bus_messages
+from .record import is_status_key
 
 log = logging.getLogger("followbus.play")
 
@@ -177,7 +177,7 @@ def cmd_play(args, settings) -> int:
     if args.start_paused and not sys.stdin.isatty():
         print("followbus: --start-paused needs a terminal (space resumes)", file=sys.stderr)
         return 2
-    from followbus.bus.session import open_session
+    from ..bus.session import open_session
 
     keyboard = Keyboard() if sys.stdin.isatty() else None
     try:

@@ -51,13 +51,13 @@ import cv2
 import numpy as np
 import zenoh
 
-from followbus import __version__
-from followbus.bus.codec import DecodeError, Header, peek
-from followbus.bus.node import RECORDER_NAME
-from followbus.bus.pubsub import RateLimitedLog, direct_callback, payload_bytes
-from followbus.bus.schemas import Frame, decode
-from followbus.tools import foxglove_schemas as fox
-from followbus.tools.mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, FinaliseResult, RecordingWriter
+from ..bus.codec import DecodeError, Header, peek
+from ..bus.node import RECORDER_NAME
+from ..bus.pubsub import RateLimitedLog, direct_callback, payload_bytes
+from ..bus.schemas import Frame, decode
+from . import __version__
+from . import foxglove_schemas as fox
+from .mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, FinaliseResult, RecordingWriter
 
 log = logging.getLogger("followbus.record")
 
@@ -434,9 +434,7 @@ class Recorder:
 
 def git_info() -> tuple[str, bool]:
     """(commit, dirty) of the followbus source tree, ("unknown", False) when it is not a git checkout."""
-    import followbus.bus
-
-    root = Path(followbus.bus.__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[1]  # tools/ sits in the repository root
     try:
         commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
                                 timeout=5, check=True).stdout.strip()
@@ -533,7 +531,7 @@ def cmd_record(args, settings, graph) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    from followbus.bus.session import open_session
+    from ..bus.session import open_session
 
     try:
         session = open_session(settings)

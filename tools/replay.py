@@ -39,13 +39,13 @@ import msgpack
 import numpy as np
 import yaml
 
-from followbus.bus.codec import HEADER_KEY, DecodeError, _split
-from followbus.bus.graph import GraphError, load_graph
-from followbus.bus.inproc import InProcessError, InProcessGraph
-from followbus.bus.node import load_node_class
-from followbus.bus.schemas import Message, ReplayHint, decode
-from followbus.tools.mcap_io import RecordingError, bus_channels, is_bus_channel, read_metadata, read_summary
-from followbus.tools.replay_feed import Feed, _header, recording_first_frame
+from ..bus.codec import HEADER_KEY, DecodeError, _split
+from ..bus.graph import GraphError, load_graph
+from ..bus.inproc import InProcessError, InProcessGraph
+from ..bus.node import load_node_class
+from ..bus.schemas import Message, ReplayHint, decode
+from .mcap_io import RecordingError, bus_channels, is_bus_channel, read_metadata, read_summary
+from .replay_feed import Feed, _header, recording_first_frame
 
 log = logging.getLogger("followbus.replay")
 
@@ -392,7 +392,7 @@ class Replayer:
         with tempfile.TemporaryDirectory(prefix="followbus-replay-") as tmp:
             target: Target = self._inproc
             if self.opts.isolated:
-                from followbus.tools.replay_isolated import IsolatedTarget
+                from .replay_isolated import IsolatedTarget
 
                 target = IsolatedTarget(self._inproc, self.report, self.opts, Path(tmp))
             try:

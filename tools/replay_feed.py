@@ -14,12 +14,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from followbus.bus.codec import DecodeError, Peeked, peek
-from followbus.bus.recording import BusMessage, iter_bus_messages
-from followbus.bus.schemas import ReplayHint
+from ..bus.codec import DecodeError, Peeked, peek
+from ..bus.recording import BusMessage, iter_bus_messages
+from ..bus.schemas import ReplayHint
 
 if TYPE_CHECKING:
-    from followbus.tools.replay import ReplayPlan
+    from .replay import ReplayPlan
 
 log = logging.getLogger("followbus.replay")
 

@@ -20,10 +20,10 @@ from typing import Any
 
 import yaml
 
-from followbus.bus.graph import Graph, NodeSpec, load_graph
-from followbus.bus.schemas import ReplayHint
-from followbus.tools.replay import InProcessTarget, ReplayOptions, ReplayReport
-from followbus.tools.replay_feed import _header
+from ..bus.graph import Graph, NodeSpec, load_graph
+from ..bus.schemas import ReplayHint
+from .replay import InProcessTarget, ReplayOptions, ReplayReport
+from .replay_feed import _header
 
 log = logging.getLogger("followbus.replay")
 
@@ -99,9 +99,9 @@ class IsolatedTarget:
         self.log_path = tmp / "node.log"
 
     def start(self) -> None:
-        from followbus.bus.health import HealthWatcher
-        from followbus.bus.pubsub import Publisher, ShmPool, direct_callback
-        from followbus.bus.session import open_session
+        from ..bus.health import HealthWatcher
+        from ..bus.pubsub import Publisher, ShmPool, direct_callback
+        from ..bus.session import open_session
 
         self.reference.start()
         graph_path = self.tmp / "graph.yaml"
@@ -134,7 +134,7 @@ class IsolatedTarget:
 
     def _on_output(self, topic: str):
         def callback(sample) -> None:
-            from followbus.bus.pubsub import payload_bytes
+            from ..bus.pubsub import payload_bytes
 
             data = payload_bytes(sample)
             awaited = topic not in self.plan.timer_topics or _header(data)[0] >= 0

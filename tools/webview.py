@@ -40,9 +40,9 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 from urllib.parse import parse_qs, urlencode, urlparse
 
-from followbus.bus.session import ZenohSettings
-from followbus.tools.introspect import wait_for
-from followbus.tools.monitor import BusMonitor, GraphInfo
+from ..bus.session import ZenohSettings
+from .introspect import wait_for
+from .monitor import BusMonitor, GraphInfo
 
 log = logging.getLogger("followbus.webview")
 

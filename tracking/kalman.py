@@ -18,11 +18,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from followbus.tracking.params import TrackerParams
+from .params import TrackerParams
 
 if TYPE_CHECKING:
-    from followbus.tracking.egomotion import CameraMotion
-    from followbus.tracking.reid import ReidResult
+    from .egomotion import CameraMotion
+    from .reid import ReidResult
 
 logger = logging.getLogger(__name__)
 

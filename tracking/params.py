@@ -73,10 +73,10 @@ class TrackerParams:
 
     # Seed 002 §3.3 (optical-flow-corrected Kalman): warp the prior by the frame-to-frame image motion
     # measured on the background (tracking/egomotion.py) before gating, so a panning, turning or zooming
-    # camera does not carry the target out of a gate that is only right in a still image. Off by default
-    # only because graph.yaml does not run the egomotion node yet (the in-process tracker must compute what
-    # the graph computes); `followbus eval --ablations` scores it as "followbus + camera-motion compensation".
-    camera_motion_compensation: bool = False
+    # camera does not carry the target out of a gate that is only right in a still image. graph.yaml runs
+    # the egomotion node that measures it; `followbus eval --ablations` scores "without camera-motion
+    # compensation".
+    camera_motion_compensation: bool = True
 
     # --- ablation switches (paper Table 6) ------------------------------------------------
     use_geometry: bool = True  # False: S_geo off, ω = 1 (M_fuse = S_color)

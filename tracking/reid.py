@@ -29,10 +29,10 @@ from enum import Enum
 
 import numpy as np
 
-from followbus.tracking.appearance import bhattacharyya, hs_histogram
-from followbus.tracking.init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
-from followbus.tracking.kalman import Box, Prior, box_centre
-from followbus.tracking.params import TrackerParams
+from .appearance import bhattacharyya, hs_histogram
+from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
+from .kalman import Box, Prior, box_centre
+from .params import TrackerParams
 
 logger = logging.getLogger(__name__)
 

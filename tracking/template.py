@@ -8,9 +8,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from followbus.tracking.appearance import hs_histogram, learning_rate, specular_penalty
-from followbus.tracking.params import TrackerParams
-from followbus.tracking.reid import ReidResult
+from .appearance import hs_histogram, learning_rate, specular_penalty
+from .params import TrackerParams
+from .reid import ReidResult
 
 logger = logging.getLogger(__name__)
 

@@ -18,11 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from followbus.tracking.egomotion import CameraMotion, EgoMotionEstimator, EgoMotionParams
-from followbus.tracking.kalman import Box, Posterior, Predictor, Prior
-from followbus.tracking.params import TrackerParams
-from followbus.tracking.reid import ReIdentifier, ReidResult, TrackState
-from followbus.tracking.template import TemplateUpdater
+from .egomotion import CameraMotion, EgoMotionEstimator, EgoMotionParams
+from .kalman import Box, Posterior, Predictor, Prior
+from .params import TrackerParams
+from .reid import ReIdentifier, ReidResult, TrackState
+from .template import TemplateUpdater
 
 logger = logging.getLogger(__name__)
 

@@ -24,7 +24,7 @@ from typing import Any, Protocol, runtime_checkable
 import cv2
 import numpy as np
 
-from followbus.vision.models import MODELS_ENV, ModelError, ModelNotFound, resolve_model, search_path, verify_model
+from .models import MODELS_ENV, ModelError, ModelNotFound, resolve_model, search_path, verify_model
 
 log = logging.getLogger(__name__)
 

@@ -33,7 +33,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from followbus.vision.scenes import DEFAULT_SCENE, SCENES, make_scene
+from .scenes import DEFAULT_SCENE, SCENES, make_scene
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,64 @@
+"""The repository's structure is visible to tools that read files, not only to the installed package.
+
+pyproject maps bus/, nodes/, tools/, ... into ``followbus.*`` (package-dir), so an absolute
+``from followbus.bus.node import Node`` cannot be followed by path from the source tree: a structure drawing or an
+editor's go-to-definition lost every arrow between the folders. Inside the package folders imports are therefore
+explicit and relative (``from ..bus.node import Node``), and each must name a file of this repository.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE_DIRS = ("bus", "nodes", "tools", "tracking", "control", "vision", "evaluation", "followbus")
+
+
+def _modules() -> list[Path]:
+    return sorted(p for d in PACKAGE_DIRS for p in (REPO / d).glob("*.py"))
+
+
+def _target(path: Path, node: ast.ImportFrom) -> Path:
+    base = path.parent
+    for _ in range(node.level - 1):
+        base = base.parent
+    return base.joinpath(*node.module.split(".")) if node.module else base
+
+
+def _resolves(target: Path, names: list[str]) -> bool:
+    if target.with_suffix(".py").is_file():
+        return True
+    init = target / "__init__.py"
+    if init.is_file():  # a package: each name is one of its modules or something its __init__ defines
+        tree = ast.parse(init.read_text(encoding="utf-8"))
+        defined = {t.id for n in tree.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)}
+        defined |= {n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
+        return all((target / f"{n}.py").is_file() or n in defined for n in names)
+    return False
+
+
+def test_the_package_folders_import_each_other_by_relative_path():
+    absolute = []
+    for path in _modules():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            top = (node.module or "").split(".")[0] if isinstance(node, ast.ImportFrom) else ""
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and top == "followbus":
+                absolute.append(f"{path.relative_to(REPO)}:{node.lineno} from {node.module}")
+            elif isinstance(node, ast.Import) and any(a.name.split(".")[0] == "followbus" for a in node.names):
+                absolute.append(f"{path.relative_to(REPO)}:{node.lineno} import followbus...")
+    assert not absolute, "use relative imports inside the package folders:\n" + "\n".join(absolute)
+
+
+def test_every_internal_import_names_a_file_of_the_repository():
+    unresolved, count = [], 0
+    for path in _modules():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.level > 0:
+                count += 1
+                target = _target(path, node)
+                if REPO not in target.resolve().parents or not _resolves(target, [a.name for a in node.names]):
+                    where = f"{path.relative_to(REPO)}:{node.lineno}"
+                    unresolved.append(f"{where} from {'.' * node.level}{node.module or ''}")
+    assert count > 100, "the package folders should import each other"
+    assert not unresolved, "imports that name no file of the repository:\n" + "\n".join(unresolved)
