@@ -325,8 +325,13 @@ def test_whole_graph_agrees_with_the_in_process_tracker():
     with InProcessGraph(graph, nodes=[n for n in graph.nodes if n != "motor"], record=["prediction/track"]) as g:
         g.run_frames(n)
         got = [None if t.box is None else tuple(float(v) for v in t.box) for t in g.outputs("prediction", "track")]
+        prediction = g.status("prediction")["extra"]
     assert len(got) == n
     assert got == expected
+    # Camera-motion compensation is in the graph: only frame 0 (egomotion's first message comes after that set
+    # went out, bus/sync.py) has no transform; every later prior waited for it and was warped.
+    assert prediction["sync_without_optional"] == 1 and prediction["sync_timeouts"] == 0
+    assert prediction["priors_warped"] == n - 1
 
 
 # --------------------------------------------------------------------------- runtime semantics

@@ -160,3 +160,33 @@ def test_a_live_fallback_is_replayed_exactly(tmp_path):
         assert report["mismatch_count"] == 0 and report["outputs_compared"] > 100
         if node == "prediction":
             assert report["hints"] > 0, "the stop should have made prediction fall back live"
+
+
+def test_a_lost_optional_input_is_replayed_exactly(tmp_path):
+    """egomotion stopped for a second live: prediction waits for its transform once, then goes on without it
+    (bus/sync.py: an optional input that missed a deadline is not waited for) until egomotion is on time again.
+    The priors note which sets lacked the transform (-1), and a lockstep replay of prediction lacks exactly
+    those, whatever its own arrival order, with zero mismatches."""
+    from followbus.bus.recording import iter_bus_messages
+    from followbus.bus.schemas import Prior, decode
+
+    def stop_egomotion_for_a_second(graph):
+        pids = processes_matching(f"node egomotion --graph {graph}")
+        assert pids, "egomotion is not running"
+        for pid in pids:
+            os.kill(pid, signal.SIGSTOP)
+        time.sleep(1.0)
+        for pid in pids:
+            os.kill(pid, signal.SIGCONT)
+
+    path = _record(tmp_path, "ro", 60, stop_egomotion_for_a_second)
+    priors = [decode(m.data, Prior) for m in iter_bus_messages(path, ["ro/prediction/prior"])]
+    lacked = [p.header.frame_seq for p in priors if p.header.feedback.get("transform") == -1]
+    assert len(lacked) > 10, "the stop should have made prediction go on without transforms"
+    assert len(lacked) < len(priors) - 30, "prediction should wait for transforms again once egomotion is back"
+    report_path = tmp_path / "prediction.json"
+    result = run_followbus("replay", str(path), "--node", "prediction", "--verify", "--report", str(report_path),
+                           timeout=180)
+    assert result.returncode == 0, result.stdout + result.stderr[-2000:]
+    report = json.loads(report_path.read_text())
+    assert report["mismatch_count"] == 0 and report["outputs_compared"] > 100

@@ -74,7 +74,7 @@ class TrackerParams:
     # Seed 002 §3.3 (optical-flow-corrected Kalman): warp the prior by the frame-to-frame image motion
     # measured on the background (tracking/egomotion.py) before gating, so a panning, turning or zooming
     # camera does not carry the target out of a gate that is only right in a still image. graph.yaml runs
-    # the egomotion node that measures it; `followbus eval --ablations` scores "without camera-motion
+    # the egomotion node that measures it; `followbus eval --ablations` scores "followbus w/o camera-motion
     # compensation".
     camera_motion_compensation: bool = True
 
