@@ -123,8 +123,10 @@ class PeerFollower:
     """A Roboflow ``trackers`` MOT tracker, run as shipped, as a follower of one of its track ids.
 
     On the init frame the confirmed track overlapping the init box best is chosen; while no confirmed track
-    overlaps it (trackers confirm after a few frames), later frames keep trying against that box with
-    IoU > 0.3. From then on the output is the box the tracker reports for that id; on a frame it reports
+    overlaps it (trackers confirm after a few frames), later frames keep trying with IoU > 0.3 against the
+    target's box *of that frame* (:meth:`update_reference`, given by the evaluation runner while the peer is
+    unassigned): against the frame-1 box a later track of a stranger now standing there could win. From then
+    on the output is the box the tracker reports for that id; on a frame it reports
     none (no detection matched), the tracker's own Kalman prediction for the id while its track is still
     alive (state COASTING), as followbus and the Kalman baseline coast on theirs; None once the tracker
     has deleted it (the id is lost: a MOT tracker that re-identifies the person under a new id has lost
@@ -149,6 +151,16 @@ class PeerFollower:
         self.name = f"peer:{kind}"
         self.target_id: int | None = None
         self._ref: Box | None = None
+
+    @property
+    def wants_reference(self) -> bool:
+        """True until a track id is chosen: the runner then passes the target's box of each frame."""
+        return self.target_id is None
+
+    def update_reference(self, box: Sequence[float]) -> None:
+        """The target's box on the coming frame (ground truth), to choose the id against while unassigned."""
+        if self.target_id is None:
+            self._ref = tuple(float(v) for v in box)
 
     def _pick(self, ids: list[int], boxes: list[Box], min_iou: float) -> None:
         assert self._ref is not None

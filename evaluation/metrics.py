@@ -108,6 +108,7 @@ class SingleTargetMetrics:
     target_switches: int
     frames_on_distractor: int
     reid_events: list[ReidEvent] = field(default_factory=list)
+    wrong_relocks: int = 0  # episodes of >= WRONG_RELOCK_FRAMES outputs with zero overlap on the target's box
     center_errors: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per frame, NaN if undefined
     ious: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per frame, NaN if undefined
     tsr_px: float = 20.0
@@ -173,6 +174,28 @@ def _frame_owner(pred: Box | None, gt: Box | None, others: Sequence[Box], tsr_px
     if gt is not None and d_target < tsr_px:
         return "target"
     return "none"
+
+
+WRONG_RELOCK_FRAMES = 10
+
+
+def wrong_relock_episodes(ious: np.ndarray, has_out: np.ndarray, gt_present: np.ndarray,
+                          min_frames: int = WRONG_RELOCK_FRAMES) -> int:
+    """Episodes in which the follower keeps outputting a box that does not touch the target's (IoU 0) for at
+    least ``min_frames`` frames: it is following someone or something else. Works on single-target clips,
+    where no other person is annotated. A frame without ground truth (target hidden) neither extends nor
+    ends an episode; a frame without output, or with any overlap, ends it."""
+    episodes, run = 0, 0
+    for iou, out, gt in zip(ious, has_out, gt_present, strict=True):
+        if not gt:
+            continue
+        if out and iou == 0.0:
+            run += 1
+            if run == min_frames:
+                episodes += 1
+        else:
+            run = 0
+    return episodes
 
 
 def _reid_events(gt_present: np.ndarray, success: np.ndarray, min_occlusion_frames: int,
@@ -285,6 +308,7 @@ def evaluate_single_target(
         iou_hits=iou_hits,
         target_switches=switches, frames_on_distractor=on_distractor,
         reid_events=_reid_events(gt_present, success, min_occlusion_frames, fps),
+        wrong_relocks=wrong_relock_episodes(ious, has_out, gt_present),
         center_errors=errors, ious=ious, tsr_px=tsr_px, iou_threshold=iou_threshold, fps=fps,
         image_diagonal=diag,
     )
@@ -326,7 +350,8 @@ def aggregate(metrics: Iterable[SingleTargetMetrics]) -> SingleTargetMetrics:
         iou_success=_ratio(iou_hits, n_gt), iou_hits=iou_hits,
         target_switches=sum(m.target_switches for m in items),
         frames_on_distractor=sum(m.frames_on_distractor for m in items),
-        reid_events=[e for m in items for e in m.reid_events], center_errors=errors, ious=ious,
+        reid_events=[e for m in items for e in m.reid_events],
+        wrong_relocks=sum(m.wrong_relocks for m in items), center_errors=errors, ious=ious,
         tsr_px=tau, iou_threshold=items[0].iou_threshold, fps=items[0].fps, image_diagonal=None,
     )
 
@@ -356,6 +381,7 @@ _COLUMNS: list[tuple[str, Callable[[SingleTargetMetrics], str]]] = [
     ("Stab px", lambda m: _px(m.stability)),
     ("Miss", lambda m: str(m.missing_outputs)),
     ("Switch", lambda m: str(m.target_switches)),
+    ("Wrong re-lock", lambda m: str(m.wrong_relocks)),
     ("Re-ID ms (locked/events)", _reid),
 ]
 

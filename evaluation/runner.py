@@ -72,6 +72,13 @@ class _NoEgo:
     def step(self, frame_bgr, detections, t_ns, v_ego_mps, init_box):
         return self.inner.step(frame_bgr, detections, t_ns, init_box=init_box)
 
+    @property
+    def wants_reference(self) -> bool:
+        return bool(getattr(self.inner, "wants_reference", False))
+
+    def update_reference(self, box) -> None:
+        self.inner.update_reference(box)
+
 
 def method_factories(methods: Sequence[str], ablations: bool = False,
                      base: TrackerParams | None = None) -> dict[str, Callable[[float], Follower]]:
@@ -316,6 +323,8 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
             init_box, initialised = item.gt_box, True
         v_ego = item.v_ego_mps if use_ego_velocity else (0.0, 0.0)
         for name, follower in followers.items():
+            if item.gt_box is not None and getattr(follower, "wants_reference", False):
+                follower.update_reference(item.gt_box)  # a peer still choosing whom to follow: this frame's box
             t0 = time.perf_counter()
             box, info = follower.step(item.bgr, dets, item.t_ns, v_ego, init_box)
             runs[name].tracker_ms.append((time.perf_counter() - t0) * 1e3)

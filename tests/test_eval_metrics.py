@@ -203,3 +203,20 @@ def test_input_validation_and_iou() -> None:
         evaluate_single_target([None], [None, None])
     assert box_iou((0, 0, 10, 10), (5, 0, 10, 10)) == pytest.approx(50 / 150)
     assert box_iou((0, 0, 10, 10), (20, 0, 10, 10)) == 0.0
+
+
+def test_wrong_relock_is_a_run_of_outputs_off_the_target_on_a_single_target_clip() -> None:
+    gt = walk(60)
+    stranger = shift(gt, 200.0)  # no overlap with the target's box
+    # 12 frames on the stranger (an episode), back on the target, then 8 frames off (too short to count).
+    pred = gt[:10] + stranger[10:22] + gt[22:40] + stranger[40:48] + gt[48:]
+    m = evaluate_single_target(pred, gt)
+    assert m.wrong_relocks == 1 and m.target_switches == 0  # no other person is annotated
+    # The target hidden in the middle of a wrong episode neither ends nor extends it; a missing output ends it.
+    hidden = list(gt)
+    hidden[14:20] = [None] * 6
+    assert evaluate_single_target(pred, hidden).wrong_relocks == 0  # 6 judged frames off the target
+    assert evaluate_single_target(stranger[:15] + [None] + stranger[16:30], gt[:30]).wrong_relocks == 2
+    # A partial overlap is not a wrong re-lock (a poor box on the right person).
+    assert evaluate_single_target(shift(gt, 30.0), gt).wrong_relocks == 0
+    assert aggregate([m, m]).wrong_relocks == 2

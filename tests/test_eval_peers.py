@@ -146,3 +146,25 @@ def test_mot17_scoring_with_distractors_matches_trackeval_parity_evaluation(tmp_
     assert mine.mot.clear.num_false_positives == ref.CLEAR.CLR_FP
     assert mine.mot.idf1 == pytest.approx(ref.Identity.IDF1, abs=1e-6)
     assert mine.mot.hota.hota == pytest.approx(ref.HOTA.HOTA, abs=1e-6)
+
+
+@pytest.mark.parametrize("use_current_box", [True, False])
+def test_a_peer_that_starts_unassigned_chooses_against_the_targets_box_of_that_frame(use_current_box):
+    """The target is missed on the init frame and then seen 150 px away, while a stranger walks into the
+    init box. Choosing against the frame-1 box latches onto the stranger (the old start, kept here as the
+    control); against the target's box of the frame where a track is first confirmed, the target is taken."""
+    from followbus.evaluation.baselines import PeerFollower
+
+    peer = PeerFollower("bytetrack", fps=30.0)
+    init = (100.0, 100.0, 40.0, 100.0)
+    target = (250.0, 100.0, 40.0, 100.0)
+    assert peer.step(None, np.zeros((0, 5), np.float32), 0, init_box=init)[0] is None
+    box = None
+    for k in range(1, 12):
+        dets = np.array([[*target, 0.9], [*init, 0.9]], np.float32)  # the stranger stands in the init box
+        if use_current_box and peer.wants_reference:
+            peer.update_reference(target)
+        box, _ = peer.step(None, dets, k * 33_000_000)
+    assert box is not None
+    on_target = abs(box[0] - target[0]) < 5
+    assert on_target == use_current_box

@@ -313,7 +313,9 @@ def cmd_eval(args) -> int:
                  "follower that only outputs detections can do; followbus, kalman and the peers coast on their "
                  "prediction through missed detections and can exceed it there.")
     notes.append("Miss = gt frames without an output; Switch = output moved from the target onto another "
-                 "annotated person (SOT sequences annotate only the target, so switches there are always 0).")
+                 "annotated person (SOT sequences annotate only the target, so switches there are always 0); "
+                 "Wrong re-lock = an episode of >= 10 frames with an output that does not overlap the target's box "
+                 "(following someone else; counted on every sequence).")
     md, js = write_report(runs, methods, out, command, args.detector, notes)
     print(f"wrote {md}, {js} and plots in {out / 'plots'}")
     print((out / "results.md").read_text(encoding="utf-8"))
