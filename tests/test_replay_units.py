@@ -84,7 +84,8 @@ def test_feed_hands_each_hint_over_before_its_frame(tmp_path):
     writer.finish()
 
     plan = ReplayPlan(path, ReplayOptions(nodes=["prediction"]))
-    assert set(plan.inputs.values()) == {"detection/detections", "reid/measurement", "motor/odometry"}
+    assert set(plan.inputs.values()) == {"detection/detections", "reid/measurement", "motor/odometry",
+                                         "egomotion/transform"}
     feed = Feed(plan)
     told: dict[int, tuple[bool, dict[str, int]]] = {}
     for hints, frame_seq, _messages in feed.groups():
