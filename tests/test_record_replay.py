@@ -337,3 +337,45 @@ def test_checker_rejects_a_channel_that_breaks_its_schema(mcap_checker, tmp_path
     assert code == 1
     assert any("t/capture/frame/image" in e and "frame_id" in e for e in summary["errors"]), summary["errors"]
     assert any("annotations" in e and "type" in e for e in summary["errors"]), summary["errors"]
+
+
+def test_frames_whose_inputs_the_recorder_missed_are_not_verifiable_not_missing(recorded: Recorded, tmp_path):
+    """A recorder that joined late (or dropped some inputs) leaves frames the node cannot be replayed on: their
+    recorded outputs are counted as not verifiable, apart from outputs the node failed to produce."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    from followbus.bus.recording import read_metadata
+
+    lacking = tmp_path / "lacking.mcap"
+    dropped = 0
+    with open(recorded.path, "rb") as f, open(lacking, "wb") as out:
+        writer = Writer(out)
+        writer.start(profile="", library="test: the recorder missed the first ticks")
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
+            if channel.topic.endswith("/ticker/tick") and dropped < 3:
+                dropped += 1
+                continue
+            if channel.id not in channel_ids:
+                sid = 0
+                if schema is not None:
+                    if schema.id not in schema_ids:
+                        schema_ids[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+                    sid = schema_ids[schema.id]
+                channel_ids[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, sid,
+                                                                  dict(channel.metadata))
+            writer.add_message(channel_ids[channel.id], message.log_time, message.data, message.publish_time,
+                               message.sequence)
+        for name, data in read_metadata(recorded.path).items():
+            writer.add_metadata(name, data)
+        writer.finish()
+    report_path = tmp_path / "replay.json"
+    result = run_followbus("replay", str(lacking), "--node", "relay", "--verify", "--report", str(report_path),
+                           timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    report = json.loads(report_path.read_text())
+    assert report["unverifiable"] == 3 and not report["missing"] and report["mismatch_count"] == 0
+    assert report["outputs_compared"] == TICKS - 3 == report["matched"]
+    assert "not verifiable: 3 recorded outputs" in result.stdout

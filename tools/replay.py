@@ -229,6 +229,9 @@ class ReplayReport:
     mismatch_count: int = 0
     mismatches: list[dict[str, Any]] = field(default_factory=list)  # the first MAX_REPORTED
     missing: list[dict[str, Any]] = field(default_factory=list)  # recorded, never produced
+    # recorded outputs of frames whose required same-frame inputs are not all in the recording (a recorder that
+    # joined late): the replayed node cannot have produced them; not verifiable, so neither compared nor missing
+    unverifiable: int = 0
     extra: list[dict[str, Any]] = field(default_factory=list)  # produced, not in the recording
     beyond_end: int = 0  # produced for frames after the recording's last output on that key (not compared)
     timer_outputs: int = 0  # recorded outputs of a node's timer (no frame): wall-clock ticks live, not compared
@@ -290,6 +293,11 @@ class ReplayPlan:
                     self.inputs[f"{self.recorded_ns}/{inp.topic}"] = inp.topic
         self.outputs = {f"{self.recorded_ns}/{name}/{out}": f"{name}/{out}"
                         for name in self.nodes for out in self.graph.nodes[name].outputs}
+        # recorded keys a frame's outputs cannot exist without: required same-frame inputs from outside
+        self.required_inputs = {f"{self.recorded_ns}/{inp.topic}" for name in self.nodes
+                                for inp in self.graph.nodes[name].inputs.values()
+                                if inp.source_node not in replayed and inp.sync == "frame" and not inp.offset
+                                and not inp.optional}
         if not self.inputs:
             raise RecordingError(f"{', '.join(self.nodes)}: no inputs from outside: there is nothing to replay into")
         for key in self.inputs:
@@ -411,6 +419,7 @@ class Replayer:
         started = time.perf_counter()
         first_stamp = last_stamp = None
         done_frames: set[int] = set()
+        sent: dict[int, set[str]] = defaultdict(set)  # frame -> recorded input keys fed for it
         try:
             for hints, frame_seq, messages in feed.groups():
                 if self.opts.max_frames and frame_seq >= 0 and self.report.frames >= self.opts.max_frames:
@@ -421,6 +430,7 @@ class Replayer:
                     stamp = item.stamp_ns
                     target.send(self.plan.inputs[item.msg.key], item.msg.data, stamp, frame_seq)
                     self.report.inputs_sent += 1
+                    sent[item.frame_seq].add(item.msg.key)
                     if stamp:
                         first_stamp = stamp if first_stamp is None else min(first_stamp, stamp)
                         last_stamp = stamp if last_stamp is None else max(last_stamp, stamp)
@@ -431,7 +441,10 @@ class Replayer:
         finally:
             bar.close()
             produced = target.produced()
-            self._compare(feed.expected, produced, done_frames)
+            required = self.plan.required_inputs
+            incomplete = {fs for _topic, fs in feed.expected if fs >= 0 and required
+                          and not required <= sent.get(fs, set())}
+            self._compare(feed.expected, produced, done_frames, incomplete)
             self.report.wall_s = time.perf_counter() - started
             self.report.outputs_expected = feed.outputs_expected
             self.report.hints, self.report.late_inputs = feed.hints_reproduced, feed.late_inputs
@@ -443,7 +456,7 @@ class Replayer:
             self.report.speed_x = self.report.recorded_span_s / self.report.wall_s
 
     def _compare(self, expected: dict[tuple[str, int], list[bytes]], produced: dict[str, list[bytes]],
-                 done_frames: set[int]) -> None:
+                 done_frames: set[int], incomplete: set[int] = frozenset()) -> None:
         """Diff what was produced with what was recorded, frame by frame and output by output; then list
         recorded-but-never-produced and produced-but-not-recorded outputs."""
         by_frame: dict[tuple[str, int], list[bytes]] = defaultdict(list)
@@ -473,6 +486,9 @@ class Replayer:
                     self.report.mismatches.append({"frame_seq": fs, "key": key[topic], "index": i,
                                                    "field": diff.field, "recorded": _show(diff.recorded),
                                                    "replayed": _show(diff.replayed)})
+            if fs in incomplete and len(replayed) < len(recorded):
+                self.report.unverifiable += len(recorded) - len(replayed)
+                continue
             for i in range(len(replayed), len(recorded)):
                 self.report.missing.append({"frame_seq": fs, "key": key[topic], "index": i})
         for (topic, fs), replayed in sorted(by_frame.items()):
@@ -523,6 +539,9 @@ def _print_summary(report: ReplayReport, verify: bool) -> None:
     if report.timer_outputs:
         print(f"not compared: {report.timer_outputs} recorded outputs of the node's timer (no frame: odometry, "
               "watchdog stops); live it ticks on the wall clock, a replay on the message stamps")
+    if report.unverifiable:
+        print(f"not verifiable: {report.unverifiable} recorded outputs of frames whose required inputs are not all in "
+              "the recording (the recorder missed them: it joined late or dropped them); the node cannot produce them")
     if report.hints:
         print(f"live fallbacks reproduced: {report.hints} frames skipped or joined older feedback live "
               "(a late feedback, a skipped backlog), and were replayed the same way")
