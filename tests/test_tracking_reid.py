@@ -264,3 +264,20 @@ def test_a_restarted_reid_initialises_on_the_detection_the_prior_expects() -> No
     frame = np.zeros((240, 320, 3), np.uint8)
     res = ReIdentifier(TrackerParams()).step(frame, dets(left, centre), prior, None, 33_000_000)
     assert res.init_box == left and res.source == "prior"
+
+
+def test_after_a_prediction_restart_reid_reinitialises_where_its_target_just_was() -> None:
+    """prediction restarted mid-run: no prior, no template feedback yet, but this re-ID was following the target.
+    It re-initialises on the detection overlapping its last accepted box, not on a passer-by nearer the
+    image's bottom centre (the chaos suite's future-stamp-track run latched onto one); once that box is older
+    than lost_after_ms it falls back to bottom-centre."""
+    frame = np.zeros((240, 320, 3), np.uint8)
+    target, passer = (40.0, 60.0, 40.0, 100.0), (140.0, 120.0, 50.0, 115.0)  # the passer-by: nearer, centred
+    reid = ReIdentifier(TrackerParams(lost_after_ms=500.0))
+    assert reid.step(frame, dets(target), None, None, 0, init_box=target).accepted
+    moved = (44.0, 61.0, 40.0, 100.0)
+    res = reid.step(frame, dets(moved, passer), None, None, 100 * MS)
+    assert res.accepted and res.box == moved and res.source == "last"
+    later = ReIdentifier(TrackerParams(lost_after_ms=500.0))
+    later.step(frame, dets(target), None, None, 0, init_box=target)
+    assert later.step(frame, dets(moved, passer), None, None, 900 * MS).box == passer  # too old to trust

@@ -148,6 +148,15 @@ def _valid_boxes(detections: np.ndarray | None) -> list[Box]:
     return boxes
 
 
+def _iou(a: Sequence[float], b: Sequence[float]) -> float:
+    """Intersection over union of two (x, y, w, h) boxes."""
+    w = min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0])
+    h = min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1])
+    inter = max(w, 0.0) * max(h, 0.0)
+    union = a[2] * a[3] + b[2] * b[3] - inter
+    return inter / union if union > 0 else 0.0
+
+
 class ReIdentifier:
     """Stateful Algorithm 1: keeps the previous grey frame (for motion blobs) and the track state."""
 
@@ -160,8 +169,17 @@ class ReIdentifier:
         self._prev_grey: np.ndarray | None = None
         self._t_last_accept_ns = 0
         self._reacquired_count = 0
+        self._last_box: Box | None = None  # the last accepted box: where a re-initialisation looks first
 
-    def step(
+    def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
+             template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None) -> ReidResult:
+        """Run one frame (see :meth:`_step`); remembers the accepted box."""
+        result = self._step(frame_bgr, detections, prior, template_hist, t_ns, init_box)
+        if result.accepted and result.box is not None:
+            self._last_box = tuple(float(v) for v in result.box)
+        return result
+
+    def _step(
         self,
         frame_bgr: np.ndarray,
         detections: np.ndarray | None,
@@ -174,7 +192,9 @@ class ReIdentifier:
         initialises the target instead: ``init_box``, else (when a template exists, e.g. restored
         after a restart) the detection best matching it if above Thresh_reid, else (when a prior exists:
         this re-ID was restarted while prediction kept the track) the gated detection nearest the prior,
-        else the detection nearest the image bottom-centre, else the frame-difference ROI (§2.1)."""
+        else (prediction was restarted while this re-ID kept its track) the detection overlapping this
+        re-ID's last accepted box, if it was accepted within ``lost_after_ms``, else the detection nearest the
+        image bottom-centre, else the frame-difference ROI (§2.1)."""
         t_ns = int(t_ns)
         grey = to_grey(frame_bgr)
         prev_grey, self._prev_grey = self._prev_grey, grey
@@ -249,6 +269,10 @@ class ReIdentifier:
             box, source = match, "template"
         elif prior is not None and (gated := self._gate_candidates(boxes, prior, "detection")):
             box, source = min(gated, key=lambda c: c.maha_sq).box, "prior"  # Eq. 8: the track still known
+        elif (last := self._recent_last_box(t_ns)) is not None and boxes \
+                and max(_iou(b, last) for b in boxes) > 0.0:
+            # Not the nearest-to-bottom person (a passer-by may be nearer): the one where the target just was.
+            box, source = max(boxes, key=lambda b: _iou(b, last)), "last"
         elif boxes:
             box = nearest_to_centre_bottom(np.array(boxes), width, height)
         elif prev_grey is not None:
@@ -271,6 +295,11 @@ class ReIdentifier:
             candidate_hist=hs_histogram(frame_bgr, box, p.bins_h, p.bins_s),
             init_box=box,
         )
+
+    def _recent_last_box(self, t_ns: int) -> Box | None:
+        if self._last_box is None or t_ns - self._t_last_accept_ns > self.params.lost_after_ms * 1e6:
+            return None
+        return self._last_box
 
     def _template_match(self, frame_bgr: np.ndarray, boxes: list[Box], template_hist: np.ndarray) -> Box | None:
         """A template survived a restart of the prediction side: re-lock onto the detection that
