@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..tracking.kalman import box_iou  # one IoU for the tracker and its evaluation
+
 log = logging.getLogger(__name__)
 
 Box = tuple[float, float, float, float]
@@ -47,19 +49,6 @@ __all__ = [
 def box_center(box: Box) -> tuple[float, float]:
     x, y, w, h = box
     return x + w / 2.0, y + h / 2.0
-
-
-def box_iou(a: Box, b: Box) -> float:
-    """Intersection over union of two ``(x, y, w, h)`` boxes (continuous coordinates, no +1)."""
-    ax, ay, aw, ah = a
-    bx, by, bw, bh = b
-    iw = min(ax + aw, bx + bw) - max(ax, bx)
-    ih = min(ay + ah, by + bh) - max(ay, by)
-    if iw <= 0 or ih <= 0:
-        return 0.0
-    inter = iw * ih
-    union = aw * ah + bw * bh - inter
-    return inter / union if union > 0 else 0.0
 
 
 def _center_dist(a: Box, b: Box) -> float:

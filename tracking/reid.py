@@ -31,7 +31,7 @@ import numpy as np
 
 from .appearance import bhattacharyya, hs_histogram
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
-from .kalman import Box, Prior, box_centre
+from .kalman import Box, Prior, box_centre, box_iou
 from .params import TrackerParams
 
 logger = logging.getLogger(__name__)
@@ -148,15 +148,6 @@ def _valid_boxes(detections: np.ndarray | None) -> list[Box]:
     return boxes
 
 
-def _iou(a: Sequence[float], b: Sequence[float]) -> float:
-    """Intersection over union of two (x, y, w, h) boxes."""
-    w = min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0])
-    h = min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1])
-    inter = max(w, 0.0) * max(h, 0.0)
-    union = a[2] * a[3] + b[2] * b[3] - inter
-    return inter / union if union > 0 else 0.0
-
-
 class ReIdentifier:
     """Stateful Algorithm 1: keeps the previous grey frame (for motion blobs) and the track state."""
 
@@ -270,9 +261,9 @@ class ReIdentifier:
         elif prior is not None and (gated := self._gate_candidates(boxes, prior, "detection")):
             box, source = min(gated, key=lambda c: c.maha_sq).box, "prior"  # Eq. 8: the track still known
         elif (last := self._recent_last_box(t_ns)) is not None and boxes \
-                and max(_iou(b, last) for b in boxes) > 0.0:
+                and max(box_iou(b, last) for b in boxes) > 0.0:
             # Not the nearest-to-bottom person (a passer-by may be nearer): the one where the target just was.
-            box, source = max(boxes, key=lambda b: _iou(b, last)), "last"
+            box, source = max(boxes, key=lambda b: box_iou(b, last)), "last"
         elif boxes:
             box = nearest_to_centre_bottom(np.array(boxes), width, height)
         elif prev_grey is not None:
