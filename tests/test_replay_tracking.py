@@ -135,22 +135,28 @@ def test_a_recording_started_mid_run_is_named_as_such(recording, tmp_path):
     assert f"starts at frame {cut} of the run (recorded mid-run)" in result.stdout
 
 
+def _stopper(node: str, seconds: float = 1.0):
+    """``during`` for :func:`_record`: SIGSTOP the node's process for ``seconds``, then SIGCONT."""
+
+    def stop(graph) -> None:
+        pids = processes_matching(f"node {node} --graph {graph}")
+        assert pids, f"{node} is not running"
+        for pid in pids:
+            os.kill(pid, signal.SIGSTOP)
+        time.sleep(seconds)
+        for pid in pids:
+            os.kill(pid, signal.SIGCONT)
+
+    return stop
+
+
 def test_a_live_fallback_is_replayed_exactly(tmp_path):
     """reid stopped for a second live: prediction goes on without its measurements (one timeout, then no
     waiting), reid then skips its backlog to the newest frame. The outputs carry which feedback each frame
     joined, the recording keeps which frames were skipped, and a lockstep replay of either node does the
     same, with zero mismatches."""
 
-    def stop_reid_for_a_second(graph):
-        pids = processes_matching(f"node reid --graph {graph}")
-        assert pids, "reid is not running"
-        for pid in pids:
-            os.kill(pid, signal.SIGSTOP)
-        time.sleep(1.0)
-        for pid in pids:
-            os.kill(pid, signal.SIGCONT)
-
-    path = _record(tmp_path, "rf", 60, stop_reid_for_a_second)
+    path = _record(tmp_path, "rf", 60, _stopper("reid"))
     for node in ("prediction", "reid"):
         report_path = tmp_path / f"{node}.json"
         result = run_followbus("replay", str(path), "--node", node, "--verify", "--report", str(report_path),
@@ -170,16 +176,7 @@ def test_a_lost_optional_input_is_replayed_exactly(tmp_path):
     from followbus.bus.recording import iter_bus_messages
     from followbus.bus.schemas import Prior, decode
 
-    def stop_egomotion_for_a_second(graph):
-        pids = processes_matching(f"node egomotion --graph {graph}")
-        assert pids, "egomotion is not running"
-        for pid in pids:
-            os.kill(pid, signal.SIGSTOP)
-        time.sleep(1.0)
-        for pid in pids:
-            os.kill(pid, signal.SIGCONT)
-
-    path = _record(tmp_path, "ro", 60, stop_egomotion_for_a_second)
+    path = _record(tmp_path, "ro", 60, _stopper("egomotion"))
     priors = [decode(m.data, Prior) for m in iter_bus_messages(path, ["ro/prediction/prior"])]
     lacked = [p.header.frame_seq for p in priors if p.header.feedback.get("transform") == -1]
     assert len(lacked) > 10, "the stop should have made prediction go on without transforms"
