@@ -74,3 +74,39 @@ def graph_file(tmp_path: Path, port: int) -> Callable[[str], Path]:
         return path
 
     return write
+
+
+def copy_recording(src: Path, dst: Path, *, keep: Callable[[object, object], bool] | None = None,
+                   relabel: Callable[[object, object], tuple[str, bytes, str]] | None = None,
+                   library: str = "test") -> None:
+    """Rewrite an MCAP recording as a test needs it: ``keep(channel, message)`` drops messages (a recorder that
+    missed some), ``relabel(schema, channel)`` gives (schema encoding, schema data, message encoding) for a
+    channel with a schema (older labels); metadata is copied as it is."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    from followbus.bus.recording import read_metadata
+
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        writer = Writer(out)
+        writer.start(profile="", library=library)
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
+            if keep is not None and not keep(channel, message):
+                continue
+            if channel.id not in channel_ids:
+                sid, encoding = 0, channel.message_encoding
+                if schema is not None:
+                    schema_encoding, data = schema.encoding, schema.data
+                    if relabel is not None:
+                        schema_encoding, data, encoding = relabel(schema, channel)
+                    if schema.id not in schema_ids:
+                        schema_ids[schema.id] = writer.register_schema(schema.name, schema_encoding, data)
+                    sid = schema_ids[schema.id]
+                channel_ids[channel.id] = writer.register_channel(channel.topic, encoding, sid, dict(channel.metadata))
+            writer.add_message(channel_ids[channel.id], message.log_time, message.data, message.publish_time,
+                               message.sequence)
+        for name, data in read_metadata(src).items():
+            writer.add_metadata(name, data)
+        writer.finish()

@@ -18,9 +18,8 @@ import msgpack
 import numpy as np
 import pytest
 from mcap.reader import make_reader
-from mcap.writer import Writer
 
-from followbus.bus.recording import bus_channels, iter_bus_messages, read_metadata, schema_document
+from followbus.bus.recording import bus_channels, iter_bus_messages, schema_document
 from followbus.bus.schemas import (
     SCHEMAS,
     Detections,
@@ -36,7 +35,7 @@ from followbus.bus.schemas import (
 from followbus.nodes.capture import McapFrameSource
 
 from . import test_record_replay
-from .conftest import run_followbus
+from .conftest import copy_recording, run_followbus
 
 recorded = test_record_replay.recorded  # the module-scoped fixture: `launch --record` of a real graph
 
@@ -194,29 +193,13 @@ def test_a_wrong_document_is_caught():
 def relabel_as_before(src: Path, dst: Path) -> None:
     """Rewrite a recording the way the recorder labelled bus channels before: `msgpack` messages with a
     `followbus-msgpack` schema (the same bytes); Foxglove channels and metadata unchanged."""
-    with open(src, "rb") as f, open(dst, "wb") as out:
-        reader = make_reader(f)
-        writer = Writer(out)
-        writer.start(profile="", library="followbus before x-followbus-frame")
-        schema_ids: dict[int, int] = {}
-        channel_ids: dict[int, int] = {}
-        for schema, channel, message in reader.iter_messages(log_time_order=False):
-            if channel.id not in channel_ids:
-                bus = channel.message_encoding == FRAME_ENCODING
-                sid = 0
-                if schema is not None:
-                    if schema.id not in schema_ids:
-                        schema_ids[schema.id] = writer.register_schema(
-                            schema.name, "followbus-msgpack" if bus else schema.encoding,
-                            b"{}" if bus else schema.data)
-                    sid = schema_ids[schema.id]
-                channel_ids[channel.id] = writer.register_channel(
-                    channel.topic, "msgpack" if bus else channel.message_encoding, sid, dict(channel.metadata))
-            writer.add_message(channel_ids[channel.id], message.log_time, message.data, message.publish_time,
-                               message.sequence)
-        for name, data in read_metadata(src).items():
-            writer.add_metadata(name, data)
-        writer.finish()
+
+    def relabel(schema, channel) -> tuple[str, bytes, str]:
+        if channel.message_encoding == FRAME_ENCODING:
+            return "followbus-msgpack", b"{}", "msgpack"
+        return schema.encoding, schema.data, channel.message_encoding
+
+    copy_recording(src, dst, relabel=relabel, library="followbus before x-followbus-frame")
 
 
 def test_recordings_labelled_msgpack_still_read_and_replay(recorded, tmp_path):

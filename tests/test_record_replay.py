@@ -28,7 +28,7 @@ from followbus.bus.session import ZenohSettings, open_session
 from followbus.tools import foxglove_schemas as fox
 from followbus.tools.mcap_io import RecordingWriter, read_metadata
 
-from .conftest import REPO, followbus_argv, free_port, run_followbus, wait_until
+from .conftest import REPO, copy_recording, followbus_argv, free_port, run_followbus, wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -342,35 +342,16 @@ def test_checker_rejects_a_channel_that_breaks_its_schema(mcap_checker, tmp_path
 def test_frames_whose_inputs_the_recorder_missed_are_not_verifiable_not_missing(recorded: Recorded, tmp_path):
     """A recorder that joined late (or dropped some inputs) leaves frames the node cannot be replayed on: their
     recorded outputs are counted as not verifiable, apart from outputs the node failed to produce."""
-    from mcap.reader import make_reader
-    from mcap.writer import Writer
-
-    from followbus.bus.recording import read_metadata
-
     lacking = tmp_path / "lacking.mcap"
-    dropped = 0
-    with open(recorded.path, "rb") as f, open(lacking, "wb") as out:
-        writer = Writer(out)
-        writer.start(profile="", library="test: the recorder missed the first ticks")
-        schema_ids: dict[int, int] = {}
-        channel_ids: dict[int, int] = {}
-        for schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
-            if channel.topic.endswith("/ticker/tick") and dropped < 3:
-                dropped += 1
-                continue
-            if channel.id not in channel_ids:
-                sid = 0
-                if schema is not None:
-                    if schema.id not in schema_ids:
-                        schema_ids[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-                    sid = schema_ids[schema.id]
-                channel_ids[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, sid,
-                                                                  dict(channel.metadata))
-            writer.add_message(channel_ids[channel.id], message.log_time, message.data, message.publish_time,
-                               message.sequence)
-        for name, data in read_metadata(recorded.path).items():
-            writer.add_metadata(name, data)
-        writer.finish()
+    dropped: list[int] = []
+
+    def keep(channel, message) -> bool:
+        if channel.topic.endswith("/ticker/tick") and len(dropped) < 3:
+            dropped.append(message.sequence)
+            return False
+        return True
+
+    copy_recording(recorded.path, lacking, keep=keep, library="test: the recorder missed the first ticks")
     report_path = tmp_path / "replay.json"
     result = run_followbus("replay", str(lacking), "--node", "relay", "--verify", "--report", str(report_path),
                            timeout=120)
