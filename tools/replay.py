@@ -298,6 +298,10 @@ class ReplayPlan:
                                 for inp in self.graph.nodes[name].inputs.values()
                                 if inp.source_node not in replayed and inp.sync == "frame" and not inp.offset
                                 and not inp.optional}
+        # recorded keys of outside inputs that belong to a frame (any offset, optional or not)
+        self.frame_inputs = {f"{self.recorded_ns}/{inp.topic}" for name in self.nodes
+                             for inp in self.graph.nodes[name].inputs.values()
+                             if inp.source_node not in replayed and inp.sync == "frame"}
         if not self.inputs:
             raise RecordingError(f"{', '.join(self.nodes)}: no inputs from outside: there is nothing to replay into")
         for key in self.inputs:
@@ -309,6 +313,10 @@ class ReplayPlan:
         self.feedback_inputs = {name: [i.name for i in self.graph.nodes[name].inputs.values()
                                        if i.sync == "frame" and i.offset] for name in self.nodes}
         self.feedback_inputs = {n: names for n, names in self.feedback_inputs.items() if names}
+        # (node, feedback input) -> recorded key, for feedback produced outside the replayed nodes
+        self.feedback_keys = {(name, i.name): f"{self.recorded_ns}/{i.topic}" for name in self.nodes
+                              for i in self.graph.nodes[name].inputs.values()
+                              if i.sync == "frame" and i.offset and i.source_node not in replayed}
         # Outputs of no frame from a node with a timer (motor's odometry and watchdog stops) come from ticks of
         # the wall clock live and of the stamps in a replay: not comparable, counted apart.
         self.timer_topics = {topic for key, topic in self.outputs.items()
@@ -442,8 +450,17 @@ class Replayer:
             bar.close()
             produced = target.produced()
             required = self.plan.required_inputs
-            incomplete = {fs for _topic, fs in feed.expected if fs >= 0 and required
-                          and not required <= sent.get(fs, set())}
+            # Frames the node cannot reproduce from this recording: a required input of the frame is not in
+            # it, the feedback the frame joined live is not, or an input's stream ends before the frame (the
+            # recorder stopped first: prediction's track k comes from re-ID's measurement k, say).
+            stream_end: dict[str, int] = {}
+            for fs, keys in sent.items():
+                for key in keys & self.plan.frame_inputs:
+                    stream_end[key] = max(stream_end.get(key, -1), fs)
+            incomplete = {fs for _topic, fs in feed.expected if fs >= 0 and (
+                (required and not required <= sent.get(fs, set()))
+                or any(key not in sent.get(joined, set()) for key, joined in feed.joined.get(fs, ()))
+                or any(end < fs for end in stream_end.values()))}
             self._compare(feed.expected, produced, done_frames, incomplete)
             self.report.wall_s = time.perf_counter() - started
             self.report.outputs_expected = feed.outputs_expected
@@ -540,8 +557,9 @@ def _print_summary(report: ReplayReport, verify: bool) -> None:
         print(f"not compared: {report.timer_outputs} recorded outputs of the node's timer (no frame: odometry, "
               "watchdog stops); live it ticks on the wall clock, a replay on the message stamps")
     if report.unverifiable:
-        print(f"not verifiable: {report.unverifiable} recorded outputs of frames whose required inputs are not all in "
-              "the recording (the recorder missed them: it joined late or dropped them); the node cannot produce them")
+        print(f"not verifiable: {report.unverifiable} recorded outputs of frames whose inputs are not all in "
+              "the recording (the recorder joined late, dropped them, or stopped before them); "
+              "the node cannot produce them")
     if report.hints:
         print(f"live fallbacks reproduced: {report.hints} frames skipped or joined older feedback live "
               "(a late feedback, a skipped backlog), and were replayed the same way")

@@ -156,6 +156,8 @@ class Feed:
         self._handled: dict[str, int] = {}  # node -> newest frame whose hint is final
         self._previous: dict[str, int] = {}  # node -> newest frame handled live (for counting fallbacks)
         self._warned = False
+        # frame -> (recorded input key, frame it joined) of the outside feedback each handled frame joined live
+        self.joined: dict[int, set[tuple[str, int]]] = defaultdict(set)
 
     # outputs -> expected and hints
     def _read(self, messages: Iterable[BusMessage]) -> Iterator[Input]:
@@ -215,6 +217,10 @@ class Feed:
         self.hints_reproduced += skip or fallback
         if not skip:
             self._previous[node] = frame_seq
+            for name, joined in (used or {}).items():
+                key = self.plan.feedback_keys.get((node, name))
+                if key is not None and joined >= 0:
+                    self.joined[frame_seq].add((key, joined))
 
     def _known(self, frame_seq: int) -> bool:
         """Does the reader know what each node did up to the next frame after ``frame_seq`` it handled?"""
