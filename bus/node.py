@@ -43,6 +43,9 @@ RESET_AFTER_FAILURES = 5  # consecutive on_frame failures after which a node's s
 REPLAY_NOTES_KEEP = 512  # frames of live provenance a replayed node keeps
 # Set by the launcher for its children: the comma-separated names of the nodes it started.
 LAUNCHED_NODES_ENV = "FOLLOWBUS_LAUNCHED_NODES"
+# Set by the launcher for its children: one id per launch, so a node can tell its own restart (same launch)
+# from a new launch (state saved by an earlier run may belong to another session: another person to follow).
+LAUNCH_ID_ENV = "FOLLOWBUS_LAUNCH_ID"
 
 
 class ParamError(ValueError):

@@ -2,7 +2,11 @@
 
 M ← (1-η_k)M + η_k C* (Alg. 1 line 12) with η_k = η_base·exp(-λ P_specular) when the target is
 tracked securely and 0 under occlusion (Eq. 9-10). Publishes M and η_k every frame; saves M to
-``state_file`` (atomically, every ``save_every_s`` and at shutdown) and restores it on restart.
+``state_file`` (atomically, every ``save_every_s`` and at shutdown) and restores it when the node is restarted
+within the same launch (a crash, the launcher's restart policy), so re-ID does not have to learn the target
+again. A file saved by another launch is not restored unless it is at most ``restore_other_launch_max_age_s``
+old (default 0: never): a new launch may follow another person, and a stale template would make re-ID refuse
+the target it was just told to follow, while the first secure frames re-learn M anyway.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bus.node import Node
+from ..bus.node import LAUNCH_ID_ENV, Node
 from ..bus.schemas import Frame, Measurement, Message, Template
 from ..tracking.params import TrackerParams
 from ..tracking.template import TemplateUpdater
@@ -27,6 +31,9 @@ from .convert import msg_to_reid
 class TemplateParams:
     state_file: str = ""  # e.g. state/template.npz; empty: do not persist
     save_every_s: float = 5.0
+    # A template saved by another launch (not this launch's earlier process) is restored only if at most this
+    # old; 0: never (a new launch learns its target afresh).
+    restore_other_launch_max_age_s: float = 0.0
 
 
 class TemplateNode(Node):
@@ -48,12 +55,24 @@ class TemplateNode(Node):
         self.last_save = time.monotonic()
         self.eta = 0.0
         self.p_specular = 0.0
+        self.launch_id = os.environ.get(LAUNCH_ID_ENV, "")
         path = self._state_path()
         if path is not None and path.exists():
             try:
                 self.updater.load(path)
-                self.log.info("restored template from %s", path)
+                saved_by = self.updater.saved_by
+                age_s = time.time() - path.stat().st_mtime
+                same_launch = bool(self.launch_id) and saved_by == self.launch_id
+                if same_launch or age_s <= self.node_params.restore_other_launch_max_age_s:
+                    self.log.info("restored template from %s (%s)", path,
+                                  "this launch's earlier process" if same_launch else f"saved {age_s:.0f} s ago")
+                else:
+                    self.updater.reset()
+                    self.log.info("not restoring the template in %s: saved by another launch %.0f s ago "
+                                  "(restore_other_launch_max_age_s %.0f); learning the target afresh", path, age_s,
+                                  self.node_params.restore_other_launch_max_age_s)
             except Exception as exc:  # a corrupt file must not stop the robot: start fresh
+                self.updater.reset()
                 self.log.warning("could not restore template from %s (%s); starting without one", path, exc)
 
     def _state_path(self) -> Path | None:
@@ -76,7 +95,7 @@ class TemplateNode(Node):
             return
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.stem + ".tmp.npz")
-        self.updater.save(tmp)
+        self.updater.save(tmp, saved_by=self.launch_id)
         os.replace(tmp, path)
 
     def teardown(self) -> None:

@@ -227,6 +227,33 @@ def test_template_freezes_under_occlusion():
     assert out[4].eta > 0.0 and not np.array_equal(out[4].hist, out[1].hist)
 
 
+@pytest.mark.parametrize(("saved_by", "max_age_s", "restored"), [
+    ("launch-A", 0.0, True),  # this launch's earlier process: a restart resumes with the learnt M
+    ("launch-B", 0.0, False),  # another launch: may be another person, learn afresh
+    ("launch-B", 3600.0, True),  # ... unless the graph allows recent files from other launches
+])
+def test_template_restores_only_its_own_launch_by_default(tmp_path, monkeypatch, saved_by, max_age_s, restored):
+    from followbus.bus.node import LAUNCH_ID_ENV
+    from followbus.tracking.params import TrackerParams
+    from followbus.tracking.template import TemplateUpdater
+
+    saved = TemplateUpdater(TrackerParams())
+    saved.initialise(person_frame((150, 120, 24, 80)), (150.0, 120.0, 24.0, 80.0))
+    path = tmp_path / "template.npz"
+    saved.save(path, saved_by=saved_by)
+    monkeypatch.setenv(LAUNCH_ID_ENV, "launch-A")
+    graph = tracking_graph(f"template.state_file={path}", f"template.restore_other_launch_max_age_s={max_age_s}")
+    with InProcessGraph(graph, nodes=["template"]) as g:
+        stamp = g.now_ns
+        g.inject("capture/frame", frame_msg(0, stamp, person_frame((150, 120, 24, 80), wall=True)))
+        g.inject("reid/measurement", measurement(0, stamp, "OCCLUDED", None))
+        g.run_until(stamp + DT_NS)
+        out = g.outputs("template", "template")
+    assert len(out) == 1 and out[0].initialised is restored
+    if restored:
+        np.testing.assert_allclose(out[0].hist, saved.hist, atol=1e-6)
+
+
 # --------------------------------------------------------------------------- motor
 
 

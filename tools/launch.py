@@ -26,7 +26,7 @@ from ..bus.health import (
     launcher_key,
     process_table,
 )
-from ..bus.node import LAUNCHED_NODES_ENV
+from ..bus.node import LAUNCH_ID_ENV, LAUNCHED_NODES_ENV
 from ..bus.pubsub import Publisher, direct_callback
 from ..bus.session import open_session
 
@@ -116,6 +116,7 @@ class Launcher:
         self._table_pub: Publisher | None = None
         self._table_due = 0.0  # monotonic time of the next publication; 0 = at once
         self._started_ns = time.time_ns()
+        self.env[LAUNCH_ID_ENV] = f"{self.launcher_id}@{self._started_ns}"  # restarted children keep it
 
     def _node_argv(self, name: str) -> list[str]:
         argv = [sys.executable, "-m", "followbus.tools.cli", "node", name, "--graph", str(Path(self.graph.path))]

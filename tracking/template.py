@@ -27,6 +27,7 @@ class TemplateUpdater:
     def __init__(self, params: TrackerParams | None = None) -> None:
         self.params = params or TrackerParams()
         self.hist: np.ndarray | None = None
+        self.saved_by = ""  # of the file :meth:`load` read last
 
     @property
     def initialised(self) -> bool:
@@ -74,20 +75,28 @@ class TemplateUpdater:
             new /= total
         return new.astype(np.float32)
 
-    def save(self, path: str | os.PathLike[str]) -> None:
-        """Write M to an .npz (atomically, so a crash never leaves a torn file for the restart)."""
+    def reset(self) -> None:
+        """Forget M: the next accepted target box initialises it again."""
+        self.hist = None
+
+    def save(self, path: str | os.PathLike[str], saved_by: str = "") -> None:
+        """Write M to an .npz (atomically, so a crash never leaves a torn file for the restart); ``saved_by``
+        names the run that saved it (the template node: its launch), read back as :attr:`saved_by`."""
         if self.hist is None:
             raise ValueError("no template to save: TemplateUpdater is not initialised")
         path = os.fspath(path)
         tmp = f"{path}.tmp"
         with open(tmp, "wb") as f:
-            np.savez(f, hist=self.hist, bins=np.array([self.params.bins_h, self.params.bins_s]))
+            np.savez(f, hist=self.hist, bins=np.array([self.params.bins_h, self.params.bins_s]),
+                     saved_by=np.array(saved_by))
         os.replace(tmp, path)
 
     def load(self, path: str | os.PathLike[str]) -> np.ndarray:
-        """Restore M saved by :meth:`save`; the bin layout must match these params."""
+        """Restore M saved by :meth:`save`; the bin layout must match these params. Sets :attr:`saved_by`
+        ("" for files written before it was stored)."""
         with np.load(os.fspath(path)) as data:
             hist = np.asarray(data["hist"], dtype=np.float32)
+            self.saved_by = str(data["saved_by"]) if "saved_by" in data.files else ""
         expected = (self.params.bins_h, self.params.bins_s)
         if hist.shape != expected:
             raise ValueError(f"template in {os.fspath(path)!r} has shape {hist.shape}, expected {expected}")
