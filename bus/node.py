@@ -24,7 +24,6 @@ import os
 import signal
 import threading
 import time
-import types
 import typing
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -37,6 +36,7 @@ from .schemas import Frame, Message, NodeStatus, ReplayHint
 from .session import open_session
 from .stats import TopicStats
 from .sync import IMPLAUSIBLE, RESYNCED, STALE, FrameSynchronizer, SequenceGuard, SyncInput
+from .typecheck import TypeMismatch, conform
 
 STATUS_PERIOD_S = 1.0
 RESET_AFTER_FAILURES = 5  # consecutive on_frame failures after which a node's state is rebuilt
@@ -75,33 +75,11 @@ def params_from_dict(cls: type, data: dict[str, Any]) -> Any:
 
 
 def _coerce(value: Any, hint: Any, key: str) -> Any:
-    origin = typing.get_origin(hint)
-    if origin in (typing.Union, types.UnionType):
-        args = typing.get_args(hint)
-        if value is None and type(None) in args:
-            return None
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _coerce(value, arg, key)
-            except ParamError:
-                continue
-        raise ParamError(key, f"parameter {key!r}: {value!r} is not a valid {hint}")
-    if hint is float and isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
-    if hint is int and isinstance(value, int) and not isinstance(value, bool):
-        return value
-    if hint in (str, bool) and isinstance(value, hint):
-        return value
-    if (origin or hint) in (list, tuple) and isinstance(value, (list, tuple)):
-        return list(value) if (origin or hint) is list else tuple(value)
-    if (origin or hint) is dict and isinstance(value, dict):
-        return value
-    if hint is Any:
-        return value
-    expected = getattr(hint, "__name__", str(hint))
-    raise ParamError(key, f"parameter {key!r} must be {expected}, not {type(value).__name__} ({value!r})")
+    try:
+        return conform(value, hint)
+    except TypeMismatch as exc:
+        raise ParamError(key, f"parameter {key!r} must be {exc.expected}, not {type(value).__name__} "
+                              f"({value!r})") from None
 
 
 class Clock:

@@ -21,17 +21,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, TypeVar, Union
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 
 # Header is part of the frame layout, which bus/codec.py owns; re-exported here with the messages.
 from .codec import DecodeError, Header, decode_message, encode_message
+from .typecheck import TypeMismatch, conform
 
 SCHEMA_VERSION = 1
+
+
+# Message type name -> class: every subclass of Message that sets TYPE registers itself (a node may define its
+# own message type in its module; importing the module makes it decodable).
+SCHEMAS: dict[str, type[Message]] = {}
 
 
 @dataclass
@@ -42,6 +47,17 @@ class Message:
     # Fields that measure the run that produced the message (a wall time): `followbus replay` does not compare them.
     MEASURED: ClassVar[frozenset[str]] = frozenset()
     header: Header = field(default_factory=Header)
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        name = cls.__dict__.get("TYPE")
+        if not name:
+            return
+        known = SCHEMAS.get(name)
+        if known is not None and (known.__module__, known.__qualname__) != (cls.__module__, cls.__qualname__):
+            raise TypeError(f"message type {name!r} is defined twice: {known.__module__}.{known.__qualname__} "
+                            f"and {cls.__module__}.{cls.__qualname__}")
+        SCHEMAS[name] = cls
 
     def encode(self) -> bytes:
         return encode(self)
@@ -252,15 +268,6 @@ class CameraMotion(Message):
     reason: str = ""
 
 
-SCHEMAS: dict[str, type[Message]] = {
-    cls.TYPE: cls
-    for cls in (
-        Frame, GroundTruth, Detections, Prior, Measurement, Track, Template, MotorCommand, Odometry,
-        NodeStatus, Tick, ReplayHint,
-        GroundPoints, GroupState, CameraMotion,
-    )
-}
-
 M = TypeVar("M", bound=Message)
 
 
@@ -273,53 +280,6 @@ def _hints(cls: type) -> dict[str, Any]:
 
 
 _HINTS: dict[type, dict[str, Any]] = {}
-
-
-def _check(value: Any, hint: Any, where: str) -> Any:
-    """Validate (and lightly coerce) one decoded field against its annotation."""
-    origin = typing.get_origin(hint)
-    if origin in (Union, types.UnionType):
-        args = typing.get_args(hint)
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _check(value, arg, where)
-            except DecodeError as exc:
-                errors.append(str(exc))
-        raise DecodeError("; ".join(errors))
-    if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise DecodeError(f"{where}: expected float, got {type(value).__name__}")
-        return float(value)
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise DecodeError(f"{where}: expected bool, got {type(value).__name__}")
-        return value
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise DecodeError(f"{where}: expected int, got {type(value).__name__}")
-        return value
-    if hint is str:
-        if not isinstance(value, str):
-            raise DecodeError(f"{where}: expected str, got {type(value).__name__}")
-        return value
-    if hint is np.ndarray:
-        if not isinstance(value, np.ndarray):
-            raise DecodeError(f"{where}: expected array, got {type(value).__name__}")
-        return value
-    if origin is list or hint is list:
-        if not isinstance(value, list):
-            raise DecodeError(f"{where}: expected list, got {type(value).__name__}")
-        return value
-    if origin is dict or hint is dict:
-        if not isinstance(value, dict):
-            raise DecodeError(f"{where}: expected map, got {type(value).__name__}")
-        return value
-    return value
 
 
 def encode(msg: Message) -> bytes:
@@ -347,7 +307,10 @@ def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None
             continue
         if f.name not in obj:
             raise DecodeError(f"{type_name}: missing field {f.name!r}")
-        kwargs[f.name] = _check(obj.pop(f.name), hints[f.name], f"{type_name}.{f.name}")
+        try:
+            kwargs[f.name] = conform(obj.pop(f.name), hints[f.name])
+        except TypeMismatch as exc:
+            raise DecodeError(f"{type_name}.{f.name}: {exc}") from None
     if obj:
         raise DecodeError(f"{type_name}: unknown fields {sorted(obj)}")
     return cls(**kwargs)  # type: ignore[return-value]

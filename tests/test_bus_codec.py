@@ -50,3 +50,46 @@ def test_out_of_bounds_array_reference_is_rejected():
     data = bytearray(encode(Frame(width=64, height=64, data=np.zeros((64, 64, 3), np.uint8))))
     with pytest.raises(DecodeError, match="out of bounds"):
         decode(bytes(data[:-10]))
+
+
+def test_a_message_type_defined_outside_bus_registers_itself():
+    """A node's own message type needs no edit of a table in bus/: defining the class makes it decodable,
+    and a second class under the same type name is refused at once instead of shadowing the first."""
+    from dataclasses import field, make_dataclass
+
+    from followbus.bus.schemas import SCHEMAS, Message
+
+    lidar = make_dataclass("LidarSummary", [("nearest_m", float, field(default=0.0))], bases=(Message,),
+                           namespace={"TYPE": "TestLidarSummary"})
+    try:
+        assert SCHEMAS["TestLidarSummary"] is lidar
+        back = decode(encode(lidar(nearest_m=1.25)), lidar)
+        assert back.nearest_m == 1.25
+        with pytest.raises(TypeError, match="defined twice"):
+            make_dataclass("Impostor", [], bases=(Message,), namespace={"TYPE": "Detections"})
+    finally:
+        SCHEMAS.pop("TestLidarSummary", None)
+    assert SCHEMAS["Detections"] is Detections
+
+
+@pytest.mark.parametrize(("hint", "value", "ok"), [
+    (float, 3, True), (float, True, False), (int, 2.0, False), (int, False, False), (bool, 1, False),
+    (str, b"x", False), (list, (1, 2), True), (float | None, None, True), (float | None, "1", False),
+])
+def test_decoding_and_parameters_share_one_type_checker(hint, value, ok):
+    """The same rules for a decoded field and a graph.yaml parameter: a bool is never a number, an int may
+    stand for a float, a tuple for a list."""
+    from dataclasses import field, make_dataclass
+
+    from followbus.bus.node import ParamError, params_from_dict
+    from followbus.bus.typecheck import TypeMismatch, conform
+
+    params = make_dataclass("Params", [("value", hint, field(default=None))])
+    if ok:
+        conform(value, hint)
+        params_from_dict(params, {"value": value})
+    else:
+        with pytest.raises(TypeMismatch):
+            conform(value, hint)
+        with pytest.raises(ParamError, match="must be"):
+            params_from_dict(params, {"value": value})

@@ -1,0 +1,72 @@
+"""One type checker for values that come from outside: decoded message fields (bus.schemas) and node
+parameters from graph.yaml or ``--set`` (bus.node). Both meet the same annotations (float, int, bool, str,
+arrays, lists, maps, optionals), so they are checked by the same rules: a bool is never a number, an int
+becomes a float where a float is wanted, a list stands for a list or a tuple."""
+
+from __future__ import annotations
+
+import types
+import typing
+from typing import Any, Union
+
+import numpy as np
+
+
+class TypeMismatch(ValueError):
+    """``value`` does not fit ``expected`` (a readable name of the annotation)."""
+
+    def __init__(self, expected: str, value: Any):
+        self.expected = expected
+        self.value = value
+        super().__init__(f"expected {expected}, got {type(value).__name__}")
+
+
+def type_name(hint: Any) -> str:
+    return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
+
+
+def conform(value: Any, hint: Any) -> Any:
+    """``value`` checked against the annotation ``hint`` and lightly coerced (int → float, list → tuple
+    where a tuple is wanted); raises :class:`TypeMismatch`. Annotations other than the ones above
+    (a nested message type, say) are the caller's business: the value passes unchanged."""
+    origin = typing.get_origin(hint)
+    if origin in (Union, types.UnionType):
+        args = typing.get_args(hint)
+        if value is None and type(None) in args:
+            return None
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return conform(value, arg)
+            except TypeMismatch:
+                continue
+        raise TypeMismatch(" or ".join(type_name(a) for a in args), value)
+    if hint is Any:
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise TypeMismatch("float", value)
+        return float(value)
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise TypeMismatch("int", value)
+        return value
+    if hint in (bool, str):
+        if not isinstance(value, hint):
+            raise TypeMismatch(hint.__name__, value)
+        return value
+    if hint is np.ndarray:
+        if not isinstance(value, np.ndarray):
+            raise TypeMismatch("array", value)
+        return value
+    container = origin or hint
+    if container in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise TypeMismatch(container.__name__, value)
+        return list(value) if container is list else tuple(value)
+    if container is dict:
+        if not isinstance(value, dict):
+            raise TypeMismatch("map", value)
+        return value
+    return value
