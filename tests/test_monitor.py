@@ -414,6 +414,94 @@ def test_foxglove_bridge_serves_previews_and_annotations(tracking_robot):
         _interrupt(proc)
 
 
+def _group_messages(seq: int, stamp_ns: int):
+    """A group of three (two ellipses) seen from a robot at (1, 0) facing +y, and the points of the same frame."""
+    from followbus.bus.schemas import GroundPoints, GroupState
+
+    points = GroundPoints(points_robot_m=np.array([[2.0, 0.5], [2.5, -0.5], [4.0, 1.0]]),
+                          robot_x_m=1.0, robot_y_m=0.0, robot_theta_rad=np.pi / 2)
+    group = GroupState(valid=True, centre_m=np.array([0.2, 2.5]), centre_robot_m=np.array([2.5, 0.8]),
+                       ellipse_centres_m=np.array([[0.5, 2.0], [1.5, 2.5]]),
+                       ellipse_extents_m2=np.array([np.diag([0.2, 0.1]), np.diag([0.1, 0.1])]),
+                       ellipse_weights=np.array([0.6, 0.4]), members_m=np.array([[0.5, 2.0], [1.5, 2.5]]),
+                       others_m=np.array([[0.0, 4.0]]))
+    for msg in (points, group):
+        msg.header.frame_seq, msg.header.stamp_ns = seq, stamp_ns
+    return points, group
+
+
+def test_group_scene_places_the_group_in_the_robot_frame():
+    """seed 004's group in Foxglove's 3D panel: ellipses as floor loops, members green, disturbers red, all in
+    base_link (x forward, y left), i.e. the odometry-frame state taken through the pose of the same frame."""
+    pytest.importorskip("foxglove", reason="foxglove-sdk not installed")
+    from followbus.tools.foxglove_bridge import ROBOT_FRAME, group_scene, group_shapes
+    from followbus.tools.monitor import group_view
+
+    points, group = _group_messages(7, 1_000_000_000)
+    view = group_view(group, (points.robot_x_m, points.robot_y_m, points.robot_theta_rad), points)
+    shapes = group_shapes(view)
+    assert len(shapes["loops"]) == 2
+    # odometry (0.5, 2.0) seen from (1, 0) facing +y: 2.0 m ahead, 0.5 m to the right
+    np.testing.assert_allclose(np.mean(shapes["loops"][0], axis=0), (2.0, 0.5), atol=0.05)
+    kinds = [s[3] for s in shapes["spheres"]]
+    assert kinds.count("member") == 2 and kinds.count("other") == 1 and kinds.count("centre") == 1
+    member = next(s for s in shapes["spheres"] if s[3] == "member")
+    np.testing.assert_allclose(member[:2], (2.0, 0.5), atol=1e-6)
+    unposed = group_shapes(group_view(group, None, points))
+    assert not unposed["loops"] and [s[3] for s in unposed["spheres"]] == ["centre"]  # never a misplaced shape
+    encoded = group_scene(view, 1_000_000_000).encode()
+    assert ROBOT_FRAME.encode() in encoded and len(encoded) > 2 * 48 * 8  # two 48-point loops went in
+
+
+def test_foxglove_bridge_serves_the_group_scene():
+    """A group graph on the bus: the bridge advertises /<ns>/group/scene (foxglove.SceneUpdate) at its first
+    GroupState and streams it; real Zenoh on loopback, the bridge's real WebSocket server."""
+    pytest.importorskip("foxglove", reason="foxglove-sdk not installed")
+    from followbus.bus.schemas import encode
+    from followbus.tools.foxglove_bridge import FoxgloveBridge
+
+    port, ws_port = free_port(), free_port()
+    bridge = FoxgloveBridge(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]), GraphInfo.load(None, "t"),
+                            port=ws_port)
+    robot = open_session(ZenohSettings(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    stop = threading.Event()
+
+    def publish() -> None:
+        seq = 0
+        while not stop.is_set():
+            for msg in _group_messages(seq, time.time_ns()):
+                robot.put(f"t/{'groundplane/points' if msg.TYPE == 'GroundPoints' else 'group/group'}", encode(msg))
+            seq += 1
+            time.sleep(0.05)
+
+    publisher = threading.Thread(target=publish, daemon=True)
+    publisher.start()
+    try:
+        ws = _WsClient(bridge.port)
+        channels: dict[str, dict] = {}
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline and "/t/group/scene" not in channels:
+            opcode, data = ws.recv()
+            if opcode == 1 and (msg := json.loads(data)).get("op") == "advertise":
+                channels.update({c["topic"]: c for c in msg["channels"]})
+        assert channels["/t/group/scene"]["schemaName"] == "foxglove.SceneUpdate", channels
+        ws.send_text(json.dumps({"op": "subscribe", "subscriptions": [
+            {"id": 1, "channelId": channels["/t/group/scene"]["id"]}]}))
+        while time.monotonic() < deadline:
+            opcode, data = ws.recv()
+            if opcode == 2 and data[0] == 1:
+                assert int.from_bytes(data[1:5], "little") == 1 and b"base_link" in data[13:]
+                break
+        else:
+            raise AssertionError("no group scene through the Foxglove server")
+        ws.close()
+    finally:
+        stop.set()
+        publisher.join(5)
+        robot.close()
+        bridge.close()
+
+
 def _port_open(port: int) -> bool:
     import socket
 

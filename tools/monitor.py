@@ -192,7 +192,7 @@ def _rounded(a: Any, nd: int = 3) -> list:
 
 
 
-def _ellipse_outline(centre: np.ndarray, extent: np.ndarray, n: int = 32) -> np.ndarray:
+def ellipse_outline(centre: np.ndarray, extent: np.ndarray, n: int = 32) -> np.ndarray:
     """GROUP_SIGMA times the extent's standard ellipse {c + L u : |u| = 1}, L Lᵀ = extent, as n floor points."""
     w, v = np.linalg.eigh(0.5 * (extent + extent.T))
     axes = v * (GROUP_SIGMA * np.sqrt(np.clip(w, 0.0, None)))
@@ -234,7 +234,7 @@ def group_view(group: GroupState, pose: tuple[float, float, float] | None, point
     for m, ext, w in zip(group.ellipse_centres_m, group.ellipse_extents_m2, group.ellipse_weights, strict=True):
         c_r, ext_r = to_robot_frame(m, x, y, theta)[0], rot.T @ ext @ rot
         ellipses.append({"centre_m": _rounded(c_r), "extent_m2": _rounded(ext_r, 4), "weight": round(float(w), 4),
-                         "outline_px": _pixels(_ellipse_outline(c_r, ext_r), camera)})
+                         "outline_px": _pixels(ellipse_outline(c_r, ext_r), camera)})
     out["ellipses"] = ellipses
     out["members_robot_m"] = _rounded(to_robot_frame(group.members_m, x, y, theta))
     out["others_robot_m"] = _rounded(to_robot_frame(group.others_m, x, y, theta))
