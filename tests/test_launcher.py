@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -54,6 +55,8 @@ def test_launch_restart_and_clean_shutdown(graph_file, port):
         assert wait_until(lambda: sink_value() >= 1000, 15), "relayed ticks never reached the sink"
         assert wait_until(lambda: watcher.snapshot()["relay"].status is not None, 5)
         relay_pid = watcher.snapshot()["relay"].status.pid
+        launch_id = _launch_id(relay_pid)
+        assert launch_id, "the launcher gives its children a launch id"
         os.kill(relay_pid, signal.SIGKILL)
 
         def restarted() -> bool:
@@ -61,6 +64,8 @@ def test_launch_restart_and_clean_shutdown(graph_file, port):
             return relay.alive and relay.ups >= 2 and relay.status is not None and relay.status.pid != relay_pid
 
         assert wait_until(restarted, 20), "".join(lines[-20:])
+        # A restart is the same launch (the template node restores its state then, and only then).
+        assert _launch_id(watcher.snapshot()["relay"].status.pid) == launch_id
         before = sink_value()
         assert wait_until(lambda: sink_value() > before + 10, 10), "ticks did not flow again after the restart"
         assert any("restarting relay" in line for line in lines)
@@ -75,6 +80,14 @@ def test_launch_restart_and_clean_shutdown(graph_file, port):
             session.close()
     assert code == 0, "".join(lines[-30:])
     assert wait_until(lambda: not processes_matching(str(graph)), 5), processes_matching(str(graph))
+
+
+def _launch_id(pid: int) -> str:
+    from followbus.bus.node import LAUNCH_ID_ENV
+
+    environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+    prefix = f"{LAUNCH_ID_ENV}=".encode()
+    return next((item[len(prefix):].decode() for item in environ if item.startswith(prefix)), "")
 
 
 def test_node_that_keeps_failing_makes_launch_exit_nonzero(graph_file):
