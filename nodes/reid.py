@@ -4,6 +4,11 @@ sigmoid weight of Eq. 3 (Eq. 2), accept above T_reid, else report OCCLUDED; LOST
 ``lost_after_ms``. Initialises the target on the first frame (``init_box`` param, else the
 detection nearest the image centre-bottom, else the frame-difference ROI).
 
+When colour and geometry cannot tell candidates apart (or on a re-lock after an occlusion), the learned
+appearance of seed 001 decides: OSNet descriptors and an online ridge-regression classifier of the target
+against the other people (tracking/identity.py; ``learned_appearance: false`` turns it off, and without the
+model the node warns once and goes on with colour).
+
 Inputs joined by frame: frame k, detections k, prior k, and the template learnt at frame k-1
 (offset -1). If that template is missing (a dropped frame upstream), the last one received is used.
 """
@@ -53,6 +58,7 @@ class Reid(Node):
     def setup(self) -> None:
         self.node_params, tracker_params = self.params
         self.reid = ReIdentifier(tracker_params)
+        self.learned_appearance = self.reid.prepare()  # the model loads here, not on a frame
         self.template_hist: np.ndarray | None = None
         self.frames = 0
         self.epoch_ns: int | None = None  # the capture session of the frames handled so far
@@ -79,7 +85,8 @@ class Reid(Node):
     def status_extra(self) -> dict[str, Any]:
         if self.last is None:
             return {"frames": 0}
-        return {"frames": self.frames, "state": self.last.state, "m_fuse": round(self.last.m_fuse, 3)}
+        return {"frames": self.frames, "state": self.last.state, "m_fuse": round(self.last.m_fuse, 3),
+                "learned_appearance": self.learned_appearance, "identity_decisions": self.reid.identity_decisions}
 
 
 NODE = Reid

@@ -51,6 +51,17 @@ class TrackerParams:
     # A match is "ambiguous" (not secure, template frozen) if another candidate's M_fuse is
     # within this margin of the best one.
     ambiguity_margin: float = 0.05
+    # Learned appearance (seed 001, tracking/identity.py): an OSNet descriptor and an online ridge-regression
+    # classifier of the target against the other people decide when colour + geometry cannot: between
+    # candidates within identity_margin of the best M_fuse, and on a re-lock after an occlusion.
+    learned_appearance: bool = True
+    identity_margin: float = 0.10
+    identity_sample_every_frames: int = 5  # training samples from every n-th secure frame (descriptor cost)
+    identity_max_crops: int = 6  # descriptors per frame at most (~3-6 ms each on one core)
+    ridge_lambda: float = 1.0  # λ of the ridge regression (seed 001 §III-C)
+    delta_iou: float = 0.5  # δ_iou: no sample while the target box overlaps another person more (seed 001 §IV)
+    delta_id: float = 0.60  # δ_id: a contender scoring above it is the target (seed 001 §IV)
+    delta_switch: float = 0.35  # δ_switch: below it a box is taken for someone else (seed 001 §III-D)
     # Motion blobs smaller than this (after morphology) are ignored as noise.
     min_blob_area_px: int = 64
     # OCCLUDED turns into LOST after this long without an accepted match.
@@ -87,7 +98,8 @@ class TrackerParams:
     def __post_init__(self) -> None:
         positive = (
             "morph_kernel_px", "bins_h", "bins_s", "dt_ms", "gate_chi2", "gamma", "r0_px2",
-            "lost_after_ms", "motion_max_changed_fraction",
+            "lost_after_ms", "motion_max_changed_fraction", "identity_sample_every_frames", "identity_max_crops",
+            "ridge_lambda",
         )
         for name in positive:
             if getattr(self, name) <= 0:
@@ -95,12 +107,13 @@ class TrackerParams:
         non_negative = (
             "diff_threshold", "eta_base", "lambda_specular", "accel_std_px_s2", "kappa_px2_per_mps2",
             "init_velocity_std_px_s", "geo_scale", "ambiguity_margin", "min_blob_area_px",
-            "reacquired_hold_frames",
+            "reacquired_hold_frames", "identity_margin",
         )
         for name in non_negative:
             if getattr(self, name) < 0:
                 raise ValueError(f"TrackerParams.{name} must be >= 0, got {getattr(self, name)!r}")
-        for name in ("reid_threshold", "tau_occ", "eta_base", "size_smoothing"):
+        for name in ("reid_threshold", "tau_occ", "eta_base", "size_smoothing", "delta_iou", "delta_id",
+                     "delta_switch"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"TrackerParams.{name} must be in [0, 1], got {getattr(self, name)!r}")
 

@@ -30,6 +30,7 @@ from enum import Enum
 import numpy as np
 
 from .appearance import bhattacharyya, hs_histogram
+from .identity import IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
 from .kalman import Box, Prior, box_centre, box_iou
 from .params import TrackerParams
@@ -153,9 +154,17 @@ class ReIdentifier:
 
     def __init__(self, params: TrackerParams | None = None) -> None:
         self.params = params or TrackerParams()
+        p = self.params
+        self._embedder: PersonEmbedder | None = None
+        self._embedder_loaded = False  # loaded at the first decision that needs it (absent: logged once)
+        self.identity = TargetClassifier(IdentityParams(ridge_lambda=p.ridge_lambda, delta_id=p.delta_id,
+                                                        delta_switch=p.delta_switch))
+        self.identity_decisions = 0  # frames where the learned appearance chose or vetoed (diagnostics)
         self.reset()
 
     def reset(self) -> None:
+        self.identity.reset()
+        self._secure_frames = 0
         self.state = TrackState.UNINITIALISED
         self._prev_grey: np.ndarray | None = None
         self._t_last_accept_ns = 0
@@ -218,6 +227,8 @@ class ReIdentifier:
 
         best = max(candidates, key=lambda c: c.m_fuse) if candidates else None  # first on ties
         accepted = best is not None and best.m_fuse > p.reid_threshold  # Alg. 1 line 9
+        if accepted and best is not None:
+            best, accepted = self._identity_decision(frame_bgr, candidates, best)
         self._advance_state(accepted, t_ns)
 
         result = ReidResult(t_ns=t_ns, state=self.state, accepted=accepted, omega=omega, c_t=c_t,
@@ -233,11 +244,71 @@ class ReIdentifier:
             if accepted:
                 result.box = best.box
                 result.secure = self.state is TrackState.TRACKING and not ambiguous and best.source == "detection"
+        if result.secure and result.box is not None:
+            self._learn_identity(frame_bgr, result.box, boxes)
         logger.debug(
             "reid t=%d state=%s n=%d C_t=%.3f ω=%.3f M=%.3f", t_ns, self.state.value, len(candidates), c_t,
             omega, result.m_fuse,
         )
         return result
+
+    # --- learned appearance (seed 001, tracking/identity.py) ------------------------------------------------
+
+    def prepare(self) -> bool:
+        """Load the descriptor model now rather than at the first decision that needs it (a live node: the
+        load must not delay a frame). True when the learned appearance is on and its model loaded."""
+        if self.params.learned_appearance and not self._embedder_loaded:
+            self._embedder, self._embedder_loaded = load_embedder(), True
+        return self._embedder is not None
+
+    def _embed(self, frame_bgr: np.ndarray, boxes: list[Box]) -> np.ndarray | None:
+        if not self.prepare():
+            return None
+        return self._embedder.embed(frame_bgr, boxes[: self.params.identity_max_crops])
+
+    def _identity_decision(self, frame_bgr: np.ndarray, candidates: list[Candidate],
+                           best: Candidate) -> tuple[Candidate, bool]:
+        """Colour + geometry chose ``best``; the classifier decides when that choice is not clear (seed 001
+        §III-D): among the contenders within ``identity_margin`` of it, the one it scores highest, if that
+        one clears δ_switch; on a re-lock after an occlusion, a lone contender scoring below δ_switch is taken
+        for someone else and rejected (the target stays occluded). Returns (chosen, accepted)."""
+        p = self.params
+        if not (p.learned_appearance and self.identity.ready):
+            return best, True
+        contenders = sorted((c for c in candidates if c.m_fuse > p.reid_threshold
+                             and c.m_fuse >= best.m_fuse - p.identity_margin), key=lambda c: -c.m_fuse)
+        relock = self.state in (TrackState.OCCLUDED, TrackState.LOST)
+        if len(contenders) < 2 and not relock:
+            return best, True
+        embs = self._embed(frame_bgr, [c.box for c in contenders])
+        if embs is None or not len(embs):
+            return best, True
+        scores = self.identity.score(embs)
+        self.identity_decisions += 1
+        i = int(np.argmax(scores))
+        if scores[i] < p.delta_switch:
+            # Nobody here looks like the target: on a re-lock, wait; while tracking, keep colour's choice.
+            return best, not relock
+        return contenders[i], True
+
+    def _learn_identity(self, frame_bgr: np.ndarray, target: Box, boxes: list[Box]) -> None:
+        """Every ``identity_sample_every_frames``-th secure frame: the target's descriptor as a positive and
+        the other detections' as negatives, only while the target overlaps no one above δ_iou (a mixed crop
+        would teach the classifier both people, seed 001 §IV)."""
+        p = self.params
+        if not p.learned_appearance:
+            return
+        self._secure_frames += 1
+        if (self._secure_frames - 1) % p.identity_sample_every_frames:
+            return
+        others = [b for b in boxes if box_iou(b, target) < 0.9]  # the target's own detection is not another
+        if any(box_iou(b, target) > p.delta_iou for b in others):
+            return
+        tx, ty = box_centre(target)
+        others.sort(key=lambda b: (box_centre(b)[0] - tx) ** 2 + (box_centre(b)[1] - ty) ** 2)
+        embs = self._embed(frame_bgr, [target, *others[: max(p.identity_max_crops - 1, 0)]])
+        if embs is not None and len(embs):
+            self.identity.add(embs[0], embs[1:])
 
     def _initialise(
         self,
@@ -272,6 +343,9 @@ class ReIdentifier:
         if box is None:
             self.state = TrackState.UNINITIALISED
             return ReidResult(t_ns=t_ns, state=self.state)
+        if source == "init":  # a new target: what the classifier learnt was someone else
+            self.identity.reset()
+            self._secure_frames = 0
         self.state = TrackState.TRACKING
         self._t_last_accept_ns = t_ns
         self._reacquired_count = 0
