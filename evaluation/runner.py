@@ -42,6 +42,8 @@ ABLATIONS: dict[str, dict[str, bool]] = {
     # seed 002 §3.3, not a Table 6 row: the prior not warped by the camera's image motion (graph.yaml's
     # egomotion node; TrackerParams.camera_motion_compensation)
     "followbus w/o camera-motion compensation": {"camera_motion_compensation": False},
+    # seed 002 §3.2: the gate at its base χ² whatever the target's speed and last detection score
+    "followbus w/o adaptive gate": {"adaptive_gate": False},
     # seed 001: no OSNet descriptor / ridge-regression classifier, colour + geometry alone (= seed 000's re-ID)
     "followbus w/o learned appearance": {"learned_appearance": False},
 }

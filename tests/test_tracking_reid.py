@@ -281,3 +281,28 @@ def test_after_a_prediction_restart_reid_reinitialises_where_its_target_just_was
     later = ReIdentifier(TrackerParams(lost_after_ms=500.0))
     later.step(frame, dets(target), None, None, 0, init_box=target)
     assert later.step(frame, dets(moved, passer), None, None, 900 * MS).box == passer  # too old to trust
+
+
+def test_adaptive_gate_grows_for_fast_or_weakly_detected_targets() -> None:
+    """Seed 002 §3.2: k = 1 for a slow target last seen on a confident detection, up to 1.5 (the gate's χ²
+    × 2.25) when it moves fast in the image or its last detection was weak; a candidate just outside the base
+    gate is then taken in."""
+    params = TrackerParams()
+    reid, template = started(params)
+    slow = prior_at(TARGET, 33_000_000)
+    assert reid.gate_scale(slow) == 1.0  # the initial box: nothing to doubt
+    h = TARGET[3]
+    fast = Prior(t_ns=33_000_000, state=np.array([slow.state[0], slow.state[1], 0.06 * h / 0.033, 0.0]),
+                 size=slow.size, covariance=slow.covariance, innovation_cov=slow.innovation_cov, gate_chi2=9.488)
+    assert reid.gate_scale(fast) == pytest.approx(params.gate_scale_max)
+    # accepted on a weak detection (score 0.3): the next gate is the widest
+    frame = draw((TARGET, RED))
+    weak = np.array([(*TARGET, 0.3)], np.float32)
+    assert reid.step(frame, weak, slow, template, 33_000_000).accepted
+    assert reid.gate_scale(slow) == pytest.approx(params.gate_scale_max)
+    # ... and a target that jumped just beyond the base gate (d² ≈ 12 > 9.488) is still a candidate
+    moved = (TARGET[0] + math.sqrt(12.0 * 400.0), TARGET[1], TARGET[2], TARGET[3])
+    result = reid.step(draw((moved, RED)), dets(moved), prior_at(TARGET, 66_000_000), template, 66_000_000)
+    assert result.accepted and result.box == pytest.approx(moved, abs=1e-3)
+    off = ReIdentifier(TrackerParams(adaptive_gate=False))
+    assert off.gate_scale(fast) == 1.0

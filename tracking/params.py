@@ -51,6 +51,15 @@ class TrackerParams:
     # A match is "ambiguous" (not secure, template frozen) if another candidate's M_fuse is
     # within this margin of the best one.
     ambiguity_margin: float = 0.05
+    # Adaptive search region (seed 002 §3.2): the gate's χ² is scaled by k² with k in [1, gate_scale_max]:
+    # 1 for a slow target last seen on a confident detection, gate_scale_max when it moves fast in the image
+    # (gate_fast_height_fraction of its height per frame or more) or its last detection was weak (score
+    # gate_low_score or less; gate_high_score or more counts as confident).
+    adaptive_gate: bool = True
+    gate_scale_max: float = 1.5
+    gate_fast_height_fraction: float = 0.05
+    gate_high_score: float = 0.7
+    gate_low_score: float = 0.3
     # Learned appearance (seed 001, tracking/identity.py): an OSNet descriptor and an online ridge-regression
     # classifier of the target against the other people decide when colour + geometry cannot: between
     # candidates within identity_margin of the best M_fuse, and on a re-lock after an occlusion.
@@ -99,7 +108,7 @@ class TrackerParams:
         positive = (
             "morph_kernel_px", "bins_h", "bins_s", "dt_ms", "gate_chi2", "gamma", "r0_px2",
             "lost_after_ms", "motion_max_changed_fraction", "identity_sample_every_frames", "identity_max_crops",
-            "ridge_lambda",
+            "ridge_lambda", "gate_scale_max", "gate_fast_height_fraction",
         )
         for name in positive:
             if getattr(self, name) <= 0:

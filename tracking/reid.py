@@ -21,6 +21,7 @@ Definitions this module fixes (the paper leaves them open):
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Sequence
@@ -149,6 +150,18 @@ def _valid_boxes(detections: np.ndarray | None) -> list[Box]:
     return boxes
 
 
+def _detection_score(detections: np.ndarray | None, box: Box) -> float | None:
+    """The detector score of the detection row whose box is ``box`` (None if not found)."""
+    if detections is None or np.size(detections) == 0:
+        return None
+    rows = np.asarray(detections, dtype=np.float64).reshape(-1, np.shape(detections)[-1])
+    if rows.shape[1] < 5:
+        return None
+    hit = np.all(np.abs(rows[:, :4] - np.asarray(box, dtype=np.float64)) < 1e-3, axis=1)
+    score = float(rows[hit, 4][0]) if hit.any() else None
+    return score if score is not None and math.isfinite(score) else None
+
+
 class ReIdentifier:
     """Stateful Algorithm 1: keeps the previous grey frame (for motion blobs) and the track state."""
 
@@ -164,6 +177,7 @@ class ReIdentifier:
 
     def reset(self) -> None:
         self.identity.reset()
+        self._last_score: float | None = None  # detector score of the last accepted box (adaptive gate)
         self._secure_frames = 0
         self.state = TrackState.UNINITIALISED
         self._prev_grey: np.ndarray | None = None
@@ -203,6 +217,7 @@ class ReIdentifier:
             return self._initialise(frame_bgr, boxes, prev_grey, grey, t_ns, init_box, template_hist, prior)
 
         p = self.params
+        prior = self._scaled_gate(prior)
         candidates = self._gate_candidates(boxes, prior, "detection")
         if (not candidates and prev_grey is not None
                 and changed_fraction(prev_grey, grey, p.diff_threshold) <= p.motion_max_changed_fraction):
@@ -244,6 +259,9 @@ class ReIdentifier:
             if accepted:
                 result.box = best.box
                 result.secure = self.state is TrackState.TRACKING and not ambiguous and best.source == "detection"
+        if accepted and best is not None:
+            self._last_score = (_detection_score(detections, best.box) if best.source == "detection"
+                                else p.gate_low_score)  # a motion blob: as weak as a detection can be
         if result.secure and result.box is not None:
             self._learn_identity(frame_bgr, result.box, boxes)
         logger.debug(
@@ -251,6 +269,25 @@ class ReIdentifier:
             omega, result.m_fuse,
         )
         return result
+
+    def gate_scale(self, prior: Prior) -> float:
+        """Seed 002 §3.2's search scale k in [1, gate_scale_max]: 1 for a slow target whose last accepted
+        detection was confident, up to gate_scale_max for a fast one (speed in image heights per frame) or a
+        weak last detection (a motion blob counts as weak)."""
+        p = self.params
+        if not p.adaptive_gate:
+            return 1.0
+        speed_px = math.hypot(*prior.velocity_px_s) * p.dt_ms / 1000.0
+        fast = speed_px / max(prior.size[1], 1.0) / p.gate_fast_height_fraction
+        score = self._last_score  # None: an initial box, no detector score to doubt
+        weak = 0.0 if score is None else (p.gate_high_score - score) / max(p.gate_high_score - p.gate_low_score,
+                                                                              1e-6)
+        urgency = min(max(max(fast, weak), 0.0), 1.0)
+        return 1.0 + (p.gate_scale_max - 1.0) * urgency
+
+    def _scaled_gate(self, prior: Prior) -> Prior:
+        k = self.gate_scale(prior)
+        return prior if k == 1.0 else dataclasses.replace(prior, gate_chi2=prior.gate_chi2 * k * k)
 
     # --- learned appearance (seed 001, tracking/identity.py) ------------------------------------------------
 
@@ -343,6 +380,7 @@ class ReIdentifier:
         if box is None:
             self.state = TrackState.UNINITIALISED
             return ReidResult(t_ns=t_ns, state=self.state)
+        self._last_score = None
         if source == "init":  # a new target: what the classifier learnt was someone else
             self.identity.reset()
             self._secure_frames = 0
