@@ -76,11 +76,13 @@ class Reid(Node):
         if self.node_params.init_box and new_source and frame_seq < INIT_BOX_MAX_FRAME:
             init_box = self.node_params.init_box
         result = self.reid.step(frame.data, dets.boxes, msg_to_prior(prior), self.template_hist,
-                                frame.header.stamp_ns, init_box=init_box)
+                                frame.header.stamp_ns, init_box=init_box, defer_learning=True)
         self.frames += 1
         msg = reid_to_msg(result)
         self.last = msg
         self.publish("measurement", msg, like=frame)
+        # The learned appearance's sample (OSNet descriptors) after the measurement is out: off the motor's path.
+        self.reid.learn_pending()
 
     def status_extra(self) -> dict[str, Any]:
         if self.last is None:

@@ -173,6 +173,7 @@ class ReIdentifier:
         self.identity = TargetClassifier(IdentityParams(ridge_lambda=p.ridge_lambda, delta_id=p.delta_id,
                                                         delta_switch=p.delta_switch))
         self.identity_decisions = 0  # frames where the learned appearance chose or vetoed (diagnostics)
+        self._pending: tuple[np.ndarray, Box, list[Box]] | None = None  # a training sample not yet taken
         self.reset()
 
     def reset(self) -> None:
@@ -186,12 +187,24 @@ class ReIdentifier:
         self._last_box: Box | None = None  # the last accepted box: where a re-initialisation looks first
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
-             template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None) -> ReidResult:
-        """Run one frame (see :meth:`_step`); remembers the accepted box."""
+             template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None,
+             defer_learning: bool = False) -> ReidResult:
+        """Run one frame (see :meth:`_step`); remembers the accepted box. The learned appearance's training
+        sample of the frame (descriptors: a few ms) is taken at the end, or with ``defer_learning`` when the
+        caller calls :meth:`learn_pending` (the node: after publishing the measurement, off the motor's path)."""
+        self._pending = None
         result = self._step(frame_bgr, detections, prior, template_hist, t_ns, init_box)
         if result.accepted and result.box is not None:
             self._last_box = tuple(float(v) for v in result.box)
+        if not defer_learning:
+            self.learn_pending()
         return result
+
+    def learn_pending(self) -> None:
+        """Take the training sample :meth:`step` left for later, if any (the same result either way)."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            self._learn_identity(*pending)
 
     def _step(
         self,
@@ -263,7 +276,7 @@ class ReIdentifier:
             self._last_score = (_detection_score(detections, best.box) if best.source == "detection"
                                 else p.gate_low_score)  # a motion blob: as weak as a detection can be
         if result.secure and result.box is not None:
-            self._learn_identity(frame_bgr, result.box, boxes)
+            self._pending = (frame_bgr, result.box, boxes)
         logger.debug(
             "reid t=%d state=%s n=%d C_t=%.3f ω=%.3f M=%.3f", t_ns, self.state.value, len(candidates), c_t,
             omega, result.m_fuse,
