@@ -46,6 +46,9 @@ class Message:
     TYPE: ClassVar[str] = ""
     # Fields that measure the run that produced the message (a wall time): `followbus replay` does not compare them.
     MEASURED: ClassVar[frozenset[str]] = frozenset()
+    # Fields added after recordings with this schema version were made: absent in such a message, they decode as
+    # their default (an old recording stays readable).
+    ADDED: ClassVar[frozenset[str]] = frozenset()
     header: Header = field(default_factory=Header)
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -94,9 +97,14 @@ class GroundTruth(Message):
 class Detections(Message):
     TYPE: ClassVar[str] = "Detections"
     MEASURED: ClassVar[frozenset[str]] = frozenset({"infer_ms"})
+    ADDED: ClassVar[frozenset[str]] = frozenset({"low_boxes"})
     boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))  # x,y,w,h,score
     backend: str = ""
     infer_ms: float = 0.0
+    # Boxes scoring below the detection node's score_threshold but at least its low_score_threshold (same
+    # layout): only for a consumer that opts in (re-ID's second association stage, seed 002 / ByteTrack);
+    # everything else reads ``boxes`` alone.
+    low_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))
 
 
 @dataclass
@@ -306,6 +314,8 @@ def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None
         if f.name == "header":
             continue
         if f.name not in obj:
+            if f.name in cls.ADDED:
+                continue  # an older message: the field's default
             raise DecodeError(f"{type_name}: missing field {f.name!r}")
         try:
             kwargs[f.name] = conform(obj.pop(f.name), hints[f.name])
@@ -353,11 +363,11 @@ def validate(msg: Message) -> Message:
         if f.name in BOX_FIELDS and value is not None:
             _check_box(name, value)
     if isinstance(msg, Detections):
-        boxes = msg.boxes
-        if boxes.ndim != 2 or boxes.shape[1] != 5:
-            raise DecodeError(f"{where}.boxes: expected N x 5 (x, y, w, h, score), got {list(boxes.shape)}")
-        if (boxes[:, 2:4] < 0).any():
-            raise DecodeError(f"{where}.boxes: box of negative size")
+        for name, boxes in (("boxes", msg.boxes), ("low_boxes", msg.low_boxes)):
+            if boxes.ndim != 2 or boxes.shape[1] != 5:
+                raise DecodeError(f"{where}.{name}: expected N x 5 (x, y, w, h, score), got {list(boxes.shape)}")
+            if (boxes[:, 2:4] < 0).any():
+                raise DecodeError(f"{where}.{name}: box of negative size")
     elif isinstance(msg, Frame):
         data = msg.data
         if msg.encoding == "bgr8":

@@ -93,3 +93,22 @@ def test_decoding_and_parameters_share_one_type_checker(hint, value, ok):
             conform(value, hint)
         with pytest.raises(ParamError, match="must be"):
             params_from_dict(params, {"value": value})
+
+
+def test_detections_of_an_older_recording_without_low_boxes_still_decode():
+    """``low_boxes`` was added to Detections later (Message.ADDED): a message without it decodes with no low
+    boxes, while a message missing an original field is still refused, and malformed low boxes are rejected."""
+    from followbus.bus.schemas import validate
+
+    new = unpack(encode(Detections(boxes=np.array([[1, 2, 3, 4, 0.9]], np.float32), backend="yolox",
+                                   low_boxes=np.array([[5, 6, 7, 8, 0.2]], np.float32))))
+    assert decode(pack(new)).low_boxes.tolist() == [[5.0, 6.0, 7.0, 8.0, np.float32(0.2)]]
+    old = dict(new)
+    del old["low_boxes"]
+    out = decode(pack(old), Detections)
+    assert out.low_boxes.shape == (0, 5) and out.boxes.shape == (1, 5)
+    del old["backend"]
+    with pytest.raises(DecodeError, match="missing field 'backend'"):
+        decode(pack(old))
+    with pytest.raises(DecodeError, match="low_boxes"):
+        validate(Detections(low_boxes=np.zeros((2, 4), np.float32)))
