@@ -306,3 +306,23 @@ def test_adaptive_gate_grows_for_fast_or_weakly_detected_targets() -> None:
     assert result.accepted and result.box == pytest.approx(moved, abs=1e-3)
     off = ReIdentifier(TrackerParams(adaptive_gate=False))
     assert off.gate_scale(fast) == 1.0
+
+
+def test_low_score_detections_are_a_second_stage_never_a_training_sample() -> None:
+    """Seed 002 / ByteTrack: the partly hidden target scores under the detector's threshold; with no detection
+    in the gate matching, re-ID takes the low-score box that matches (not secure: the template and the
+    classifier learn nothing from it); with a matching detection the low-score boxes are not looked at."""
+    params = TrackerParams()
+    reid, template = started(params)
+    frame = draw((TARGET, RED))
+    low = np.array([(*TARGET, 0.15)], np.float32)
+    result = reid.step(frame, dets(), prior_at(TARGET, 33_000_000), template, 33_000_000, low_detections=low)
+    assert result.accepted and result.source == "low-score" and not result.secure
+    assert result.box == pytest.approx(TARGET)
+    # a detection that matches wins; the low-score box is not even a candidate then
+    result = reid.step(frame, dets(TARGET), prior_at(TARGET, 66_000_000), template, 66_000_000,
+                       low_detections=np.array([(TARGET[0] + 5, TARGET[1], TARGET[2], TARGET[3], 0.2)], np.float32))
+    assert result.accepted and result.source == "detection" and len(result.candidates) == 1
+    off, template_off = started(TrackerParams(low_score_stage=False))
+    result = off.step(frame, dets(), prior_at(TARGET, 33_000_000), template_off, 33_000_000, low_detections=low)
+    assert not any(c.source == "low-score" for c in result.candidates)

@@ -60,6 +60,10 @@ class TrackerParams:
     gate_fast_height_fraction: float = 0.05
     gate_high_score: float = 0.7
     gate_low_score: float = 0.3
+    # Seed 002 / ByteTrack's second association stage: when no detection in the gate matches, the low-score
+    # ones (the detection node's low_boxes, score in [low_score_threshold, score_threshold)) are tried, never
+    # while LOST (no prior to gate them) and never as training samples.
+    low_score_stage: bool = True
     # Learned appearance (seed 001, tracking/identity.py): an OSNet descriptor and an online ridge-regression
     # classifier of the target against the other people decide when colour + geometry cannot: between
     # candidates within identity_margin of the best M_fuse, and on a re-lock after an occlusion.

@@ -188,12 +188,12 @@ class ReIdentifier:
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
              template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None,
-             defer_learning: bool = False) -> ReidResult:
+             defer_learning: bool = False, low_detections: np.ndarray | None = None) -> ReidResult:
         """Run one frame (see :meth:`_step`); remembers the accepted box. The learned appearance's training
         sample of the frame (descriptors: a few ms) is taken at the end, or with ``defer_learning`` when the
         caller calls :meth:`learn_pending` (the node: after publishing the measurement, off the motor's path)."""
         self._pending = None
-        result = self._step(frame_bgr, detections, prior, template_hist, t_ns, init_box)
+        result = self._step(frame_bgr, detections, prior, template_hist, t_ns, init_box, low_detections)
         if result.accepted and result.box is not None:
             self._last_box = tuple(float(v) for v in result.box)
         if not defer_learning:
@@ -214,14 +214,17 @@ class ReIdentifier:
         template_hist: np.ndarray | None,
         t_ns: int,
         init_box: Sequence[float] | None = None,
+        low_detections: np.ndarray | None = None,
     ) -> ReidResult:
-        """Run one frame. Without a prior or a template (or with an explicit ``init_box``) this
-        initialises the target instead: ``init_box``, else (when a template exists, e.g. restored
-        after a restart) the detection best matching it if above Thresh_reid, else (when a prior exists:
-        this re-ID was restarted while prediction kept the track) the gated detection nearest the prior,
-        else (prediction was restarted while this re-ID kept its track) the detection overlapping this
-        re-ID's last accepted box, if it was accepted within ``lost_after_ms``, else the detection nearest the
-        image bottom-centre, else the frame-difference ROI (§2.1)."""
+        """Run one frame. ``low_detections`` (x, y, w, h, score rows under the detector's threshold)
+        are a second stage when no detection in the gate matched (seed 002's ByteTrack association).
+        Without a prior or a template (or with an explicit ``init_box``) this initialises the target
+        instead: ``init_box``, else (when a template exists, e.g. restored after a restart) the detection
+        best matching it if above Thresh_reid, else (when a prior exists: this re-ID was restarted while
+        prediction kept the track) the gated detection nearest the prior, else (prediction was restarted
+        while this re-ID kept its track) the detection overlapping this re-ID's last accepted box, if it
+        was accepted within ``lost_after_ms``, else the detection nearest the image bottom-centre, else the
+        frame-difference ROI (§2.1)."""
         t_ns = int(t_ns)
         grey = to_grey(frame_bgr)
         prev_grey, self._prev_grey = self._prev_grey, grey
@@ -231,7 +234,23 @@ class ReIdentifier:
 
         p = self.params
         prior = self._scaled_gate(prior)
+        # Stage 1: the detections (score >= the detector's threshold) in the gate.
         candidates = self._gate_candidates(boxes, prior, "detection")
+        best, c_t, omega = self._score(frame_bgr, candidates, prior, template_hist)
+        accepted = best is not None and best.m_fuse > p.reid_threshold  # Alg. 1 line 9
+        if accepted and best is not None:
+            best, accepted = self._identity_decision(frame_bgr, candidates, best)
+        low = _valid_boxes(low_detections) if p.low_score_stage and self.state is not TrackState.LOST else []
+        if not accepted and low:
+            # Stage 2 (seed 002 / ByteTrack): nothing in the gate matched, so the low-score detections, where
+            # a partly hidden target still is; scored alike, never a training sample (not secure).
+            second = self._gate_candidates(low, prior, "low-score")
+            best2, c_t2, omega2 = self._score(frame_bgr, second, prior, template_hist)
+            if best2 is not None and best2.m_fuse > p.reid_threshold:
+                best2, ok = self._identity_decision(frame_bgr, second, best2)
+                if ok:
+                    best, accepted, c_t, omega = best2, True, c_t2, omega2
+            candidates = candidates + second
         if (not candidates and prev_grey is not None
                 and changed_fraction(prev_grey, grey, p.diff_threshold) <= p.motion_max_changed_fraction):
             # Alg. 1 line 2: nothing detected in R, look for moving regions inside it instead (only while
@@ -239,24 +258,10 @@ class ReIdentifier:
             roi = self._search_window(prior, grey.shape) if p.use_gate else None
             blobs = motion_blobs(prev_grey, grey, p.diff_threshold, p.morph_kernel_px, p.min_blob_area_px, roi)
             candidates = self._gate_candidates([b for b, _ in blobs], prior, "motion")
-
-        for c in candidates:
-            c.hist = hs_histogram(frame_bgr, c.box, p.bins_h, p.bins_s)
-            c.s_color = bhattacharyya(c.hist, template_hist)  # Eq. 1, Alg. 1 line 4
-            c.s_geo = (
-                geometric_score(c.box, prior.box, c.maha_sq, prior.gate_chi2, p.geo_scale)
-                if p.use_geometry
-                else 0.0
-            )  # Alg. 1 line 5
-        c_t = max((c.s_color for c in candidates), default=0.0)
-        omega = appearance_weight(c_t, p.tau_occ, p.gamma) if p.use_geometry else 1.0  # Eq. 3
-        for c in candidates:
-            c.m_fuse = fuse(c.s_color, c.s_geo, omega)  # Eq. 2, Alg. 1 line 6
-
-        best = max(candidates, key=lambda c: c.m_fuse) if candidates else None  # first on ties
-        accepted = best is not None and best.m_fuse > p.reid_threshold  # Alg. 1 line 9
-        if accepted and best is not None:
-            best, accepted = self._identity_decision(frame_bgr, candidates, best)
+            best, c_t, omega = self._score(frame_bgr, candidates, prior, template_hist)
+            accepted = best is not None and best.m_fuse > p.reid_threshold
+            if accepted and best is not None:
+                best, accepted = self._identity_decision(frame_bgr, candidates, best)
         self._advance_state(accepted, t_ns)
 
         result = ReidResult(t_ns=t_ns, state=self.state, accepted=accepted, omega=omega, c_t=c_t,
@@ -273,7 +278,8 @@ class ReIdentifier:
                 result.box = best.box
                 result.secure = self.state is TrackState.TRACKING and not ambiguous and best.source == "detection"
         if accepted and best is not None:
-            self._last_score = (_detection_score(detections, best.box) if best.source == "detection"
+            scored = {"detection": detections, "low-score": low_detections}.get(best.source)
+            self._last_score = (_detection_score(scored, best.box) if scored is not None
                                 else p.gate_low_score)  # a motion blob: as weak as a detection can be
         if result.secure and result.box is not None:
             self._pending = (frame_bgr, result.box, boxes)
@@ -282,6 +288,23 @@ class ReIdentifier:
             omega, result.m_fuse,
         )
         return result
+
+    def _score(self, frame_bgr: np.ndarray, candidates: list[Candidate], prior: Prior,
+               template_hist: np.ndarray) -> tuple[Candidate | None, float, float]:
+        """Alg. 1 lines 4-6 on ``candidates`` (in place): S_color, S_geo, ω(t) and M_fuse; returns the best
+        (first on ties), C_t and ω."""
+        p = self.params
+        for c in candidates:
+            c.hist = hs_histogram(frame_bgr, c.box, p.bins_h, p.bins_s)
+            c.s_color = bhattacharyya(c.hist, template_hist)  # Eq. 1, Alg. 1 line 4
+            c.s_geo = (geometric_score(c.box, prior.box, c.maha_sq, prior.gate_chi2, p.geo_scale)
+                       if p.use_geometry else 0.0)  # Alg. 1 line 5
+        c_t = max((c.s_color for c in candidates), default=0.0)
+        omega = appearance_weight(c_t, p.tau_occ, p.gamma) if p.use_geometry else 1.0  # Eq. 3
+        for c in candidates:
+            c.m_fuse = fuse(c.s_color, c.s_geo, omega)  # Eq. 2, Alg. 1 line 6
+        best = max(candidates, key=lambda c: c.m_fuse) if candidates else None
+        return best, c_t, omega
 
     def gate_scale(self, prior: Prior) -> float:
         """Seed 002 §3.2's search scale k in [1, gate_scale_max]: 1 for a slow target whose last accepted

@@ -68,10 +68,12 @@ class TargetTracker:
         t_ns: int,
         v_ego_mps: Sequence[float] = (0.0, 0.0),
         init_box: Sequence[float] | None = None,
+        low_detections: np.ndarray | None = None,
     ) -> FrameResult:
         motion = None if self.egomotion is None else self.egomotion.step(frame_bgr, detections, t_ns)
         prior = self.predictor.predict(t_ns, v_ego_mps, motion)
-        reid = self.reid.step(frame_bgr, detections, prior, self.template.hist, t_ns, init_box=init_box)
+        reid = self.reid.step(frame_bgr, detections, prior, self.template.hist, t_ns, init_box=init_box,
+                              low_detections=low_detections)
         posterior = self.predictor.apply(reid, v_ego_mps)
         hist, eta, p_specular = self.template.step(frame_bgr, reid)
         return FrameResult(
