@@ -132,9 +132,14 @@ class PeerFollower:
     has deleted it (the id is lost: a MOT tracker that re-identifies the person under a new id has lost
     the target). ``info["mot"]`` carries the tracker's confirmed output ``(ids, boxes)`` for MOT scoring,
     never the coasted box.
+
+    All three have a ByteTrack-style second association stage for low-score boxes (below their
+    ``high_conf_det_threshold``; BoT-SORT takes those above 0.1, ByteTrack's τ_low), so by their own design they
+    are fed the low-score boxes too (``low_score_boxes``; the runner passes them as ``low_detections``), as
+    followbus's re-ID is.
     """
 
-    def __init__(self, kind: str, fps: float = 30.0) -> None:
+    def __init__(self, kind: str, fps: float = 30.0, low_score_boxes: bool = True) -> None:
         kind = peer_kind(kind)
         reason = peer_available()
         if reason:
@@ -148,6 +153,7 @@ class PeerFollower:
             raise RuntimeError(f"trackers {getattr(trackers, '__version__', '?')} has no {cls}")
         self.tracker = getattr(trackers, cls)(frame_rate=fps)
         self.uses_frame = kind == "botsort"  # camera-motion compensation; the others warn when given a frame
+        self.uses_low_scores = bool(low_score_boxes)
         self.name = f"peer:{kind}"
         self.target_id: int | None = None
         self._ref: Box | None = None
@@ -170,8 +176,11 @@ class PeerFollower:
             self.target_id = max(scored)[1]
 
     def step(self, frame_bgr: np.ndarray | None, detections: np.ndarray | None, t_ns: int,
-             init_box: Sequence[float] | None = None) -> tuple[Box | None, dict[str, Any]]:
+             init_box: Sequence[float] | None = None,
+             low_detections: np.ndarray | None = None) -> tuple[Box | None, dict[str, Any]]:
         d = np.asarray(detections if detections is not None else [], dtype=np.float32).reshape(-1, 5)
+        if low_detections is not None and self.uses_low_scores:
+            d = np.concatenate([d, np.asarray(low_detections, dtype=np.float32).reshape(-1, 5)])
         xyxy = np.column_stack([d[:, 0], d[:, 1], d[:, 0] + d[:, 2], d[:, 1] + d[:, 3]]).reshape(-1, 4)
         sv_dets = self._sv.Detections(xyxy=xyxy.astype(np.float32), confidence=d[:, 4].astype(np.float32),
                                       class_id=np.zeros(len(d), dtype=int))

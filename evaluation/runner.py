@@ -46,11 +46,21 @@ ABLATIONS: dict[str, dict[str, bool]] = {
     "followbus w/o adaptive gate": {"adaptive_gate": False},
     # seed 001: no OSNet descriptor / ridge-regression classifier, colour + geometry alone (= seed 000's re-ID)
     "followbus w/o learned appearance": {"learned_appearance": False},
+    # seed 002 §3.1 (ByteTrack's second stage): the boxes below the detector's score threshold never considered
+    "followbus w/o low-score stage": {"low_score_stage": False},
 }
+# graph.yaml's detection node: boxes scoring score_threshold or more are "the detections" every method sees;
+# those in [low_score_threshold, score_threshold) only reach the methods whose own design has a second,
+# low-score association stage (followbus's re-ID; ByteTrack, OC-SORT and BoT-SORT as `trackers` ships them).
+SCORE_THRESHOLD = 0.3
+LOW_SCORE_THRESHOLD = 0.1
 LOW_VISIBILITY = 0.5  # scene frames with less of the target visible are shaded as (partial) occlusion
 
 
 class Follower(Protocol):
+    """A follower whose ``uses_low_scores`` attribute is true is also given ``low_detections=`` (the boxes scoring
+    in [LOW_SCORE_THRESHOLD, SCORE_THRESHOLD)); every other one sees the boxes above SCORE_THRESHOLD only."""
+
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray, t_ns: int, v_ego_mps: Sequence[float],
              init_box: Sequence[float] | None) -> tuple[Box | None, dict[str, Any]]: ...
 
@@ -60,9 +70,10 @@ class FollowbusFollower:
 
     def __init__(self, params: TrackerParams | None = None) -> None:
         self.tracker = TargetTracker(params)
+        self.uses_low_scores = self.tracker.params.low_score_stage
 
-    def step(self, frame_bgr, detections, t_ns, v_ego_mps, init_box):
-        r = self.tracker.step(frame_bgr, detections, t_ns, v_ego_mps, init_box=init_box)
+    def step(self, frame_bgr, detections, t_ns, v_ego_mps, init_box, low_detections=None):
+        r = self.tracker.step(frame_bgr, detections, t_ns, v_ego_mps, init_box=init_box, low_detections=low_detections)
         box = None if r.box is None else tuple(float(v) for v in r.box)
         return box, {"state": r.state.name, "eta": float(r.eta_k)}
 
@@ -72,9 +83,10 @@ class _NoEgo:
 
     def __init__(self, inner) -> None:
         self.inner = inner
+        self.uses_low_scores = bool(getattr(inner, "uses_low_scores", False))
 
-    def step(self, frame_bgr, detections, t_ns, v_ego_mps, init_box):
-        return self.inner.step(frame_bgr, detections, t_ns, init_box=init_box)
+    def step(self, frame_bgr, detections, t_ns, v_ego_mps, init_box, **low):
+        return self.inner.step(frame_bgr, detections, t_ns, init_box=init_box, **low)
 
     @property
     def wants_reference(self) -> bool:
@@ -206,7 +218,7 @@ def open_sequence(spec: str, *, seed: int = 0, width: int = 640, height: int = 4
 # --------------------------------------------------------------------------- detectors
 
 
-def make_eval_detector(name: str, seed: int = 0):
+def make_eval_detector(name: str, seed: int = 0, score_threshold: float = SCORE_THRESHOLD):
     from ..vision.detectors import make_detector
 
     if name not in DETECTORS:
@@ -214,8 +226,8 @@ def make_eval_detector(name: str, seed: int = 0):
     if name == "simulated":
         return make_detector("simulated", seed=seed)
     if name.startswith("yolox"):
-        return make_detector("yolox", input_size=640 if name == "yolox640" else 416)
-    return make_detector(name)
+        return make_detector("yolox", input_size=640 if name == "yolox640" else 416, score_threshold=score_threshold)
+    return make_detector(name, score_threshold=score_threshold)
 
 
 # --------------------------------------------------------------------------- running
@@ -276,17 +288,25 @@ class SequenceRun:
 
 def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follower]], detector: str, *,
                  cache_dir: Path | None = None, seed: int = 0, progress: bool = False,
-                 use_ego_velocity: bool = True) -> SequenceRun:
-    """Detect once (or load the cache), then step every method on every frame; score each method."""
+                 use_ego_velocity: bool = True, low_score_threshold: float = LOW_SCORE_THRESHOLD) -> SequenceRun:
+    """Detect once (or load the cache), then step every method on every frame; score each method.
+
+    The detector runs down to ``low_score_threshold`` (= SCORE_THRESHOLD: no low-score boxes); the cache then
+    holds those boxes too (a key of its own)."""
+    from ..vision.detectors import split_by_score
+
+    low_score_threshold = min(float(low_score_threshold), SCORE_THRESHOLD)
     cached = None
     path = None
     if cache_dir is not None:
         # simulated detections depend on the seed: it is part of the key
         det_key = f"{detector}-seed{seed}" if detector == "simulated" else detector
+        if low_score_threshold < SCORE_THRESHOLD:
+            det_key += f"-low{low_score_threshold:g}"
         path = detcache.cache_path(cache_dir, seq.key, det_key, seq.n_frames)
         cached = detcache.load(path, seq.n_frames)
     from_cache = cached is not None
-    det = None if from_cache else make_eval_detector(detector, seed)
+    det = None if from_cache else make_eval_detector(detector, seed, low_score_threshold)
     if cached is not None:
         log.info("%s: detections from cache %s", seq.name, path)
     followers = {name: make(seq.fps) for name, make in factories.items()}
@@ -295,7 +315,8 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
     others: list[list[Box]] = []
     people: list[list[tuple[int, Box]]] = []
     visible: list[float | None] = []
-    det_frames: list[np.ndarray] = []
+    det_frames: list[np.ndarray] = []  # every box down to low_score_threshold (what the cache holds)
+    high_frames: list[np.ndarray] = []
     det_ms: list[float] = []
     initialised = False
     frames = seq.frames()
@@ -305,13 +326,15 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
         frames = tqdm(frames, total=seq.n_frames, desc=seq.name, unit="fr", leave=False)
     for k, item in enumerate(frames):
         if cached is not None:
-            dets = cached.per_frame[k]
+            all_dets = cached.per_frame[k]
         else:
             t0 = time.perf_counter()
-            dets = det.detect(item.bgr, item.truth) if detector == "simulated" else det.detect(item.bgr)
+            all_dets = det.detect(item.bgr, item.truth) if detector == "simulated" else det.detect(item.bgr)
             det_ms.append((time.perf_counter() - t0) * 1e3)
-            dets = np.asarray(dets, dtype=np.float32).reshape(-1, 5)
-            det_frames.append(dets)
+            all_dets = np.asarray(all_dets, dtype=np.float32).reshape(-1, 5)
+            det_frames.append(all_dets)
+        dets, low_dets = split_by_score(all_dets, SCORE_THRESHOLD, low_score_threshold)  # as the detection node
+        high_frames.append(dets)
         gts.append(item.gt_box)
         others.append(item.others)
         people.append(item.people)
@@ -329,8 +352,9 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
         for name, follower in followers.items():
             if item.gt_box is not None and getattr(follower, "wants_reference", False):
                 follower.update_reference(item.gt_box)  # a peer still choosing whom to follow: this frame's box
+            low = {"low_detections": low_dets} if getattr(follower, "uses_low_scores", False) else {}
             t0 = time.perf_counter()
-            box, info = follower.step(item.bgr, dets, item.t_ns, v_ego, init_box)
+            box, info = follower.step(item.bgr, dets, item.t_ns, v_ego, init_box, **low)
             runs[name].tracker_ms.append((time.perf_counter() - t0) * 1e3)
             runs[name].boxes.append(box)
             runs[name].infos.append(info)
@@ -339,7 +363,8 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
         if path is not None:
             detcache.save(path, cached)
     result = SequenceRun(seq, detector, gts, others, visible, cached.ms, from_cache, runs, people)
-    result.ceiling = evaluate_single_target(nearest_detections(cached.per_frame, gts), gts, other_gt=others,
+    # the ceiling of the boxes every method sees (those above SCORE_THRESHOLD), comparable across runs
+    result.ceiling = evaluate_single_target(nearest_detections(high_frames, gts), gts, other_gt=others,
                                             fps=seq.fps, image_size=(seq.width, seq.height))
     for run in runs.values():
         run.metrics = evaluate_single_target(run.boxes, gts, other_gt=others, fps=seq.fps,

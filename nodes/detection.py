@@ -17,7 +17,7 @@ import numpy as np
 
 from ..bus.node import Node, ParamError
 from ..bus.schemas import Detections, Frame, GroundTruth, Message
-from ..vision.detectors import BACKENDS, DetectorUnavailable, SimulatedDetector, make_detector
+from ..vision.detectors import BACKENDS, DetectorUnavailable, SimulatedDetector, make_detector, split_by_score
 
 
 @dataclass
@@ -27,6 +27,10 @@ class DetectionParams:
     model_file: str = ""  # default: yolox_nano_<input_size>.onnx
     input_size: int = 416
     score_threshold: float = 0.3
+    # Boxes scoring in [low_score_threshold, score_threshold) are published apart (Detections.low_boxes) for
+    # re-ID's second association stage (seed 002 §3.1 / ByteTrack; its 0.1, seed 002 §4.3); every other
+    # consumer reads the boxes above score_threshold only. Equal to score_threshold: none published.
+    low_score_threshold: float = 0.1
     nms_iou: float = 0.45
     threads: int = 0  # onnxruntime intra-op threads; 0 = its default
     sim_noise_px: float = 4.0
@@ -43,13 +47,18 @@ def detector_from_params(p: DetectionParams):
     in-process, so both paths infer the same way)."""
     detector = make_detector(
         p.backend, model_dir=p.model_dir or None, model_file=p.model_file or None,
-        input_size=p.input_size, score_threshold=p.score_threshold, nms_iou=p.nms_iou,
+        input_size=p.input_size, score_threshold=min(p.low_score_threshold, p.score_threshold), nms_iou=p.nms_iou,
         threads=p.threads or None, noise_px=p.sim_noise_px, miss_rate=p.sim_miss_rate,
         false_positive_rate=p.sim_false_positive_rate, seed=p.seed,
     )
     if isinstance(detector, SimulatedDetector):
         detector.delay_ms = p.sim_delay_ms
     return detector
+
+
+def split_detections(p: DetectionParams, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The detector's rows (run at the low threshold) as (boxes, low_boxes) of the Detections message."""
+    return split_by_score(rows, p.score_threshold, min(p.low_score_threshold, p.score_threshold))
 
 
 class Detection(Node):
@@ -65,6 +74,9 @@ class Detection(Node):
             raise ParamError("backend", f"backend must be one of {', '.join(BACKENDS)}, not {params.backend!r}")
         if not params.sim_delay_ms >= 0:
             raise ParamError("sim_delay_ms", f"sim_delay_ms must be >= 0, not {params.sim_delay_ms!r}")
+        if not 0.0 <= params.low_score_threshold <= params.score_threshold:
+            raise ParamError("low_score_threshold", "low_score_threshold must be in [0, score_threshold] "
+                             f"(= score_threshold: no low-score boxes), not {params.low_score_threshold!r}")
         if params.sim_delay_ms and params.backend != "simulated":
             raise ParamError("sim_delay_ms", "sim_delay_ms only applies to backend 'simulated'")
         return params
@@ -104,8 +116,9 @@ class Detection(Node):
         infer_ms = (time.perf_counter() - t0) * 1e3
         self.frames += 1
         self.infer_ms_total += infer_ms
-        self.publish("detections", Detections(boxes=np.asarray(boxes, dtype=np.float32).reshape(-1, 5),
-                                              backend=self.detector.name, infer_ms=infer_ms), like=frame)
+        high, low = split_detections(self.params, boxes)
+        self.publish("detections", Detections(boxes=high, low_boxes=low, backend=self.detector.name,
+                                              infer_ms=infer_ms), like=frame)
 
     def status_extra(self) -> dict[str, Any]:
         mean = self.infer_ms_total / self.frames if self.frames else 0.0

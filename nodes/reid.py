@@ -76,7 +76,8 @@ class Reid(Node):
         if self.node_params.init_box and new_source and frame_seq < INIT_BOX_MAX_FRAME:
             init_box = self.node_params.init_box
         result = self.reid.step(frame.data, dets.boxes, msg_to_prior(prior), self.template_hist,
-                                frame.header.stamp_ns, init_box=init_box, defer_learning=True)
+                                frame.header.stamp_ns, init_box=init_box, defer_learning=True,
+                                low_detections=dets.low_boxes)  # the second stage's (low_score_stage)
         self.frames += 1
         msg = reid_to_msg(result)
         self.last = msg

@@ -451,3 +451,31 @@ def test_unknown_node_or_topic_is_refused():
         InProcessGraph(graph, nodes=["nope"])
     with InProcessGraph(graph, nodes=["motor"]) as g, pytest.raises(ValueError, match="no topic"):
         g.inject("prediction/nope", _track(0, g.now_ns))
+
+
+def test_detection_publishes_low_score_boxes_apart_from_its_detections():
+    """The detection node (YOLOX-nano 640 on a real frame with a partly hidden person) publishes the boxes scoring
+    in [low_score_threshold, score_threshold) as ``low_boxes``, and as ``boxes`` exactly what it published with
+    no low boxes (so every consumer of ``boxes`` sees what it saw before); low_score_threshold = score_threshold
+    publishes none."""
+    import cv2
+
+    from .conftest import SHARED
+
+    img = SHARED / "data" / "sot" / "otb-human3" / "img" / "000002.jpg"
+    if not img.is_file():
+        pytest.skip(f"real data absent: {img}")
+    bgr = cv2.imread(str(img))
+    out = {}
+    for low in (0.1, 0.3):
+        graph = tracking_graph("detection.backend=yolox", "detection.input_size=640",
+                               f"detection.low_score_threshold={low}")
+        with InProcessGraph(graph, nodes=["detection"], record=["detection/detections"]) as g:
+            g.inject("capture/frame", frame_msg(0, g.now_ns, bgr))
+            g.deliver()
+            (out[low],) = g.outputs("detection", "detections")
+    with_low, without = out[0.1], out[0.3]
+    assert np.array_equal(with_low.boxes, without.boxes) and len(without.boxes) >= 1
+    assert (with_low.boxes[:, 4] >= 0.3).all() and without.low_boxes.shape == (0, 5)
+    assert len(with_low.low_boxes) >= 1
+    assert ((with_low.low_boxes[:, 4] >= 0.1) & (with_low.low_boxes[:, 4] < 0.3)).all()

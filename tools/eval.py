@@ -370,11 +370,17 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
 
     Returns {"compared", "mismatches", "missing", "first_mismatch", "graph", "inproc", "detector"}.
     """
+    import yaml
+
     from ..evaluation.runner import FollowbusFollower, open_sequence
+    from ..nodes.detection import Detection, detector_from_params, split_detections
     from ..vision.detectors import SimulatedDetector
 
     is_scene = spec.startswith("scene:")
     detector = detector or ("simulated" if is_scene else "yolox")
+    # the detection node's params as the graph runs them (thresholds, threads, model), switched to ``detector``
+    graph_detection = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]["detection"]
+    node_params = Detection.parse_params(_set_detector(dict(graph_detection["params"]), detector))
     if detector == "simulated" and not is_scene:
         raise ValueError(f"{spec}: simulated detections are reproduced by the graph for scenes only; "
                          "use --detector yolox|yolox640|hog")
@@ -386,20 +392,13 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
         sim = SimulatedDetector(seed=0)  # detection node defaults: noise 4 px, miss 0.05, fp 0.02, seed 0
 
         def detect(item):
-            return sim.detect(item.bgr, item.truth)
+            return split_detections(node_params, sim.detect(item.bgr, item.truth))
     else:
-        import yaml
-
-        from ..nodes.detection import Detection, detector_from_params
-
         # exactly the detector the graph's detection node builds (threads, thresholds, model)
-        node_params = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]["detection"]["params"]
-        real = detector_from_params(Detection.parse_params(_set_detector(dict(node_params), detector)))
+        real = detector_from_params(node_params)
 
         def detect(item):
-            return real.detect(item.bgr)
-    import yaml
-
+            return split_detections(node_params, real.detect(item.bgr))
     from ..tracking.params import TrackerParams
 
     # The graph warps the prior by camera motion only where an egomotion node publishes it; in-process likewise.
@@ -413,9 +412,9 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
                 raise ValueError(f"{spec}: the target has no ground-truth box on frame 0 (the graph is told "
                                  "whom to follow on its first frame)")
             init_box = list(item.gt_box)
-            box, _ = follower.step(item.bgr, detect(item), item.t_ns, (0.0, 0.0), init_box)
-        else:
-            box, _ = follower.step(item.bgr, detect(item), item.t_ns, (0.0, 0.0), None)
+        high, low = detect(item)
+        box, _ = follower.step(item.bgr, high, item.t_ns, (0.0, 0.0), init_box if not inproc else None,
+                               low_detections=low)
         inproc.append(box)
     assert init_box is not None
 

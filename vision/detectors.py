@@ -127,6 +127,20 @@ def nms(dets: np.ndarray, iou_threshold: float, score_threshold: float = 0.0) ->
     return out[np.argsort(-out[:, 4], kind="stable")]
 
 
+def split_by_score(dets: np.ndarray, score_threshold: float,
+                   low_score_threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """(high, low) rows of x, y, w, h, score detections: score >= ``score_threshold``, and the rest scoring at
+    least ``low_score_threshold`` (ByteTrack's D_high / D_low, seed 002 §3.1), each in the given order.
+
+    A detector run at ``low_score_threshold`` yields the same high rows as one run at ``score_threshold``:
+    greedy NMS lets a box be suppressed only by a kept box of a higher score, so the extra low boxes
+    suppress none of them."""
+    d = np.asarray(dets, dtype=np.float32).reshape(-1, 5)
+    high = d[:, 4] >= score_threshold
+    low = ~high & (d[:, 4] >= low_score_threshold)
+    return d[high], d[low]
+
+
 def iou_xywh(a: Sequence[float], b: Sequence[float]) -> float:
     """Intersection over union of two x, y, w, h boxes."""
     ax1, ay1, bx1, by1 = a[0] + a[2], a[1] + a[3], b[0] + b[2], b[1] + b[3]
@@ -584,6 +598,7 @@ __all__ = [
     "make_detector",
     "resolve_detector_model",
     "nms",
+    "split_by_score",
     "unletterbox_boxes",
     "yolov8_postprocess",
     "yolox_postprocess",
