@@ -326,3 +326,28 @@ def test_low_score_detections_are_a_second_stage_never_a_training_sample() -> No
     off, template_off = started(TrackerParams(low_score_stage=False))
     result = off.step(frame, dets(), prior_at(TARGET, 33_000_000), template_off, 33_000_000, low_detections=low)
     assert not any(c.source == "low-score" for c in result.candidates)
+
+
+def test_low_score_stage_keeps_bytetracks_caution() -> None:
+    """ByteTrack's second stage (seed 002): only for a target matched on the previous frame and only a low-score
+    box overlapping the predicted box by low_score_min_iou: an occluded target's gate may hold a stranger's weak
+    box, and a weak box inside the gate but beside the prediction is someone else."""
+    params = TrackerParams()
+    reid, template = started(params)
+    frame = draw((TARGET, RED))
+    beside = (TARGET[0] + 18.0, TARGET[1], TARGET[2], TARGET[3])  # in the gate, IoU 0.25 with the prediction
+    weak = np.array([(*beside, 0.2)], np.float32)
+    result = reid.step(draw((beside, RED)), dets(), prior_at(TARGET, 33 * MS), template, 33 * MS, low_detections=weak)
+    assert not result.accepted and result.state is TrackState.OCCLUDED
+    # now occluded: not even a weak box right on the prediction is taken (the target was not matched last frame)
+    on = np.array([(*TARGET, 0.2)], np.float32)
+    result = reid.step(frame, dets(), prior_at(TARGET, 66 * MS), template, 66 * MS, low_detections=on)
+    assert not result.accepted and result.state is TrackState.OCCLUDED
+    # a confident detection brings it back; then the weak box on the prediction is taken again
+    assert reid.step(frame, dets(TARGET), prior_at(TARGET, 99 * MS), template, 99 * MS).accepted
+    result = reid.step(frame, dets(), prior_at(TARGET, 132 * MS), template, 132 * MS, low_detections=on)
+    assert result.accepted and result.source == "low-score"
+    loose = ReIdentifier(TrackerParams(low_score_min_iou=0.0))
+    loose.step(frame, dets(TARGET), None, None, 0, init_box=TARGET)
+    assert loose.step(draw((beside, RED)), dets(), prior_at(TARGET, 33 * MS), template, 33 * MS,
+                      low_detections=weak).accepted

@@ -240,11 +240,15 @@ class ReIdentifier:
         accepted = best is not None and best.m_fuse > p.reid_threshold  # Alg. 1 line 9
         if accepted and best is not None:
             best, accepted = self._identity_decision(frame_bgr, candidates, best)
-        low = _valid_boxes(low_detections) if p.low_score_stage and self.state is not TrackState.LOST else []
+        # ByteTrack's second association takes only the tracks matched on the previous frame (its T_remain holds
+        # tracked, not lost, tracks) and only boxes overlapping their prediction (IoU 0.5): not while OCCLUDED.
+        tracked = self.state in (TrackState.TRACKING, TrackState.REACQUIRED)
+        low = _valid_boxes(low_detections) if p.low_score_stage and tracked else []
         if not accepted and low:
             # Stage 2 (seed 002 / ByteTrack): nothing in the gate matched, so the low-score detections, where
             # a partly hidden target still is; scored alike, never a training sample (not secure).
-            second = self._gate_candidates(low, prior, "low-score")
+            second = [c for c in self._gate_candidates(low, prior, "low-score")
+                      if box_iou(c.box, prior.box) >= p.low_score_min_iou]
             best2, c_t2, omega2 = self._score(frame_bgr, second, prior, template_hist)
             if best2 is not None and best2.m_fuse > p.reid_threshold:
                 best2, ok = self._identity_decision(frame_bgr, second, best2)
