@@ -133,13 +133,16 @@ class PeerFollower:
     the target). ``info["mot"]`` carries the tracker's confirmed output ``(ids, boxes)`` for MOT scoring,
     never the coasted box.
 
-    All three have a ByteTrack-style second association stage for low-score boxes (below their
-    ``high_conf_det_threshold``; BoT-SORT takes those above 0.1, ByteTrack's τ_low), so by their own design they
-    are fed the low-score boxes too (``low_score_boxes``; the runner passes them as ``low_detections``), as
-    followbus's re-ID is.
+    All three have a ByteTrack-style second association stage for the boxes under their
+    ``high_conf_det_threshold`` 0.6, and ByteTrack's design feeds it everything above 0.1 (BoT-SORT keeps > 0.1).
+    They are nevertheless given only the boxes above the evaluation's SCORE_THRESHOLD by default, as before the
+    detection node published low-score boxes: fed the 0.1-0.3 boxes too (``low_score_boxes=True``; the runner
+    then passes them as ``low_detections``) they do worse (`followbus eval all --detector yolox640`, 2026-11-24:
+    ByteTrack 66.7 -> 54.8 % TSR@20px, BoT-SORT 66.9 -> 61.1, OC-SORT 37.8 either way; ``trackers`` matches its
+    second stage at IoU 0.1, ByteTrack's own code at 0.5), so the default is the stronger peer.
     """
 
-    def __init__(self, kind: str, fps: float = 30.0, low_score_boxes: bool = True) -> None:
+    def __init__(self, kind: str, fps: float = 30.0, low_score_boxes: bool = False) -> None:
         kind = peer_kind(kind)
         reason = peer_available()
         if reason:

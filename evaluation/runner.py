@@ -50,8 +50,8 @@ ABLATIONS: dict[str, dict[str, bool]] = {
     "followbus w/o low-score stage": {"low_score_stage": False},
 }
 # graph.yaml's detection node: boxes scoring score_threshold or more are "the detections" every method sees;
-# those in [low_score_threshold, score_threshold) only reach the methods whose own design has a second,
-# low-score association stage (followbus's re-ID; ByteTrack, OC-SORT and BoT-SORT as `trackers` ships them).
+# those in [low_score_threshold, score_threshold) only reach a method that asks for them (``uses_low_scores``):
+# followbus's re-ID (its second association stage); the peers do worse with them (see baselines.PeerFollower).
 SCORE_THRESHOLD = 0.3
 LOW_SCORE_THRESHOLD = 0.1
 LOW_VISIBILITY = 0.5  # scene frames with less of the target visible are shaded as (partial) occlusion
