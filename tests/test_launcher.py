@@ -57,6 +57,8 @@ def test_launch_restart_and_clean_shutdown(graph_file, port):
         relay_pid = watcher.snapshot()["relay"].status.pid
         launch_id = _launch_id(relay_pid)
         assert launch_id, "the launcher gives its children a launch id"
+        # one BLAS thread per node process (a pool in each spins on the cores the other nodes need)
+        assert os.environ.get("OPENBLAS_NUM_THREADS") or _child_env(relay_pid, "OPENBLAS_NUM_THREADS") == "1"
         os.kill(relay_pid, signal.SIGKILL)
 
         def restarted() -> bool:
@@ -85,8 +87,12 @@ def test_launch_restart_and_clean_shutdown(graph_file, port):
 def _launch_id(pid: int) -> str:
     from followbus.bus.node import LAUNCH_ID_ENV
 
+    return _child_env(pid, LAUNCH_ID_ENV)
+
+
+def _child_env(pid: int, name: str) -> str:
     environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
-    prefix = f"{LAUNCH_ID_ENV}=".encode()
+    prefix = f"{name}=".encode()
     return next((item[len(prefix):].decode() for item in environ if item.startswith(prefix)), "")
 
 

@@ -123,11 +123,13 @@ class TargetClassifier:
         self.positives = _SampleSet(p.short_term_samples, p.long_term_samples, p.long_term_every)
         self.negatives = _SampleSet(p.short_term_samples, p.long_term_samples, p.long_term_every)
         self.w: np.ndarray | None = None
+        self._stale = False  # samples added since w was fitted
 
     @property
     def ready(self) -> bool:
         """Trained on the target and on at least one other person: only then does a score separate them."""
-        return self.w is not None and len(self.negatives.short) + len(self.negatives.long) > 0
+        has_positives = len(self.positives.short) + len(self.positives.long) > 0
+        return has_positives and len(self.negatives.short) + len(self.negatives.long) > 0
 
     def reset(self) -> None:
         self.__init__(self.params)  # type: ignore[misc]
@@ -138,9 +140,10 @@ class TargetClassifier:
             self.positives.add(np.asarray(target, np.float64))
         for x in np.asarray(others, np.float64).reshape(-1, target.shape[-1] if target is not None else 512):
             self.negatives.add(x)
-        self._fit()
+        self._stale = True  # refitted when next asked to score: samples come far more often than decisions
 
     def _fit(self) -> None:
+        self._stale = False
         pos, neg = self.positives.all(), self.negatives.all()
         if not pos:
             self.w = None
@@ -155,6 +158,8 @@ class TargetClassifier:
     def score(self, descriptors: np.ndarray) -> np.ndarray:
         """Predicted target-ness (≈1 target, ≈0 others) of each descriptor; zeros when untrained."""
         d = np.asarray(descriptors, np.float64)
+        if self._stale:
+            self._fit()
         if self.w is None or d.size == 0:
             return np.zeros(len(d))
         return d @ self.w
