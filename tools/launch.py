@@ -31,7 +31,6 @@ from ..bus.pubsub import Publisher, direct_callback
 from ..bus.session import open_session
 
 log = logging.getLogger("followbus.launch")
-BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 PR_SET_PDEATHSIG = 1
 # A node that fails again after being restarted this recently is crash-looping: its restarts are not helping.
@@ -92,10 +91,6 @@ class Launcher:
         self.ready_event = threading.Event()
         self._out_lock = threading.Lock()
         self.env = dict(os.environ, **(extra_env or {}), PYTHONUNBUFFERED="1")
-        # One process per node on a small CPU: a BLAS thread pool in each would spin on the cores the other nodes
-        # need (re-ID's ridge regression burnt ~30 % of a core that way). Set these yourself to override.
-        for var in BLAS_THREAD_VARS:
-            self.env.setdefault(var, "1")
         selected = []
         for name, spec in graph.nodes.items():
             if only and name not in only:
