@@ -521,6 +521,7 @@ class Scene:
         self._margin = (round(0.12 * self.width), round(0.06 * self.height)) if spec.ego else (0, 0)
         self._background: np.ndarray | None = None
         self._occluders: list[tuple[np.ndarray, float]] = []
+        self._bank: tuple[list[tuple[np.ndarray, np.ndarray]], dict] | None = None
 
     @property
     def target_style(self) -> PersonStyle:
@@ -548,6 +549,22 @@ class Scene:
             rng = np.random.default_rng([self.seed, 2])
             self._background, self._occluders = _render_environment(
                 self.camera, self._spec.env, self._spec.occluders, rng, self._margin)
+
+    def _noise_bank(self) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.random.Generator]:
+        """Eight sensor-noise frames split into +/- parts for saturating uint8 add/subtract, and the
+        frame loop's generator in the state that follows them. Drawn once (~90 ms at 640x480) and kept,
+        so a looping capture re-iterates the scene without a stall at each pass; every pass is identical."""
+        if self._bank is None:
+            rng = np.random.default_rng([self.seed, 3])
+            bank = []
+            for _ in range(8):
+                n = rng.normal(0.0, self._spec.noise_sigma, size=(self.height, self.width, 3))
+                bank.append((np.clip(n, 0, 255).astype(np.uint8), np.clip(-n, 0, 255).astype(np.uint8)))
+            self._bank = (bank, rng.bit_generator.state)
+        bank, state = self._bank
+        rng = np.random.default_rng()
+        rng.bit_generator.state = state
+        return bank, rng
 
     def _illumination(self, x_m: float, z_m: float) -> float:
         env = self._spec.env
@@ -585,12 +602,7 @@ class Scene:
         spec, cam = self._spec, self.camera
         W, H = self.width, self.height
         mx, my = self._margin
-        rng = np.random.default_rng([self.seed, 3])
-        # Bank of sensor-noise frames split into +/- parts for saturating uint8 add/subtract.
-        bank = []
-        for _ in range(8):
-            n = rng.normal(0.0, spec.noise_sigma, size=(H, W, 3))
-            bank.append((np.clip(n, 0, 255).astype(np.uint8), np.clip(-n, 0, 255).astype(np.uint8)))
+        bank, rng = self._noise_bank()
         noise_idx = 0
         jit = np.zeros(2)
         phases = [p0 for _, p0 in self._actors]

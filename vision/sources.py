@@ -64,6 +64,7 @@ class _Source:
 
     name: str = ""
     fps: float = DEFAULT_FPS
+    rewindable = False  # True when iterating again restarts the sequence (no need to re-open it)
 
     def __iter__(self) -> Iterator[SourceFrame]:
         return self.frames()
@@ -304,6 +305,8 @@ class SceneSource(_Source):
     ``ego_velocity_mps``, ``camera_offset_px``, ``people`` (input of the simulated detector)
     and ``scene``.
     """
+
+    rewindable = True  # iterating again replays the same frames, without re-rendering the scene's assets
 
     def __init__(self, name: str = DEFAULT_SCENE, seed: int = 0, width: int = 640, height: int = 480,
                  fps: float = 30.0) -> None:
