@@ -499,3 +499,33 @@ def test_a_looping_scene_capture_replays_the_same_frames_without_reopening_its_s
         assert np.array_equal(frames[n + k].data, frames[k].data)
     spacing_ns = frames[1].header.stamp_ns - frames[0].header.stamp_ns
     assert frames[n].header.stamp_ns - frames[n - 1].header.stamp_ns == spacing_ns
+
+
+def test_a_slow_detector_costs_no_feedback_wait():
+    """Detections 110 ms after their frame, for one frame in three (a detector slower than the camera): every
+    measurement still gets its template (the frame waits for it as long as re-ID waits) and re-ID never waits in
+    vain for a template that will not come. With template's default 100 ms, frame sets expired before their
+    measurement, no template went out, and re-ID's next set waited its whole 300 ms (chaos detector-delay-80ms:
+    p99 capture->command 300 ms)."""
+    box = (140, 80, 30, 80)
+    graph = tracking_graph(f"reid.init_box={list(map(float, box))}")
+    with InProcessGraph(graph, nodes=["egomotion", "prediction", "reid", "template"],
+                        record=["reid/measurement", "template/template", "prediction/track"]) as g:
+        t0 = g.now_ns
+        events = []
+        for k in range(30):
+            stamp = t0 + k * DT_NS
+            events.append((stamp, 0, "capture/frame", frame_msg(k, stamp, person_frame(box))))
+            if k % 3 == 0:
+                events.append((stamp + 110 * MS, 1, "detection/detections", dets_msg(k, stamp, box)))
+        for t, _, topic, msg in sorted(events, key=lambda e: (e[0], e[1])):
+            g.run_until(t)
+            g.inject(topic, msg)
+            g.deliver()
+        g.run_for(1000 * MS)
+        measurements = g.outputs("reid", "measurement")
+        templates = g.outputs("template", "template")
+        reid = g.status("reid")["extra"]
+    assert [m.header.frame_seq for m in measurements] == list(range(0, 30, 3))
+    assert [t.header.frame_seq for t in templates] == list(range(0, 30, 3))
+    assert reid["sync_timeouts"] == 0 and reid["sync_feedback_fallbacks"] == 0, reid
