@@ -255,6 +255,14 @@ class InProcessGraph:
         """The messages ``node`` published on ``output``, decoded from what went out (recorded topics only)."""
         return [decode(p) for p in self.payloads(node, output)]
 
+    def drain(self, topic: str) -> list[Message]:
+        """The messages published on a recorded ``topic`` (``node/output``) since the last drain, decoded, and
+        forgotten: a long run keeps nothing it has read."""
+        if topic not in self._recorded:
+            raise KeyError(f"topic {topic!r} is not recorded (recorded: {', '.join(sorted(self._recorded))})")
+        payloads, self._recorded[topic] = self._recorded[topic], []
+        return [decode(p) for p in payloads]
+
     # --- feeding --------------------------------------------------------------------------------
     def inject(self, topic: str, msg: Message) -> bool:
         """Publish ``msg`` on ``topic`` (``node/output``) as if its producer had, header as given; it reaches

@@ -8,6 +8,9 @@ the first frame that has one; before it they output nothing.
 Sequences: ``sot/<name>`` and ``mot/<name>`` directories (see :mod:`followbus.evaluation.datasets`;
 for MOT the follow target is chosen there) and ``scene:<name>`` synthetic scenes (exact ground truth,
 visible fractions, the other people's boxes and the robot's ego velocity).
+
+followbus itself is the graph: its tracking nodes run in-process (graph_follower.py), so what is scored is what
+the robot runs, in the graph's own data order.
 """
 
 from __future__ import annotations
@@ -23,10 +26,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..tracking.params import TrackerParams
-from ..tracking.tracker import TargetTracker
 from . import detcache
 from .baselines import KalmanFollower, PeerFollower, peer_kind
 from .datasets import load_sequence
+from .graph_follower import GraphFollower
 from .metrics import Box, SingleTargetMetrics, evaluate_single_target
 from .mot_metrics import MotMetrics, evaluate_mot, remove_distractor_matches
 
@@ -65,19 +68,6 @@ class Follower(Protocol):
              init_box: Sequence[float] | None) -> tuple[Box | None, dict[str, Any]]: ...
 
 
-class FollowbusFollower:
-    """:class:`TargetTracker` (the graph's pure modules) behind the follower interface."""
-
-    def __init__(self, params: TrackerParams | None = None) -> None:
-        self.tracker = TargetTracker(params)
-        self.uses_low_scores = self.tracker.params.low_score_stage
-
-    def step(self, frame_bgr, detections, t_ns, v_ego_mps, init_box, low_detections=None):
-        r = self.tracker.step(frame_bgr, detections, t_ns, v_ego_mps, init_box=init_box, low_detections=low_detections)
-        box = None if r.box is None else tuple(float(v) for v in r.box)
-        return box, {"state": r.state.name, "eta": float(r.eta_k)}
-
-
 class _NoEgo:
     """Adapter for followers that take no ego velocity."""
 
@@ -103,7 +93,7 @@ def method_factories(methods: Sequence[str], ablations: bool = False,
     out: dict[str, Callable[[float], Follower]] = {}
     for m in methods:
         if m == "followbus":
-            out[m] = lambda fps, p=base: FollowbusFollower(p)
+            out[m] = lambda fps, p=base: GraphFollower(p)
         elif m == "kalman":
             out[m] = lambda fps, p=base: _NoEgo(KalmanFollower(accel_std_px_s2=p.accel_std_px_s2, r_px2=p.r0_px2,
                                                                init_velocity_std_px_s=p.init_velocity_std_px_s,
@@ -117,7 +107,7 @@ def method_factories(methods: Sequence[str], ablations: bool = False,
     if ablations:
         for name, switches in ABLATIONS.items():
             params = TrackerParams.from_dict({**base.to_dict(), **switches})
-            out[name] = lambda fps, p=params: FollowbusFollower(p)
+            out[name] = lambda fps, p=params: GraphFollower(p)
     return out
 
 
@@ -358,6 +348,10 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
             runs[name].tracker_ms.append((time.perf_counter() - t0) * 1e3)
             runs[name].boxes.append(box)
             runs[name].infos.append(info)
+    for follower in followers.values():
+        close = getattr(follower, "close", None)
+        if close is not None:
+            close()  # the graph's nodes tear down (nothing is saved: no template file in eval)
     if not from_cache:
         cached = detcache.CachedDetections(det_frames, np.asarray(det_ms))
         if path is not None:

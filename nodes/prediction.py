@@ -2,7 +2,7 @@
 
 For each frame k (ticked by its detections) it publishes the prior: state, P_k, the innovation
 covariance and the χ² gate (Eq. 8). Its measurement input is joined with offset -1, so prior k is
-computed after frame k-1's re-ID result was folded in, in the same order as the in-process tracker.
+computed after frame k-1's re-ID result was folded in.
 Each re-ID result is applied as soon as it arrives (measurement update, or suspension when the
 target is occluded) and the posterior track is published at once, so motor control is not held
 back a frame. An optional same-frame ``transform`` (the egomotion node's camera motion, seed 002 §3.3) warps

@@ -332,16 +332,17 @@ def test_whole_graph_runs_bit_identically_twice():
         assert payloads == runs[1][topic], f"{topic} differs between two runs"
 
 
-def test_whole_graph_agrees_with_the_in_process_tracker():
-    """tracking/tracker.py (what `followbus eval` runs) is a hand-kept copy of the graph's data order: the
-    graph's own nodes, run here (motor left out: no odometry, v_ego = 0, as eval's graph check), must give the
-    same boxes, bit for bit."""
-    from followbus.evaluation.runner import FollowbusFollower, open_sequence
+def test_whole_graph_agrees_with_what_eval_runs():
+    """`followbus eval` runs the graph's tracking nodes fed with frames and detections it publishes itself
+    (evaluation/graph_follower.py); the graph with its own capture and detection nodes (motor left out: no
+    odometry, v_ego = 0, as eval's graph check) must give the same boxes, bit for bit."""
+    from followbus.evaluation.graph_follower import GraphFollower
+    from followbus.evaluation.runner import open_sequence
     from followbus.vision.detectors import SimulatedDetector
 
     n = 60
     seq = open_sequence("scene:wall-occlusion", max_frames=n)
-    detector, follower = SimulatedDetector(seed=0), FollowbusFollower()  # the detection node's defaults
+    detector, follower = SimulatedDetector(seed=0), GraphFollower()  # the detection node's defaults
     expected, init_box = [], None
     for item in seq.frames():
         box, _ = follower.step(item.bgr, detector.detect(item.bgr, item.truth), item.t_ns, (0.0, 0.0),

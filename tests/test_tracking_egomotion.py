@@ -163,31 +163,31 @@ def test_warped_prior_lands_on_the_moved_target() -> None:
 def test_tracker_keeps_a_still_person_through_camera_shake() -> None:
     """A person standing still while the camera shakes 60 px left and right every frame: with compensation the
     prior follows the image and every frame is matched; without it the jumps leave the gate."""
-    from followbus.tracking.reid import TrackState
-    from followbus.tracking.tracker import TargetTracker
+    from followbus.evaluation.graph_follower import GraphFollower
 
     world = np.concatenate([textured(6), textured(7)[:, :160]], axis=1)  # 800 px wide scene
     person = (500, 200, 60, 150)  # world x, y, w, h: a red figure that never moves
     cv2.rectangle(world, (person[0], person[1]), (person[0] + person[2], person[1] + person[3]), (30, 30, 200), -1)
     offsets = [0, 60, 0, 60, 0, 60, 0, 60, 10, 70, 20, 80, 30]
 
-    def run(cmc: bool) -> list:
-        tracker = TargetTracker(TrackerParams(camera_motion_compensation=cmc))
+    def run(cmc: bool) -> tuple[list, int]:
+        follower = GraphFollower(TrackerParams(camera_motion_compensation=cmc))  # the graph's nodes, in-process
         out = []
         for k, o in enumerate(offsets):
             frame = np.ascontiguousarray(world[:, o:o + W])
             box = (float(person[0] - o), float(person[1]), float(person[2]), float(person[3]))
-            r = tracker.step(frame, np.array([[*box, 0.9]], np.float32), k * 33_000_000,
-                             init_box=box if k == 0 else None)
-            out.append((r, box))
-        return out
+            follower.step(frame, np.array([[*box, 0.9]], np.float32), k * 33_000_000,
+                          init_box=box if k == 0 else None)
+            out.append((follower.last, box))
+        warped = follower.graph.status("prediction")["extra"]["priors_warped"]
+        return out, warped
 
-    with_cmc = run(True)
-    assert all(r.state is TrackState.TRACKING and r.reid.accepted for r, _ in with_cmc)
-    assert all(r.box is not None and np.allclose(r.box, box) for r, box in with_cmc)
-    assert sum(r.camera_motion is not None for r, _ in with_cmc) == len(offsets) - 1
-    without = run(False)
-    assert sum(not r.reid.accepted for r, _ in without) >= 3
+    with_cmc, warped = run(True)
+    assert all(o.track.state == "TRACKING" and o.measurement.accepted for o, _ in with_cmc)
+    assert all(o.track.box is not None and np.allclose(o.track.box, box) for o, box in with_cmc)
+    assert warped == len(offsets) - 1
+    without, _ = run(False)
+    assert sum(not o.measurement.accepted for o, _ in without) >= 3
 
 
 def test_egomotion_node_publishes_the_transform_and_prediction_warps_by_it(tmp_path) -> None:

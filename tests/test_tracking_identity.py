@@ -75,24 +75,24 @@ def test_learned_appearance_keeps_the_target_when_a_lookalike_walks_out_of_it():
     """otb-human3, frames 0-110 with the real YOLOX-nano 640: around frame 90 a walker in similar dark clothes
     steps out from behind the target; colour and geometry score both alike (S_color 0.93 vs 0.94) and seed 000
     alone follows the walker from frame 94 on. With the learned appearance the output stays on the target."""
+    from followbus.evaluation.graph_follower import GraphFollower
     from followbus.tracking.params import TrackerParams
-    from followbus.tracking.tracker import TargetTracker
     from followbus.vision.detectors import make_detector
 
     seq = load_sequence(_data("sot/otb-human3"))
     detector = make_detector("yolox", input_size=640)
-    tracker = TargetTracker(TrackerParams())
+    follower = GraphFollower(TrackerParams())  # the graph's tracking nodes, in-process
     errors = {}
     for k in range(111):
         bgr = cv2.imread(str(seq.image_paths[k]))
-        result = tracker.step(bgr, detector.detect(bgr), int(k * 1e9 / seq.fps),
-                              init_box=seq.gt_boxes[0] if k == 0 else None)
+        box, _ = follower.step(bgr, detector.detect(bgr), int(k * 1e9 / seq.fps),
+                               init_box=seq.gt_boxes[0] if k == 0 else None)
         gt = seq.gt_boxes[k]
-        if k >= 85 and gt is not None and result.box is not None:
-            (x, y, w, h), (gx, gy, gw, gh) = result.box, gt
+        if k >= 85 and gt is not None and box is not None:
+            (x, y, w, h), (gx, gy, gw, gh) = box, gt
             errors[k] = float(np.hypot(x + w / 2 - gx - gw / 2, y + h / 2 - gy - gh / 2))
     assert len(errors) >= 24 and np.mean([e < 20 for e in errors.values()]) >= 0.9, errors
-    assert tracker.reid.identity_decisions > 0
+    assert follower.node("reid").reid.identity_decisions > 0
 
 
 def test_without_the_model_reid_says_so_and_falls_back_to_colour(monkeypatch, caplog):

@@ -1,16 +1,18 @@
-"""End-to-end behaviour of the seed-000 tracker on a synthetic occlusion sequence."""
+"""End-to-end behaviour of the seed-000 tracker (the graph's tracking nodes, in-process) on a synthetic occlusion
+sequence."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from followbus.evaluation.graph_follower import GraphFollower
 from followbus.tracking.init import frame_difference_roi, motion_blobs, nearest_to_centre_bottom, to_grey
 from followbus.tracking.kalman import Predictor
 from followbus.tracking.params import TrackerParams
-from followbus.tracking.reid import ReIdentifier, TrackState
+from followbus.tracking.reid import ReIdentifier
 from followbus.tracking.template import TemplateUpdater
-from followbus.tracking.tracker import TargetTracker
+from followbus.tracking.tracker import output_box
 
 W, H = 480, 270
 BAR_X = (200, 280)  # grey occluder, full height; the target passes behind it
@@ -39,55 +41,58 @@ def scene(k: int) -> tuple[np.ndarray, np.ndarray, tuple[float, float], float]:
     return img, np.array(rows, np.float32), (tx + TW / 2.0, ty + TH / 2.0), float(visible.mean())
 
 
-def run(tracker: TargetTracker) -> list[tuple]:
+def run(follower: GraphFollower) -> list[tuple]:
+    """(k, visible fraction, gt centre, what the graph published for frame k) per frame."""
     out = []
     for k in range(N_FRAMES):
         img, dets, gt, vis = scene(k)
-        res = tracker.step(img, dets, k * FRAME_NS, v_ego_mps=(0.5, 0.0))
-        out.append((k, vis, gt, res))
+        follower.step(img, dets, k * FRAME_NS, v_ego_mps=(0.5, 0.0))
+        out.append((k, vis, gt, follower.last))
     return out
 
 
-def centre_error(box: tuple[float, float, float, float], gt: tuple[float, float]) -> float:
+def centre_error(box, gt: tuple[float, float]) -> float:
     return float(np.hypot(box[0] + box[2] / 2.0 - gt[0], box[1] + box[3] / 2.0 - gt[1]))
 
 
 def test_tracker_through_occlusion_with_distractor() -> None:
-    frames = run(TargetTracker(TrackerParams()))
+    """The graph's tracking nodes (run in-process, as `followbus eval` runs them) through an occlusion."""
+    frames = run(GraphFollower(TrackerParams()))
     # Initialised on frame 0 from the detection nearest the image bottom-centre (the target).
-    assert frames[0][3].reid.init_box is not None
-    assert centre_error(frames[0][3].reid.init_box, frames[0][2]) == 0.0
+    assert frames[0][3].measurement.init_box is not None
+    assert centre_error(frames[0][3].measurement.init_box, frames[0][2]) == 0.0
 
     hidden = [f for f in frames if f[1] == 0.0]
     assert len(hidden) >= 10
     before = [f for f in frames if f[0] < hidden[0][0] and f[1] >= 0.5]
     after_start = hidden[-1][0] + 1
-    assert all(f[3].state is TrackState.OCCLUDED for f in hidden)
-    for _, _, gt, res in hidden:  # the predicted box is reported while hidden
-        assert res.box is not None and centre_error(res.box, gt) < 20.0
-        assert res.eta_k == 0.0
-    for _, _, gt, res in before:
-        assert res.state is TrackState.TRACKING
-        assert centre_error(res.box, gt) < 20.0
+    assert all(f[3].track.state == "OCCLUDED" for f in hidden)
+    for _, _, gt, out in hidden:  # the predicted box is reported while hidden
+        assert out.track.box is not None and centre_error(out.track.box, gt) < 20.0
+        assert out.template.eta == 0.0
+    for _, _, gt, out in before:
+        assert out.track.state == "TRACKING"
+        assert centre_error(out.track.box, gt) < 20.0
 
-    after = [f for f in frames if f[0] >= after_start and f[3].reid.accepted]
+    after = [f for f in frames if f[0] >= after_start and f[3].measurement.accepted]
     assert after, "target never re-identified"
     first = after[0]
-    assert first[3].state is TrackState.REACQUIRED
+    assert first[3].track.state == "REACQUIRED"
     assert first[0] <= after_start + 3  # re-identified as soon as it is ≥ 50 % visible
-    for _, _, gt, res in after:
-        assert centre_error(res.box, gt) < 20.0
-        assert res.reid.s_color > 0.9  # the red target, never the blue distractor
-    assert frames[-1][3].state is TrackState.TRACKING
+    for _, _, gt, out in after:
+        assert centre_error(out.track.box, gt) < 20.0
+        assert out.measurement.s_color > 0.9  # the red target, never the blue distractor
+    assert frames[-1][3].track.state == "TRACKING"
     # The template only learnt while tracked securely.
-    assert all(f[3].eta_k == 0.0 for f in frames if f[3].state is not TrackState.TRACKING)
-    assert any(f[3].eta_k > 0.0 for f in frames)
+    assert all(f[3].template.eta == 0.0 for f in frames if f[3].track.state != "TRACKING")
+    assert any(f[3].template.eta > 0.0 for f in frames)
 
 
-def test_tracker_is_deterministic_and_equals_separate_processes() -> None:
-    a = run(TargetTracker(TrackerParams()))
-    b = run(TargetTracker(TrackerParams()))
-    # The three parts driven separately, in the process graph's order, with their own state.
+def test_the_graph_is_deterministic_and_is_the_seeds_order_of_the_pure_modules() -> None:
+    """Two runs of the graph's nodes are identical, and equal the pure modules driven by hand in seed 000's
+    order (prior k after measurement k-1, re-ID against the template of k-1), bit for bit."""
+    a = run(GraphFollower(TrackerParams()))
+    b = run(GraphFollower(TrackerParams()))
     params = TrackerParams()
     predictor, reid, template = Predictor(params), ReIdentifier(params), TemplateUpdater(params)
     hist = None
@@ -98,33 +103,39 @@ def test_tracker_is_deterministic_and_equals_separate_processes() -> None:
         predictor.apply(r, (0.5, 0.0))
         hist, eta, _ = template.step(img, r)
         ta, tb = a[k][3], b[k][3]
-        assert (ta.state, ta.box, ta.eta_k, ta.reid.m_fuse) == (tb.state, tb.box, tb.eta_k, tb.reid.m_fuse)
-        assert ta.state == r.state and ta.reid.box == r.box and ta.reid.m_fuse == r.m_fuse
-        assert ta.eta_k == eta
-        np.testing.assert_array_equal(ta.template_hist, hist)
+        assert ta.track.state == tb.track.state == r.state.name
+        assert ta.measurement.m_fuse == tb.measurement.m_fuse == r.m_fuse
+        expected = output_box(r, prior)
+        assert (None if ta.track.box is None else tuple(ta.track.box)) == expected
+        assert ta.template.eta == tb.template.eta == eta
+        if hist is None:
+            assert ta.template.hist is None
+        else:
+            np.testing.assert_array_equal(ta.template.hist, hist)
+        assert ta.prior.initialised == (prior is not None)
         if prior is not None:
             np.testing.assert_array_equal(ta.prior.state, prior.state)
             np.testing.assert_array_equal(ta.prior.innovation_cov, prior.innovation_cov)
 
 
 def test_explicit_init_box_and_lost() -> None:
-    params = TrackerParams(lost_after_ms=200.0)
-    tr = TargetTracker(params)
+    follower = GraphFollower(TrackerParams(lost_after_ms=200.0))
     img, dets, _, _ = scene(0)
-    res = tr.step(img, dets, 0, init_box=(40.0, 170.0, 30.0, 60.0))
-    assert res.state is TrackState.TRACKING and res.box == (40.0, 170.0, 30.0, 60.0)
+    box, info = follower.step(img, dets, 0, init_box=(40.0, 170.0, 30.0, 60.0))
+    assert info["state"] == "TRACKING" and box == (40.0, 170.0, 30.0, 60.0)
     empty = np.full((H, W, 3), (40, 90, 40), np.uint8)
-    states = [tr.step(empty, None, k * FRAME_NS).state for k in range(1, 10)]
-    assert states[:6] == [TrackState.OCCLUDED] * 6  # ≤ 200 ms since the last match
-    assert states[6:] == [TrackState.LOST] * 3
-    assert tr.step(empty, None, 10 * FRAME_NS).box is None  # no output box when LOST
+    none = np.zeros((0, 5), np.float32)
+    states = [follower.step(empty, none, k * FRAME_NS)[1]["state"] for k in range(1, 10)]
+    assert states[:6] == ["OCCLUDED"] * 6  # ≤ 200 ms since the last match
+    assert states[6:] == ["LOST"] * 3
+    assert follower.step(empty, none, 10 * FRAME_NS)[0] is None  # no output box when LOST
 
 
 def test_no_target_before_initialisation() -> None:
-    tr = TargetTracker(TrackerParams())
+    follower = GraphFollower(TrackerParams())
     empty = np.full((H, W, 3), (40, 90, 40), np.uint8)
-    res = tr.step(empty, np.zeros((0, 5), np.float32), 0)
-    assert res.state is TrackState.UNINITIALISED and res.box is None and res.prior is None
+    box, info = follower.step(empty, np.zeros((0, 5), np.float32), 0)
+    assert info["state"] == "UNINITIALISED" and box is None and not follower.last.prior.initialised
 
 
 def test_init_helpers() -> None:

@@ -1,5 +1,6 @@
-"""``followbus eval``: score followers on real sequences and synthetic scenes; ``--graph-check`` proves the
-launched graph and the in-process tracker give identical outputs.
+"""``followbus eval``: score followers on real sequences and synthetic scenes; followbus is scored as the
+graph's own tracking nodes run in-process (bus/inproc.py); ``--graph-check`` proves the launched graph (one
+process per node, over Zenoh) gives the same outputs as that in-process run.
 
 Output (``--out``, default results/): results.md (tables + the exact command), results.json, PNG plots
 per sequence, and the detection cache (``cache/``) so a repeated run does not re-run the detector.
@@ -362,7 +363,8 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
                 seed: int = 0, max_in_flight: int = 1, timeout_s: float = 120.0,
                 log_file: Path | None = None) -> dict[str, Any]:
     """Run ``spec`` (scene:<name> or a sot/mot sequence dir) through the launched graph (motor omitted:
-    v_ego = 0) and in-process, on the same detector; compare the track boxes frame by frame.
+    v_ego = 0) and through the same nodes in-process as eval runs them (evaluation/graph_follower.py), on the
+    same detector; compare the track boxes frame by frame.
 
     ``detector``: simulated (scenes only: the graph's detection node rebuilds its input from the capture's
     ground truth) or a real one, yolox / yolox640 / hog, run by the detection node on the frames it receives
@@ -372,7 +374,8 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
     """
     import yaml
 
-    from ..evaluation.runner import FollowbusFollower, open_sequence
+    from ..evaluation.graph_follower import GraphFollower
+    from ..evaluation.runner import open_sequence
     from ..nodes.detection import Detection, detector_from_params, split_detections
     from ..vision.detectors import SimulatedDetector
 
@@ -403,7 +406,7 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
 
     # The graph warps the prior by camera motion only where an egomotion node publishes it; in-process likewise.
     has_egomotion = "egomotion" in yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]
-    follower = FollowbusFollower(TrackerParams(camera_motion_compensation=has_egomotion))
+    follower = GraphFollower(TrackerParams(camera_motion_compensation=has_egomotion))
     inproc: list[Any] = []
     init_box: list[float] | None = None
     for item in seq.frames():

@@ -16,7 +16,7 @@ frame, one pyramidal LK pass (corners of frame k-1 tracked into frame k). A fit 
 (a textureless or mostly-covered background, too few inliers, an implausible scale change) returns no
 transform; callers then use the unwarped prior. Each outcome is counted in :attr:`EgoMotionEstimator.counts`.
 Deterministic: the same frames and boxes give the same matrix (OpenCV's RANSAC seeds its own RNG), so
-the in-process tracker and the graph's egomotion node agree bit for bit.
+a replay, an in-process run and the launched graph's egomotion node agree bit for bit.
 """
 
 from __future__ import annotations

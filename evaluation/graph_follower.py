@@ -1,0 +1,142 @@
+"""The graph's own tracking nodes as an evaluation follower.
+
+``followbus eval`` scores what the robot runs: the egomotion, prediction, re-ID and template nodes of
+graph.yaml, instantiated in this process by the in-process runtime (bus/inproc.py) and fed each frame and its
+detections as the capture and detection nodes would publish them. The graph's data order (prior k after
+measurement k-1, re-ID against the template of k-1, camera motion k-1 → k) is therefore the graph's own, kept in
+one place: the nodes and their synchronisers. The ego velocity of a frame reaches prediction as an odometry sample
+stamped at the frame's capture time, as the motor node would publish it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..bus.graph import Graph, load_graph
+from ..bus.inproc import InProcessGraph
+from ..bus.schemas import Detections, Frame, Measurement, Odometry, Prior, Template, Track
+from ..tracking.params import TrackerParams
+
+GRAPH_PATH = Path(__file__).resolve().parents[1] / "graph.yaml"
+TRACKING_NODES = ("egomotion", "prediction", "reid", "template")
+# The node clock starts here and frame k is stamped CLOCK_BASE_NS + its source time: stamps near the nodes' own
+# clock (nodes reject stamps far from it), differences exactly the source's (the Kalman Δt).
+CLOCK_BASE_NS = 1_700_000_000_000_000_000
+EPOCH_NS = CLOCK_BASE_NS
+MAX_STEPS_PER_FRAME = 1000
+
+
+class GraphFollowerError(RuntimeError):
+    """The graph did not produce a track for a frame it was given."""
+
+
+@dataclass
+class GraphFrame:
+    """What the graph published for one frame."""
+
+    track: Track
+    measurement: Measurement | None
+    prior: Prior | None
+    template: Template | None
+
+
+def tracking_graph(params: TrackerParams, init_box: Sequence[float] | None,
+                   graph_path: Path = GRAPH_PATH) -> Graph:
+    """graph.yaml with ``params`` as every tracking node's tracker parameters, told whom to follow (``None``:
+    re-ID picks the person itself, as on the robot), no template file read or written."""
+    graph = load_graph(graph_path)
+    tracker = params.to_dict()
+    for name in ("prediction", "reid", "template"):
+        graph.nodes[name].params.update(tracker)
+    if init_box is not None:
+        graph.nodes["reid"].params["init_box"] = [float(v) for v in init_box]
+    graph.nodes["template"].params["state_file"] = ""
+    return graph
+
+
+class GraphFollower:
+    """A follower (evaluation/runner.py's protocol) that is the graph: its first :meth:`step` (which carries the
+    initial box, if any) builds the in-process graph, every step publishes one frame with its detections and
+    returns the box of the Track that prediction publishes for it; :attr:`last` holds all the graph published
+    for that frame, :meth:`node` a node instance (as a test would inspect it)."""
+
+    def __init__(self, params: TrackerParams | None = None, graph_path: Path = GRAPH_PATH) -> None:
+        self.params = params or TrackerParams()
+        self.graph_path = graph_path
+        self.uses_low_scores = self.params.low_score_stage
+        self.graph: InProcessGraph | None = None
+        self.k = 0
+        self.last: GraphFrame | None = None
+
+    RECORDED = ("prediction/track", "prediction/prior", "reid/measurement", "template/template")
+
+    def _start(self, init_box: Sequence[float] | None) -> InProcessGraph:
+        graph = tracking_graph(self.params, init_box, self.graph_path)
+        nodes = [n for n in TRACKING_NODES if n in graph.nodes]
+        if not self.params.camera_motion_compensation and "egomotion" in nodes:
+            nodes.remove("egomotion")  # as in the graph without the node: priors are not warped
+        g = InProcessGraph(graph, nodes=nodes, clock="sim", clock_start_ns=CLOCK_BASE_NS,
+                           record=list(self.RECORDED))
+        g.start()
+        return g
+
+    def step(self, frame_bgr: np.ndarray, detections: np.ndarray, t_ns: int, v_ego_mps: Sequence[float] = (0.0, 0.0),
+             init_box: Sequence[float] | None = None,
+             low_detections: np.ndarray | None = None) -> tuple[tuple[float, ...] | None, dict[str, Any]]:
+        if self.graph is None:
+            self.graph = self._start(init_box)
+        g, k = self.graph, self.k
+        stamp = CLOCK_BASE_NS + int(t_ns)
+        g.run_until(stamp)
+
+        def stamped(msg):
+            msg.header.frame_seq, msg.header.stamp_ns, msg.header.epoch_ns = k, stamp, EPOCH_NS
+            return msg
+
+        # Odometry first: prediction takes the newest sample not after the frame's stamp.
+        g.inject("motor/odometry", stamped(Odometry(vx_mps=float(v_ego_mps[0]), vy_mps=float(v_ego_mps[1]))))
+        bgr = np.ascontiguousarray(frame_bgr)
+        g.inject("capture/frame", stamped(Frame(width=bgr.shape[1], height=bgr.shape[0], encoding="bgr8",
+                                                data=bgr)))
+        low = low_detections if low_detections is not None and self.uses_low_scores else None
+        g.inject("detection/detections", stamped(Detections(
+            boxes=np.asarray(detections, np.float32).reshape(-1, 5), backend="eval",
+            low_boxes=np.zeros((0, 5), np.float32) if low is None else np.asarray(low, np.float32).reshape(-1, 5))))
+        self.last = out = self._outputs_of(g, k)
+        self.k += 1
+        box = None if out.track.box is None else tuple(float(v) for v in out.track.box)
+        return box, {"state": out.track.state, "eta": 0.0 if out.template is None else float(out.template.eta)}
+
+    def node(self, name: str) -> Any:
+        if self.graph is None:
+            raise GraphFollowerError("the graph is built at the first step")
+        return self.graph.node(name)
+
+    def _outputs_of(self, g: InProcessGraph, k: int) -> GraphFrame:
+        """Run the graph until prediction has published frame k's track (at once, unless a frame set waits
+        for an optional input until its deadline, as frame 0's does for a camera motion that cannot exist)."""
+        got: dict[str, Any] = {}
+        for _ in range(MAX_STEPS_PER_FRAME):
+            g.deliver()
+            for topic in self.RECORDED:
+                for msg in g.drain(topic):
+                    if msg.header.frame_seq != k:
+                        raise GraphFollowerError(f"frame {k}: the graph published {topic} of frame "
+                                                 f"{msg.header.frame_seq}")
+                    got[topic] = msg
+            if "prediction/track" in got:
+                return GraphFrame(got["prediction/track"], got.get("reid/measurement"),
+                                  got.get("prediction/prior"), got.get("template/template"))
+            if not g.step():
+                break
+        raise GraphFollowerError(f"frame {k}: the graph published no track (node status: "
+                                 f"{ {n: g.status(n)['extra'] for n in g.hosts} })")
+
+    def close(self) -> None:
+        if self.graph is not None:
+            self.graph.close()
