@@ -80,7 +80,7 @@ def test_eval_cli_on_a_real_sequence(tmp_path):
 
 @pytest.mark.slow
 def test_launched_graph_matches_in_process_tracker(port):
-    from followbus.tools.eval import graph_check
+    from followbus.tools.bench.eval import graph_check
 
     res = graph_check("scene:wall-occlusion", max_frames=120, port=port, timeout_s=90)
     assert res["compared"] == 120 and res["missing"] == 0, {k: res[k] for k in ("compared", "missing")}
@@ -95,7 +95,7 @@ def test_launched_graph_matches_in_process_tracker(port):
 def test_launched_graph_matches_in_process_on_a_real_sequence_with_real_inference(port):
     """The detection node runs YOLOX on the frames it receives over the bus; in-process runs it on the
     frames read from disk: the tracks must still agree bit for bit."""
-    from followbus.tools.eval import graph_check
+    from followbus.tools.bench.eval import graph_check
 
     res = graph_check(str(SOT_SEQ), detector="yolox", max_frames=60, port=port, timeout_s=90)
     assert res["detector"] == "yolox" and res["compared"] == 60 and res["missing"] == 0, res["missing"]

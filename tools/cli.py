@@ -570,7 +570,7 @@ def dispatch(args) -> int:
 
         return run_bench_chaos(args)
     if cmd == "eval":
-        from .eval import cmd_eval
+        from .bench.eval import cmd_eval
 
         return cmd_eval(args)
     if cmd == "models":

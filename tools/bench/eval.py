@@ -22,17 +22,17 @@ from typing import Any
 
 import numpy as np
 
-from ..evaluation.metrics import SingleTargetMetrics, aggregate, format_markdown_table
-from ..evaluation.runner import SequenceRun
+from ...evaluation.metrics import SingleTargetMetrics, aggregate, format_markdown_table
+from ...evaluation.runner import SequenceRun
 
 log = logging.getLogger("followbus.eval")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def expand_sequences(specs: list[str]) -> list[str]:
     """``all`` → every sequence under the data root; ``scene:<name>`` and directories pass through."""
-    from ..evaluation.datasets import find_data_root, list_sequences, load_sequence
+    from ...evaluation.datasets import find_data_root, list_sequences, load_sequence
 
     out: list[str] = []
     for s in specs:
@@ -46,7 +46,7 @@ def expand_sequences(specs: list[str]) -> list[str]:
                 raise FileNotFoundError(f"'all': no sequences under {root}/sot or {root}/mot")
             out += found
         elif s.startswith("scene:"):
-            from ..vision.scenes import SCENES
+            from ...vision.scenes import SCENES
 
             if s.split(":", 1)[1] not in SCENES:
                 raise ValueError(f"unknown scene {s!r}; available: {', '.join(SCENES)}")
@@ -140,8 +140,8 @@ def summary_matrix(runs: list[SequenceRun], methods: list[str]) -> str:
 
 def mot_table(runs: list[SequenceRun], methods: list[str]) -> str:
     """MOTA/IDF1/HOTA of the multi-object trackers' whole output on the MOT sequences; "" when none ran."""
-    from ..evaluation.mot_metrics import evaluate_mot_combined
-    from ..evaluation.runner import gt_mot_frames
+    from ...evaluation.mot_metrics import evaluate_mot_combined
+    from ...evaluation.runner import gt_mot_frames
 
     mot_runs = [r for r in runs if any(mr.mot is not None for mr in r.runs.values())]
     if not mot_runs:
@@ -218,14 +218,14 @@ def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command
 
 
 def cmd_eval(args) -> int:
-    from ..evaluation.baselines import peer_available
-    from ..evaluation.plots import plot_sequence
-    from ..evaluation.runner import method_factories, open_sequence, run_sequence
+    from ...evaluation.baselines import peer_available
+    from ...evaluation.plots import plot_sequence
+    from ...evaluation.runner import method_factories, open_sequence, run_sequence
 
     command = "followbus " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if args.argv is None else args.argv
     if getattr(args, "group", False):
-        from ..evaluation.group_eval import cmd_eval_group
-        from ..evaluation.group_sim import SCENARIOS
+        from ...evaluation.group_eval import cmd_eval_group
+        from ...evaluation.group_sim import SCENARIOS
 
         # With --group the positional names are simulator scenarios (default: all of them).
         unknown = [s for s in args.sequences if s not in SCENARIOS]
@@ -280,7 +280,7 @@ def cmd_eval(args) -> int:
     out = Path(args.out)
     from tqdm import tqdm
 
-    from ..vision.models import ModelError
+    from ...vision.models import ModelError
 
     runs: list[SequenceRun] = []
     # delay: a run that fails at once (no model) shows its one line without a progress bar before it
@@ -374,10 +374,10 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
     """
     import yaml
 
-    from ..evaluation.graph_follower import GraphFollower
-    from ..evaluation.runner import open_sequence
-    from ..nodes.detection import Detection, detector_from_params, split_detections
-    from ..vision.detectors import SimulatedDetector
+    from ...evaluation.graph_follower import GraphFollower
+    from ...evaluation.runner import open_sequence
+    from ...nodes.detection import Detection, detector_from_params, split_detections
+    from ...vision.detectors import SimulatedDetector
 
     is_scene = spec.startswith("scene:")
     detector = detector or ("simulated" if is_scene else "yolox")
@@ -402,7 +402,7 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
 
         def detect(item):
             return split_detections(node_params, real.detect(item.bgr))
-    from ..tracking.params import TrackerParams
+    from ...tracking.params import TrackerParams
 
     # The graph warps the prior by camera motion only where an egomotion node publishes it; in-process likewise.
     has_egomotion = "egomotion" in yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]
@@ -447,11 +447,11 @@ def _run_graph_once(source: str, port: int, init_box: list[float], n: int, max_i
                     log_file: Path | None, detector: str) -> dict[int, Any]:
     """Launch the derived graph once (motor omitted) and collect Track boxes by frame_seq. Capture publishes
     frame 0 only once every consuming node is listening (nodes/capture.py), so the lockstep always starts."""
-    from ..bus.graph import load_graph
-    from ..bus.pubsub import Subscriber
-    from ..bus.schemas import Track
-    from ..bus.session import open_session
-    from .launch import Launcher
+    from ...bus.graph import load_graph
+    from ...bus.pubsub import Subscriber
+    from ...bus.schemas import Track
+    from ...bus.session import open_session
+    from ..launch import Launcher
 
     tracks: dict[int, Any] = {}
     done = threading.Event()
