@@ -92,6 +92,55 @@ def test_weight_threshold_removes_a_starved_component() -> None:
     assert tr.estimate().centre_m[1] == pytest.approx(1.8, abs=0.4)
 
 
+def _sub_target_centres(tr: MultiEllipseGroupTracker) -> np.ndarray:
+    return np.array([tr._H(l) @ tr.mu for l in range(tr.n_components)])
+
+
+def test_state_centre_is_the_mean_of_the_sub_target_centres() -> None:
+    """Eq. 13 with Alg. 1 line 43 as the reference: c in the state is the mean of the sub-target centres,
+    at initialisation, after updates, and after a sub-target is pruned (the kept ones do not move)."""
+    rng = np.random.default_rng(7)
+    tr = MultiEllipseGroupTracker(GroupParams(n_ellipses=3, early_frames=5))
+    tr.step(0.0, two_columns(rng, np.zeros(2)))
+    np.testing.assert_allclose(tr.mu[0:2], _sub_target_centres(tr).mean(axis=0), atol=1e-9)
+    n_before = tr.n_components
+    for k in range(1, 60):
+        # Only the upper column is seen from now on: the other sub-targets starve and go.
+        tr.step(0.1 * k, np.array([0.0, 1.8]) + rng.normal(0, [1.0, 0.3], (5, 2)))
+        np.testing.assert_allclose(tr.mu[0:2], _sub_target_centres(tr).mean(axis=0), atol=1e-9)
+        if tr.n_components < n_before:
+            break
+    assert tr.n_components < n_before
+    # Pruning itself moves no kept sub-target: re-basing the same state on the kept ones.
+    tr2 = MultiEllipseGroupTracker(GroupParams(n_ellipses=3, early_frames=0))
+    tr2.step(0.0, two_columns(rng, np.zeros(2)))
+    centres = _sub_target_centres(tr2)
+    tr2.alpha = np.array([1.0, 100.0, 100.0])[: tr2.n_components]
+    tr2.frames = 100
+    tr2._prune()
+    np.testing.assert_allclose(_sub_target_centres(tr2), centres[1:], atol=1e-9)
+    np.testing.assert_allclose(tr2.mu[0:2], centres[1:].mean(axis=0), atol=1e-9)
+
+
+def test_a_sub_target_measures_its_centre_once_per_frame() -> None:
+    """Persistent members (the q_x step of Eq. 19/23): eight points of one sub-target tell the centre about as
+    much as one does, not eight times as much; the centre still goes to their centroid."""
+    post_var = {}
+    for n in (1, 8):
+        tr = MultiEllipseGroupTracker(GroupParams(n_ellipses=1))
+        tr.step(0.0, np.array([[0.0, 0.0], [0.5, 0.0], [0.0, 0.5], [-0.5, 0.0], [0.0, -0.5]]))
+        tr._predict(0.1)
+        mu0, P0, V0, nu0, a0 = tr.mu, tr.P, tr.V, tr.nu, tr.alpha
+        rng = np.random.default_rng(8)
+        pts = np.array([1.0, 0.0]) + rng.normal(0, 0.3, (n, 2))
+        covs = np.broadcast_to(np.eye(2) * 0.01, (n, 2, 2)).copy()
+        mu, P, *_ = tr._vb_update(pts, covs, mu0, P0, V0, nu0, a0)
+        post_var[n] = float(P[0, 0])
+        assert mu0[0] < mu[0] < pts[:, 0].mean() + 0.05      # pulled towards the points' centroid
+    # With each point an independent draw (X/n) the 8-point variance would be several times smaller.
+    assert post_var[8] > 0.6 * post_var[1]
+
+
 def test_kalman_follows_a_constant_velocity_centre() -> None:
     rng = np.random.default_rng(4)
     tr = MultiEllipseGroupTracker()

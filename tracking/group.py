@@ -189,6 +189,24 @@ def _principal_angle(cov: np.ndarray) -> float:
 # --------------------------------------------------------------------------- ME-CGT-UGV
 
 
+def _sub_target_matrix(l: int, L: int) -> np.ndarray:
+    """H_l with sub-target l's centre = c + η_l in the state of Eq. 13, x = [c, ċ, η_2..η_L].
+
+    c is the group centre itself, the mean of the sub-target centres (Alg. 1 line 43), so the offsets sum
+    to zero: η_1 = −(η_2 + … + η_L). With sub-target 1 as the reference instead (η_1 ≡ 0), the velocity in
+    the state was that of the 2-3 people of one ellipse, and their weave went straight into the group's
+    heading; referenced to the mean, each sub-target's own motion is averaged over all L of them."""
+    H = np.zeros((D, 4 + 2 * (L - 1)))
+    H[:, 0:2] = np.eye(D)
+    if l > 0:
+        H[:, 4 + 2 * (l - 1): 6 + 2 * (l - 1)] = np.eye(D)
+    else:
+        for k in range(1, L):
+            H[:, 4 + 2 * (k - 1): 6 + 2 * (k - 1)] = -np.eye(D)
+    return H
+
+
+
 @dataclass
 class GroupParams:
     """Tuning of the multi-ellipse tracker (and of RM-CGT-UGV with n_ellipses = 1)."""
@@ -243,12 +261,8 @@ class MultiEllipseGroupTracker:
         return len(self.nu)
 
     def _H(self, l: int) -> np.ndarray:
-        """Measurement matrix of sub-target l: position = c + η_l (η_1 ≡ 0, Eq. 13)."""
-        H = np.zeros((D, len(self.mu)))
-        H[:, 0:2] = np.eye(D)
-        if l > 0:
-            H[:, 4 + 2 * (l - 1): 6 + 2 * (l - 1)] = np.eye(D)
-        return H
+        """Measurement matrix of sub-target l: position = c + η_l (Eq. 13)."""
+        return _sub_target_matrix(l, self.n_components)
 
     def expected_extent(self, l: int) -> np.ndarray:
         """E[X_l] = V_l / (ν_l − d − 1) (IW mean)."""
@@ -268,9 +282,9 @@ class MultiEllipseGroupTracker:
         labels = kmeans_split(members, L)
         centres = np.array([members[labels == k].mean(axis=0) for k in range(L)])
         self.mu = np.zeros(4 + 2 * (L - 1))
-        self.mu[0:2] = centres[0]
+        self.mu[0:2] = centres.mean(axis=0)                                  # Alg. 1 line 43
         for k in range(1, L):
-            self.mu[4 + 2 * (k - 1): 6 + 2 * (k - 1)] = centres[k] - centres[0]
+            self.mu[4 + 2 * (k - 1): 6 + 2 * (k - 1)] = centres[k] - self.mu[0:2]
         self.P = np.eye(len(self.mu)) * 0.25
         self.P[2:4, 2:4] = np.eye(D) * 1.0  # velocity unknown: ~1 m/s std
         self.V, nus = [], []
@@ -367,12 +381,22 @@ class MultiEllipseGroupTracker:
             gamma = _softmax(logr)
             Nl = gamma.sum(axis=0)
             # Eq. 19 / Eq. 23 q_x: Kalman update in information form, the b's as measurements of c + η_l.
+            # Persistent members: Eq. 8 draws each point afresh from the extent every frame, so N_l points
+            # would measure the sub-target's centre with covariance X_l / N_l. But the points are the same
+            # few people frame after frame, each holding its place in the sub-target: the offset of the
+            # visible members' centroid from the sub-target's centre persists while the same ones are seen
+            # and jumps when occlusion changes who is seen; it does not average out as 1/N_l within a frame,
+            # and a filter that believes it does follows those jumps into the velocity. So each sub-target
+            # measures its centre once per frame, with the posterior centroid of its points and the
+            # covariance of one member, E[X_l⁻¹]⁻¹: its responsibility-weighted information is divided by
+            # max(N_l, 1). Shapes (Eq. 20) and weights (Eq. 21) still count every point.
             info = P0inv.copy()
             vec = P0inv @ mu0
             for l in range(L):
                 HtE = Hs[l].T @ EXinv[l]
-                info += Nl[l] * HtE @ Hs[l]
-                vec += HtE @ (gamma[:, l] @ b)
+                once = 1.0 / max(float(Nl[l]), 1.0)
+                info += once * Nl[l] * HtE @ Hs[l]
+                vec += once * HtE @ (gamma[:, l] @ b)
             P = np.linalg.inv(info)
             P = 0.5 * (P + P.T)
             mu = P @ vec
@@ -388,25 +412,22 @@ class MultiEllipseGroupTracker:
         return mu, P, V, nu, alpha, gamma
 
     def _prune(self) -> None:
-        """§4.6 weight thresholds; the reference sub-target (η_1 ≡ 0) is re-based if it goes."""
+        """§4.6 weight thresholds; the group centre and offsets are re-based on the kept sub-targets."""
         thr = self.p.weight_threshold_early if self.frames < self.p.early_frames else self.p.weight_threshold_late
         w = self.weights()
         keep = [l for l in range(self.n_components) if w[l] >= thr]
         if len(keep) == self.n_components or not keep:
             return
-        # x' = T x: new reference = old component keep[0]; offsets re-expressed relative to it.
+        # x' = T x: the kept sub-targets' centres s_l = H_l x stay where they are; the new c is their mean
+        # (Alg. 1 line 43) and the new offsets are re-expressed relative to it.
         L2 = len(keep)
+        S = np.array([self._H(l) for l in keep])                                # (L2, 2, n)
+        c_new = S.mean(axis=0)
         T = np.zeros((4 + 2 * (L2 - 1), len(self.mu)))
-        T[0:4, 0:4] = np.eye(4)
-        ref = keep[0]
-        if ref > 0:
-            T[0:2, 4 + 2 * (ref - 1): 6 + 2 * (ref - 1)] = np.eye(D)
-        for k, l in enumerate(keep[1:], start=1):
-            row = 4 + 2 * (k - 1)
-            if l > 0:
-                T[row:row + 2, 4 + 2 * (l - 1): 6 + 2 * (l - 1)] += np.eye(D)
-            if ref > 0:
-                T[row:row + 2, 4 + 2 * (ref - 1): 6 + 2 * (ref - 1)] -= np.eye(D)
+        T[0:2] = c_new
+        T[2:4, 2:4] = np.eye(D)
+        for k in range(1, L2):
+            T[4 + 2 * (k - 1): 6 + 2 * (k - 1)] = S[k] - c_new
         self.mu = T @ self.mu
         self.P = T @ self.P @ T.T
         self.V = [self.V[l] for l in keep]
