@@ -1,6 +1,6 @@
 """Bus messages in MCAP files: the channel labels, the schema document, and reading.
 
-Shared by the tools (record, play, replay, info: tools/mcap_io.py writes) and by nodes (capture reads a
+Shared by the tools (record, play, replay, info: tools/recording/mcap_io.py writes) and by nodes (capture reads a
 recording as its source), so it lives in bus/: it knows the frame (bus/codec.py) and the message types,
 nothing of tracking.
 

@@ -8,7 +8,7 @@ import pytest
 
 from followbus.bus.schemas import Detections, Frame, GroundTruth
 from followbus.nodes.capture import McapFrameSource
-from followbus.tools.mcap_io import RecordingWriter
+from followbus.tools.recording.mcap_io import RecordingWriter
 
 T0 = 1_700_000_000_000_000_000
 DT = 33_333_333

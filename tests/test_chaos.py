@@ -15,8 +15,8 @@ from followbus.bus.codec import DecodeError
 from followbus.bus.graph import load_graph
 from followbus.bus.node import ParamError
 from followbus.bus.schemas import SCHEMAS, decode
-from followbus.tools import chaos
-from followbus.tools.chaos import (
+from followbus.tools.bench import chaos
+from followbus.tools.bench.chaos import (
     CI_FAULTS,
     FAULTS,
     ChaosOptions,

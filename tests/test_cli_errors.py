@@ -23,7 +23,7 @@ import pytest
 import zenoh
 
 from followbus.bus.schemas import Tick
-from followbus.tools.mcap_io import RecordingWriter
+from followbus.tools.recording.mcap_io import RecordingWriter
 from followbus.vision.models import MODELS_ENV
 from followbus.vision.sources import SourceError, check_source, open_source
 

@@ -16,7 +16,7 @@ PACKAGE_DIRS = ("bus", "nodes", "tools", "tracking", "control", "vision", "evalu
 
 
 def _modules() -> list[Path]:
-    return sorted(p for d in PACKAGE_DIRS for p in (REPO / d).glob("*.py"))
+    return sorted(p for d in PACKAGE_DIRS for p in (REPO / d).rglob("*.py"))
 
 
 def _target(path: Path, node: ast.ImportFrom) -> Path:

@@ -19,7 +19,7 @@ import pytest
 from followbus.bus.schemas import MotorCommand, NodeStatus, Track
 from followbus.bus.session import ZenohSettings, open_session
 from followbus.bus.stats import TopicStats
-from followbus.tools.monitor import SEPARATOR, BusMonitor, GraphInfo, show
+from followbus.tools.live.monitor import SEPARATOR, BusMonitor, GraphInfo, show
 
 from .chromium import element_text, page_layout, render_dom, require_chromium, screenshot
 from .conftest import REPO, followbus_argv, free_port, wait_until
@@ -434,8 +434,8 @@ def test_group_scene_places_the_group_in_the_robot_frame():
     """seed 004's group in Foxglove's 3D panel: ellipses as floor loops, members green, disturbers red, all in
     base_link (x forward, y left), i.e. the odometry-frame state taken through the pose of the same frame."""
     pytest.importorskip("foxglove", reason="foxglove-sdk not installed")
-    from followbus.tools.foxglove_bridge import ROBOT_FRAME, group_scene, group_shapes
-    from followbus.tools.monitor import group_view
+    from followbus.tools.live.foxglove_bridge import ROBOT_FRAME, group_scene, group_shapes
+    from followbus.tools.live.monitor import group_view
 
     points, group = _group_messages(7, 1_000_000_000)
     view = group_view(group, (points.robot_x_m, points.robot_y_m, points.robot_theta_rad), points)
@@ -458,7 +458,7 @@ def test_foxglove_bridge_serves_the_group_scene():
     GroupState and streams it; real Zenoh on loopback, the bridge's real WebSocket server."""
     pytest.importorskip("foxglove", reason="foxglove-sdk not installed")
     from followbus.bus.schemas import encode
-    from followbus.tools.foxglove_bridge import FoxgloveBridge
+    from followbus.tools.live.foxglove_bridge import FoxgloveBridge
 
     port, ws_port = free_port(), free_port()
     bridge = FoxgloveBridge(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]), GraphInfo.load(None, "t"),
@@ -515,7 +515,7 @@ def test_first_preview_request_waits_for_the_first_preview():
     from http.server import ThreadingHTTPServer
     from types import SimpleNamespace
 
-    from followbus.tools.webview import PreviewGate, make_handler
+    from followbus.tools.live.webview import PreviewGate, make_handler
 
     monitor = SimpleNamespace(lock=threading.Lock(), preview_jpeg=b"", preview_count=0, preview=None)
     gate = PreviewGate()

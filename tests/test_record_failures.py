@@ -25,7 +25,7 @@ from followbus.bus.node import RECORDER_NAME
 from followbus.bus.pubsub import MAX_PAYLOAD_BYTES, Publisher, direct_callback, payload_bytes
 from followbus.bus.schemas import Frame, Tick, decode
 from followbus.bus.session import ZenohSettings, open_session
-from followbus.tools.mcap_io import iter_bus_messages, read_metadata, read_summary
+from followbus.tools.recording.mcap_io import iter_bus_messages, read_metadata, read_summary
 
 from .conftest import REPO, followbus_argv, run_followbus, wait_until
 
@@ -137,7 +137,7 @@ _WRITER_CHILD = """
 import json, resource, sys
 import numpy as np
 from followbus.bus.schemas import Tick, encode
-from followbus.tools.mcap_io import RecordingWriter
+from followbus.tools.recording.mcap_io import RecordingWriter
 
 path, squeeze = sys.argv[1], sys.argv[2] == "squeeze"
 writer = RecordingWriter(path, chunk_bytes=64 * 1024)

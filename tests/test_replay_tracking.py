@@ -116,7 +116,7 @@ def test_frames_whose_joined_feedback_the_recorder_missed_are_not_verifiable(rec
     """The recorder stopped between re-ID's last measurements and prediction's last tracks (SIGINT does that):
     the frames that joined a measurement absent from the recording cannot be reproduced, so they are counted as
     not verifiable, not as missing (the flake of the fallback test below was this)."""
-    from followbus.tools.replay_feed import _header
+    from followbus.tools.recording.replay_feed import _header
 
     from .conftest import copy_recording
 
@@ -146,8 +146,8 @@ def _bus(path, key: str):
 def test_a_recording_started_mid_run_is_named_as_such(recording, tmp_path):
     """A recorder attached to a running graph misses the node's history: replay says so instead of leaving
     the user with an unexplained mismatch."""
-    from followbus.tools.mcap_io import RecordingWriter, bus_channels, iter_bus_messages, read_metadata
-    from followbus.tools.replay_feed import _header
+    from followbus.tools.recording.mcap_io import RecordingWriter, bus_channels, iter_bus_messages, read_metadata
+    from followbus.tools.recording.replay_feed import _header
 
     cut = 40
     late = tmp_path / "late.mcap"

@@ -10,9 +10,9 @@ from mcap.reader import make_reader
 
 from followbus.bus.recording import is_bus_channel, iter_bus_messages
 from followbus.bus.schemas import Detections, Measurement, Prior, Tick
-from followbus.tools.mcap_io import RecordingWriter
-from followbus.tools.replay import ReplayOptions, ReplayPlan, Tolerance, diff_messages
-from followbus.tools.replay_feed import Feed
+from followbus.tools.recording.mcap_io import RecordingWriter
+from followbus.tools.recording.replay import ReplayOptions, ReplayPlan, Tolerance, diff_messages
+from followbus.tools.recording.replay_feed import Feed
 
 from .conftest import REPO
 

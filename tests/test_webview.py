@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from followbus.bus.schemas import GroundPoints, GroupState
-from followbus.tools.monitor import GraphInfo, _group_line, group_view
-from followbus.tools.webview import health_rows, is_loopback_bind, screen_state, web_token
+from followbus.tools.live.monitor import GraphInfo, _group_line, group_view
+from followbus.tools.live.webview import health_rows, is_loopback_bind, screen_state, web_token
 from followbus.tracking.groundplane import floor_to_image, to_odometry_frame
 
 from .chromium import element_text, have_chromium, page_layout, render_dom, require_chromium, screenshot
@@ -182,8 +182,8 @@ def test_web_token_is_checked_on_every_request(monkeypatch, tmp_path):
 @pytest.mark.slow
 def test_generated_token_is_printed_once_and_required(monkeypatch, capsys):
     """The non-loopback path (a generated token) on 127.0.0.1: the rule is made to see a non-loopback bind."""
-    from followbus.tools import webview
-    from followbus.tools.monitor import GraphInfo, monitor_settings
+    from followbus.tools.live import webview
+    from followbus.tools.live.monitor import GraphInfo, monitor_settings
 
     monkeypatch.delenv("FOLLOWBUS_WEB_TOKEN", raising=False)
     monkeypatch.setattr(webview, "is_loopback_bind", lambda bind: False)

@@ -246,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_bench_chaos_parser(bench) -> None:
-    """``bench chaos``: the fault-injection suite (tools/chaos.py; RELIABILITY.md holds its figures)."""
+    """``bench chaos``: the fault-injection suite (tools/bench/chaos.py; RELIABILITY.md holds its figures)."""
     b = bench.add_parser(
         "chaos", help="fault injection: does the live loop always recover? (RELIABILITY.md)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -398,25 +398,25 @@ def _dispatch_recording(args) -> int:
     cmd = args.command
     if cmd == "record":
         from ..bus.graph import apply_overrides
-        from .record import cmd_record
+        from .recording.record import cmd_record
 
         graph = _load_graph(args.graph) if Path(args.graph).exists() else None
         if graph is not None:
             apply_overrides(graph, args.overrides)
         return cmd_record(args, _settings(args), graph)
     if cmd == "play":
-        from .play import cmd_play
+        from .recording.play import cmd_play
 
         return cmd_play(args, _settings(args))
     if cmd == "replay":
-        from .replay import cmd_replay
+        from .recording.replay import cmd_replay
 
         return cmd_replay(args)
     if cmd == "info":
-        from .mcap_io import cmd_info
+        from .recording.mcap_io import cmd_info
 
         return cmd_info(args)
-    from .mcap_io import cmd_recover
+    from .recording.mcap_io import cmd_recover
 
     return cmd_recover(args)
 
@@ -542,19 +542,19 @@ def dispatch(args) -> int:
     if cmd in ("record", "play", "replay", "info", "recover"):
         return _dispatch_recording(args)
     if cmd == "router":
-        from .introspect import run_router
+        from .live.introspect import run_router
 
         return run_router(args.listen or ["tcp/127.0.0.1:7447"], args.duration)
     if cmd == "foxglove":
-        from .foxglove_bridge import run_foxglove
+        from .live.foxglove_bridge import run_foxglove
 
         return run_foxglove(args)
     if cmd == "monitor":
-        from .monitor import run_monitor
+        from .live.monitor import run_monitor
 
         return run_monitor(args)
     if cmd in ("topics", "echo", "hz", "nodes"):
-        from . import introspect
+        from .live import introspect
 
         return getattr(introspect, f"cmd_{cmd}")(args, _settings(args), _namespace(args))
     if cmd == "bench" and args.bench == "bus":
@@ -562,11 +562,11 @@ def dispatch(args) -> int:
 
         return run_bench_bus(args)
     if cmd == "bench" and args.bench == "pipeline":
-        from .bench_pipeline import run_bench_pipeline
+        from .bench.pipeline import run_bench_pipeline
 
         return run_bench_pipeline(args)
     if cmd == "bench" and args.bench == "chaos":
-        from .chaos import run_bench_chaos
+        from .bench.chaos import run_bench_chaos
 
         return run_bench_chaos(args)
     if cmd == "eval":

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bus.schemas import Detections, Prior, Track
+from ...bus.schemas import Detections, Prior, Track
 
 SCHEMA_ENCODING = "jsonschema"
 MESSAGE_ENCODING = "json"

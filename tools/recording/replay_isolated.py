@@ -1,6 +1,6 @@
 """``followbus replay --isolated``: the node as the deployed process (``followbus node NAME --clock stamps``)
 in a private graph (private namespace, private loopback port), fed over Zenoh with the same order and hints
-as the in-process replay (tools/replay_feed.py)."""
+as the in-process replay (tools/recording/replay_feed.py)."""
 
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ from typing import Any
 
 import yaml
 
-from ..bus.graph import Graph, NodeSpec, load_graph
-from ..bus.schemas import ReplayHint
+from ...bus.graph import Graph, NodeSpec, load_graph
+from ...bus.schemas import ReplayHint
 from .replay import InProcessTarget, ReplayOptions, ReplayReport
 from .replay_feed import _header
 
@@ -99,9 +99,9 @@ class IsolatedTarget:
         self.log_path = tmp / "node.log"
 
     def start(self) -> None:
-        from ..bus.health import HealthWatcher
-        from ..bus.pubsub import Publisher, ShmPool, direct_callback
-        from ..bus.session import open_session
+        from ...bus.health import HealthWatcher
+        from ...bus.pubsub import Publisher, ShmPool, direct_callback
+        from ...bus.session import open_session
 
         self.reference.start()
         graph_path = self.tmp / "graph.yaml"
@@ -134,7 +134,7 @@ class IsolatedTarget:
 
     def _on_output(self, topic: str):
         def callback(sample) -> None:
-            from ..bus.pubsub import payload_bytes
+            from ...bus.pubsub import payload_bytes
 
             data = payload_bytes(sample)
             awaited = topic not in self.plan.timer_topics or _header(data)[0] >= 0

@@ -31,10 +31,10 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from ..bus.codec import DecodeError
-from ..bus.health import HealthWatcher
-from ..bus.pubsub import direct_callback, payload_bytes
-from ..bus.schemas import (
+from ...bus.codec import DecodeError
+from ...bus.health import HealthWatcher
+from ...bus.pubsub import direct_callback, payload_bytes
+from ...bus.schemas import (
     Frame,
     GroundPoints,
     GroundTruth,
@@ -48,8 +48,8 @@ from ..bus.schemas import (
     Track,
     decode,
 )
-from ..bus.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
-from ..tracking.groundplane import CameraGeometry, floor_to_image, rotation, to_robot_frame
+from ...bus.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
+from ...tracking.groundplane import CameraGeometry, floor_to_image, rotation, to_robot_frame
 
 log = logging.getLogger("followbus.monitor")
 
@@ -80,7 +80,7 @@ def _client_config(base: dict[str, Any], user: str | None, password: str | None,
 
 def _ask_password(user: str) -> str:
     """--user without a password: ask on a terminal; a script gets one line instead of a refused session."""
-    from .errors import UsageError
+    from ..errors import UsageError
 
     if not sys.stdin.isatty():
         raise UsageError(f"--user {user} needs a password: pass --password or set $FOLLOWBUS_ZENOH_PASSWORD "
@@ -96,7 +96,7 @@ def monitor_settings(graph_path: str | None, connect: list[str] | None, user: st
     base: dict[str, Any] = {}
     endpoints = list(connect or [])
     if graph_path and Path(graph_path).exists():
-        from ..bus.graph import load_graph
+        from ...bus.graph import load_graph
 
         graph = load_graph(graph_path)
         base = dict(graph.zenoh.config)
@@ -126,7 +126,7 @@ class GraphInfo:
         owners = {out: node for out, (node, _) in WATCHED.items()}
         preview_owner = PREVIEW[0]
         if graph_path and Path(graph_path).exists():
-            from ..bus.graph import load_graph
+            from ...bus.graph import load_graph
 
             graph = load_graph(graph_path)
             info.namespace = graph.namespace
@@ -627,7 +627,7 @@ def _all_up(snap: dict[str, Any], expected: list[str]) -> bool:
 
 def run_monitor(args: Any) -> int:
     """``followbus monitor``: terminal dashboard, one snapshot (--once), or the web view (--web)."""
-    from .connect import check_credentials
+    from ..connect import check_credentials
 
     settings = monitor_settings(args.graph, args.connect, args.user, args.password, args.ca)
     if getattr(args, "connect_timeout", None) is not None:

@@ -13,12 +13,12 @@ from collections.abc import Callable
 import numpy as np
 import zenoh
 
-from ..bus.codec import DecodeError
-from ..bus.health import HealthWatcher
-from ..bus.pubsub import direct_callback, payload_bytes
-from ..bus.schemas import decode, to_plain
-from ..bus.session import ZenohSettings, open_session
-from .connect import open_client_session
+from ...bus.codec import DecodeError
+from ...bus.health import HealthWatcher
+from ...bus.pubsub import direct_callback, payload_bytes
+from ...bus.schemas import decode, to_plain
+from ...bus.session import ZenohSettings, open_session
+from ..connect import open_client_session
 
 
 def wait_for(seconds: float | None, done: threading.Event | None = None) -> None:

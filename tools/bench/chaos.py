@@ -50,11 +50,11 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ..bus.codec import pack
-from ..bus.graph import Graph, load_graph
-from ..bus.health import HealthWatcher
-from ..bus.pubsub import Publisher, ShmPool, Subscriber, direct_callback, payload_bytes
-from ..bus.schemas import (
+from ...bus.codec import pack
+from ...bus.graph import Graph, load_graph
+from ...bus.health import HealthWatcher
+from ...bus.pubsub import Publisher, ShmPool, Subscriber, direct_callback, payload_bytes
+from ...bus.schemas import (
     Detections,
     Frame,
     GroundTruth,
@@ -66,7 +66,7 @@ from ..bus.schemas import (
     decode,
     encode,
 )
-from ..bus.session import open_session
+from ...bus.session import open_session
 
 log = logging.getLogger("followbus.chaos")
 
@@ -143,8 +143,8 @@ class Limits:
 
     @classmethod
     def from_graph(cls, graph: Graph) -> Limits:
-        from ..control.kinematics import mecanum_wheel_speeds
-        from ..nodes.motor import Motor
+        from ...control.kinematics import mecanum_wheel_speeds
+        from ...nodes.motor import Motor
 
         _, p = Motor.parse_params(dict(graph.nodes["motor"].params))
         corners = [mecanum_wheel_speeds(vx, vy, wz, p.half_length_m, p.half_width_m, p.wheel_radius_m)
@@ -381,8 +381,8 @@ def clear_phases(scene: str, clear_s: float, fps: float = 30.0) -> tuple[int, se
     """(frames in the scene, the frame indices from which the target stays detectable for ``clear_s``
     without the scene looping). Capture publishes scene frame ``frame_seq % frames``. All indices when
     no stretch is that long."""
-    from ..vision.detectors import SimulatedDetector
-    from ..vision.scenes import make_scene
+    from ...vision.detectors import SimulatedDetector
+    from ...vision.scenes import make_scene
 
     sc = make_scene(scene, fps=fps)
     visible = [f.target_box is not None and f.target_visible_fraction >= SimulatedDetector.MIN_VISIBLE_FRACTION
@@ -394,7 +394,7 @@ def clear_phases(scene: str, clear_s: float, fps: float = 30.0) -> tuple[int, se
 
 def graph_text(*, scene: str, port: int, namespace: str, detector: str, sim_delay_ms: float = 0.0) -> str:
     """graph.yaml of the repository on a private port and namespace, the scene looping in real time."""
-    from .bench_pipeline import _graph_text
+    from .pipeline import _graph_text
 
     if detector not in ("simulated", "yolox416"):
         raise ValueError(f"unknown detector {detector!r}")
@@ -405,8 +405,8 @@ class ChaosGraph:
     """One launch of the graph by an in-process :class:`~followbus.tools.launch.Launcher`."""
 
     def __init__(self, path: Path, variant: str, log_file: Path, record_path: Path | None):
-        from ..bus.node import RECORDER_NAME
-        from .launch import Launcher
+        from ...bus.node import RECORDER_NAME
+        from ..launch import Launcher
 
         self.path = path
         self.variant = variant
@@ -582,7 +582,7 @@ def _stop_prediction(run: ChaosRunner) -> Injection:
 
 
 def _burners(run: ChaosRunner) -> Injection:
-    from .launch import _die_with_parent
+    from ..launch import _die_with_parent
 
     n = run.options.burners
     procs = []
@@ -726,7 +726,7 @@ def _malformed(run: ChaosRunner) -> Injection:
 
 
 def graph_output_schema(graph: Graph, node: str, output: str) -> type[Message]:
-    from ..bus.node import load_node_class
+    from ...bus.node import load_node_class
 
     return load_node_class(graph.nodes[node].run).OUTPUTS[output]
 
@@ -750,8 +750,8 @@ def _flood(run: ChaosRunner) -> Injection:
 
 
 def _kill_recorder(run: ChaosRunner) -> Injection:
-    from ..bus.node import RECORDER_NAME
-    from .mcap_io import recover
+    from ...bus.node import RECORDER_NAME
+    from ..recording.mcap_io import recover
 
     pid = run.require_pid(RECORDER_NAME)
     start = time.time_ns()
@@ -1192,12 +1192,12 @@ def run_bench_chaos(args: Any) -> int:
               "--load-seconds > 0", file=sys.stderr)
         return 2
     if args.detector == "yolox416":
-        from ..vision.models import find_model
+        from ...vision.models import find_model
 
         if find_model("yolox_nano_416.onnx") is None:
             print("followbus: bench chaos: yolox_nano_416.onnx not found on the model search path", file=sys.stderr)
             return 2
-    from ..vision.scenes import SCENES
+    from ...vision.scenes import SCENES
 
     if args.scene not in SCENES:
         print(f"followbus: bench chaos: unknown scene {args.scene!r} (scenes: {', '.join(SCENES)})", file=sys.stderr)

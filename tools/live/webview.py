@@ -1,6 +1,6 @@
 """``followbus monitor --web``: the monitor as an operator's screen served from the laptop.
 
-The server holds one :class:`~followbus.tools.monitor.BusMonitor` (a Zenoh client that only subscribes: the
+The server holds one :class:`~followbus.tools.live.monitor.BusMonitor` (a Zenoh client that only subscribes: the
 latest JPEG preview, never raw frames, plus a bounded history). HTTP handlers only read that state, so however
 slow a browser or the Wi-Fi is, nothing flows back to the robot. Each browser fetches one preview at a time
 (the next request goes out when the previous image has loaded) and the server serves at most
@@ -40,7 +40,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 from urllib.parse import parse_qs, urlencode, urlparse
 
-from ..bus.session import ZenohSettings
+from ...bus.session import ZenohSettings
 from .introspect import wait_for
 from .monitor import BusMonitor, GraphInfo
 

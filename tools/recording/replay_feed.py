@@ -1,6 +1,6 @@
 """The recording as a replay reads it: once, outputs of the replayed nodes kept as the expected outputs and
 turned into replay hints, inputs handed out in the order they were published, frame by frame. Shared by
-the in-process and the ``--isolated`` replay (tools/replay.py)."""
+the in-process and the ``--isolated`` replay (tools/recording/replay.py)."""
 
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..bus.codec import DecodeError, Peeked, peek
-from ..bus.recording import BusMessage, iter_bus_messages
-from ..bus.schemas import ReplayHint
+from ...bus.codec import DecodeError, Peeked, peek
+from ...bus.recording import BusMessage, iter_bus_messages
+from ...bus.schemas import ReplayHint
 
 if TYPE_CHECKING:
     from .replay import ReplayPlan

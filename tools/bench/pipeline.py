@@ -23,7 +23,7 @@ import numpy as np
 
 log = logging.getLogger("followbus.bench")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 STAGES = [("capture", "frame"), ("detection", "detections"), ("prediction", "prior"), ("reid", "measurement"),
           ("prediction", "track"), ("motor", "command")]
 EDGES = ["capture→detection", "detection→prior", "prior→measurement", "measurement→track", "track→command"]
@@ -59,12 +59,12 @@ def _graph_text(scene: str, port: int, namespace: str, detector: str, sim_delay_
 
 
 def run_bench_pipeline(args) -> int:
-    from ..bus.graph import load_graph
-    from ..bus.pubsub import direct_callback, payload_bytes
-    from ..bus.schemas import NodeStatus, decode
-    from ..bus.session import open_session
-    from ..vision.models import find_model
-    from .launch import Launcher
+    from ...bus.graph import load_graph
+    from ...bus.pubsub import direct_callback, payload_bytes
+    from ...bus.schemas import NodeStatus, decode
+    from ...bus.session import open_session
+    from ...vision.models import find_model
+    from ..launch import Launcher
 
     detector = args.detector
     if detector.startswith("yolox") and find_model(f"yolox_nano_{640 if detector == 'yolox640' else 416}.onnx") is None:
@@ -101,7 +101,7 @@ def run_bench_pipeline(args) -> int:
                         pub[stage].setdefault(h.frame_seq, (h.stamp_ns, h.pub_ns))
             return cb
 
-        from ..bus.schemas import Detections, Frame, Measurement, MotorCommand, Prior, Track
+        from ...bus.schemas import Detections, Frame, Measurement, MotorCommand, Prior, Track
 
         schemas = {("capture", "frame"): Frame, ("detection", "detections"): Detections,
                    ("prediction", "prior"): Prior, ("reid", "measurement"): Measurement,

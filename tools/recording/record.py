@@ -51,11 +51,11 @@ import cv2
 import numpy as np
 import zenoh
 
-from ..bus.codec import DecodeError, Header, peek
-from ..bus.node import RECORDER_NAME
-from ..bus.pubsub import RateLimitedLog, direct_callback, payload_bytes
-from ..bus.schemas import Frame, decode
-from . import __version__
+from ...bus.codec import DecodeError, Header, peek
+from ...bus.node import RECORDER_NAME
+from ...bus.pubsub import RateLimitedLog, direct_callback, payload_bytes
+from ...bus.schemas import Frame, decode
+from .. import __version__
 from . import foxglove_schemas as fox
 from .mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, FinaliseResult, RecordingWriter
 
@@ -434,7 +434,7 @@ class Recorder:
 
 def git_info() -> tuple[str, bool]:
     """(commit, dirty) of the followbus source tree, ("unknown", False) when it is not a git checkout."""
-    root = Path(__file__).resolve().parents[1]  # tools/ sits in the repository root
+    root = Path(__file__).resolve().parents[2]  # tools/ sits in the repository root
     try:
         commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
                                 timeout=5, check=True).stdout.strip()
@@ -531,7 +531,7 @@ def cmd_record(args, settings, graph) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    from ..bus.session import open_session
+    from ...bus.session import open_session
 
     try:
         session = open_session(settings)

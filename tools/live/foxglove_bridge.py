@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ..bus.codec import DecodeError
-from ..bus.pubsub import direct_callback, payload_bytes
-from ..bus.schemas import (
+from ...bus.codec import DecodeError
+from ...bus.pubsub import direct_callback, payload_bytes
+from ...bus.schemas import (
     Frame,
     GroundPoints,
     GroupState,
@@ -39,7 +39,7 @@ from ..bus.schemas import (
     decode,
     to_plain,
 )
-from ..bus.session import ZenohSettings, open_session
+from ...bus.session import ZenohSettings, open_session
 from .introspect import wait_for
 from .monitor import GraphInfo, ellipse_outline, group_view
 

@@ -52,7 +52,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
-from ..bus.recording import (  # noqa: F401 (reading is re-exported for the tools)
+from ...bus.recording import (  # noqa: F401 (reading is re-exported for the tools)
     BUS_MESSAGE_ENCODING,
     BUS_SCHEMA_ENCODING,
     BUS_SCHEMA_PREFIX,
@@ -66,7 +66,7 @@ from ..bus.recording import (  # noqa: F401 (reading is re-exported for the tool
     read_summary,
     schema_document,
 )
-from . import __version__
+from .. import __version__
 from . import foxglove_schemas as fox
 
 log = logging.getLogger("followbus.mcap")
@@ -74,7 +74,7 @@ log = logging.getLogger("followbus.mcap")
 PROFILE = ""  # no ROS profile: our own channels plus Foxglove's JSON ones
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 # lz4 keeps up with 720p bgr8 at 30 Hz (write thread 46% busy); zstd level 3, the mcap writer's, saturates
-# its thread. Figures and command: tools/record.py docstring.
+# its thread. Figures and command: tools/recording/record.py docstring.
 DEFAULT_COMPRESSION = "lz4"
 DEFAULT_CHUNK_BYTES = 4 * 1024 * 1024
 

@@ -39,11 +39,11 @@ import msgpack
 import numpy as np
 import yaml
 
-from ..bus.codec import HEADER_KEY, DecodeError, _split
-from ..bus.graph import GraphError, load_graph
-from ..bus.inproc import InProcessError, InProcessGraph
-from ..bus.node import load_node_class
-from ..bus.schemas import Message, ReplayHint, decode
+from ...bus.codec import HEADER_KEY, DecodeError, _split
+from ...bus.graph import GraphError, load_graph
+from ...bus.inproc import InProcessError, InProcessGraph
+from ...bus.node import load_node_class
+from ...bus.schemas import Message, ReplayHint, decode
 from .mcap_io import RecordingError, bus_channels, is_bus_channel, read_metadata, read_summary
 from .replay_feed import Feed, _header, recording_first_frame
 
@@ -344,7 +344,7 @@ class ReplayPlan:
         return self.outputs[key].split("/", 1)[0]
 
 
-# --- the targets: in-process here, or the deployed node as a process (tools/replay_isolated.py) ---------
+# --- the targets: in-process here, or the deployed node as a process (tools/recording/replay_isolated.py) ---------
 
 class Target(Protocol):
     def start(self) -> None: ...

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import zenoh
 
-from ..bus.pubsub import Publisher, ShmPool
+from ...bus.pubsub import Publisher, ShmPool
 from .mcap_io import RecordingError, bus_channels, iter_bus_messages
 from .record import is_status_key
 
@@ -177,7 +177,7 @@ def cmd_play(args, settings) -> int:
     if args.start_paused and not sys.stdin.isatty():
         print("followbus: --start-paused needs a terminal (space resumes)", file=sys.stderr)
         return 2
-    from ..bus.session import open_session
+    from ...bus.session import open_session
 
     keyboard = Keyboard() if sys.stdin.isatty() else None
     try:
