@@ -219,6 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
                               "--method peer:bytetrack --method peer:botsort\n"
                               "  followbus eval scene:wall-occlusion --graph-check\n"
                               "  followbus eval --group --out results/group\n"
+                              "  followbus eval --group --camera --out results/group\n"
                               "  followbus eval ../shared/data/sot/otb-crossing --graph-check --detector yolox",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("sequences", nargs="*", metavar="SEQ",
@@ -226,6 +227,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--group", action="store_true",
                    help="instead: seed 004's group-tracking benchmark on simulated squads (RMSE, OE, Lat-STD of "
                         "ME-CGT-UGV and its comparison methods per scenario; group.md, group.json, plots)")
+    p.add_argument("--camera", action="store_true",
+                   help="with --group: the same methods on the camera group sequences (SEQ dirs, default "
+                        "sot/uav-group* and every mot/ clip): image-plane group-centre error; group_camera.md/json")
     p.add_argument("--method", action="append", metavar="M",
                    help="followbus | kalman | peer:bytetrack|ocsort|botsort; repeatable (default followbus + kalman)")
     p.add_argument("--ablations", action="store_true", help="also run the paper's Table 6 ablations of followbus")

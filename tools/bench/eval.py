@@ -223,6 +223,17 @@ def cmd_eval(args) -> int:
     from ...evaluation.runner import method_factories, open_sequence, run_sequence
 
     command = "followbus " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if args.argv is None else args.argv
+    if getattr(args, "group", False) and getattr(args, "camera", False):
+        from ...evaluation.group_camera import cmd_eval_group_camera
+
+        if args.detector == "simulated":
+            print("followbus: --group --camera needs a real detector (yolox, yolox640 or hog)", file=sys.stderr)
+            return 2
+        return cmd_eval_group_camera(Path(args.out), command, args.sequences or None, args.detector or "yolox",
+                                     args.max_frames)
+    if getattr(args, "camera", False):
+        print("followbus: --camera goes with --group", file=sys.stderr)
+        return 2
     if getattr(args, "group", False):
         from ...evaluation.group_eval import cmd_eval_group
         from ...evaluation.group_sim import SCENARIOS
