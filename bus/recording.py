@@ -1,8 +1,9 @@
 """Bus messages in MCAP files: the channel labels, the schema document, and reading.
 
-Shared by the tools (record, play, replay, info: tools/recording/mcap_io.py writes) and by nodes (capture reads a
-recording as its source), so it lives in bus/: it knows the frame (bus/codec.py) and the message types,
-nothing of tracking.
+The one place that reads recordings: the tools (record, play, replay, info, recover:
+tools/recording/mcap_io.py writes and repairs) and nodes (capture reads a recording as its source) share it,
+so it lives in bus/: it knows the frame (bus/codec.py) and the message types, nothing of tracking. The
+record-level parsing of the file (a chunk's fields, the records of an unfinalised file) is here too, once.
 
 A bus channel is labelled ``message_encoding: x-followbus-frame/1``: a custom encoding in the MCAP
 spec's sense (custom values take the ``x-`` prefix), because the bytes are a followbus frame (magic,
@@ -25,9 +26,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, Metadata
+from mcap.records import Channel, ChunkIndex, Metadata, MetadataIndex, Schema
 from mcap.stream_reader import StreamReader
 
 from .codec import FRAME_FORMAT
@@ -109,6 +112,9 @@ def read_summary(path: str | Path):
         try:
             summary = make_reader(f).get_summary()
         except (McapError, struct.error, ValueError) as exc:
+            f.seek(0)
+            if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:  # not one a killed recorder left: recover cannot help
+                raise RecordingError(f"{path}: not an MCAP file") from exc
             raise RecordingError(f"{path}: not a finalised MCAP file ({exc}); a recorder that was killed leaves "
                                  f"one that `followbus recover {path}` repairs") from exc
     if summary is None:
@@ -135,6 +141,17 @@ def bus_channels(path: str | Path) -> dict[str, str]:
     return {ch.topic: ch.metadata.get("type", "") for ch in summary.channels.values() if is_bus_channel(ch)}
 
 
+def frame_channel(path: str | Path, frame_key: str = "") -> tuple[Any, str]:
+    """(summary, key) of the raw-frame channel to read a recording's frames from (capture's MCAP source):
+    ``frame_key``, else the bus key ending in ``/frame``. RecordingError when there is none."""
+    summary = read_summary(path)
+    topics = sorted({ch.topic for ch in summary.channels.values() if is_bus_channel(ch)})
+    keys = [frame_key] if frame_key else [t for t in topics if t.endswith("/frame")]
+    if not keys or keys[0] not in topics:
+        raise RecordingError(f"{path}: no frame channel (bus keys: {', '.join(topics) or 'none'})")
+    return summary, keys[0]
+
+
 def iter_bus_messages(path: str | Path, keys: Iterable[str] | None = None) -> Iterator[BusMessage]:
     """Bus messages in log-time order (ties: recording order), optionally only the given keys."""
     summary = read_summary(path)
@@ -154,10 +171,82 @@ def iter_bus_messages(path: str | Path, keys: Iterable[str] | None = None) -> It
                                  msg.sequence)
 
 
-_CHUNK_HEAD = struct.Struct("<QQQQII")  # record length, start, end, uncompressed size, crc, compression length
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
+_CHUNK_FIELDS = struct.Struct("<QQQII")  # message start, end, uncompressed size, crc, compression name length
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
-_OP_MESSAGE = 0x05
+
+
+@dataclass
+class ChunkFields:
+    """What precedes a Chunk record's compressed records."""
+    start_ns: int
+    end_ns: int
+    uncompressed_size: int
+    compression: str
+    records_size: int
+    records_at: int  # where the compressed records start, in the buffer parsed
+
+
+def chunk_fields(buf: Any, pos: int) -> ChunkFields:
+    """The fields of the Chunk record whose body (past opcode and length) starts at ``pos`` of ``buf``."""
+    start_ns, end_ns, size, _crc, name_len = _CHUNK_FIELDS.unpack_from(buf, pos)
+    pos += _CHUNK_FIELDS.size
+    compression = bytes(buf[pos:pos + name_len]).decode()
+    (records_size,) = struct.unpack_from("<Q", buf, pos + name_len)
+    return ChunkFields(start_ns, end_ns, size, compression, records_size, pos + name_len + 8)
+
+
+@dataclass
+class DataSection:
+    """The top-level records of an unfinalised file, read without decompressing chunks."""
+    end: int  # offset after the last complete record
+    chunks: list[ChunkIndex]
+    metadata: list[MetadataIndex]
+    counts: dict[int, int]  # messages per channel id, from the message indexes
+    schemas: list[Schema]  # top-level ones
+    channels: list[Channel]
+
+
+def scan_data_section(f: IO[bytes], end: int) -> DataSection:
+    """Walk the top-level records of an MCAP file that may have no summary (a recorder killed or out of disk)
+    up to ``end``, stopping at the last complete record: what finalising it in place needs."""
+    f.seek(0)
+    if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+        raise RecordingError(f"{getattr(f, 'name', '?')}: not an MCAP file")
+    pos = good = len(MCAP_MAGIC)
+    out = DataSection(pos, [], [], {}, [], [])
+    open_chunk: ChunkIndex | None = None  # message indexes follow their chunk
+    while pos + _RECORD_HEAD.size <= end:
+        f.seek(pos)
+        opcode, length = _RECORD_HEAD.unpack(f.read(_RECORD_HEAD.size))
+        record_end = pos + _RECORD_HEAD.size + length
+        if record_end > end or opcode in (Opcode.DATA_END, Opcode.FOOTER):
+            break
+        if opcode == Opcode.CHUNK:
+            fields = chunk_fields(f.read(min(length, 4096)), 0)  # the fields, not the records
+            open_chunk = ChunkIndex(message_start_time=fields.start_ns, message_end_time=fields.end_ns,
+                                    chunk_start_offset=pos, chunk_length=record_end - pos, message_index_offsets={},
+                                    message_index_length=0, compression=fields.compression,
+                                    compressed_size=fields.records_size, uncompressed_size=fields.uncompressed_size)
+            out.chunks.append(open_chunk)
+        elif opcode == Opcode.MESSAGE_INDEX and open_chunk is not None:
+            channel_id, entries_bytes = struct.unpack("<HI", f.read(6))
+            open_chunk.message_index_offsets[channel_id] = pos
+            open_chunk.message_index_length += record_end - pos
+            out.counts[channel_id] = out.counts.get(channel_id, 0) + entries_bytes // 16
+        else:
+            open_chunk = None
+            if opcode == Opcode.METADATA:
+                (name_len,) = struct.unpack("<I", f.read(4))
+                out.metadata.append(MetadataIndex(offset=pos, length=record_end - pos, name=f.read(name_len).decode()))
+            elif opcode == Opcode.SCHEMA:
+                out.schemas.append(Schema.read(ReadDataStream(f)))
+            elif opcode == Opcode.CHANNEL:
+                out.channels.append(Channel.read(ReadDataStream(f)))
+        pos = good = record_end
+    out.end = good
+    return out
 
 
 def _iter_chunked(path: str | Path, summary: Any, channel_ids: set[int]) -> Iterator[BusMessage]:
@@ -193,25 +282,21 @@ def _chunk_messages(mapped: Any, name: str, index: Any, summary: Any, channel_id
 
 def _parse_chunk(raw: memoryview, name: str, index: Any, summary: Any, channel_ids: set[int]) -> Iterator[BusMessage]:
     try:
-        _length, _start, _end, size, _crc, name_len = _CHUNK_HEAD.unpack_from(raw)
-        pos = _CHUNK_HEAD.size
-        compression = bytes(raw[pos:pos + name_len]).decode()
-        pos += name_len
-        (records_len,) = struct.unpack_from("<Q", raw, pos)
-        pos += 8
-        records = raw[pos:pos + records_len]
-        if compression == "lz4":
+        fields = chunk_fields(raw, 8)  # past the record length
+        records = raw[fields.records_at:fields.records_at + fields.records_size]
+        if fields.compression == "lz4":
             import lz4.frame
 
             data = memoryview(lz4.frame.decompress(records))
-        elif compression == "zstd":
+        elif fields.compression == "zstd":
             import zstandard
 
-            data = memoryview(zstandard.ZstdDecompressor().decompress(records, max_output_size=size))
-        elif compression == "":
+            data = memoryview(zstandard.ZstdDecompressor().decompress(
+                records, max_output_size=fields.uncompressed_size))
+        elif fields.compression == "":
             data = records
         else:
-            raise RecordingError(f"{name}: chunk compression {compression!r} is not supported")
+            raise RecordingError(f"{name}: chunk compression {fields.compression!r} is not supported")
     except (struct.error, RuntimeError, ValueError) as exc:
         raise RecordingError(f"{name}: chunk at {index.chunk_start_offset} unreadable ({exc})") from exc
     pos, end = 0, len(data)
@@ -219,7 +304,7 @@ def _parse_chunk(raw: memoryview, name: str, index: Any, summary: Any, channel_i
         op, length = _RECORD_HEAD.unpack_from(data, pos)
         body = pos + _RECORD_HEAD.size
         pos = body + length
-        if op != _OP_MESSAGE:
+        if op != Opcode.MESSAGE:
             continue
         channel_id, sequence, log_time, _publish = _MESSAGE_HEAD.unpack_from(data, body)
         if channel_id in channel_ids:

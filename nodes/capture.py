@@ -21,7 +21,7 @@ import numpy as np
 from ..bus.codec import DecodeError
 from ..bus.node import DownstreamBarrier, Node, ParamError
 from ..bus.schemas import Frame, GroundTruth, Message, Track, decode
-from ..vision.sources import SourceError, check_source, mcap_frame_channel, open_source
+from ..vision.sources import SourceError, check_source, open_source
 
 
 @dataclass
@@ -62,7 +62,10 @@ class Capture(Node):
         """Can the source be opened? Run by `followbus check`, `launch` and `demo` before anything starts, so a
         missing file or an unknown scene is one line instead of a node crash-looping (SourceError)."""
         try:
-            check_source(params.source, groundtruth=params.groundtruth, mcap_frame_key=params.mcap_frame_key)
+            if _is_mcap(params.source):
+                mcap_frame_channel(params.source, params.mcap_frame_key)
+            else:
+                check_source(params.source, groundtruth=params.groundtruth)
         except SourceError as exc:
             raise ParamError("source", str(exc)) from exc
 
@@ -90,7 +93,7 @@ class Capture(Node):
 
     def _open(self):
         p = self.params
-        if p.source.endswith(".mcap"):
+        if _is_mcap(p.source):
             return McapFrameSource(p.source, p.mcap_frame_key)
         kw: dict[str, Any] = {}
         if p.source.startswith("scene:"):
@@ -192,6 +195,22 @@ class Capture(Node):
     def teardown(self) -> None:
         self.barrier.close()
         self.source.close()
+
+
+def _is_mcap(source: str) -> bool:
+    return source.strip().lower().endswith(".mcap")
+
+
+def mcap_frame_channel(path: str, frame_key: str = "") -> tuple[Any, str]:
+    """(summary, frame key) of a recording to read frames from (bus/recording.py, the one reader of
+    recordings); SourceError when the file is missing, unreadable or has no frames."""
+    from ..bus.recording import RecordingError, frame_channel  # here: a camera-fed capture never loads mcap
+
+    try:
+        return frame_channel(path, frame_key)
+    except RecordingError as exc:
+        reason = str(exc).removeprefix(f"{path}: ")
+        raise SourceError(f"MCAP source {path!r}: {reason}") from exc
 
 
 class McapFrameSource:

@@ -22,7 +22,9 @@ import numpy as np
 import pytest
 import zenoh
 
+from followbus.bus.node import ParamError
 from followbus.bus.schemas import Tick
+from followbus.nodes.capture import Capture
 from followbus.tools.recording.mcap_io import RecordingWriter
 from followbus.vision.models import MODELS_ENV
 from followbus.vision.sources import SourceError, check_source, open_source
@@ -80,7 +82,7 @@ def garbage_images(folder: Path) -> Path:
 
 def source_cases(tmp_path: Path) -> list[tuple[str, str]]:
     return [
-        (str(tmp_path / "missing.mcap"), "MCAP source '{src}': no such file"),
+        (str(tmp_path / "missing.mcap"), "MCAP source '{src}': No such file or directory"),
         (str(tmp_path / "missing.mp4"), "source '{src}': no such file or directory"),
         ("scene:corridor", "unknown scene 'corridor' in 'scene:corridor' (did you mean 'corridor-occlusion'?); "
                            "available: corridor-occlusion, lookalike,"),
@@ -120,8 +122,10 @@ def test_source_errors_in_process(tmp_path):
     with pytest.raises(SourceError, match="is a file but not a video"):
         check_source(str(tmp_path / "notes.txt"))
     (tmp_path / "junk.mcap").write_bytes(b"not an mcap file")
-    with pytest.raises(SourceError, match="not a readable MCAP file"):
-        check_source(str(tmp_path / "junk.mcap"))
+    with pytest.raises(SourceError, match="is an MCAP recording: the capture node reads it"):
+        check_source(str(tmp_path / "junk.mcap"))  # vision/ knows no recordings: bus/recording.py reads them
+    with pytest.raises(ParamError, match=r"MCAP source '.*junk.mcap': not an MCAP file$"):
+        Capture.check_params(Capture.parse_params({"source": str(tmp_path / "junk.mcap")}))
     check_source("scene:lost-target")
 
 

@@ -23,9 +23,9 @@ from mcap.stream_reader import StreamReader
 
 from followbus.bus.node import RECORDER_NAME
 from followbus.bus.pubsub import MAX_PAYLOAD_BYTES, Publisher, direct_callback, payload_bytes
+from followbus.bus.recording import iter_bus_messages, read_metadata, read_summary
 from followbus.bus.schemas import Frame, Tick, decode
 from followbus.bus.session import ZenohSettings, open_session
-from followbus.tools.recording.mcap_io import iter_bus_messages, read_metadata, read_summary
 
 from .conftest import REPO, followbus_argv, run_followbus, wait_until
 

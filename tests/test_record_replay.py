@@ -23,10 +23,11 @@ from mcap.reader import make_reader
 
 from followbus.bus.health import HealthWatcher
 from followbus.bus.pubsub import Publisher
+from followbus.bus.recording import read_metadata
 from followbus.bus.schemas import Detections, Frame, Prior, Tick, Track, decode
 from followbus.bus.session import ZenohSettings, open_session
 from followbus.tools.recording import foxglove_schemas as fox
-from followbus.tools.recording.mcap_io import RecordingWriter, read_metadata
+from followbus.tools.recording.mcap_io import RecordingWriter
 
 from .conftest import REPO, copy_recording, followbus_argv, free_port, run_followbus, wait_until
 

@@ -146,7 +146,8 @@ def _bus(path, key: str):
 def test_a_recording_started_mid_run_is_named_as_such(recording, tmp_path):
     """A recorder attached to a running graph misses the node's history: replay says so instead of leaving
     the user with an unexplained mismatch."""
-    from followbus.tools.recording.mcap_io import RecordingWriter, bus_channels, iter_bus_messages, read_metadata
+    from followbus.bus.recording import bus_channels, iter_bus_messages, read_metadata
+    from followbus.tools.recording.mcap_io import RecordingWriter
     from followbus.tools.recording.replay_feed import _header
 
     cut = 40

@@ -22,7 +22,6 @@ import logging
 import math
 import os
 import re
-import struct
 import sys
 import time
 from collections.abc import Iterator
@@ -374,11 +373,11 @@ def _unknown_spec(spec: str) -> SourceError:
                        f"a video file ({', '.join(VIDEO_EXTS)}), an image folder or an MCAP recording")
 
 
-def check_source(spec: str, *, groundtruth: str = "", mcap_frame_key: str = "") -> None:
+def check_source(spec: str, *, groundtruth: str = "") -> None:
     """Check, cheaply and before anything starts, that a capture source can be opened. Raises SourceError.
 
     Scenes: the name is known. Files and folders: they exist and open (a video opens in OpenCV, a folder
-    holds images and its first one decodes, an MCAP file has a summary and a frame channel). Cameras: on
+    holds images and its first one decodes; MCAP recordings are the capture node's). Cameras: on
     Linux ``/dev/video<N>`` exists (opening it here could take it from a graph already running); elsewhere
     OpenCV opens the index.
     """
@@ -405,9 +404,8 @@ def check_source(spec: str, *, groundtruth: str = "", mcap_frame_key: str = "") 
             cap.release()
         return
     p = Path(s).expanduser()
-    if p.suffix.lower() == ".mcap":
-        mcap_frame_channel(p, mcap_frame_key)
-        return
+    if p.suffix.lower() == ".mcap":  # the capture node checks those with the bus's reader of recordings
+        raise SourceError(f"{spec!r} is an MCAP recording: the capture node reads it, not a vision source")
     if not p.exists():
         raise _missing_path(spec, p) if _path_like(s) else _unknown_spec(spec)
     if groundtruth and not Path(groundtruth).expanduser().is_file():
@@ -424,28 +422,6 @@ def check_source(spec: str, *, groundtruth: str = "", mcap_frame_key: str = "") 
             VideoFileSource(p)
     except (OSError, RuntimeError, ValueError) as exc:
         raise SourceError(f"source {spec!r}: {exc}") from exc
-
-
-def mcap_frame_channel(path: Path, frame_key: str = "") -> tuple[Any, str]:
-    """(summary, frame key) of a recording to read frames from; raises SourceError when it has none."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
-    spec = str(path)
-    if not path.is_file():
-        raise SourceError(f"MCAP source {spec!r}: no such file")
-    try:
-        with path.open("rb") as f:
-            summary = make_reader(f).get_summary()
-    except (McapError, OSError, ValueError, struct.error) as exc:
-        raise SourceError(f"MCAP source {spec!r} is not a readable MCAP file ({exc or type(exc).__name__})") from exc
-    if summary is None:
-        raise SourceError(f"MCAP source {spec!r} has no summary: run `followbus recover` on it first")
-    topics = sorted({ch.topic for ch in summary.channels.values()})
-    frame_keys = [frame_key] if frame_key else [t for t in topics if t.endswith("/frame")]
-    if not frame_keys or frame_keys[0] not in topics:
-        raise SourceError(f"MCAP source {spec!r}: no frame channel (topics: {', '.join(topics) or 'none'})")
-    return summary, frame_keys[0]
 
 
 def open_source(spec: str, **kw: Any) -> _Source:

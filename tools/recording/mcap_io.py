@@ -1,12 +1,13 @@
-"""MCAP files of followbus: the bus channels (exact msgpack bytes, one channel per key and type),
-the Foxglove channels beside them, metadata, reading, ``followbus info`` and ``followbus recover``.
+"""Writing MCAP files of followbus: the bus channels (exact frame bytes, one channel per key and type),
+the Foxglove channels beside them, metadata; finalising a cut file in place, ``followbus info`` and
+``followbus recover``. Reading them is bus/recording.py's (nodes read recordings too).
 
 Layout of a recording:
 
 - bus channels: topic = the bus key (``fb/capture/frame``), message encoding ``x-followbus-frame/1``
   (the exact bytes of the followbus frame), schema ``followbus.<TYPE>`` with encoding
   ``x-followbus-schema/1`` whose data is a text document of the frame layout and the type's fields
-  (bus/recording.py, which also reads recordings: nodes use it too). ``sequence`` = header.seq,
+  (bus/recording.py). ``sequence`` = header.seq,
   log_time = publish_time = header.stamp_ns (receive time only when the stamp is 0). Recordings made
   before carry ``msgpack`` on the same bytes, read as an alias.
 - Foxglove channels: ``<key>/image`` (foxglove.CompressedImage) for every Frame key and
@@ -31,7 +32,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any
 
-from mcap.data_stream import ReadDataStream, RecordBuilder
+from mcap.data_stream import RecordBuilder
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import (
@@ -52,18 +53,15 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
-from ...bus.recording import (  # noqa: F401 (reading is re-exported for the tools)
+from ...bus.recording import (
     BUS_MESSAGE_ENCODING,
     BUS_SCHEMA_ENCODING,
     BUS_SCHEMA_PREFIX,
-    BusMessage,
     RecordingError,
-    bus_channels,
-    is_bus_channel,
-    iter_bus_messages,
     open_recording,
     read_metadata,
     read_summary,
+    scan_data_section,
     schema_document,
 )
 from .. import __version__
@@ -220,56 +218,6 @@ class FinaliseResult:
     file_bytes: int
 
 
-def _scan_data_section(f: IO[bytes], end: int) -> tuple[int, list[ChunkIndex], list[MetadataIndex],
-                                                         dict[int, int], list[Schema], list[Channel]]:
-    """Walk the top-level records of an unfinalised MCAP file up to ``end`` (the last complete one) without
-    decompressing chunks. Returns (offset after the last complete record, chunk indexes, metadata indexes,
-    messages per channel id from the message indexes, top-level schemas, top-level channels)."""
-    f.seek(0)
-    if f.read(len(MCAP0_MAGIC)) != MCAP0_MAGIC:
-        raise RecordingError(f"{getattr(f, 'name', '?')}: not an MCAP file")
-    pos = len(MCAP0_MAGIC)
-    good = pos
-    chunks: list[ChunkIndex] = []
-    metas: list[MetadataIndex] = []
-    counts: dict[int, int] = {}
-    schemas: list[Schema] = []
-    channels: list[Channel] = []
-    open_chunk: ChunkIndex | None = None  # message indexes follow their chunk
-    while pos + 9 <= end:
-        f.seek(pos)
-        opcode, length = struct.unpack("<BQ", f.read(9))
-        record_end = pos + 9 + length
-        if record_end > end or opcode in (Opcode.DATA_END, Opcode.FOOTER):
-            break
-        if opcode == Opcode.CHUNK:
-            start_ns, end_ns, uncompressed, _crc, comp_len = struct.unpack("<QQQII", f.read(32))
-            compression = f.read(comp_len).decode()
-            (compressed,) = struct.unpack("<Q", f.read(8))
-            open_chunk = ChunkIndex(message_start_time=start_ns, message_end_time=end_ns, chunk_start_offset=pos,
-                                    chunk_length=9 + length, message_index_offsets={}, message_index_length=0,
-                                    compression=compression, compressed_size=compressed,
-                                    uncompressed_size=uncompressed)
-            chunks.append(open_chunk)
-        elif opcode == Opcode.MESSAGE_INDEX and open_chunk is not None:
-            channel_id, entries_bytes = struct.unpack("<HI", f.read(6))
-            open_chunk.message_index_offsets[channel_id] = pos
-            open_chunk.message_index_length += 9 + length
-            counts[channel_id] = counts.get(channel_id, 0) + entries_bytes // 16
-        else:
-            open_chunk = None
-            if opcode == Opcode.METADATA:
-                (name_len,) = struct.unpack("<I", f.read(4))
-                metas.append(MetadataIndex(offset=pos, length=9 + length, name=f.read(name_len).decode()))
-            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
-                f.seek(pos + 9)
-                stream = ReadDataStream(f)
-                (schemas if opcode == Opcode.SCHEMA else channels).append(  # type: ignore[arg-type]
-                    Schema.read(stream) if opcode == Opcode.SCHEMA else Channel.read(stream))
-        pos = good = record_end
-    return good, chunks, metas, counts, schemas, channels
-
-
 def finalise_in_place(path: str | Path, end_offset: int, schemas: Iterable[Schema], channels: Iterable[Channel],
                       metadata: Iterable[tuple[str, dict[str, str]]] = ()) -> FinaliseResult:
     """Finalise an unfinished MCAP file where it stands, needing only a few kB more on disk (``recover``
@@ -283,13 +231,13 @@ def finalise_in_place(path: str | Path, end_offset: int, schemas: Iterable[Schem
     # Unbuffered: a buffered file would retry its failed buffer on truncate() and close().
     with open(path, "r+b", buffering=0) as f:
         size = os.fstat(f.fileno()).st_size
-        good, chunk_indexes, meta_indexes, counts, top_schemas, top_channels = _scan_data_section(
-            f, min(end_offset, size))
+        found = scan_data_section(f, min(end_offset, size))
+        good = found.end
         f.truncate(good)
         try:
-            return _append_summary(f, good, size - good, chunk_indexes, meta_indexes, counts,
-                                   {s.id: s for s in [*top_schemas, *schemas]},
-                                   {c.id: c for c in [*top_channels, *channels]}, metadata)
+            return _append_summary(f, good, size - good, found.chunks, found.metadata, found.counts,
+                                   {s.id: s for s in [*found.schemas, *schemas]},
+                                   {c.id: c for c in [*found.channels, *channels]}, metadata)
         except OSError:
             with contextlib.suppress(OSError):  # leave a clean cut for `followbus recover`
                 f.truncate(good)

@@ -19,7 +19,7 @@ from pathlib import Path
 import zenoh
 
 from ...bus.pubsub import Publisher, ShmPool
-from .mcap_io import RecordingError, bus_channels, iter_bus_messages
+from ...bus.recording import RecordingError, bus_channels, iter_bus_messages
 from .record import is_status_key
 
 log = logging.getLogger("followbus.play")

@@ -43,8 +43,8 @@ from ...bus.codec import HEADER_KEY, DecodeError, _split
 from ...bus.graph import GraphError, load_graph
 from ...bus.inproc import InProcessError, InProcessGraph
 from ...bus.node import load_node_class
+from ...bus.recording import RecordingError, bus_channels, is_bus_channel, read_metadata, read_summary
 from ...bus.schemas import Message, ReplayHint, decode
-from .mcap_io import RecordingError, bus_channels, is_bus_channel, read_metadata, read_summary
 from .replay_feed import Feed, _header, recording_first_frame
 
 log = logging.getLogger("followbus.replay")
