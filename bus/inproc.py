@@ -33,6 +33,7 @@ hints.
 from __future__ import annotations
 
 import contextlib
+import copy
 import itertools
 import logging
 from collections import deque
@@ -118,10 +119,27 @@ class _Host(NodeHost):
         self.next_poll_ns: int | None = None  # set at start: every node is polled once, as live
         self.stopped = False
 
-    def receive(self, input_name: str, payload: bytes, stamp_ns: int, now_ns: int) -> None:
+    def receive(self, input_name: str, payload: bytes, stamp_ns: int, now_ns: int,
+                decoded: dict[Any, Message | DecodeError] | None = None) -> None:
+        """Decode and validate ``payload`` for this input and queue it. ``decoded``: what earlier subscribers of
+        the same publication made of it, by expected type; each subscriber gets its own copy of the message and
+        header (the arrays, read-only after decoding, are shared), as if it had decoded the bytes itself."""
         queue = self.queues[input_name]
+        schema = self.cls.INPUTS[input_name]
         try:
-            msg = validate(decode(payload, self.cls.INPUTS[input_name]))
+            if decoded is None:
+                msg = validate(decode(payload, schema))
+            else:
+                if schema not in decoded:
+                    try:
+                        decoded[schema] = validate(decode(payload, schema))
+                    except DecodeError as exc:
+                        decoded[schema] = exc
+                shared = decoded[schema]
+                if isinstance(shared, DecodeError):
+                    raise shared
+                msg = copy.copy(shared)
+                msg.header = copy.copy(shared.header)
         except DecodeError as exc:
             queue.stats.decode_error()
             self._warn.warning("dropped malformed message on %s: %s", queue.stats.key, exc)
@@ -301,9 +319,10 @@ class InProcessGraph:
         recorded = self._recorded.get(topic)
         if recorded is not None:
             recorded.append(payload)
+        decoded: dict[Any, Message | DecodeError] = {}  # one decode per expected type, not per subscriber
         for host, input_name in self._routes.get(topic, ()):
             if not host.stopped:
-                host.receive(input_name, payload, stamp_ns, self.now_ns)
+                host.receive(input_name, payload, stamp_ns, self.now_ns, decoded)
         return True
 
     # --- running --------------------------------------------------------------------------------

@@ -37,7 +37,7 @@ class GraphFollowerError(RuntimeError):
 
 @dataclass
 class GraphFrame:
-    """What the graph published for one frame."""
+    """What the graph published for one frame (measurement and prior only with ``details=True``)."""
 
     track: Track
     measurement: Measurement | None
@@ -65,15 +65,19 @@ class GraphFollower:
     returns the box of the Track that prediction publishes for it; :attr:`last` holds all the graph published
     for that frame, :meth:`node` a node instance (as a test would inspect it)."""
 
-    def __init__(self, params: TrackerParams | None = None, graph_path: Path = GRAPH_PATH) -> None:
+    def __init__(self, params: TrackerParams | None = None, graph_path: Path = GRAPH_PATH, *,
+                 details: bool = False) -> None:
         self.params = params or TrackerParams()
+        # Eval reads the track and the template's η; tests (details=True) also the measurement and prior.
+        self.recorded = self.DETAILS if details else self.RECORDED
         self.graph_path = graph_path
         self.uses_low_scores = self.params.low_score_stage
         self.graph: InProcessGraph | None = None
         self.k = 0
         self.last: GraphFrame | None = None
 
-    RECORDED = ("prediction/track", "prediction/prior", "reid/measurement", "template/template")
+    RECORDED = ("prediction/track", "template/template")
+    DETAILS = (*RECORDED, "prediction/prior", "reid/measurement")
 
     def _start(self, init_box: Sequence[float] | None) -> InProcessGraph:
         graph = tracking_graph(self.params, init_box, self.graph_path)
@@ -81,7 +85,7 @@ class GraphFollower:
         if not self.params.camera_motion_compensation and "egomotion" in nodes:
             nodes.remove("egomotion")  # as in the graph without the node: priors are not warped
         g = InProcessGraph(graph, nodes=nodes, clock="sim", clock_start_ns=CLOCK_BASE_NS,
-                           record=list(self.RECORDED))
+                           record=list(self.recorded))
         g.start()
         return g
 
@@ -123,7 +127,7 @@ class GraphFollower:
         got: dict[str, Any] = {}
         for _ in range(MAX_STEPS_PER_FRAME):
             g.deliver()
-            for topic in self.RECORDED:
+            for topic in self.recorded:
                 for msg in g.drain(topic):
                     if msg.header.frame_seq != k:
                         raise GraphFollowerError(f"frame {k}: the graph published {topic} of frame "

@@ -171,7 +171,7 @@ def test_tracker_keeps_a_still_person_through_camera_shake() -> None:
     offsets = [0, 60, 0, 60, 0, 60, 0, 60, 10, 70, 20, 80, 30]
 
     def run(cmc: bool) -> tuple[list, int]:
-        follower = GraphFollower(TrackerParams(camera_motion_compensation=cmc))  # the graph's nodes, in-process
+        follower = GraphFollower(TrackerParams(camera_motion_compensation=cmc), details=True)  # the graph, in-process
         out = []
         for k, o in enumerate(offsets):
             frame = np.ascontiguousarray(world[:, o:o + W])

@@ -57,7 +57,7 @@ def centre_error(box, gt: tuple[float, float]) -> float:
 
 def test_tracker_through_occlusion_with_distractor() -> None:
     """The graph's tracking nodes (run in-process, as `followbus eval` runs them) through an occlusion."""
-    frames = run(GraphFollower(TrackerParams()))
+    frames = run(GraphFollower(TrackerParams(), details=True))
     # Initialised on frame 0 from the detection nearest the image bottom-centre (the target).
     assert frames[0][3].measurement.init_box is not None
     assert centre_error(frames[0][3].measurement.init_box, frames[0][2]) == 0.0
@@ -91,8 +91,8 @@ def test_tracker_through_occlusion_with_distractor() -> None:
 def test_the_graph_is_deterministic_and_is_the_seeds_order_of_the_pure_modules() -> None:
     """Two runs of the graph's nodes are identical, and equal the pure modules driven by hand in seed 000's
     order (prior k after measurement k-1, re-ID against the template of k-1), bit for bit."""
-    a = run(GraphFollower(TrackerParams()))
-    b = run(GraphFollower(TrackerParams()))
+    a = run(GraphFollower(TrackerParams(), details=True))
+    b = run(GraphFollower(TrackerParams(), details=True))
     params = TrackerParams()
     predictor, reid, template = Predictor(params), ReIdentifier(params), TemplateUpdater(params)
     hist = None
@@ -119,7 +119,7 @@ def test_the_graph_is_deterministic_and_is_the_seeds_order_of_the_pure_modules()
 
 
 def test_explicit_init_box_and_lost() -> None:
-    follower = GraphFollower(TrackerParams(lost_after_ms=200.0))
+    follower = GraphFollower(TrackerParams(lost_after_ms=200.0), details=True)
     img, dets, _, _ = scene(0)
     box, info = follower.step(img, dets, 0, init_box=(40.0, 170.0, 30.0, 60.0))
     assert info["state"] == "TRACKING" and box == (40.0, 170.0, 30.0, 60.0)
@@ -132,7 +132,7 @@ def test_explicit_init_box_and_lost() -> None:
 
 
 def test_no_target_before_initialisation() -> None:
-    follower = GraphFollower(TrackerParams())
+    follower = GraphFollower(TrackerParams(), details=True)
     empty = np.full((H, W, 3), (40, 90, 40), np.uint8)
     box, info = follower.step(empty, np.zeros((0, 5), np.float32), 0)
     assert info["state"] == "UNINITIALISED" and box is None and not follower.last.prior.initialised
