@@ -6,8 +6,9 @@ description of the layout; it is stored as the schema of every bus channel of a 
 reader needs nothing else. In short: ``b"FB1" | u32 little-endian length N | msgpack map (N bytes) |
 array blobs``; the map is ``{"_t": type name, "_v": schema version, "header": [...], ...fields}``;
 small arrays travel inline as ext type 1, arrays of 4 KiB and more out of band as ext type 2
-referencing the blob area, so a 720p frame is copied once on encode and decoded zero-copy
-(``np.frombuffer``): decoded arrays are read-only views.
+referencing the blob area, so a 720p frame is copied once on encode (into the joined frame, or, through
+:func:`pack_parts`, by bus/pubsub.py straight into a shared-memory buffer) and decoded zero-copy
+(``np.frombuffer``): decoded arrays are read-only views of the bytes given to :func:`unpack`.
 """
 
 from __future__ import annotations
@@ -155,17 +156,27 @@ def _array_meta(arr: np.ndarray) -> np.ndarray:
     return arr
 
 
+_DTYPES = {name: np.dtype(name) for name in _ALLOWED_DTYPES}
+
+
 def _check_meta(dtype_str: Any, shape: Any) -> tuple[np.dtype, tuple[int, ...], int]:
-    if dtype_str not in _ALLOWED_DTYPES:
+    dtype = _DTYPES.get(dtype_str) if isinstance(dtype_str, str) else None
+    if dtype is None:
         raise DecodeError(f"array dtype {dtype_str!r} not allowed")
     if not isinstance(shape, (list, tuple)) or not all(isinstance(n, int) and n >= 0 for n in shape):
         raise DecodeError(f"bad array shape {shape!r}")
-    dtype = np.dtype(dtype_str)
-    return dtype, tuple(shape), int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    count = 1
+    for n in shape:  # Python ints: no overflow, where np.prod would wrap a hostile shape
+        count *= n
+    return dtype, tuple(shape), count * dtype.itemsize
 
 
-def pack(obj: Mapping[str, Any]) -> bytes:
-    """Frame a plain map (values: scalars, str, bytes, lists, dicts, numpy arrays)."""
+def pack_parts(obj: Mapping[str, Any]) -> tuple[bytes, list[np.ndarray]]:
+    """A frame in two parts: magic, length and head as bytes, then the arrays of its blob area in order.
+
+    Nothing of the arrays is copied: a writer puts the parts one after the other wherever the frame goes
+    (:func:`pack` joins them; bus/pubsub.py writes them straight into a shared-memory buffer).
+    """
     blobs: list[np.ndarray] = []
     offset = 0
 
@@ -174,7 +185,8 @@ def pack(obj: Mapping[str, Any]) -> bytes:
         if isinstance(value, np.ndarray):
             arr = _array_meta(value)
             if arr.nbytes < INLINE_MAX_BYTES:
-                head = f"{arr.dtype.str}\0{json.dumps(list(arr.shape))}\0".encode()
+                # the shape as json.dumps writes it ("[2, 4]"), without json's per-call overhead
+                head = f"{arr.dtype.str}\0[{', '.join(map(str, arr.shape))}]\0".encode()
                 return msgpack.ExtType(NDARRAY_EXT, head + arr.tobytes())
             ref = msgpack.packb([arr.dtype.str, list(arr.shape), offset, arr.nbytes])
             blobs.append(arr)
@@ -185,9 +197,16 @@ def pack(obj: Mapping[str, Any]) -> bytes:
         raise TypeError(f"cannot encode {type(value).__name__}")
 
     head = msgpack.packb(obj, default=default, use_bin_type=True)
+    return _PREFIX.pack(MAGIC, len(head)) + head, blobs
+
+
+def pack(obj: Mapping[str, Any]) -> bytes:
+    """Frame a plain map (values: scalars, str, bytes, lists, dicts, numpy arrays)."""
+    head, blobs = pack_parts(obj)
+    if not blobs:
+        return head
     # One join: each large array is copied exactly once, into the frame.
-    return b"".join([MAGIC, len(head).to_bytes(LENGTH_BYTES, "little"), head,
-                     *(memoryview(b).cast("B") for b in blobs)])
+    return b"".join([head, *(memoryview(b).cast("B") for b in blobs)])
 
 
 def _split(data: bytes | bytearray | memoryview) -> tuple[memoryview, memoryview]:
@@ -261,6 +280,12 @@ class Peeked(NamedTuple):
 def encode_message(type_name: str, version: int, header: Header, fields: Mapping[str, Any]) -> bytes:
     """A message's frame: type, version and header first (what :func:`peek` reads), then the fields."""
     return pack({TYPE_KEY: type_name, VERSION_KEY: version, HEADER_KEY: header.to_wire(), **fields})
+
+
+def encode_message_parts(type_name: str, version: int, header: Header,
+                         fields: Mapping[str, Any]) -> tuple[bytes, list[np.ndarray]]:
+    """:func:`encode_message` as :func:`pack_parts` gives it: the frame's head and its blob arrays, uncopied."""
+    return pack_parts({TYPE_KEY: type_name, VERSION_KEY: version, HEADER_KEY: header.to_wire(), **fields})
 
 
 def decode_message(data: bytes | bytearray | memoryview) -> Decoded:

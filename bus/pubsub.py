@@ -10,10 +10,11 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import zenoh
 
 from .codec import DecodeError
-from .schemas import Message, decode, encode, validate
+from .schemas import Message, decode, encode_parts, validate
 from .stats import TopicStats
 
 log = logging.getLogger(__name__)
@@ -98,13 +99,47 @@ class ShmPool:
         with self._lock:
             self._alloc(SHM_THRESHOLD_BYTES)  # the buffer is released when it goes out of scope
 
-    def buffer_with(self, payload: bytes) -> Any | None:
+    def buffer_with(self, payload: bytes | bytearray) -> Any | None:
+        """A shared-memory buffer holding a copy of ``payload``; None when shared memory is unusable."""
         with self._lock:
             buf = self._alloc(len(payload))
         if buf is None:
             return None
         buf[:] = payload
         return buf
+
+    def buffer_with_parts(self, head: bytes, blobs: list[np.ndarray]) -> Any | None:
+        """A shared-memory buffer holding a frame written in place: ``head``, then each blob's bytes.
+
+        zenoh-python 1.10 (its cp39-abi3 wheel) writes into a ``ZShmMut`` only from ``bytes`` or
+        ``bytearray`` (no buffer protocol: neither memoryview nor numpy can fill it), so an array backed by a
+        bytearray it covers whole (a camera buffer, ``np.frombuffer(bytearray)``) is copied once, from that
+        bytearray; any other array needs ``tobytes()`` first: a second copy, forced by the binding.
+        """
+        total = len(head) + sum(b.nbytes for b in blobs)
+        with self._lock:
+            buf = self._alloc(total)
+        if buf is None:
+            return None
+        end = len(head)
+        buf[:end] = head
+        for blob in blobs:
+            buf[end:end + blob.nbytes] = _byte_source(blob)
+            end += blob.nbytes
+        return buf
+
+
+def _byte_source(arr: np.ndarray) -> bytes | bytearray:
+    """The bytes of a C-contiguous array as something ``ZShmMut`` accepts, without a copy when possible."""
+    owner: Any = arr
+    while isinstance(owner, np.ndarray):
+        owner = owner.base
+    if isinstance(owner, memoryview):
+        owner = owner.obj
+    if (isinstance(owner, (bytes, bytearray)) and len(owner) == arr.nbytes
+            and np.frombuffer(owner, np.uint8).ctypes.data == arr.ctypes.data):
+        return owner
+    return arr.tobytes()
 
 
 class Publisher:
@@ -139,14 +174,23 @@ class Publisher:
         msg.header.source = self.source
         msg.header.pub_ns = time.time_ns()
         self._seq += 1
-        return self.put_bytes(encode(msg), msg.header.stamp_ns)
+        head, blobs = encode_parts(msg)
+        size = len(head) + sum(b.nbytes for b in blobs)
+        if not self._fits(size):
+            return False
+        body: Any = None
+        if self.shm is not None and size >= SHM_THRESHOLD_BYTES:
+            # Header and arrays written straight into the shared-memory buffer: no joined frame in between.
+            body = self.shm.buffer_with_parts(head, blobs)
+        if body is None:
+            body = head if not blobs else b"".join([head, *(memoryview(b).cast("B") for b in blobs)])
+        self._pub.put(body)
+        self.stats.record(msg.header.stamp_ns, size)
+        return True
 
     def put_bytes(self, payload: bytes, stamp_ns: int = 0) -> bool:
         """Publish an already encoded payload (recording playback); False when it was refused for its size."""
-        if len(payload) > self.max_payload_bytes:
-            self.stats.refuse()
-            self._warn.warning("refused a %.1f MB message on %s: over the %.1f MB publication limit",
-                               len(payload) / 1e6, self.key, self.max_payload_bytes / 1e6)
+        if not self._fits(len(payload)):
             return False
         body: Any = payload
         if self.shm is not None and len(payload) >= SHM_THRESHOLD_BYTES:
@@ -155,11 +199,27 @@ class Publisher:
         self.stats.record(stamp_ns, len(payload))
         return True
 
+    def _fits(self, size: int) -> bool:
+        if size <= self.max_payload_bytes:
+            return True
+        self.stats.refuse()
+        self._warn.warning("refused a %.1f MB message on %s: over the %.1f MB publication limit",
+                           size / 1e6, self.key, self.max_payload_bytes / 1e6)
+        return False
+
     def undeclare(self) -> None:
         self._pub.undeclare()
 
 
 def payload_bytes(sample: zenoh.Sample) -> bytes:
+    """A private copy of a sample's payload (one memcpy out of shared memory for large ones).
+
+    The copy is forced by the binding: zenoh-python 1.10's wheel (cp39-abi3) gives ``ZBytes`` and ``ZShm``
+    no buffer protocol, so Python cannot view a received buffer in place (the upstream source exposes one
+    only in builds for Python >= 3.11). It also settles the node contract: arrays decoded from it
+    (read-only numpy views of this copy) never alias memory Zenoh may reuse, so a node may keep them after
+    its handler returns (2.76 MB: ~0.19 ms on the 2-core VM, BENCHMARKS.md).
+    """
     payload = sample.payload
     shm_buf = payload.as_shm()
     return bytes(shm_buf) if shm_buf is not None else payload.to_bytes()

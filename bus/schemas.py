@@ -28,7 +28,7 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 
 # Header is part of the frame layout, which bus/codec.py owns; re-exported here with the messages.
-from .codec import DecodeError, Header, decode_message, encode_message
+from .codec import DecodeError, Header, decode_message, encode_message, encode_message_parts
 from .typecheck import TypeMismatch, conform
 
 SCHEMA_VERSION = 1
@@ -288,12 +288,34 @@ def _hints(cls: type) -> dict[str, Any]:
 
 
 _HINTS: dict[type, dict[str, Any]] = {}
+# Annotations a value of exactly that type satisfies unchanged (conform would return it as it is).
+_PASS_THROUGH = frozenset({int, float, str, bool, np.ndarray})
+_FIELD_PLANS: dict[type, tuple[tuple[str, Any, Any], ...]] = {}
+
+
+def _field_plan(cls: type) -> tuple[tuple[str, Any, Any], ...]:
+    """(name, annotation, pass-through type or None) of each field but the header, once per class: every
+    message crosses encode and decode, and dataclasses.fields plus a hint lookup per field cost more there
+    than the rest of the decode of a small message."""
+    plan = _FIELD_PLANS.get(cls)
+    if plan is None:
+        hints = _hints(cls)
+        plan = tuple((f.name, hints[f.name], hints[f.name] if hints[f.name] in _PASS_THROUGH else None)
+                     for f in dataclasses.fields(cls) if f.name != "header")
+        _FIELD_PLANS[cls] = plan
+    return plan
 
 
 def encode(msg: Message) -> bytes:
     """Serialise a message (type tag, version, header, fields) into a followbus frame (bus/codec.py)."""
-    fields = {f.name: getattr(msg, f.name) for f in dataclasses.fields(msg) if f.name != "header"}
+    fields = {name: getattr(msg, name) for name, _, _ in _field_plan(type(msg))}
     return encode_message(msg.TYPE, SCHEMA_VERSION, msg.header, fields)
+
+
+def encode_parts(msg: Message) -> tuple[bytes, list[np.ndarray]]:
+    """:func:`encode` without joining: the frame's head (bytes) and the arrays of its blob area, uncopied."""
+    fields = {name: getattr(msg, name) for name, _, _ in _field_plan(type(msg))}
+    return encode_message_parts(msg.TYPE, SCHEMA_VERSION, msg.header, fields)
 
 
 def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None) -> M:
@@ -308,19 +330,20 @@ def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None
         raise DecodeError(f"expected {expected.TYPE}, got {type_name}")
     if header is None:
         raise DecodeError(f"{type_name}: missing field 'header'")
-    hints = _hints(cls)
     kwargs: dict[str, Any] = {"header": header}
-    for f in dataclasses.fields(cls):
-        if f.name == "header":
-            continue
-        if f.name not in obj:
-            if f.name in cls.ADDED:
+    for name, hint, exact in _field_plan(cls):
+        if name not in obj:
+            if name in cls.ADDED:
                 continue  # an older message: the field's default
-            raise DecodeError(f"{type_name}: missing field {f.name!r}")
+            raise DecodeError(f"{type_name}: missing field {name!r}")
+        value = obj.pop(name)
+        if exact is not None and type(value) is exact:
+            kwargs[name] = value
+            continue
         try:
-            kwargs[f.name] = conform(obj.pop(f.name), hints[f.name])
+            kwargs[name] = conform(value, hint)
         except TypeMismatch as exc:
-            raise DecodeError(f"{type_name}.{f.name}: {exc}") from None
+            raise DecodeError(f"{type_name}.{name}: {exc}") from None
     if obj:
         raise DecodeError(f"{type_name}: unknown fields {sorted(obj)}")
     return cls(**kwargs)  # type: ignore[return-value]

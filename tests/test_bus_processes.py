@@ -174,3 +174,55 @@ def test_a_node_publishing_frames_creates_its_shared_memory_pool_before_its_firs
             assert (pools.pop()._provider is not None) is warmed, name
         finally:
             runtime.session.close()  # never set up: nothing else to tear down
+
+
+def test_frames_written_into_shared_memory_in_place_arrive_as_encode_writes_them(port):
+    """Publisher.put writes a large message's head and arrays straight into its shared-memory buffer: the
+    receiver gets exactly the bytes of encode() (the one wire format), whatever backs the arrays."""
+    from followbus.bus.pubsub import ShmPool, _byte_source
+    from followbus.bus.schemas import encode
+
+    camera = bytearray(np.random.default_rng(3).integers(0, 255, 720 * 1280 * 3, dtype=np.uint8).tobytes())
+    image = np.frombuffer(camera, np.uint8).reshape(720, 1280, 3)
+    assert _byte_source(image) is camera  # a buffer the camera filled: copied once, from the bytearray itself
+    assert isinstance(_byte_source(image[:360]), bytes)  # part of a buffer: its own bytes
+    assert isinstance(_byte_source(np.ascontiguousarray(image[:, :, ::-1])), bytes)
+    frames = [
+        schemas.Frame(width=1280, height=720, encoding="bgr8", data=image),
+        schemas.Frame(width=640, height=480, encoding="bgr8", data=image[::2, ::2]),  # a strided view
+        schemas.Frame(width=1280, height=720, encoding="bgr8", data=image[:, :, ::-1].copy()),
+        schemas.Tick(value=1, payload=np.arange(200_000, dtype=np.uint8)),  # several blobs' worth of head
+    ]
+    sender = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    receiver = open_session(ZenohSettings(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    got: dict[int, bytes] = {}
+    shm_seen: list[bool] = []
+
+    def on(sample) -> None:
+        shm_seen.append(sample.payload.as_shm() is not None)
+        data = payload_bytes(sample)
+        got[decode(data).header.seq] = data
+
+    from followbus.bus.pubsub import direct_callback
+
+    sub = receiver.declare_subscriber("shm/in", direct_callback(on))
+    pub = Publisher(sender, "shm/in", "test", shm=ShmPool())
+    try:
+        sent: dict[int, bytes] = {}
+        for _ in range(50):  # resend until the subscription has propagated
+            for i, msg in enumerate(frames):
+                msg.header.frame_seq = i
+                pub.put(msg)
+                sent[msg.header.seq] = encode(msg)  # the same header: put has just filled seq, source, pub_ns
+            if wait_until(lambda: {decode(d).header.frame_seq for d in list(got.values())} == set(range(len(frames))),
+                          0.5):
+                break
+        assert {decode(d).header.frame_seq for d in list(got.values())} == set(range(len(frames)))
+        for seq, data in got.items():
+            assert data == sent[seq], f"message {seq} differs from encode()"
+        assert all(shm_seen), "large payloads should have travelled through shared memory"
+    finally:
+        sub.undeclare()
+        pub.undeclare()
+        receiver.close()
+        sender.close()
