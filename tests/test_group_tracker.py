@@ -11,6 +11,7 @@ from followbus.tracking.group import (
     METHODS,
     GroupParams,
     MultiEllipseGroupTracker,
+    _weave,
     dbscan,
     digamma,
 )
@@ -87,39 +88,48 @@ def test_weight_threshold_removes_a_starved_component() -> None:
         if tr.n_components == 1:
             break
     assert tr.n_components == 1
-    assert len(tr.mu) == dims - 2
+    assert len(tr.mu) == dims - 4          # its slot offset η and its weave w went with it
     assert len(seen_weights) > 2 and seen_weights[-2] < seen_weights[0]   # it starved before it went
     assert tr.estimate().centre_m[1] == pytest.approx(1.8, abs=0.4)
 
 
-def _sub_target_centres(tr: MultiEllipseGroupTracker) -> np.ndarray:
+def _slots(tr: MultiEllipseGroupTracker) -> np.ndarray:
+    """Each sub-target's slot c + η_l: its centre without its current weave w_l."""
+    L = tr.n_components
+    return np.array([tr._H(l) @ tr.mu - tr.mu[_weave(l, L)] for l in range(L)])
+
+
+def _centres(tr: MultiEllipseGroupTracker) -> np.ndarray:
     return np.array([tr._H(l) @ tr.mu for l in range(tr.n_components)])
 
 
-def test_state_centre_is_the_mean_of_the_sub_target_centres() -> None:
-    """Eq. 13 with Alg. 1 line 43 as the reference: c in the state is the mean of the sub-target centres,
+def test_state_centre_is_the_mean_of_the_sub_target_slots() -> None:
+    """Eq. 13 with Alg. 1 line 43 as the reference: c in the state is the mean of the sub-targets' slots,
     at initialisation, after updates, and after a sub-target is pruned (the kept ones do not move)."""
     rng = np.random.default_rng(7)
     tr = MultiEllipseGroupTracker(GroupParams(n_ellipses=3, early_frames=5))
     tr.step(0.0, two_columns(rng, np.zeros(2)))
-    np.testing.assert_allclose(tr.mu[0:2], _sub_target_centres(tr).mean(axis=0), atol=1e-9)
+    np.testing.assert_allclose(tr.mu[0:2], _slots(tr).mean(axis=0), atol=1e-9)
     n_before = tr.n_components
     for k in range(1, 60):
         # Only the upper column is seen from now on: the other sub-targets starve and go.
         tr.step(0.1 * k, np.array([0.0, 1.8]) + rng.normal(0, [1.0, 0.3], (5, 2)))
-        np.testing.assert_allclose(tr.mu[0:2], _sub_target_centres(tr).mean(axis=0), atol=1e-9)
+        np.testing.assert_allclose(tr.mu[0:2], _slots(tr).mean(axis=0), atol=1e-9)
         if tr.n_components < n_before:
             break
     assert tr.n_components < n_before
     # Pruning itself moves no kept sub-target: re-basing the same state on the kept ones.
     tr2 = MultiEllipseGroupTracker(GroupParams(n_ellipses=3, early_frames=0))
     tr2.step(0.0, two_columns(rng, np.zeros(2)))
-    centres = _sub_target_centres(tr2)
-    tr2.alpha = np.array([1.0, 100.0, 100.0])[: tr2.n_components]
+    tr2._predict(0.1)
+    tr2.mu[_weave(1, 3)] = [0.2, -0.1]                 # some weave, so the re-basing has to carry it
+    centres, slots = _centres(tr2), _slots(tr2)
+    tr2.alpha = np.array([1.0, 100.0, 100.0])
     tr2.frames = 100
     tr2._prune()
-    np.testing.assert_allclose(_sub_target_centres(tr2), centres[1:], atol=1e-9)
-    np.testing.assert_allclose(tr2.mu[0:2], centres[1:].mean(axis=0), atol=1e-9)
+    assert tr2.n_components == 2
+    np.testing.assert_allclose(_centres(tr2), centres[1:], atol=1e-9)
+    np.testing.assert_allclose(tr2.mu[0:2], slots[1:].mean(axis=0), atol=1e-9)
 
 
 def test_a_sub_target_measures_its_centre_once_per_frame() -> None:
@@ -139,6 +149,51 @@ def test_a_sub_target_measures_its_centre_once_per_frame() -> None:
         assert mu0[0] < mu[0] < pts[:, 0].mean() + 0.05      # pulled towards the points' centroid
     # With each point an independent draw (X/n) the 8-point variance would be several times smaller.
     assert post_var[8] > 0.6 * post_var[1]
+
+
+def _swaying_squad(t: float, rng: np.random.Generator) -> np.ndarray:
+    """Two sub-groups walking along x at 1.2 m/s, 2.5 m apart; the visible one of the back pair sways 0.5 m
+    either side of its place with a 4 s period (the front three are steady)."""
+    front = np.array([1.2 * t + 1.5, 0.0]) + np.array([[0.0, -0.8], [0.0, 0.0], [0.0, 0.8]])
+    back = np.array([[1.2 * t - 1.0, 0.5 * math.sin(2 * math.pi * t / 4.0)]])
+    return np.vstack([front, back]) + rng.normal(0, 0.05, (4, 2))
+
+
+def _lateral_speed_swing(params: GroupParams) -> float:
+    rng = np.random.default_rng(9)
+    tr = MultiEllipseGroupTracker(params)
+    vy = []
+    for k in range(200):
+        est = tr.step(0.1 * k, _swaying_squad(0.1 * k, rng))
+        if k >= 40:
+            vy.append(est.velocity_mps[1])
+    return float(np.std(vy))
+
+
+def test_a_sub_targets_weave_stays_out_of_the_group_velocity() -> None:
+    """The weave w_l (Ornstein-Uhlenbeck about the slot) takes up one person's sway; without it (a weave of
+    ~0) the sway goes into the shared velocity, i.e. into the heading the robot follows."""
+    p = GroupParams(n_ellipses=2)
+    with_weave = _lateral_speed_swing(p)
+    without = _lateral_speed_swing(GroupParams(**{**p.__dict__, "weave_std_m": 0.0}))
+    assert with_weave < 0.6 * without, (with_weave, without)
+    assert with_weave < 0.15
+
+
+def test_a_leaver_is_cut_loose_at_the_group_boundary() -> None:
+    """Eq. 5-6 on top of the sub-target gates: a member walking off sideways is dropped once D_th from the
+    group centre, and the centre stays with the rest."""
+    rng = np.random.default_rng(10)
+    tr = MultiEllipseGroupTracker()
+    for k in range(105):
+        t = 0.1 * k
+        group = np.array([1.2 * t, 0.0]) + np.array([[0, -1], [0, 0], [0, 1], [-1.4, -0.6], [-1.4, 0.6]])
+        leaver = np.array([[1.2 * t - 1.4, 0.6 + max(0.0, t - 3.0) * 0.8]])    # off to the left from 3 s
+        est = tr.step(t, np.vstack([group + rng.normal(0, 0.05, (5, 2)), leaver]))
+    # 6 m to the side by now: outside D_th (the sub-target gate alone still held it, and the centre 0.9 m
+    # towards it).
+    assert not est.selected[5]
+    assert abs(est.centre_m[1]) < 0.4, est.centre_m
 
 
 def test_kalman_follows_a_constant_velocity_centre() -> None:

@@ -10,8 +10,10 @@ refer to seed 004 (Yu, Li, Wu, Drones 2025, 9, 620):
 * Eq. 8     random-matrix measurement model p(z | x, X) = N(z; Hx, X + R).
 * Eq. 9-10  Gaussian motion prior, Inverse-Wishart extent prior.
 * Eq. 12    multi-ellipse mixture p(z | x, X^{1:L}, π^{1:L}) = Σ_l π_l N(z; H_l x, X_l + R).
-* Eq. 13    state x = [x_c, y_c, ẋ_c, ẏ_c, η_2, …, η_L]: the sub-target offsets ride in the Kalman state,
-            component 1 is the reference (η_1 = 0).
+* Eq. 13    state x = [x_c, y_c, ẋ_c, ẏ_c, η_2, …, η_L]: the sub-target offsets ride in the Kalman state;
+            c is the mean of the sub-targets' slots (η_1 = −Σ η_l), and the state is extended by a
+            mean-reverting weave w_l per sub-target (people sway about their place in the squad).
+* Eq. 5-6   the group boundary D_th around the predicted centre also bounds ME-CGT-UGV's selection.
 * Eq. 14-21 latent noise-free positions b, responsibilities r, and the mean-field factors q_b, q_r, q_x,
             q_X, q_π updated in turn (variational Bayes, after Tuncer, Orguner & Özkan 2022, seed ref. [34]).
 * Eq. 23    Kalman-form update of the motion state.
@@ -189,22 +191,44 @@ def _principal_angle(cov: np.ndarray) -> float:
 # --------------------------------------------------------------------------- ME-CGT-UGV
 
 
-def _sub_target_matrix(l: int, L: int) -> np.ndarray:
-    """H_l with sub-target l's centre = c + η_l in the state of Eq. 13, x = [c, ċ, η_2..η_L].
+def _state_size(L: int) -> int:
+    """[c, ċ] + slot offsets η_2..η_L + a weave w_1..w_L per sub-target."""
+    return 4 + 2 * (L - 1) + 2 * L
 
-    c is the group centre itself, the mean of the sub-target centres (Alg. 1 line 43), so the offsets sum
-    to zero: η_1 = −(η_2 + … + η_L). With sub-target 1 as the reference instead (η_1 ≡ 0), the velocity in
-    the state was that of the 2-3 people of one ellipse, and their weave went straight into the group's
-    heading; referenced to the mean, each sub-target's own motion is averaged over all L of them."""
-    H = np.zeros((D, 4 + 2 * (L - 1)))
+
+def _slot(k: int) -> slice:
+    """State indices of η_k, k = 2..L (1-based as in Eq. 13; η_1 is not in the state)."""
+    return slice(4 + 2 * (k - 2), 6 + 2 * (k - 2))
+
+
+def _weave(l: int, L: int) -> slice:
+    """State indices of sub-target l's weave w_l (0-based l)."""
+    return slice(4 + 2 * (L - 1) + 2 * l, 6 + 2 * (L - 1) + 2 * l)
+
+
+def _sub_target_matrix(l: int, L: int) -> np.ndarray:
+    """H_l: sub-target l's centre = c + η_l + w_l in the state of Eq. 13, extended by a weave per sub-target.
+
+    c is the centre of the formation, the mean of the sub-targets' slots (Alg. 1 line 43), so the slot
+    offsets sum to zero: η_1 = −(η_2 + … + η_L). With sub-target 1 as the reference instead (η_1 ≡ 0), the
+    velocity in the state was that of the 2-3 people of one ellipse; referenced to the mean, each
+    sub-target's own motion is averaged over all L of them.
+
+    w_l is where the sub-target's people are relative to their slot right now: people in a squad sway and
+    weave around their place (the S-curves of seed 004 §4.3) and come back to it. Without it, Eq. 13's slow
+    random-walk offsets cannot follow a weave, so when occlusion leaves only a few people visible their
+    weave went into the group's shared velocity (the heading swung ±15° with a 3-4 s period, traced in the
+    10° occlusion run), while faster offsets let a passing non-member drag its sub-target off (tried: 0.3 m/s
+    doubled OE in `disturbance`). A mean-reverting w_l follows the weave and cannot wander."""
+    H = np.zeros((D, _state_size(L)))
     H[:, 0:2] = np.eye(D)
     if l > 0:
-        H[:, 4 + 2 * (l - 1): 6 + 2 * (l - 1)] = np.eye(D)
+        H[:, _slot(l + 1)] = np.eye(D)
     else:
-        for k in range(1, L):
-            H[:, 4 + 2 * (k - 1): 6 + 2 * (k - 1)] = -np.eye(D)
+        for k in range(2, L + 1):
+            H[:, _slot(k)] = -np.eye(D)
+    H[:, _weave(l, L)] = np.eye(D)
     return H
-
 
 
 @dataclass
@@ -217,6 +241,9 @@ class GroupParams:
     dbscan_min_samples: int = 2
     accel_std_mps2: float = 0.6        # group-centre process noise (constant-velocity Kalman, §2.2.3)
     offset_std_mps: float = 0.1        # random walk of the sub-target offsets η_l (Eq. 13)
+    weave_std_m: float = 0.3           # stationary std of a sub-target's weave about its slot (people sway
+                                       # 0.2-0.5 m either side of their place) …
+    weave_tau_s: float = 1.0           # … and how fast it reverts (Ornstein-Uhlenbeck)
     lambda_iw: float = 0.95            # Eq. 24 forgetting factor of the extents
     lambda_dirichlet: float = 0.95     # Eq. 25 forgetting factor of the weights
     nu_min: float = 8.0                # IW degrees of freedom kept above d+1 so E[X] stays finite
@@ -226,6 +253,7 @@ class GroupParams:
     weight_threshold_early: float = 0.01  # §4.6: 1 % in the initial stage …
     weight_threshold_late: float = 0.10   # … then 10 %
     early_frames: int = 10
+    d_th_m: float = 4.0                # Eq. 6 boundary around the predicted group centre (as CGT-UGV's)
     gate_chi2: float = 9.21            # data selection: squared Mahalanobis distance to a predicted
                                        # sub-target (χ²₂ 99 %); wider lets disturbers stretch the shape
     selection_passes: int = 2          # predict → select → refine → reselect (§2.2.2)
@@ -264,6 +292,10 @@ class MultiEllipseGroupTracker:
         """Measurement matrix of sub-target l: position = c + η_l (Eq. 13)."""
         return _sub_target_matrix(l, self.n_components)
 
+    def _weave_var(self) -> float:
+        # Kept above (1 mm)²: a zero block would make P singular, and the VB update inverts it.
+        return max(self.p.weave_std_m, 1e-3) ** 2
+
     def expected_extent(self, l: int) -> np.ndarray:
         """E[X_l] = V_l / (ν_l − d − 1) (IW mean)."""
         return self.V[l] / (self.nu[l] - D - 1)
@@ -281,12 +313,14 @@ class MultiEllipseGroupTracker:
         L = max(1, min(self.p.n_ellipses, len(members)))
         labels = kmeans_split(members, L)
         centres = np.array([members[labels == k].mean(axis=0) for k in range(L)])
-        self.mu = np.zeros(4 + 2 * (L - 1))
+        self.mu = np.zeros(_state_size(L))
         self.mu[0:2] = centres.mean(axis=0)                                  # Alg. 1 line 43
-        for k in range(1, L):
-            self.mu[4 + 2 * (k - 1): 6 + 2 * (k - 1)] = centres[k] - self.mu[0:2]
+        for k in range(2, L + 1):
+            self.mu[_slot(k)] = centres[k - 1] - self.mu[0:2]
         self.P = np.eye(len(self.mu)) * 0.25
         self.P[2:4, 2:4] = np.eye(D) * 1.0  # velocity unknown: ~1 m/s std
+        for k in range(L):
+            self.P[_weave(k, L), _weave(k, L)] = np.eye(D) * self._weave_var()   # its stationary spread
         self.V, nus = [], []
         for k in range(L):
             sub = members[labels == k]
@@ -311,7 +345,13 @@ class MultiEllipseGroupTracker:
         F[0:4, 0:4] = cv_transition(dt_s)
         Q = np.zeros((n, n))
         Q[0:4, 0:4] = cv_process_noise(dt_s, self.p.accel_std_mps2)
-        Q[4:, 4:] = np.eye(n - 4) * (self.p.offset_std_mps ** 2) * dt_s
+        L = self.n_components
+        Q[4:_weave(0, L).start, 4:_weave(0, L).start] = np.eye(2 * (L - 1)) * (self.p.offset_std_mps ** 2) * dt_s
+        # Weave: Ornstein-Uhlenbeck, w ← a w + noise, a = exp(−dt/τ), stationary variance weave_std².
+        a = math.exp(-dt_s / self.p.weave_tau_s) if self.p.weave_tau_s > 0 else 0.0
+        for k in range(L):
+            F[_weave(k, L), _weave(k, L)] = np.eye(D) * a
+            Q[_weave(k, L), _weave(k, L)] = np.eye(D) * (1 - a * a) * self._weave_var()
         self.mu = F @ self.mu
         self.P = F @ self.P @ F.T + Q
         # Eq. 24: V ← λ_IW V, ν ← λ_IW ν (older points count less). Below nu_min the mean E[X] would blow
@@ -338,6 +378,12 @@ class MultiEllipseGroupTracker:
             d = pts - m
             m2 = np.einsum("ni,nij,nj->n", d, np.linalg.inv(S), d)
             keep |= m2 < self.p.gate_chi2
+        if self.p.d_th_m > 0:
+            # Eq. 5-6 as well: a member is within D_th of the predicted group centre (Alg. 1 line 43). The
+            # sub-target gates alone let a leaver take its sub-target along (the weave and the slot follow
+            # it step by step and it never leaves that gate); the group's boundary cuts it loose.
+            centre = np.mean([self._H(l) @ mu for l in range(len(nu))], axis=0)
+            keep &= np.linalg.norm(pts - centre, axis=1) < self.p.d_th_m
         return keep
 
     # ---- variational-Bayes update (Eq. 14-21, 23)
@@ -418,16 +464,23 @@ class MultiEllipseGroupTracker:
         keep = [l for l in range(self.n_components) if w[l] >= thr]
         if len(keep) == self.n_components or not keep:
             return
-        # x' = T x: the kept sub-targets' centres s_l = H_l x stay where they are; the new c is their mean
-        # (Alg. 1 line 43) and the new offsets are re-expressed relative to it.
-        L2 = len(keep)
-        S = np.array([self._H(l) for l in keep])                                # (L2, 2, n)
+        # x' = T x: the kept sub-targets' slots c + η_l and weaves stay where they are; the new c is the
+        # mean of their slots (Alg. 1 line 43) and the slot offsets are re-expressed relative to it.
+        L, L2 = self.n_components, len(keep)
+        slots = []
+        for l in keep:
+            Hs = self._H(l).copy()
+            Hs[:, _weave(l, L)] = 0.0
+            slots.append(Hs)
+        S = np.array(slots)                                                     # (L2, 2, n)
         c_new = S.mean(axis=0)
-        T = np.zeros((4 + 2 * (L2 - 1), len(self.mu)))
+        T = np.zeros((_state_size(L2), len(self.mu)))
         T[0:2] = c_new
         T[2:4, 2:4] = np.eye(D)
-        for k in range(1, L2):
-            T[4 + 2 * (k - 1): 6 + 2 * (k - 1)] = S[k] - c_new
+        for k in range(2, L2 + 1):
+            T[_slot(k)] = S[k - 1] - c_new
+        for k, l in enumerate(keep):
+            T[_weave(k, L2), _weave(l, L)] = np.eye(D)
         self.mu = T @ self.mu
         self.P = T @ self.P @ T.T
         self.V = [self.V[l] for l in keep]
