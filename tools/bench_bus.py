@@ -7,7 +7,7 @@ Fairness rules, the same for every path:
   the paths take turns, round after round (the order rotates each round), so all see the same machine load;
 * the same payloads (1 KB, 100 KB, 921 KB = 640×480×3, 2.76 MB = 1280×720×3, random bytes held in a
   ``bytearray``, the way a camera driver that fills its own buffer hands them over) at the same rates (30 and
-  100 Hz, paced on an absolute schedule), 5 warm-up messages per cell (30 before the first) not counted;
+  100 Hz, paced on an absolute schedule), 5 warm-up messages per cell (2 s' worth before the first) not counted;
 * the same clock: the sender stamps ``time.time_ns()`` when it starts handing the message over (raw, dora:
   the first 8 payload bytes; bus/: ``header.pub_ns``, set by ``Publisher.put`` before encoding), the
   receiver reads ``time.time_ns()`` once it holds a numpy array of the payload that stays valid after its
@@ -48,7 +48,7 @@ log = logging.getLogger("followbus.bench")
 SIZES = {"1KB": 1024, "100KB": 100 * 1024, "921KB": 640 * 480 * 3, "2.76MB": 1280 * 720 * 3}
 RATES = (30.0, 100.0)
 WARMUP = 5
-FIRST_WARMUP = 30  # the first cell's: 1 s at 30 Hz, while a path's first messages set up its routes
+FIRST_WARMUP_S = 2.0  # the first cell's warm-up: a path's first messages set up routes and mappings
 SHAPES = {640 * 480 * 3: (480, 640, 3), 1280 * 720 * 3: (720, 1280, 3)}
 PATHS = ("raw", "bus")
 _STAMP = 16  # payload bytes 0..8: send time (ns), 8..12: cell, 12..16: message index (raw and dora)
@@ -59,11 +59,12 @@ _STAMP = 16  # payload bytes 0..8: send time (ns), 8..12: cell, 12..16: message 
 
 def _plan(sizes: list[str], rates: list[float], count: int) -> dict[str, Any]:
     return {"cells": [[label, SIZES[label], rate] for label in sizes for rate in rates], "count": count,
-            "warmup": WARMUP, "first_warmup": FIRST_WARMUP}
+            "warmup": WARMUP, "first_warmup_s": FIRST_WARMUP_S}
 
 
 def _warmup(plan: dict[str, Any], cell: int) -> int:
-    return plan["first_warmup"] if cell == 0 else plan["warmup"]
+    """Messages sent before counting starts in a cell: 2 s' worth before the first, 5 before the others."""
+    return max(plan["warmup"], round(plan["first_warmup_s"] * plan["cells"][0][2])) if cell == 0 else plan["warmup"]
 
 
 def _source(size: int, seed: int) -> tuple[bytearray, np.ndarray]:
@@ -349,7 +350,9 @@ nodes:
     path: {python}
     args: -m {module} --child recv dora {plan} {recv_out}
     inputs:
-      frames: sender/frames
+      frames:
+        source: sender/frames
+        queue_size: 1000  # dora's default (10) discards a slow receiver's backlog; zenoh's paths drop nothing
 """
 
 
