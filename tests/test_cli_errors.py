@@ -417,3 +417,42 @@ def test_replay_mistakes_are_one_line(tmp_path):
         assert one_error_line(run_followbus("replay", str(path), *args, "--no-progress")) == expected, args
     line = one_error_line(run_followbus("replay", str(tmp_path / "missing.mcap"), "--node", "relay"))
     assert line == f"followbus: {tmp_path / 'missing.mcap'}: No such file or directory"
+
+
+# ----------------------------------------------------------------------------- the table of commands
+
+
+def test_help_builds_the_table_without_importing_the_work():
+    """`followbus --help` names every command from the table; no handler module (numpy, zenoh, mcap...) is loaded,
+    and only the chosen command gets its arguments."""
+    code = ("import sys; from followbus.tools.cli import COMMANDS, build_parser; "
+            "text = build_parser(['--help']).format_help(); "
+            "assert all(c.name in text and c.help in text for c in COMMANDS), text; "
+            "print(sorted(m for m in ('numpy', 'zenoh', 'mcap', 'cv2', 'rich', 'yaml') if m in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                            env={**os.environ, "COLUMNS": "200"})  # one line a command
+    assert result.returncode == 0 and result.stdout.strip() == "[]", result.stdout + result.stderr
+
+
+def test_every_command_has_a_help_and_a_handler():
+    from followbus.tools.cli import COMMANDS, build_parser
+
+    def leaves(commands, prefix=()):
+        for c in commands:
+            yield from leaves(c.subcommands, (*prefix, c.name)) if c.subcommands else [((*prefix, c.name), c)]
+
+    for words, command in leaves(COMMANDS):
+        parser = build_parser(list(words))
+        with pytest.raises(SystemExit) as done:
+            parser.parse_args([*words, "--help"])
+        assert done.value.code == 0
+        required = {"node": ["n"], "echo": ["k"], "hz": ["k"], "play": ["f"], "replay": ["f", "--node", "n"],
+                    "info": ["f"], "recover": ["f"]}.get(words[-1], [])
+        assert parser.parse_args([*words, *required]).run is command.run, words
+
+
+def test_a_command_with_subcommands_requires_one():
+    result = run_followbus("bench", timeout=30)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert result.stderr.strip().splitlines()[-1] == ("followbus bench: error: the following arguments are "
+                                                      "required: WHAT")

@@ -11,6 +11,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE_DIRS = ("bus", "nodes", "tools", "tracking", "control", "vision", "evaluation", "followbus")
 
@@ -62,3 +64,59 @@ def test_every_internal_import_names_a_file_of_the_repository():
                     unresolved.append(f"{where} from {'.' * node.level}{node.module or ''}")
     assert count > 100, "the package folders should import each other"
     assert not unresolved, "imports that name no file of the repository:\n" + "\n".join(unresolved)
+
+
+# --- tools/ as rooms ---------------------------------------------------------------------------------
+
+# What stays at the top of tools/: the command line and what every room uses. Anything else belongs in a room.
+TOOLS_TOP = {"__init__", "cli", "command", "errors", "connect", "launch", "demo", "models_cmd",
+             "bench_bus"}  # bench_bus: moves into bench/ with issue 12's work on it
+TOOLS_ROOMS = {"recording", "live", "bench"}
+LIBRARY_DIRS = ("bus", "nodes", "tracking", "control", "vision", "evaluation")
+
+
+def test_tools_is_rooms_not_a_hall():
+    top = {p.stem for p in (REPO / "tools").glob("*.py")}
+    assert top <= TOOLS_TOP, f"modules left flat in tools/ (put them in a room: {sorted(TOOLS_ROOMS)}): " \
+                             f"{sorted(top - TOOLS_TOP)}"
+    rooms = {p.parent.name for p in (REPO / "tools").glob("*/__init__.py")}
+    assert rooms == TOOLS_ROOMS, rooms
+    for room in rooms:  # each room lists its own commands, the rows tools/cli.py puts together
+        assert (REPO / "tools" / room / "commands.py").is_file(), room
+
+
+def test_every_package_folder_is_installed():
+    """A folder with __init__.py that pyproject does not list is left out of a wheel (an editable install
+    finds it anyway, so only a clean install shows it)."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    listed = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {"followbus." + ".".join(p.parent.relative_to(REPO).parts)
+             for d in PACKAGE_DIRS if d != "followbus" for p in (REPO / d).rglob("__init__.py")}
+    assert found <= listed, f"not in pyproject's [tool.setuptools] packages: {sorted(found - listed)}"
+
+
+def test_the_libraries_never_import_the_tools():
+    """bus/, nodes/ and the pure modules are what the tools are built on: never the other way round (reading
+    a recording is bus/recording.py's, so capture can read one too)."""
+    wrong = []
+    for path in sorted(p for d in LIBRARY_DIRS for p in (REPO / d).rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.level > 0:
+                target = _target(path, node).resolve()
+                if target == REPO / "tools" or REPO / "tools" in target.parents:
+                    wrong.append(f"{path.relative_to(REPO)}:{node.lineno}")
+    assert not wrong, "imports of tools/ from below it:\n" + "\n".join(wrong)
+
+
+def test_only_bus_recording_parses_mcap_records():
+    """One reader of recordings: the byte-level parsing of MCAP records (struct layouts, opcodes) and the
+    mcap library's readers are used in bus/recording.py, and by recover (a repair that streams the records
+    of a damaged file through the library's reader to write them again)."""
+    readers = {"mcap.reader", "mcap.stream_reader", "mcap.data_stream"}
+    allowed = {"bus/recording.py", "tools/recording/mcap_io.py"}
+    users = set()
+    for path in sorted(p for d in PACKAGE_DIRS for p in (REPO / d).rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module in readers:
+                users.add(str(path.relative_to(REPO)))
+    assert users <= allowed, f"MCAP read outside bus/recording.py: {sorted(users - allowed)}"

@@ -18,6 +18,7 @@ from ..vision.models import (
     search_path,
     shipped_models_dir,
 )
+from .command import describe
 
 EXIT_PROBLEM = 1
 
@@ -39,9 +40,9 @@ examples:
   git checkout -- models                   restore the shipped files after a MISMATCH"""
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("models", help="where the ONNX models are found and whether their SHA-256 matches",
-                       description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """``followbus models``' arguments and help (its row is in tools/cli.py's table)."""
+    describe(p, DESCRIPTION, EPILOG, raw=True)
     p.add_argument("--model-dir", metavar="DIR", default=None,
                    help="a directory tried first, like the detection node's model_dir parameter")
 

@@ -1,0 +1,155 @@
+"""The commands that produce figures: ``bench bus|pipeline|chaos`` and ``eval`` (rows of tools/cli.py's table).
+
+Light on purpose (argparse only): every ``followbus`` run imports it; each handler imports its module."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..command import Command, describe
+
+
+def _bus_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--count", type=int, default=200, help="messages per size (default 200)")
+    p.add_argument("--rate", type=float, default=100.0, help="messages per second (default 100)")
+    p.add_argument("--port", type=int, default=7461, help="loopback port to use (default 7461)")
+    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
+
+def _pipeline_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "Launch graph.yaml at 30 Hz on a synthetic scene and measure per-edge latency "
+             "p50/p99 from the message headers, CPU per node and dropped frames.",
+             "example: followbus bench pipeline --duration 20 --detector yolox")
+    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds of measurement (default 20)")
+    p.add_argument("--detector", default="yolox", choices=("yolox", "yolox640", "hog", "simulated"),
+                   help="detection backend (default yolox = YOLOX-nano@416; falls back to hog without the model)")
+    p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
+    p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
+    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
+
+def _chaos_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "Launch graph.yaml on a private loopback port (scene looping at 30 Hz, simulated detector)\n"
+             "and try one fault at a time. After each fault it requires:\n"
+             "  - 0 unsafe motor commands (a non-finite field, a speed beyond the motor's limits);\n"
+             "  - a zero command <= 200 ms after the last track whenever tracks stop;\n"
+             "  - the robot following again (TRACKING) within --recovery-bound of the fault's end (node\n"
+             "    back up, or injection over; time the scene itself hides the target is added), then\n"
+             "    tracking most of the next --hold seconds;\n"
+             "  - under load: p99 capture->command <= 250 ms, and >= 50 % of frames answered (burners).\n"
+             "A fault the loop does not survive is followed by a fresh launch of the graph.\n\n"
+             "faults (--faults, comma-separated; 'all' is the default, 'ci' the tests' subset):\n"
+             "  kill-capture (capture-restart), kill-detection, kill-prediction, kill-reid, kill-template,\n"
+             "  kill-motor          SIGKILL the node; the launcher restarts it\n"
+             "  stop-prediction-2s  SIGSTOP prediction for 2 s\n"
+             "  burners             --burners processes spinning a CPU for --load-seconds\n"
+             "  detector-delay-80ms detection takes 80 ms a frame (simulated sim_delay_ms; own launch)\n"
+             "  future-stamp-track  a TRACKING track stamped +1 h, then SIGKILL prediction\n"
+             "  future-seq-frame, future-seq-detections\n"
+             "                      one message with frame_seq +10**9, then a 0.3 s camera stall\n"
+             "  nan-measurement     an accepted TRACKING measurement with a NaN box\n"
+             "  malformed           garbage/wrong-type/truncated/wrong-field payloads on every input key\n"
+             "  flood               300 valid frames as fast as possible on capture/frame\n"
+             "  kill-recorder       SIGKILL the recorder (only with --record)\n"
+             "Exit status 0 when every fault was survived, 1 otherwise.",
+             "examples:\n  followbus bench chaos                                   every fault, the table\n"
+             "  followbus bench chaos --faults kill-reid,nan-measurement --repeat 3\n"
+             "  followbus bench chaos --faults burners --burners 2 --load-seconds 20 --json chaos.json\n"
+             "  followbus bench chaos --record --faults kill-recorder",
+             raw=True)
+    p.add_argument("--faults", metavar="NAME,...", help="faults to try, in order (default: all)")
+    p.add_argument("--detector", default="simulated", choices=("simulated", "yolox416"),
+                   help="detection backend (default simulated: deterministic, needs no model)")
+    p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
+    p.add_argument("--burners", type=int, default=2, metavar="N", help="CPU burners of the burners fault (default 2)")
+    p.add_argument("--load-seconds", type=float, default=10.0, metavar="S",
+                   help="how long burners and the detector delay last (default 10)")
+    p.add_argument("--repeat", type=int, default=1, metavar="N", help="run the fault list N times (default 1)")
+    p.add_argument("--record", action="store_true", help="run a recorder with the graph (adds kill-recorder)")
+    p.add_argument("--recovery-bound", type=float, default=2.0, metavar="S",
+                   help="seconds from the fault's end to following again (default 2)")
+    p.add_argument("--hold", type=float, default=3.0, metavar="S",
+                   help="after recovery, seconds that must be tracked most of the time (default 3)")
+    p.add_argument("--malformed-per-key", type=int, default=10_000, metavar="N",
+                   help="malformed payloads per input key (default 10000)")
+    p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
+    p.add_argument("--log", default="state/chaos.log", help="where node logs go (default state/chaos.log)")
+    p.add_argument("--json", metavar="FILE", help="also write every run's checks and figures as JSON")
+
+
+def _eval_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "Run followbus, the Kalman baseline, ablations and peer trackers in-process "
+             "over SOT/MOT sequences and synthetic scenes on the same cached detections; "
+             "write results.md, results.json and PNG plots. Peers (Roboflow trackers: "
+             "ByteTrack, OC-SORT, BoT-SORT) follow the id of the track overlapping the "
+             "first ground-truth box; on MOT sequences they also get MOTA/IDF1/HOTA of "
+             "their whole output. `make` installs them (requirements-peers.txt).",
+             "examples:\n  followbus eval all --ablations --detector yolox640\n"
+             "  followbus eval ../shared/data/sot/otb-jogging scene:wall-occlusion "
+             "--method followbus\n"
+             "  followbus eval ../shared/data/mot/tud-campus --method followbus "
+             "--method peer:bytetrack --method peer:botsort\n"
+             "  followbus eval scene:wall-occlusion --graph-check\n"
+             "  followbus eval --group --out results/group\n"
+             "  followbus eval --group --camera --out results/group\n"
+             "  followbus eval ../shared/data/sot/otb-crossing --graph-check --detector yolox",
+             raw=True)
+    p.add_argument("sequences", nargs="*", metavar="SEQ",
+                   help="sequence dir (sot/<name>, mot/<name>), scene:<name>, or 'all' (every sequence of the data)")
+    p.add_argument("--group", action="store_true",
+                   help="instead: seed 004's group-tracking benchmark on simulated squads (RMSE, OE, Lat-STD of "
+                        "ME-CGT-UGV and its comparison methods per scenario; group.md, group.json, plots)")
+    p.add_argument("--camera", action="store_true",
+                   help="with --group: the same methods on the camera group sequences (SEQ dirs, default "
+                        "sot/uav-group* and every mot/ clip): image-plane group-centre error; group_camera.md/json")
+    p.add_argument("--method", action="append", metavar="M",
+                   help="followbus | kalman | peer:bytetrack|ocsort|botsort; repeatable (default followbus + kalman)")
+    p.add_argument("--ablations", action="store_true", help="also run the paper's Table 6 ablations of followbus")
+    p.add_argument("--detector", default=None, choices=("yolox", "yolox640", "hog", "simulated"),
+                   help="detections for every method (default yolox = YOLOX-nano@416; with --graph-check: "
+                        "simulated for scenes, yolox for sequence dirs)")
+    p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default results/)")
+    p.add_argument("--max-frames", type=int, default=0, metavar="N", help="only the first N frames per sequence")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated detector (default 0)")
+    p.add_argument("--graph-check", action="store_true",
+                   help="instead: run the scene(s) through the launched graph and in-process, require identical boxes")
+    p.set_defaults(argv=None)
+
+
+def _bus(args: argparse.Namespace) -> int:
+    from ..bench_bus import run_bench_bus
+
+    return run_bench_bus(args)
+
+
+def _pipeline(args: argparse.Namespace) -> int:
+    from .pipeline import run_bench_pipeline
+
+    return run_bench_pipeline(args)
+
+
+def _chaos(args: argparse.Namespace) -> int:
+    from .chaos import run_bench_chaos
+
+    return run_bench_chaos(args)
+
+
+def _eval(args: argparse.Namespace) -> int:
+    from .eval import cmd_eval
+
+    return cmd_eval(args)
+
+
+COMMANDS = (
+    Command("bench", "benchmarks that write figures (see BENCHMARKS.md)", subcommands=(
+        Command("bus", "one-way latency and throughput through bus/ vs raw zenoh", _bus_args, _bus),
+        Command("pipeline", "end-to-end latency capture -> motor command through the launched graph", _pipeline_args,
+                _pipeline),
+        Command("chaos", "fault injection: does the live loop always recover? (RELIABILITY.md)", _chaos_args, _chaos),
+    )),
+    Command("eval", "score followers on sequences (paper metrics, baselines, ablations, plots)", _eval_args, _eval),
+)

@@ -1,0 +1,113 @@
+"""A ``followbus`` command as a row of a table, and the arguments and bus settings commands share.
+
+Each room of tools/ (recording/, live/, bench/) lists its commands in its ``commands.py``; tools/cli.py
+puts the rows together. A row costs nothing until it runs: its module imports only argparse and this
+file, and its handler imports the work (numpy, zenoh, mcap, ...) when called. Arguments are added only to
+the command being run (:func:`add_commands`), so ``followbus --help`` builds names and one-line helps.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+Handler = Callable[[argparse.Namespace], int]
+
+
+@dataclass(frozen=True)
+class Command:
+    """One ``followbus`` command: its name, one-line help, the function adding its arguments (and setting
+    its description and epilog), and the handler run with the parsed arguments. A command with
+    ``subcommands`` (``bench``) has no handler of its own: one of its subcommands is required."""
+
+    name: str
+    help: str
+    arguments: Callable[[argparse.ArgumentParser], None] | None = None
+    run: Handler | None = None
+    subcommands: tuple[Command, ...] = ()
+    metavar: str = "WHAT"  # of the subcommand argument
+
+
+def add_commands(sub: Any, commands: Sequence[Command], argv: Sequence[str] | None, dest: str = "command") -> None:
+    """Add a subparser per command to ``sub``; arguments only for the one ``argv`` names (its first word
+    that is not an option), since no other parser will parse anything."""
+    chosen = next((a for a in argv if not a.startswith("-")), None) if argv is not None else None
+    for command in commands:
+        p = sub.add_parser(command.name, help=command.help)
+        if argv is not None and command.name != chosen:
+            continue
+        rest = list(argv[argv.index(chosen) + 1:]) if argv is not None and chosen is not None else None
+        if command.arguments is not None:
+            command.arguments(p)
+        if command.subcommands:
+            nested = p.add_subparsers(dest=command.name, metavar=command.metavar, required=True)
+            add_commands(nested, command.subcommands, rest, dest=command.name)
+        else:
+            assert command.run is not None, f"command {command.name!r} has neither a handler nor subcommands"
+            p.set_defaults(run=command.run)
+
+
+def describe(p: argparse.ArgumentParser, description: str | None = None, epilog: str | None = None,
+             raw: bool = False) -> None:
+    """Set a command's --help texts (``raw``: keep their line breaks)."""
+    p.description = description
+    p.epilog = epilog
+    if raw:
+        p.formatter_class = argparse.RawDescriptionHelpFormatter
+
+
+# --- arguments several commands take -----------------------------------------------------------------
+
+def graph_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--graph", default="graph.yaml", help="graph file (default: ./graph.yaml)")
+
+
+def connect_args(p: argparse.ArgumentParser, timeout: bool = True) -> None:
+    graph_arg(p)
+    p.add_argument("--connect", metavar="ENDPOINT", action="append",
+                   help="join as a client via this endpoint (e.g. tcp/192.0.2.10:7447) instead of the graph's "
+                        "zenoh settings; repeatable")
+    if timeout:
+        p.add_argument("--connect-timeout", type=float, metavar="S",
+                       help="give up joining the graph after S seconds (default: the graph's connect_timeout_ms, "
+                            "10 s; monitor: 3 s)")
+
+
+def viewer_args(p: argparse.ArgumentParser) -> None:
+    """How a read-only viewer (monitor, foxglove) authenticates and which namespace it watches."""
+    p.add_argument("--user", help="zenoh user name (transport/auth/usrpwd), e.g. monitor")
+    p.add_argument("--password", help="zenoh password (default: $FOLLOWBUS_ZENOH_PASSWORD)")
+    p.add_argument("--ca", metavar="FILE", help="CA certificate for a tls/ endpoint")
+    p.add_argument("--namespace", help="bus namespace (default: the graph's, else fb)")
+
+
+# --- what commands that join the bus need --------------------------------------------------------------
+
+def load_graph(path: str) -> Any:
+    from ..bus.graph import load_graph as load
+
+    return load(path)
+
+
+def settings(args: argparse.Namespace) -> Any:
+    """Zenoh settings for tools: --connect wins, else the graph's, joined as a client of its endpoint."""
+    from ..bus.session import ZenohSettings
+
+    if getattr(args, "connect", None):
+        out = ZenohSettings(mode="client", listen=[], connect=args.connect)
+    elif Path(args.graph).exists():
+        out = load_graph(args.graph).zenoh.as_client()
+    else:
+        out = ZenohSettings().as_client()
+    if getattr(args, "connect_timeout", None) is not None:
+        out.connect_timeout_ms = max(1, round(args.connect_timeout * 1000))
+    return out
+
+
+def namespace(args: argparse.Namespace) -> str:
+    if Path(getattr(args, "graph", "graph.yaml")).exists():
+        return load_graph(args.graph).namespace
+    return "fb"

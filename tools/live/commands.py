@@ -1,0 +1,117 @@
+"""The commands that watch a running graph: ``router``, ``topics``, ``echo``, ``hz``, ``nodes``, ``foxglove``,
+``monitor`` (rows of tools/cli.py's table).
+
+Light on purpose (argparse only): every ``followbus`` run imports it; each handler imports its module."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..command import Command, connect_args, describe, namespace, settings, viewer_args
+
+
+def _router_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "A Zenoh session in router mode: robots and laptops connect to it.",
+             "example: followbus router --listen tcp/127.0.0.1:7447")
+    p.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                   help="endpoint to listen on (default tcp/127.0.0.1:7447); repeatable")
+    p.add_argument("--duration", type=float, metavar="S")
+
+
+def _topics_args(p: argparse.ArgumentParser) -> None:
+    connect_args(p)
+    p.add_argument("--seconds", type=float, default=2.0, help="how long to listen (default 2)")
+
+
+def _echo_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             None,
+             "example: followbus echo 'fb/prediction/track' -n 5")
+    p.add_argument("key", help="key or key expression (e.g. fb/prediction/track, fb/**)")
+    connect_args(p)
+    p.add_argument("-n", "--count", type=int, help="stop after N messages")
+    p.add_argument("--seconds", type=float, help="stop after S seconds")
+    p.add_argument("--timeout", type=float, metavar="S",
+                   help="give up (exit status 1) when no message arrived within S seconds (default: wait)")
+
+
+def _hz_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("key")
+    connect_args(p)
+    p.add_argument("--seconds", type=float, help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--timeout", type=float, metavar="S",
+                   help="give up (exit status 1) when no message arrived within S seconds (default: wait)")
+
+
+def _nodes_args(p: argparse.ArgumentParser) -> None:
+    connect_args(p)
+    p.add_argument("--seconds", type=float, default=1.5, help="how long to listen (default 1.5)")
+
+
+def _foxglove_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "Preview as foxglove.CompressedImage, target/gate/candidates as "
+             "foxglove.ImageAnnotations, motor command and node status as JSON. Read-only.",
+             "example: followbus foxglove --connect tcp/192.0.2.10:7447 --user monitor --port 8765")
+    connect_args(p, timeout=False)
+    viewer_args(p)
+    p.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765)")
+    p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--seconds", type=float, help="stop after S seconds")
+
+
+def _monitor_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "Join the robot's bus as a client and show node health, per-topic rates, the "
+             "target, eta_k and the motor command; --web serves a page with the preview "
+             "stream, plots and the health table. Reconnects by itself.",
+             "example: followbus monitor --connect tcp/192.0.2.10:7447 --user monitor --web 8080")
+    connect_args(p)
+    viewer_args(p)
+    p.add_argument("--once", action="store_true", help="print one snapshot once every node is up (or --seconds) "
+                                                       "and exit: 0 when all are up")
+    p.add_argument("--seconds", type=float, help="stop after S seconds (--once: wait at most S, default 5)")
+    p.add_argument("--web", type=int, nargs="?", const=8080, metavar="PORT",
+                   help="serve the web view on PORT (default 8080) instead of the terminal dashboard")
+    p.add_argument("--bind", default="127.0.0.1", help="address the web view listens on (default 127.0.0.1; "
+                                                        "any other address requires a token)")
+    p.add_argument("--web-token", metavar="TOKEN",
+                   help="token the web view requires (also on loopback; default $FOLLOWBUS_WEB_TOKEN, else one "
+                        "generated and printed when --bind is not loopback)")
+
+def _router(args: argparse.Namespace) -> int:
+    from .introspect import run_router
+
+    return run_router(args.listen or ["tcp/127.0.0.1:7447"], args.duration)
+
+
+def _introspect(args: argparse.Namespace) -> int:
+    """topics, echo, hz, nodes: introspect.cmd_<name> with the bus settings and namespace."""
+    from . import introspect
+
+    return getattr(introspect, f"cmd_{args.command}")(args, settings(args), namespace(args))
+
+
+def _foxglove(args: argparse.Namespace) -> int:
+    from .foxglove_bridge import run_foxglove
+
+    return run_foxglove(args)
+
+
+def _monitor(args: argparse.Namespace) -> int:
+    from .monitor import run_monitor
+
+    return run_monitor(args)
+
+
+COMMANDS = (
+    Command("router", "run a Zenoh router (multi-machine set-ups)", _router_args, _router),
+    Command("topics", "list keys seen on the bus with their rates", _topics_args, _introspect),
+    Command("echo", "print decoded messages of a key", _echo_args, _introspect),
+    Command("hz", "rate and latency of a key", _hz_args, _introspect),
+    Command("nodes", "node health from liveliness tokens and status messages", _nodes_args, _introspect),
+    Command("foxglove", "serve the live bus to the Foxglove app (foxglove-sdk WebSocket server)", _foxglove_args,
+            _foxglove),
+    Command("monitor", "live, read-only dashboard of a running graph (terminal or --web)", _monitor_args, _monitor),
+)
