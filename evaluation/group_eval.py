@@ -219,3 +219,41 @@ def cmd_eval_group(out: Path, seed: int, command: str, scenarios: list[str] | No
     print(f"\nwrote {out / 'group.md'}, {out / 'group.json'}" + (f" and {len(paths)} plots in {out / 'plots'}"
                                                                   if paths else "") + f" ({wall:.1f} s)")
     return 0
+
+
+def mean_over_runs(json_paths: list[Path]) -> str:
+    """The per-scenario table averaged over several ``group.json`` (one per ``--seed``): the figures
+    EVALUATION.md reports, since one seed's OE moves by several degrees from run to run."""
+    docs = [json.loads(Path(p).read_text()) for p in json_paths]
+    seeds = sorted(d["seed"] for d in docs)
+    scen = list(docs[0]["scenarios"])
+    methods = list(docs[0]["scenarios"][scen[0]]["methods"])
+    keys = ("rmse_m", "oe_deg", "lat_std_m", "ms_per_frame_mean")
+
+    def avg(sc: str, m: str, k: str) -> float:
+        return _mean([d["scenarios"][sc]["methods"][m][k] if d["scenarios"][sc]["methods"][m][k] is not None
+                      else math.nan for d in docs])
+
+    lines = [f"Mean over seeds {', '.join(map(str, seeds))}", "",
+             "| Scenario | Occl. rate | Method | RMSE m | OE ° | Lat-STD m | ms/frame |",
+             "|---|---:|---|---:|---:|---:|---:|"]
+    for sc in scen:
+        occ = _mean([d["scenarios"][sc]["occlusion_rate"] for d in docs])
+        for m in methods:
+            r, o, la, ms = (avg(sc, m, k) for k in keys)
+            lines.append(f"| {sc} | {100 * occ:.0f} % | {m} | {r:.3f} | {o:.2f} | {la:.3f} | {ms:.2f} |")
+    lines += ["", "| Mean over scenarios and seeds | RMSE m | OE ° | Lat-STD m | ms/frame |",
+              "|---|---:|---:|---:|---:|"]
+    for m in methods:
+        r, o, la, ms = (_mean([avg(sc, m, k) for sc in scen]) for k in keys)
+        lines.append(f"| {m} | {r:.3f} | {o:.2f} | {la:.3f} | {ms:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    import sys
+
+    if len(sys.argv) < 2:
+        print("usage: python -m followbus.evaluation.group_eval RUN/group.json ...", file=sys.stderr)
+        raise SystemExit(2)
+    print(mean_over_runs([Path(a) for a in sys.argv[1:]]), end="")

@@ -61,3 +61,19 @@ def test_eval_group_mistakes_are_one_line(tmp_path) -> None:
     assert "unknown group scenario 'nowhere'" in res.stderr and SCENARIOS[0] in res.stderr
     res = run_followbus("eval", "--out", str(tmp_path))
     assert res.returncode == 2 and res.stderr.strip().count("\n") == 0 and "--group" in res.stderr
+
+
+def test_mean_over_runs_averages_every_scenario_and_method(tmp_path) -> None:
+    from followbus.evaluation.group_eval import mean_over_runs
+
+    def run(seed: int, oe: float) -> str:
+        m = {"rmse_m": 0.5, "oe_deg": oe, "lat_std_m": 0.2, "ms_per_frame_mean": 1.0}
+        doc = {"seed": seed, "scenarios": {"straight": {"occlusion_rate": 0.2, "methods": {"ME-CGT-UGV": m}}}}
+        path = tmp_path / f"s{seed}.json"
+        path.write_text(json.dumps(doc))
+        return str(path)
+
+    text = mean_over_runs([run(1, 4.0), run(0, 6.0)])
+    assert text.startswith("Mean over seeds 0, 1")
+    assert "| straight | 20 % | ME-CGT-UGV | 0.500 | 5.00 | 0.200 | 1.00 |" in text
+    assert "| ME-CGT-UGV | 0.500 | 5.00 | 0.200 | 1.00 |" in text
