@@ -197,6 +197,11 @@ class Node:
     PRIORITY: ClassVar[dict[str, str]] = {}  # output -> "real_time" | "interactive_high" | "data" (default)
     Params: ClassVar[type] = NoParams
     TIMER_PERIOD_MS: ClassVar[float | None] = None
+    # What a command may fill in without knowing the graph's node names (followbus demo): the param naming
+    # where a source node's data comes from (``--scene`` sets it), and the param taking the [x, y, w, h] box
+    # of what to follow on the first frame (set from the source's first ground-truth box, see first_truth_box).
+    SOURCE_PARAM: ClassVar[str | None] = None
+    INIT_BOX_PARAM: ClassVar[str | None] = None
 
     def __init__(self, params: Any, runtime: NodeHost):
         self.params = params
@@ -208,6 +213,11 @@ class Node:
     @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> Any:
         return params_from_dict(cls.Params, raw)
+
+    @classmethod
+    def first_truth_box(cls, params: Any) -> tuple[float, ...] | None:
+        """A source node's ground-truth box of its first frame, when its source has one (else None)."""
+        return None
 
     @classmethod
     def params_classes(cls) -> tuple[type, ...]:

@@ -49,6 +49,7 @@ class Capture(Node):
     CONGESTION = {"frame": "drop", "preview": "drop", "ground_truth": "block"}
 
     Params = CaptureParams
+    SOURCE_PARAM = "source"
 
     @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> CaptureParams:
@@ -68,6 +69,20 @@ class Capture(Node):
                 check_source(params.source, groundtruth=params.groundtruth)
         except SourceError as exc:
             raise ParamError("source", str(exc)) from exc
+
+    @classmethod
+    def first_truth_box(cls, params: CaptureParams) -> tuple[float, ...] | None:
+        """The ground-truth box of frame 0 when the source is an annotated image folder."""
+        source = params.source
+        if not source or source.startswith(("scene:", "camera:")) or not Path(source).is_dir():
+            return None
+        from ..vision.sources import ImageFolderSource
+
+        folder = ImageFolderSource(Path(source), params.groundtruth or None)
+        if not folder.has_ground_truth:
+            return None
+        box, _ = folder.ground_truth(0)
+        return None if box is None else tuple(float(v) for v in box)
 
     def setup(self) -> None:
         p = self.params

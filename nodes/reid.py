@@ -41,6 +41,7 @@ class Reid(Node):
     INPUTS = {"frame": Frame, "detections": Detections, "prior": Prior, "template": Template}
     REQUIRED_INPUTS = frozenset({"frame", "detections", "prior"})
     OUTPUTS = {"measurement": Measurement}
+    INIT_BOX_PARAM = "init_box"  # followbus demo sets it from the source's first ground-truth box
 
     @classmethod
     def params_classes(cls) -> tuple[type, ...]:

@@ -13,6 +13,7 @@ import logging
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from . import __version__
 from .bench.commands import COMMANDS as BENCH_COMMANDS
@@ -171,38 +172,50 @@ def cmd_schema(args) -> int:
 
 
 
-def cmd_demo(args) -> int:
-    from ..bus.graph import apply_overrides
+def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
-    graph = load_graph(args.graph)
-    overrides = list(args.overrides)
-    if args.scene:
-        overrides.insert(0, f"capture.source=scene:{args.scene}")
-    apply_overrides(graph, overrides)
-    _validate(graph, overrides, labels={"capture.source": f"--scene {args.scene}"} if args.scene else None)
-    init = _first_truth_box(graph)
-    if init is not None and "init_box" not in graph.nodes["reid"].params:
-        # A follower is told whom to follow: on recorded sequences that is the first annotated box.
-        overrides.append(f"reid.init_box=[{', '.join(f'{v:.2f}' for v in init)}]")
-        apply_overrides(graph, overrides[-1:])
-        print(f"target: the first ground-truth box {tuple(round(v, 1) for v in init)}")
+    graph, overrides = demo_graph(args.graph, args.scene, args.overrides)
     return run_demo(graph, args.duration, Path(args.log) if args.log else None, overrides)
 
 
-def _first_truth_box(graph) -> tuple[float, ...] | None:
-    """The ground-truth box of frame 0 when the capture source is an annotated image folder."""
-    capture = graph.nodes.get("capture")
-    source = str(capture.params.get("source", "")) if capture else ""
-    if not source or source.startswith(("scene:", "camera:")) or not Path(source).is_dir():
-        return None
-    from ..vision.sources import ImageFolderSource
+def demo_graph(path: str, scene: str | None, given_overrides: list[str]) -> tuple[Any, list[str]]:
+    """The graph the demo runs and its overrides. It knows no node by name: ``scene`` goes to the nodes whose
+    class names a SOURCE_PARAM, a source's first ground-truth box to those naming an INIT_BOX_PARAM."""
+    from ..bus.graph import apply_overrides
+    from ..bus.node import load_node_class, validate_node
+    from .errors import UsageError
 
-    folder = ImageFolderSource(Path(source))
-    if not folder.has_ground_truth:
-        return None
-    box, _ = folder.ground_truth(0)
-    return None if box is None else tuple(float(v) for v in box)
+    graph = load_graph(path)
+    classes = {}
+    for name, spec in graph.nodes.items():
+        try:
+            classes[name] = load_node_class(spec.run)
+        except ImportError as exc:  # as `check` says it
+            raise graph.error(spec.line, f"node {name!r}: run: {exc}") from exc
+    overrides = list(given_overrides)
+    labels = None
+    if scene:
+        sources = [f"{name}.{cls.SOURCE_PARAM}" for name, cls in classes.items() if cls.SOURCE_PARAM]
+        if not sources:
+            raise UsageError(f"--scene: no node of {path} takes a source")
+        overrides[:0] = [f"{key}=scene:{scene}" for key in sources]
+        labels = dict.fromkeys(sources, f"--scene {scene}")
+    apply_overrides(graph, overrides)
+    _validate(graph, overrides, labels=labels)
+    init = next((box for name, spec in graph.nodes.items()
+                 if (box := classes[name].first_truth_box(validate_node(graph, spec, classes[name])[1])) is not None),
+                None)
+    takers = [name for name, cls in classes.items()
+              if cls.INIT_BOX_PARAM and cls.INIT_BOX_PARAM not in graph.nodes[name].params]
+    if init is not None and takers:
+        # A follower is told whom to follow: on recorded sequences that is the first annotated box.
+        box = f"[{', '.join(f'{v:.2f}' for v in init)}]"
+        given = [f"{name}.{classes[name].INIT_BOX_PARAM}={box}" for name in takers]
+        overrides += given
+        apply_overrides(graph, given)
+        print(f"target: the first ground-truth box {tuple(round(v, 1) for v in init)}")
+    return graph, overrides
 
 
 def cmd_launch(args) -> int:
