@@ -436,6 +436,7 @@ def test_help_builds_the_table_without_importing_the_work():
 
 def test_every_command_has_a_help_and_a_handler():
     from followbus.tools.cli import COMMANDS, build_parser
+    from followbus.tools.command import Lazy
 
     def leaves(commands, prefix=()):
         for c in commands:
@@ -449,6 +450,8 @@ def test_every_command_has_a_help_and_a_handler():
         required = {"node": ["n"], "echo": ["k"], "hz": ["k"], "play": ["f"], "replay": ["f", "--node", "n"],
                     "info": ["f"], "recover": ["f"]}.get(words[-1], [])
         assert parser.parse_args([*words, *required]).run is command.run, words
+        if isinstance(command.run, Lazy):  # a handler imported when it runs: it must be there
+            assert callable(command.run.resolve()), words
 
 
 def test_a_command_with_subcommands_requires_one():

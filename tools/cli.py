@@ -17,7 +17,7 @@ from typing import Any
 
 from . import __version__
 from .bench.commands import COMMANDS as BENCH_COMMANDS
-from .command import Command, add_commands, describe, graph_arg, load_graph, settings
+from .command import Command, Lazy, add_commands, describe, graph_arg, load_graph, settings
 from .live.commands import COMMANDS as LIVE_COMMANDS
 from .recording.commands import COMMANDS as RECORDING_COMMANDS
 
@@ -44,7 +44,6 @@ examples:
 Every command that talks to the bus reads the zenoh settings of --graph (default ./graph.yaml);
 --connect tcp/HOST:7447 joins another machine's graph as a client instead.
 """
-
 
 
 # --- the graph commands: arguments -------------------------------------------------------------------
@@ -149,12 +148,6 @@ def cmd_node(args: argparse.Namespace) -> int:
     return run_node(graph, args.name, clock=args.clock)
 
 
-def _models(args: argparse.Namespace) -> int:
-    from .models_cmd import cmd_models
-
-    return cmd_models(args)
-
-
 def cmd_schema(args) -> int:
     from ..bus.graph_schema import schema_text
 
@@ -169,7 +162,6 @@ def cmd_schema(args) -> int:
         return EXIT_BAD_INPUT
     print(f"wrote {args.output}")
     return 0
-
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -251,7 +243,6 @@ def cmd_launch(args) -> int:
     return status
 
 
-
 def _validate(graph, overrides: list[str] | None = None, *, opened: set[str] | None = None,
               labels: dict[str, str] | None = None, nodes: list[str] | None = None) -> None:
     """Validate every node (or ``nodes``) against its class, and check what the nodes in ``opened`` (default:
@@ -280,7 +271,6 @@ def _validate(graph, overrides: list[str] | None = None, *, opened: set[str] | N
             raise
 
 
-
 # --- the table ----------------------------------------------------------------------------------------
 
 COMMANDS: tuple[Command, ...] = (
@@ -295,7 +285,8 @@ COMMANDS: tuple[Command, ...] = (
     *LIVE_COMMANDS,
     *BENCH_COMMANDS,
     *RECORDING_COMMANDS,
-    Command("models", "where the ONNX models are found and whether their SHA-256 matches", _models_args, _models),
+    Command("models", "where the ONNX models are found and whether their SHA-256 matches", _models_args,
+            Lazy("models_cmd", "cmd_models")),
 )
 
 
@@ -314,7 +305,6 @@ def _setup_logging(verbose: int) -> None:
     level = logging.WARNING if verbose < 0 else (logging.INFO if verbose == 0 else logging.DEBUG)
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
                         datefmt="%H:%M:%S", stream=sys.stderr)
-
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -348,7 +338,6 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         return 130
-
 
 
 if __name__ == "__main__":

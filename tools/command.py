@@ -9,12 +9,28 @@ the command being run (:func:`add_commands`), so ``followbus --help`` builds nam
 from __future__ import annotations
 
 import argparse
+import importlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 Handler = Callable[[argparse.Namespace], int]
+
+
+@dataclass(frozen=True)
+class Lazy:
+    """A handler imported when it runs: ``function`` of ``module`` (a module path under followbus.tools, e.g.
+    ``recording.replay``), called with the parsed arguments."""
+
+    module: str
+    function: str
+
+    def resolve(self) -> Handler:
+        return getattr(importlib.import_module(f"{__package__}.{self.module}"), self.function)
+
+    def __call__(self, args: argparse.Namespace) -> int:
+        return self.resolve()(args)
 
 
 @dataclass(frozen=True)

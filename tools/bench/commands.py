@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..command import Command, describe
+from ..command import Command, Lazy, describe
 
 
 def _bus_args(p: argparse.ArgumentParser) -> None:
@@ -120,36 +120,15 @@ def _eval_args(p: argparse.ArgumentParser) -> None:
     p.set_defaults(argv=None)
 
 
-def _bus(args: argparse.Namespace) -> int:
-    from ..bench_bus import run_bench_bus
-
-    return run_bench_bus(args)
-
-
-def _pipeline(args: argparse.Namespace) -> int:
-    from .pipeline import run_bench_pipeline
-
-    return run_bench_pipeline(args)
-
-
-def _chaos(args: argparse.Namespace) -> int:
-    from .chaos import run_bench_chaos
-
-    return run_bench_chaos(args)
-
-
-def _eval(args: argparse.Namespace) -> int:
-    from .eval import cmd_eval
-
-    return cmd_eval(args)
-
-
 COMMANDS = (
     Command("bench", "benchmarks that write figures (see BENCHMARKS.md)", subcommands=(
-        Command("bus", "one-way latency and throughput through bus/ vs raw zenoh", _bus_args, _bus),
+        Command("bus", "one-way latency and throughput through bus/ vs raw zenoh", _bus_args,
+                Lazy("bench_bus", "run_bench_bus")),
         Command("pipeline", "end-to-end latency capture -> motor command through the launched graph", _pipeline_args,
-                _pipeline),
-        Command("chaos", "fault injection: does the live loop always recover? (RELIABILITY.md)", _chaos_args, _chaos),
+                Lazy("bench.pipeline", "run_bench_pipeline")),
+        Command("chaos", "fault injection: does the live loop always recover? (RELIABILITY.md)", _chaos_args,
+                Lazy("bench.chaos", "run_bench_chaos")),
     )),
-    Command("eval", "score followers on sequences (paper metrics, baselines, ablations, plots)", _eval_args, _eval),
+    Command("eval", "score followers on sequences (paper metrics, baselines, ablations, plots)", _eval_args,
+            Lazy("bench.eval", "cmd_eval")),
 )

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..command import Command, connect_args, describe, namespace, settings, viewer_args
+from ..command import Command, Lazy, connect_args, describe, namespace, settings, viewer_args
 
 
 def _router_args(p: argparse.ArgumentParser) -> None:
@@ -93,18 +93,6 @@ def _introspect(args: argparse.Namespace) -> int:
     return getattr(introspect, f"cmd_{args.command}")(args, settings(args), namespace(args))
 
 
-def _foxglove(args: argparse.Namespace) -> int:
-    from .foxglove_bridge import run_foxglove
-
-    return run_foxglove(args)
-
-
-def _monitor(args: argparse.Namespace) -> int:
-    from .monitor import run_monitor
-
-    return run_monitor(args)
-
-
 COMMANDS = (
     Command("router", "run a Zenoh router (multi-machine set-ups)", _router_args, _router),
     Command("topics", "list keys seen on the bus with their rates", _topics_args, _introspect),
@@ -112,6 +100,7 @@ COMMANDS = (
     Command("hz", "rate and latency of a key", _hz_args, _introspect),
     Command("nodes", "node health from liveliness tokens and status messages", _nodes_args, _introspect),
     Command("foxglove", "serve the live bus to the Foxglove app (foxglove-sdk WebSocket server)", _foxglove_args,
-            _foxglove),
-    Command("monitor", "live, read-only dashboard of a running graph (terminal or --web)", _monitor_args, _monitor),
+            Lazy("live.foxglove_bridge", "run_foxglove")),
+    Command("monitor", "live, read-only dashboard of a running graph (terminal or --web)", _monitor_args,
+            Lazy("live.monitor", "run_monitor")),
 )

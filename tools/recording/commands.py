@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..command import Command, connect_args, describe, load_graph, settings
+from ..command import Command, Lazy, connect_args, describe, load_graph, settings
 
 
 def _record_args(p: argparse.ArgumentParser) -> None:
@@ -128,29 +128,13 @@ def _play(args: argparse.Namespace) -> int:
     return cmd_play(args, settings(args))
 
 
-def _replay(args: argparse.Namespace) -> int:
-    from .replay import cmd_replay
-
-    return cmd_replay(args)
-
-
-def _info(args: argparse.Namespace) -> int:
-    from .mcap_io import cmd_info
-
-    return cmd_info(args)
-
-
-def _recover(args: argparse.Namespace) -> int:
-    from .mcap_io import cmd_recover
-
-    return cmd_recover(args)
-
-
 COMMANDS = (
     Command("record", "record the bus to an MCAP file that opens in Foxglove", _record_args, _record),
     Command("play", "publish a recording's bus messages again", _play_args, _play),
     Command("replay", "replay a recording into one node or a few (regression test with --verify)", _replay_args,
-            _replay),
-    Command("info", "topics, counts, rates, duration and metadata of a recording", _info_args, _info),
-    Command("recover", "rewrite a killed recorder's file into a valid MCAP", _recover_args, _recover),
+            Lazy("recording.replay", "cmd_replay")),
+    Command("info", "topics, counts, rates, duration and metadata of a recording", _info_args,
+            Lazy("recording.mcap_io", "cmd_info")),
+    Command("recover", "rewrite a killed recorder's file into a valid MCAP", _recover_args,
+            Lazy("recording.mcap_io", "cmd_recover")),
 )
