@@ -432,9 +432,12 @@ def run_bench_bus(args: Any) -> int:
             return 2
         paths.append("dora")
     sizes = args.sizes.split(",") if getattr(args, "sizes", None) else list(SIZES)
-    rates = [float(r) for r in args.rates.split(",")] if getattr(args, "rates", None) else list(RATES)
+    try:
+        rates = [float(r) for r in args.rates.split(",")] if getattr(args, "rates", None) else list(RATES)
+    except ValueError:
+        rates = []
     unknown = [s for s in sizes if s not in SIZES]
-    if unknown or not rates or any(r <= 0 for r in rates) or args.count < 2 or args.rounds < 1:
+    if unknown or not rates or any(not r > 0 for r in rates) or args.count < 2 or args.rounds < 1:
         print(f"bench bus: sizes are {', '.join(SIZES)}; rates > 0; --count >= 2; --rounds >= 1")
         return 2
     plan = _plan(sizes, rates, args.count)

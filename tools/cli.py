@@ -33,7 +33,7 @@ examples:
   followbus echo fb/prediction/track      print decoded messages
   followbus hz fb/capture/frame           rate and latency of one key
   followbus nodes                         node health from liveliness tokens
-  followbus bench bus                     bus latency/throughput vs raw zenoh
+  followbus bench bus                     frame latency and CPU: bus/ vs raw zenoh (vs dora-rs)
   followbus record -o recordings/run.mcap  record the bus (opens in Foxglove)
   followbus replay recordings/run.mcap --node reid --verify   regression replay of a node
   followbus eval all --ablations         score followers on ../shared/data (results/results.md)

@@ -11,9 +11,19 @@ from ..command import Command, Lazy, describe
 
 
 def _bus_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--count", type=int, default=200, help="messages per size (default 200)")
-    p.add_argument("--rate", type=float, default=100.0, help="messages per second (default 100)")
-    p.add_argument("--port", type=int, default=7461, help="loopback port to use (default 7461)")
+    describe(p,
+             "One-way latency (p50/p99) and CPU per message of 1 KB to 2.76 MB frames at 30 and 100 Hz through raw "
+             "zenoh, through bus/ and, with --against dora, through dora-rs: each path in its own stream between "
+             "its own two processes, rounds interleaved (BENCHMARKS.md).",
+             "examples:\n  followbus bench bus\n"
+             "  followbus bench bus --against dora --rounds 5 --count 100 --json bus.json\n"
+             "  followbus bench bus --sizes 921KB,2.76MB --rates 30", raw=True)
+    p.add_argument("--count", type=int, default=100, help="counted messages per size and rate per round (default 100)")
+    p.add_argument("--rounds", type=int, default=3, help="rounds; each runs every path once, in turn (default 3)")
+    p.add_argument("--sizes", metavar="LIST", help="comma-separated, of 1KB,100KB,921KB,2.76MB (default: all)")
+    p.add_argument("--rates", metavar="HZ,...", help="comma-separated message rates (default 30,100)")
+    p.add_argument("--against", choices=("dora",),
+                   help="also measure dora-rs 1.1.0 (its own dataflow; pip install 'followbus[bench]')")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
 
 
@@ -122,7 +132,7 @@ def _eval_args(p: argparse.ArgumentParser) -> None:
 
 COMMANDS = (
     Command("bench", "benchmarks that write figures (see BENCHMARKS.md)", subcommands=(
-        Command("bus", "one-way latency and throughput through bus/ vs raw zenoh", _bus_args,
+        Command("bus", "one-way latency and CPU per message: raw zenoh, bus/ (and dora-rs)", _bus_args,
                 Lazy("bench_bus", "run_bench_bus")),
         Command("pipeline", "end-to-end latency capture -> motor command through the launched graph", _pipeline_args,
                 Lazy("bench.pipeline", "run_bench_pipeline")),
