@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from followbus.tools.bench_bus import dora_available, run_bench_bus
+from followbus.tools.bench.bus import dora_available, run_bench_bus
 
 pytestmark = pytest.mark.slow
 

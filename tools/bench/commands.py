@@ -133,7 +133,7 @@ def _eval_args(p: argparse.ArgumentParser) -> None:
 COMMANDS = (
     Command("bench", "benchmarks that write figures (see BENCHMARKS.md)", subcommands=(
         Command("bus", "one-way latency and CPU per message: raw zenoh, bus/ (and dora-rs)", _bus_args,
-                Lazy("bench_bus", "run_bench_bus")),
+                Lazy("bench.bus", "run_bench_bus")),
         Command("pipeline", "end-to-end latency capture -> motor command through the launched graph", _pipeline_args,
                 Lazy("bench.pipeline", "run_bench_pipeline")),
         Command("chaos", "fault injection: does the live loop always recover? (RELIABILITY.md)", _chaos_args,
