@@ -159,16 +159,16 @@ class _Recorder:
 
 
 def _settings(port: int, listen: bool) -> Any:
-    from ..bus.session import ZenohSettings
+    from ...bus.session import ZenohSettings
 
     endpoint = f"tcp/127.0.0.1:{port}"
     return ZenohSettings(mode="peer", listen=[endpoint] if listen else [], connect=[] if listen else [endpoint])
 
 
 def _zenoh_receiver(path: str, plan: dict[str, Any], port: int, ready: Path, done: Path) -> dict[str, Any]:
-    from ..bus.pubsub import Subscriber, direct_callback, payload_bytes
-    from ..bus.schemas import Frame
-    from ..bus.session import open_session
+    from ...bus.pubsub import Subscriber, direct_callback, payload_bytes
+    from ...bus.schemas import Frame
+    from ...bus.session import open_session
 
     rec = _Recorder(plan)
     session = open_session(_settings(port, listen=True))
@@ -201,9 +201,9 @@ def _zenoh_receiver(path: str, plan: dict[str, Any], port: int, ready: Path, don
 
 
 def _zenoh_sender(path: str, plan: dict[str, Any], port: int) -> dict[str, Any]:
-    from ..bus.pubsub import SHM_THRESHOLD_BYTES, Publisher, ShmPool
-    from ..bus.schemas import Frame
-    from ..bus.session import open_session
+    from ...bus.pubsub import SHM_THRESHOLD_BYTES, Publisher, ShmPool
+    from ...bus.schemas import Frame
+    from ...bus.session import open_session
 
     session = open_session(_settings(port, listen=False))
     shm = ShmPool()
