@@ -18,6 +18,7 @@ in the channel metadata).
 from __future__ import annotations
 
 import dataclasses
+import logging
 import struct
 import types
 import typing
@@ -30,11 +31,13 @@ from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, ChunkIndex, Metadata, MetadataIndex, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, ChunkIndex, Footer, Metadata, MetadataIndex, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 
 from .codec import FRAME_FORMAT
 from .schemas import SCHEMA_VERSION, SCHEMAS
+
+log = logging.getLogger("followbus.recording")
 
 BUS_MESSAGE_ENCODING = "x-followbus-frame/1"
 BUS_SCHEMA_ENCODING = "x-followbus-schema/1"
@@ -311,3 +314,40 @@ def _parse_chunk(raw: memoryview, name: str, index: Any, summary: Any, channel_i
             channel = summary.channels[channel_id]
             yield BusMessage(channel.topic, channel.metadata.get("type", ""), log_time,
                              bytes(data[body + _MESSAGE_HEAD.size:pos]), sequence)
+
+
+# --- salvaging a damaged file ----------------------------------------------------------------------
+
+@dataclass
+class Salvage:
+    """What reading a possibly truncated or corrupt file found besides its records."""
+    chunks: int = 0  # complete chunks read
+    bad_chunks: int = 0  # chunks whose body did not decompress or failed its CRC: skipped
+    compression: str | None = None  # of its first chunk ("none" when uncompressed)
+    complete: bool = False  # its footer was there: nothing was lost
+    stopped_by: str = ""  # why reading stopped before the footer (the cut)
+
+
+def salvage_records(path: str | Path, found: Salvage) -> Iterator[Any]:
+    """Every record of an MCAP file that can still be read, in file order, chunks broken up into their records
+    (Header, Schema, Channel, Message, Metadata, Attachment, ...): a corrupt chunk is skipped, reading stops at
+    the cut of a truncated file. ``found`` is filled in as it goes (``followbus recover`` rewrites the records)."""
+    with open_recording(path) as f:
+        try:
+            for record in StreamReader(f, emit_chunks=True, record_size_limit=1 << 31).records:
+                if isinstance(record, Chunk):
+                    found.compression = found.compression or record.compression or "none"
+                    try:
+                        inner = breakup_chunk(record, validate_crc=True)
+                    except Exception as exc:  # a corrupt chunk body (any codec error): skip it, keep the rest
+                        found.bad_chunks += 1
+                        log.warning("%s: skipping a corrupt chunk at %d: %s", path, found.chunks, exc)
+                        continue
+                    found.chunks += 1
+                    yield from inner
+                elif isinstance(record, Footer):
+                    found.complete = True
+                else:
+                    yield record
+        except (McapError, struct.error, ValueError, EOFError) as exc:
+            found.stopped_by = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__

@@ -199,6 +199,31 @@ def test_when_finalising_fails_too_recover_salvages_the_complete_chunks(tmp_path
     assert [m.sequence for m in bus] == list(range(result["durable"]))
 
 
+
+def test_recover_skips_a_corrupt_chunk_and_keeps_the_others(tmp_path):
+    """bus/recording.salvage_records: a chunk whose body is damaged (its CRC fails) is skipped, counted, and the
+    chunks before and after it are rewritten whole."""
+    from followbus.tools.recording.mcap_io import RecordingWriter, recover
+
+    path = tmp_path / "damaged.mcap"
+    writer = RecordingWriter(path, compression="none")
+    channel = writer.bus_channel("t/ticker/tick", "Tick")
+    for chunk in range(3):
+        for i in range(4):
+            tick = Tick(value=chunk * 4 + i)
+            tick.header.seq = chunk * 4 + i
+            writer.write(channel, 1_000 + tick.header.seq, tick.encode(), sequence=tick.header.seq)
+        writer.flush()
+    writer.finish()
+    middle = read_summary(path).chunk_indexes[1]
+    data = bytearray(path.read_bytes())
+    data[middle.chunk_start_offset + middle.chunk_length - 8] ^= 0xFF  # inside its last message's bytes
+    path.write_bytes(bytes(data))
+    result = recover(path, tmp_path / "fixed.mcap")
+    assert (result.chunks, result.bad_chunks, result.complete, result.messages) == (2, 1, True, 8)
+    assert [m.sequence for m in iter_bus_messages(tmp_path / "fixed.mcap")] == [0, 1, 2, 3, 8, 9, 10, 11]
+
+
 def test_recorder_queue_bound_drops_counts_per_key_and_warns_once(graph_file, port, tmp_path):
     """A bound smaller than one frame: every frame is dropped (deterministically), the small ticks are not,
     --exclude'd keys never reach the recorder, and the warning is rate-limited to one line."""

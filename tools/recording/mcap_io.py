@@ -20,7 +20,6 @@ Layout of a recording:
 from __future__ import annotations
 
 import contextlib
-import logging
 import os
 import struct
 import sys
@@ -38,7 +37,6 @@ from mcap.opcode import Opcode
 from mcap.records import (
     Attachment,
     Channel,
-    Chunk,
     ChunkIndex,
     DataEnd,
     Footer,
@@ -50,7 +48,6 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
-from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from ...bus.recording import (
@@ -58,16 +55,15 @@ from ...bus.recording import (
     BUS_SCHEMA_ENCODING,
     BUS_SCHEMA_PREFIX,
     RecordingError,
-    open_recording,
+    Salvage,
     read_metadata,
     read_summary,
+    salvage_records,
     scan_data_section,
     schema_document,
 )
 from .. import __version__
 from . import foxglove_schemas as fox
-
-log = logging.getLogger("followbus.mcap")
 
 PROFILE = ""  # no ROS profile: our own channels plus Foxglove's JSON ones
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
@@ -311,81 +307,59 @@ class RecoverResult:
 def recover(in_path: str | Path, out_path: str | Path, compression: str | None = None) -> RecoverResult:
     """Rewrite every complete chunk (and metadata) of a possibly truncated MCAP file into a valid one."""
     result = RecoverResult()
-    with open_recording(in_path) as f:
-        records = StreamReader(f, emit_chunks=True, record_size_limit=1 << 31).records
-        schemas: dict[int, Schema] = {}
-        channels: dict[int, Channel] = {}
-        out: Writer | None = None
-        out_file = None
-        schema_ids: dict[int, int] = {}
-        channel_ids: dict[int, int] = {}
+    found = Salvage()
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    out: Writer | None = None
+    out_file = None
+    header: Header | None = None
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
 
-        def writer() -> Writer:
-            nonlocal out, out_file
-            if out is None:
-                out_file = open(out_path, "wb")  # noqa: SIM115 (closed below)
-                chosen = compression or chunk_compression or DEFAULT_COMPRESSION
-                out = Writer(out_file, compression=COMPRESSIONS.get(chosen, COMPRESSIONS[DEFAULT_COMPRESSION]))
-                out.start(profile=header.profile if header else PROFILE, library=f"followbus/{__version__} recover")
-            return out
+    def writer() -> Writer:
+        nonlocal out, out_file
+        if out is None:
+            out_file = open(out_path, "wb")  # noqa: SIM115 (closed below)
+            chosen = compression or found.compression or DEFAULT_COMPRESSION
+            out = Writer(out_file, compression=COMPRESSIONS.get(chosen, COMPRESSIONS[DEFAULT_COMPRESSION]))
+            out.start(profile=header.profile if header else PROFILE, library=f"followbus/{__version__} recover")
+        return out
 
-        def add(record: Any) -> None:
-            if isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-            elif isinstance(record, Message):
-                channel = channels.get(record.channel_id)
-                if channel is None:
-                    return  # its channel record was in a lost chunk (cannot happen with our writer)
-                w = writer()
-                if channel.id not in channel_ids:
-                    sid = 0
-                    if channel.schema_id:
-                        schema = schemas[channel.schema_id]
-                        if schema.id not in schema_ids:
-                            schema_ids[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
-                        sid = schema_ids[schema.id]
-                    channel_ids[channel.id] = w.register_channel(channel.topic, channel.message_encoding, sid,
-                                                                 dict(channel.metadata))
-                w.add_message(channel_ids[channel.id], record.log_time, record.data, record.publish_time,
-                              record.sequence)
-                result.messages += 1
-                result.channels[channel.topic] = result.channels.get(channel.topic, 0) + 1
-            elif isinstance(record, Metadata):
-                writer().add_metadata(record.name, dict(record.metadata))
-                result.metadata += 1
-            elif isinstance(record, Attachment):
-                writer().add_attachment(record.create_time, record.log_time, record.name, record.media_type,
-                                        record.data)
-
-        header: Header | None = None
-        chunk_compression: str | None = None
-        try:
-            for record in records:
-                if isinstance(record, Header):
-                    header = record
-                elif isinstance(record, Chunk):
-                    chunk_compression = chunk_compression or record.compression or "none"
-                    try:
-                        inner = breakup_chunk(record, validate_crc=True)
-                    except Exception as exc:  # corrupt chunk body: skip it, keep the rest
-                        result.bad_chunks += 1
-                        log.warning("skipping a corrupt chunk at %d messages: %s", result.messages, exc)
-                        continue
-                    for item in inner:
-                        add(item)
-                    result.chunks += 1
-                elif isinstance(record, Footer):
-                    result.complete = True
-                else:
-                    add(record)
-        except (McapError, struct.error, ValueError, EOFError) as exc:
-            result.stopped_by = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-        w = writer()
-        w.finish()
-        assert out_file is not None
-        out_file.close()
+    for record in salvage_records(in_path, found):
+        if isinstance(record, Header):
+            header = record
+        elif isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+        elif isinstance(record, Message):
+            channel = channels.get(record.channel_id)
+            if channel is None:
+                continue  # its channel record was in a lost chunk (cannot happen with our writer)
+            w = writer()
+            if channel.id not in channel_ids:
+                sid = 0
+                if channel.schema_id:
+                    schema = schemas[channel.schema_id]
+                    if schema.id not in schema_ids:
+                        schema_ids[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
+                    sid = schema_ids[schema.id]
+                channel_ids[channel.id] = w.register_channel(channel.topic, channel.message_encoding, sid,
+                                                             dict(channel.metadata))
+            w.add_message(channel_ids[channel.id], record.log_time, record.data, record.publish_time,
+                          record.sequence)
+            result.messages += 1
+            result.channels[channel.topic] = result.channels.get(channel.topic, 0) + 1
+        elif isinstance(record, Metadata):
+            writer().add_metadata(record.name, dict(record.metadata))
+            result.metadata += 1
+        elif isinstance(record, Attachment):
+            writer().add_attachment(record.create_time, record.log_time, record.name, record.media_type, record.data)
+    writer().finish()
+    assert out_file is not None
+    out_file.close()
+    result.chunks, result.bad_chunks = found.chunks, found.bad_chunks
+    result.complete, result.stopped_by = found.complete, found.stopped_by
     return result
 
 
