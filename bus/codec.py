@@ -222,6 +222,18 @@ def _split(data: bytes | bytearray | memoryview) -> tuple[memoryview, memoryview
     return view[HEAD_OFFSET:HEAD_OFFSET + head_len], view[HEAD_OFFSET + head_len:]
 
 
+def _shape(raw: bytes) -> Any:
+    """An inline array's shape: the form writers use ("[480, 640, 3]") read directly, anything else by json
+    (a message carries several small arrays, and json.loads was the largest part of decoding each)."""
+    if raw[:1] == b"[" and raw[-1:] == b"]":
+        inner = raw[1:-1]
+        parts = inner.split(b", ") if inner else []
+        # digits without a leading zero: exactly the JSON integers >= 0 (json.loads rejects "007")
+        if all(p.isdigit() and (p[:1] != b"0" or len(p) == 1) for p in parts):
+            return [int(p) for p in parts]
+    return json.loads(raw)
+
+
 def unpack(data: bytes | bytearray | memoryview) -> dict[str, Any]:
     """Decode a frame's map; raises :class:`DecodeError` on anything malformed."""
     head, blob_area = _split(data)
@@ -231,7 +243,7 @@ def unpack(data: bytes | bytearray | memoryview) -> dict[str, Any]:
             try:
                 first = ext.index(b"\0")
                 second = ext.index(b"\0", first + 1)
-                dtype, shape, nbytes = _check_meta(ext[:first].decode(), json.loads(ext[first + 1 : second]))
+                dtype, shape, nbytes = _check_meta(ext[:first].decode(), _shape(ext[first + 1 : second]))
             except (ValueError, UnicodeDecodeError) as exc:
                 raise DecodeError(f"malformed array header: {exc}") from exc
             body = memoryview(ext)[second + 1 :]

@@ -374,17 +374,14 @@ def validate(msg: Message) -> Message:
         raise DecodeError(f"{where}: header out of range (stamp_ns {h.stamp_ns}, frame_seq {h.frame_seq})")
     if msg.TYPE in UNCHECKED_TYPES:
         return msg
-    for f in dataclasses.fields(msg):
-        if f.name == "header":
-            continue
-        value = getattr(msg, f.name)
-        name = f"{where}.{f.name}"
+    for field_name, _, _ in _field_plan(type(msg)):
+        value = getattr(msg, field_name)
         if isinstance(value, float) and not math.isfinite(value):
-            raise DecodeError(f"{name}: non-finite value {value}")
+            raise DecodeError(f"{where}.{field_name}: non-finite value {value}")
         if isinstance(value, np.ndarray) and value.dtype.kind == "f" and not np.isfinite(value).all():
-            raise DecodeError(f"{name}: non-finite values in array")
-        if f.name in BOX_FIELDS and value is not None:
-            _check_box(name, value)
+            raise DecodeError(f"{where}.{field_name}: non-finite values in array")
+        if field_name in BOX_FIELDS and value is not None:
+            _check_box(f"{where}.{field_name}", value)
     if isinstance(msg, Detections):
         for name, boxes in (("boxes", msg.boxes), ("low_boxes", msg.low_boxes)):
             if boxes.ndim != 2 or boxes.shape[1] != 5:
