@@ -112,3 +112,24 @@ def test_detections_of_an_older_recording_without_low_boxes_still_decode():
         decode(pack(old))
     with pytest.raises(DecodeError, match="low_boxes"):
         validate(Detections(low_boxes=np.zeros((2, 4), np.float32)))
+
+
+@pytest.mark.parametrize("shape, ok", [
+    (b"[2, 3]", True), (b"[6]", True), (b"[]", False), (b"[2,3]", True), (b" [2, 3]", True),  # [] is 1 element
+    (b"[02, 3]", False), (b"[-2, -3]", False), (b"[2.0, 3]", False), (b"[2, ]", False), (b"[\"2\", 3]", False),
+    (b"{}", False), (b"", False), (b"[2, 3", False), (b"[1, 2, 3]", True),
+])
+def test_inline_array_shapes_read_as_json_reads_them(shape, ok):
+    """The fast reading of an inline array's shape accepts exactly what json does (and _check_meta then wants
+    non-negative ints that fit the body); everything else stays a DecodeError, never a crash."""
+    import msgpack
+
+    from followbus.bus.codec import MAGIC, NDARRAY_EXT
+
+    head = msgpack.packb({"a": msgpack.ExtType(NDARRAY_EXT, b"|u1\0" + shape + b"\0" + bytes(range(6)))})
+    frame = MAGIC + len(head).to_bytes(4, "little") + head
+    if ok:
+        assert unpack(frame)["a"].size == 6
+    else:
+        with pytest.raises(DecodeError):
+            unpack(frame)
