@@ -293,8 +293,12 @@ class FrameSynchronizer:
         # is first in line: a set waiting for its feedback must not shield sets numbered ahead of the stream
         # that will never complete (a flood): they would fill the table, and the overflow would evict the
         # stream's own sets (the oldest numbers) before their wait ends, until its numbering caught up.
+        # A replay knows which frames the live run handled (force_feedback): their inputs are in the recording
+        # and come in the order they were published, so such a set waits for them whatever the replay clock says
+        # (its stamps can run far ahead of a live run's arrival times when the whole graph lagged behind the
+        # camera); only a newer complete set ends its wait (an input the recorder lost).
         for seq in [s for s, slot in self._slots.items()
-                    if self._missing_required(slot) and now_ns >= self._deadline(slot)]:
+                    if self._missing_required(slot) and now_ns >= self._deadline(slot) and s not in self._forced]:
             del self._slots[seq]
             self._skipped.discard(seq)
             self.dropped += 1
@@ -312,19 +316,27 @@ class FrameSynchronizer:
                 continue
             msgs, required, awaited, exact = self._gather(seq, slot)
             deadline = self._deadline(slot)
-            expired = now_ns >= deadline
+            # A set the live run handled (replay) does not expire: the inputs it had live are still to come in the
+            # recording's order, whatever the replay clock says. It stops waiting only when a newer handled set is
+            # ready in full (an input the recorder lost).
+            forced = seq in self._forced
+            expired = now_ns >= deadline and not forced
+            superseded = self._newer_ready(seq) if forced else self._newer_complete(seq)
             if not required:
-                if expired or self._newer_complete(seq):
+                if expired or superseded:
                     # A required input never came, or this frame lost an input upstream (a detector that
                     # skipped it) while a newer frame is complete: waiting would only add latency.
                     del self._slots[seq]
                     self.dropped += 1
                     continue
                 break  # wait for it, bounded by its timeout
-            if not awaited and not expired and not self._newer_complete(seq):
+            if not awaited and not expired and not superseded:
                 break  # an optional same-frame input that is on time may still come
-            if not exact and (seq in self._forced or not self._feedback_lost):
-                if not (expired or behind and seq not in self._forced):
+            if not exact and (forced or not self._feedback_lost):
+                if forced:
+                    if not superseded:
+                        break  # replay: the feedback the live set joined is still to come
+                elif not (expired or behind):
                     break  # wait for the feedback of the previous frame, bounded by the timeout and the lag
                 if seq not in self._forced:
                     self._feedback_lost = True  # stop waiting until exact feedback is back in time
@@ -370,6 +382,14 @@ class FrameSynchronizer:
     def _missing_same_frame(self, slot: _Slot, seq: int) -> bool:
         return any(name not in slot.msgs and self._awaited(name, seq)
                    for name, spec in self.inputs.items() if not spec.offset)
+
+    def _newer_ready(self, seq: int) -> bool:
+        """Replay: is a newer set that the live run handled ready to go out exactly as it did live?"""
+        for later in self._forced_frames[bisect_right(self._forced_frames, seq):]:
+            slot = self._slots.get(later)
+            if slot is not None and all(self._gather(later, slot)[1:]):
+                return True
+        return False
 
     def _newer_complete(self, seq: int) -> bool:
         return any(not self._missing_same_frame(self._slots[later], later) for later in self._slots if later > seq)

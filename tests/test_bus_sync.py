@@ -287,3 +287,34 @@ def test_sets_ahead_of_the_stream_expire_while_an_older_set_waits_for_feedback()
     # Handled again within a timeout and a lag bound of the flood's end, not when the numbering catches up.
     assert resumed[0] * period <= flood_end + (300 + 150) * MS + period, (handled, sync.counters())
     assert handled[-1] == 119 and sync.pending == 0
+
+
+def test_a_replayed_set_waits_for_what_the_live_set_had_whatever_the_replay_clock_says():
+    """Replay (clock = recorded stamps): under heavy load the live graph ran far behind the camera, so inputs
+    came hundreds of ms after their frame's stamp; the replay clock, which follows stamps, passed the sets'
+    deadlines before their inputs were fed. A set the live run handled (force_feedback) must still wait for its
+    inputs and its feedback, and give up only when a newer handled set is ready in full (2026-11-24: reid replay
+    missed 4 outputs and a two-node replay joined no template, on a recording made at load 10)."""
+    inputs = [SyncInput("dets"), SyncInput("prior"), SyncInput("template", offset=-1, optional=True)]
+    sync = FrameSynchronizer(inputs, timeout_ns=300 * MS)
+    sync.force_feedback(1, {"template": -1})
+    sync.add("dets", 1, "d1", 0)
+    sync.add("prior", 1, "p1", 0)
+    assert [s for s, _ in sync.poll(0)] == [1]
+    sync.force_feedback(2, {"template": 1})
+    sync.force_feedback(3, {"template": 2})
+    sync.add("dets", 2, "d2", 10 * MS)
+    assert sync.poll(900 * MS) == []  # far past its deadline: still waits for its prior
+    sync.add("prior", 2, "p2", 950 * MS)
+    assert sync.poll(1000 * MS) == []  # ...and for the template the live set joined
+    sync.add("template", 1, "t1", 1100 * MS)
+    assert sync.poll(1100 * MS) == [(2, {"dets": "d2", "prior": "p2", "template": "t1"})]
+    # An input the recorder lost: frame 3's prior never comes; it gives up once frame 4 is ready in full.
+    sync.force_feedback(4, {"template": 2})
+    sync.add("dets", 3, "d3", 1200 * MS)
+    sync.add("dets", 4, "d4", 1233 * MS)
+    sync.add("prior", 4, "p4", 1234 * MS)
+    assert sync.poll(5000 * MS) == []  # frame 4 waits for template 2, so frame 3 still waits too
+    sync.add("template", 2, "t2", 5001 * MS)
+    assert sync.poll(5001 * MS) == [(4, {"dets": "d4", "prior": "p4", "template": "t2"})]
+    assert sync.dropped == 1 and sync.timeouts == 0
