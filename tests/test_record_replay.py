@@ -198,7 +198,7 @@ def test_record_holds_every_published_message(recorded: Recorded):
     assert info.returncode == 0, info.stderr
     row = next(line.split() for line in info.stdout.splitlines() if line.startswith("t/ticker/tick "))
     assert row[1:4] == ["followbus.Tick", "x-followbus-frame/1", str(TICKS)]
-    assert "compression lz4" in info.stdout
+    assert "compression none" in info.stdout  # the default: raw frames do not compress
 
 
 def test_replay_verify_reproduces_the_relay(recorded: Recorded, tmp_path):

@@ -29,8 +29,9 @@ def _record_args(p: argparse.ArgumentParser) -> None:
                         "JPEG preview stays); repeatable")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--status", action="store_true", help="also record the @status keys (node statistics)")
-    p.add_argument("--compression", choices=("lz4", "zstd", "none"), default="lz4",
-                   help="chunk compression (default lz4: keeps up with 720p bgr8 at 30 Hz)")
+    p.add_argument("--compression", choices=("lz4", "zstd", "none"), default="none",
+                   help="chunk compression (default none: raw frames do not compress with lz4, and uncompressed "
+                        "chunks are read 3x faster by replay; zstd for archives at low rates)")
     p.add_argument("--chunk-mb", type=float, default=4.0, metavar="MB", help="close a chunk at this size (default 4)")
     p.add_argument("--chunk-seconds", type=float, default=1.0, metavar="S",
                    help="close and flush a chunk at least this often: all a SIGKILL can lose (default 1)")

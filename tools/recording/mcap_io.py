@@ -67,9 +67,9 @@ from . import foxglove_schemas as fox
 
 PROFILE = ""  # no ROS profile: our own channels plus Foxglove's JSON ones
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-# lz4 keeps up with 720p bgr8 at 30 Hz (write thread 46% busy); zstd level 3, the mcap writer's, saturates
-# its thread. Figures and command: tools/recording/record.py docstring.
-DEFAULT_COMPRESSION = "lz4"
+# Uncompressed by default: lz4 shrinks raw frames by 1-3 % and every read decompresses whole chunks; zstd level 3,
+# the mcap writer's, saturates its thread at 720p 30 Hz. Figures and command: tools/recording/record.py docstring.
+DEFAULT_COMPRESSION = "none"
 DEFAULT_CHUNK_BYTES = 4 * 1024 * 1024
 
 
