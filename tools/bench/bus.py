@@ -472,8 +472,8 @@ def run_bench_bus(args: Any) -> int:
         Path(args.json).write_text(json.dumps({
             "machine": platform.node(), "date": time.strftime("%Y-%m-%d"), "count": args.count,
             "rounds": args.rounds, "load_before": load0, "load_after": load1, "paths": table}, indent=1))
-    lost = any(row["n"] < row["expected"] for rows in table.values() for row in rows)
-    return 1 if lost else 0
+    # Exit 1 when bus/ lost messages (what the bench is for); a loss of raw zenoh or dora shows in the table only.
+    return 1 if any(row["n"] < row["expected"] for row in table["bus"]) else 0
 
 
 def _print_table(table: dict[str, list[dict[str, Any]]], paths: list[str], args: Any,
