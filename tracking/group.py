@@ -241,8 +241,7 @@ class GroupParams:
     dbscan_min_samples: int = 2
     accel_std_mps2: float = 0.6        # group-centre process noise (constant-velocity Kalman, §2.2.3)
     offset_std_mps: float = 0.1        # random walk of the sub-target offsets η_l (Eq. 13)
-    # People sway 0.2-0.5 m either side of their place in the formation: an Ornstein-Uhlenbeck weave.
-    weave_std_m: float = 0.3           # stationary std of a sub-target's weave about its formation slot
+    weave_std_m: float = 0.3           # stationary std of a sub-target's weave about its slot (people sway 0.2-0.5 m)
     weave_tau_s: float = 1.0           # time constant of the weave's return to its slot (Ornstein-Uhlenbeck)
     lambda_iw: float = 0.95            # Eq. 24 forgetting factor of the extents
     lambda_dirichlet: float = 0.95     # Eq. 25 forgetting factor of the weights
