@@ -459,3 +459,15 @@ def test_a_command_with_subcommands_requires_one():
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     assert result.stderr.strip().splitlines()[-1] == ("followbus bench: error: the following arguments are "
                                                       "required: WHAT")
+
+
+def test_a_reader_that_stops_early_ends_the_command_quietly():
+    """`followbus info F | head -1`: the reader is gone while the command still writes; the command stops with
+    status 0 and no traceback, as any Unix tool does. (Here the reading end is closed before the command has
+    written anything, so its first write meets the closed pipe.)"""
+    proc = subprocess.Popen([sys.executable, "-m", "followbus.tools.cli", "schema"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, stdin=subprocess.DEVNULL)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 0, err
+    assert "Traceback" not in err and "BrokenPipe" not in err, err

@@ -324,6 +324,11 @@ def main(argv: list[str] | None = None) -> int:
     # found while running (a node crashed, nothing arrived, a replay differs) is reported by the command: 1.
     try:
         return args.run(args)
+    except BrokenPipeError:
+        # The reader went away (`followbus info F | head`): stop quietly, as any Unix tool does. Standard output
+        # is pointed at /dev/null so the interpreter's final flush does not fail a second time.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except (GraphError, UsageError, BusUnreachable) as exc:
         print(f"followbus: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
