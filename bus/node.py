@@ -551,12 +551,19 @@ class NodeRuntime(NodeHost):
             # joined, so a live fallback (a late feedback, a skipped backlog) is reproduced exactly.
             self.subscribers.append(Subscriber(self.session, graph.replay_hint_key(name), self._on_hint,
                                                schema=ReplayHint, logger=self.log))
-        self._token = self.session.liveliness().declare_token(graph.health_key(self.spec.name))
+        self._token: Any = None  # declared once the node is set up (start)
         # Status is periodic: under congestion the next one will do. Blocking here could stall the node on a
         # slow subscriber (a busy monitor): zenoh's put holds the caller until the link drains.
         self._status_pub = Publisher(self.session, graph.status_key(self.spec.name), self.spec.name,
                                      congestion="drop")
         self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
+
+    def start(self) -> None:
+        super().start()
+        # Alive only once set up, and after the subscribers: a node whose setup fails (a missing model, a
+        # detector wired without its input) must never be seen up, or a source's start-up barrier would open
+        # for a node about to exit and publish frame 0 to nobody.
+        self._token = self.session.liveliness().declare_token(self.graph.health_key(self.spec.name))
 
     def _enqueuer(self, queue: InputQueue):
         def push(msg: Message) -> None:
@@ -641,8 +648,9 @@ class NodeRuntime(NodeHost):
     def close(self) -> None:
         self.stop_event.set()
         self._guarded("teardown", self.node.teardown)
-        with contextlib.suppress(Exception):
-            self._token.undeclare()
+        if self._token is not None:
+            with contextlib.suppress(Exception):
+                self._token.undeclare()
         for sub in self.subscribers:
             with contextlib.suppress(Exception):
                 sub.undeclare()

@@ -226,3 +226,40 @@ def test_frames_written_into_shared_memory_in_place_arrive_as_encode_writes_them
         pub.undeclare()
         receiver.close()
         sender.close()
+
+
+def test_a_node_whose_setup_fails_is_never_seen_alive(graph_file, port):
+    """A node announces itself (its liveliness token) only once set up. Before, the token came first: a simulated
+    detector wired without its ground_truth input exited in setup, yet capture's start-up barrier saw it alive for
+    a moment in 1 run of 4 and published frame 0 to nobody (test_webview waited 90 s for a source that had not
+    started). The healthy ticker beside it shows the tokens are seen."""
+    from followbus.bus.pubsub import direct_callback
+
+    graph = graph_file(
+        "  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n"
+        "  capture:\n    run: followbus.nodes.capture\n    outputs: [frame, ground_truth]\n"
+        "    params: {source: 'scene:wall-occlusion', max_frames: 1}\n"
+        "  detection:\n    run: followbus.nodes.detection\n    inputs: {frame: capture/frame}\n"
+        "    outputs: [detections]\n    params: {backend: simulated}\n"
+    )
+    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    seen: list[tuple[str, str]] = []
+    sub = session.liveliness().declare_subscriber(
+        "t/@health/*", direct_callback(lambda s: seen.append((str(s.key_expr), str(s.kind)))), history=True)
+    procs = [subprocess.Popen(followbus_argv("node", name, "--graph", str(graph)), stdin=subprocess.DEVNULL,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+             for name in ("detection", "ticker")]
+    detection, ticker = procs
+    try:
+        assert detection.wait(60) == 1, detection.stderr.read()
+        assert "needs the ground_truth input wired" in detection.stderr.read()
+        assert wait_until(lambda: any(key == "t/@health/ticker" for key, _ in seen), 30), seen
+        assert not any(key == "t/@health/detection" for key, _ in seen), seen
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.terminate()
+                p.wait(10)
+        sub.undeclare()
+        session.close()
+    assert ticker.returncode == 0

@@ -37,7 +37,7 @@ CAPTURE_AND_CONSUMER = """\
     params: {source: "scene:wall-occlusion", max_frames: 12, wait_for_consumers_s: 600}
   detection:
     run: followbus.nodes.detection
-    inputs: {frame: capture/frame}
+    inputs: {frame: capture/frame, ground_truth: capture/ground_truth}
     outputs: [detections]
     params: {backend: simulated}
 """
@@ -263,10 +263,12 @@ def test_page_says_unreachable_then_waiting_then_source_ended(tmp_path):
             assert 'data-node="capture"' in dom and "frames: 0" in dom
 
         # Its consumer comes up, capture plays its 12 frames and stops: the last frame stays, with the reason.
+        consumer_log = open(tmp_path / "detection.log", "w")  # noqa: SIM115 - closed in finally
         consumer = subprocess.Popen(followbus_argv("node", "detection", "--graph", str(graph)), cwd=REPO,
-                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL)
+                                    stdout=consumer_log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
         # A bound, not a timing: a loaded 2-core machine can take tens of seconds to start the detection process.
-        assert wait_until(lambda: _screen(web_port).get("code") == "ended", 90), (_screen(web_port), lines[-5:])
+        assert wait_until(lambda: _screen(web_port).get("code") == "ended", 90), (
+            _screen(web_port), lines[-5:], launch.lines[-10:], (tmp_path / "detection.log").read_text()[-2000:])
         assert _screen(web_port)["text"] == "source ended after 12 frames; last frame shown"
         if browser:
             dom = render_dom(url, tmp_path, budget_ms=2000)
@@ -277,6 +279,7 @@ def test_page_says_unreachable_then_waiting_then_source_ended(tmp_path):
     finally:
         if consumer is not None:
             _interrupt(consumer)
+            consumer_log.close()
         if launch is not None:
             launch.stop()
         _interrupt(proc)
