@@ -120,30 +120,24 @@ class _Host(NodeHost):
         self.stopped = False
 
     def receive(self, input_name: str, payload: bytes, stamp_ns: int, now_ns: int,
-                decoded: dict[Any, Message | DecodeError] | None = None) -> None:
+                decoded: dict[Any, Message | DecodeError]) -> None:
         """Decode and validate ``payload`` for this input and queue it. ``decoded``: what earlier subscribers of
         the same publication made of it, by expected type; each subscriber gets its own copy of the message and
         header (the arrays, read-only after decoding, are shared), as if it had decoded the bytes itself."""
         queue = self.queues[input_name]
         schema = self.cls.INPUTS[input_name]
-        try:
-            if decoded is None:
-                msg = validate(decode(payload, schema))
-            else:
-                if schema not in decoded:
-                    try:
-                        decoded[schema] = validate(decode(payload, schema))
-                    except DecodeError as exc:
-                        decoded[schema] = exc
-                shared = decoded[schema]
-                if isinstance(shared, DecodeError):
-                    raise shared
-                msg = copy.copy(shared)
-                msg.header = copy.copy(shared.header)
-        except DecodeError as exc:
+        if schema not in decoded:
+            try:
+                decoded[schema] = validate(decode(payload, schema))
+            except DecodeError as exc:
+                decoded[schema] = exc
+        shared = decoded[schema]
+        if isinstance(shared, DecodeError):
             queue.stats.decode_error()
-            self._warn.warning("dropped malformed message on %s: %s", queue.stats.key, exc)
+            self._warn.warning("dropped malformed message on %s: %s", queue.stats.key, shared)
             return
+        msg = copy.copy(shared)
+        msg.header = copy.copy(shared.header)
         queue.stats.record(stamp_ns, len(payload), now_ns=now_ns)
         msg._arrival = next(self.owner._arrival)  # type: ignore[attr-defined]
         queue.push(msg)

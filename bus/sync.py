@@ -321,20 +321,19 @@ class FrameSynchronizer:
             # ready in full (an input the recorder lost).
             forced = seq in self._forced
             expired = now_ns >= deadline and not forced
-            superseded = self._newer_ready(seq) if forced else self._newer_complete(seq)
             if not required:
-                if expired or superseded:
+                if expired or self._superseded(seq, forced):
                     # A required input never came, or this frame lost an input upstream (a detector that
                     # skipped it) while a newer frame is complete: waiting would only add latency.
                     del self._slots[seq]
                     self.dropped += 1
                     continue
                 break  # wait for it, bounded by its timeout
-            if not awaited and not expired and not superseded:
+            if not awaited and not expired and not self._superseded(seq, forced):
                 break  # an optional same-frame input that is on time may still come
             if not exact and (forced or not self._feedback_lost):
                 if forced:
-                    if not superseded:
+                    if not self._superseded(seq, forced):
                         break  # replay: the feedback the live set joined is still to come
                 elif not (expired or behind):
                     break  # wait for the feedback of the previous frame, bounded by the timeout and the lag
@@ -383,13 +382,14 @@ class FrameSynchronizer:
         return any(name not in slot.msgs and self._awaited(name, seq)
                    for name, spec in self.inputs.items() if not spec.offset)
 
-    def _newer_ready(self, seq: int) -> bool:
-        """Replay: is a newer set that the live run handled ready to go out exactly as it did live?"""
-        for later in self._forced_frames[bisect_right(self._forced_frames, seq):]:
-            slot = self._slots.get(later)
-            if slot is not None and all(self._gather(later, slot)[1:]):
-                return True
-        return False
+    def _superseded(self, seq: int, forced: bool) -> bool:
+        """Should the set of frame ``seq`` stop waiting because a newer one can go? Live: a newer set has its
+        same-frame inputs. Replay (a set the live run handled): a newer handled set is ready in full, as it
+        went out live (its feedback included)."""
+        if not forced:
+            return self._newer_complete(seq)
+        return any(later > seq and later in self._forced and all(self._gather(later, slot)[1:])
+                   for later, slot in self._slots.items())
 
     def _newer_complete(self, seq: int) -> bool:
         return any(not self._missing_same_frame(self._slots[later], later) for later in self._slots if later > seq)
