@@ -209,8 +209,10 @@ def pack(obj: Mapping[str, Any]) -> bytes:
     return b"".join([head, *(memoryview(b).cast("B") for b in blobs)])
 
 
-def _split(data: bytes | bytearray | memoryview) -> tuple[memoryview, memoryview]:
-    """(head, blob area) views of a frame."""
+def _split(data: bytes | bytearray | memoryview,
+           blob_area: memoryview | None = None) -> tuple[memoryview, memoryview]:
+    """(head, blob area) views of a frame; ``blob_area`` given: the frame is its head only and its arrays
+    are there (a message of bus/shmlane.py's lane)."""
     if len(data) < HEAD_OFFSET:
         raise DecodeError("not a followbus message (too short)")
     magic, head_len = _PREFIX.unpack_from(data)
@@ -219,6 +221,10 @@ def _split(data: bytes | bytearray | memoryview) -> tuple[memoryview, memoryview
     if HEAD_OFFSET + head_len > len(data):
         raise DecodeError(f"truncated message: header of {head_len} bytes, {len(data) - HEAD_OFFSET} present")
     view = memoryview(data)
+    if blob_area is not None:
+        if HEAD_OFFSET + head_len != len(data):
+            raise DecodeError("lane message: bytes after the head")
+        return view[HEAD_OFFSET:], blob_area
     return view[HEAD_OFFSET:HEAD_OFFSET + head_len], view[HEAD_OFFSET + head_len:]
 
 
@@ -234,9 +240,10 @@ def _shape(raw: bytes) -> Any:
     return json.loads(raw)
 
 
-def unpack(data: bytes | bytearray | memoryview) -> dict[str, Any]:
-    """Decode a frame's map; raises :class:`DecodeError` on anything malformed."""
-    head, blob_area = _split(data)
+def unpack(data: bytes | bytearray | memoryview, blob_area: memoryview | None = None) -> dict[str, Any]:
+    """Decode a frame's map; raises :class:`DecodeError` on anything malformed. ``blob_area``: the arrays'
+    bytes are there, not after the head (bus/shmlane.py)."""
+    head, blob_area = _split(data, blob_area)
 
     def ext_hook(code: int, ext: bytes) -> Any:
         if code == NDARRAY_EXT:
@@ -300,9 +307,9 @@ def encode_message_parts(type_name: str, version: int, header: Header,
     return pack_parts({TYPE_KEY: type_name, VERSION_KEY: version, HEADER_KEY: header.to_wire(), **fields})
 
 
-def decode_message(data: bytes | bytearray | memoryview) -> Decoded:
+def decode_message(data: bytes | bytearray | memoryview, blob_area: memoryview | None = None) -> Decoded:
     """Split a frame into type name, version, header and the remaining fields (arrays decoded)."""
-    obj = unpack(data)
+    obj = unpack(data, blob_area)
     raw_header = obj.pop(HEADER_KEY, None)
     header = None if raw_header is None else header_from_wire(raw_header)[0]
     return Decoded(obj.pop(TYPE_KEY, None), obj.pop(VERSION_KEY, None), header, obj)

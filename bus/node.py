@@ -534,6 +534,7 @@ class NodeRuntime(NodeHost):
             self.publishers[out] = Publisher(
                 self.session, key, self.spec.name, congestion=self.cls.CONGESTION.get(out, "block"),
                 express=out in self.cls.EXPRESS, priority=self.cls.PRIORITY.get(out, "data"), shm=shm,
+                lane=graph.zenoh.shm_lane,
             )
         self.create_node()
         for inp in self.spec.inputs.values():

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from . import shmlane
 from .codec import DecodeError
 from .schemas import Message, decode, encode_parts, validate
 from .stats import TopicStats
@@ -153,7 +154,8 @@ class Publisher:
 
     def __init__(self, session: zenoh.Session, key: str, source: str, *, congestion: str = "block",
                  express: bool = False, priority: str = "data", shm: ShmPool | None = None,
-                 stats: TopicStats | None = None, max_payload_bytes: int = MAX_PAYLOAD_BYTES):
+                 stats: TopicStats | None = None, max_payload_bytes: int = MAX_PAYLOAD_BYTES,
+                 lane: bool = False):
         if congestion not in CONGESTION:
             raise ValueError(f"congestion must be one of {sorted(CONGESTION)}")
         if priority not in PRIORITY:
@@ -167,6 +169,10 @@ class Publisher:
         self._warn = RateLimitedLog(log, 5.0)
         self._pub = session.declare_publisher(key, congestion_control=CONGESTION[congestion], express=express,
                                               priority=PRIORITY[priority])
+        # The same-host lane (bus/shmlane.py): set up on the first message large enough for it.
+        self._session = session
+        self._lane: shmlane.LaneWriter | None = None
+        self._lane_wanted = lane
 
     def put(self, msg: Message) -> bool:
         """Publish ``msg``; False when it was refused for its size."""
@@ -179,7 +185,13 @@ class Publisher:
         if not self._fits(size):
             return False
         body: Any = None
-        if self.shm is not None and size >= SHM_THRESHOLD_BYTES:
+        if self._lane_wanted and size - len(head) >= shmlane.LANE_THRESHOLD_BYTES:
+            lane = self._lane or self._open_lane()
+            if lane is not None and lane.ready:
+                desc = lane.write(blobs, size - len(head))
+                if desc is not None:
+                    body = shmlane.frame(desc, head)
+        if body is None and self.shm is not None and size >= SHM_THRESHOLD_BYTES:
             # Header and arrays written straight into the shared-memory buffer: no joined frame in between.
             body = self.shm.buffer_with_parts(head, blobs)
         if body is None:
@@ -187,6 +199,19 @@ class Publisher:
         self._pub.put(body)
         self.stats.record(msg.header.stamp_ns, size)
         return True
+
+    def _open_lane(self) -> shmlane.LaneWriter | None:
+        try:
+            self._lane = shmlane.LaneWriter(self._session, self.key)
+        except Exception as exc:  # no /dev/shm, ...: the lane stays off, payloads go inline
+            log.warning("shared-memory lane unavailable for %s (%s); publishing inline", self.key, exc)
+            self._lane_wanted = False
+        return self._lane
+
+    @property
+    def lane_fallbacks(self) -> int:
+        """Messages that went inline because every lane segment was held by readers."""
+        return self._lane.fallbacks if self._lane is not None else 0
 
     def put_bytes(self, payload: bytes, stamp_ns: int = 0) -> bool:
         """Publish an already encoded payload (recording playback); False when it was refused for its size."""
@@ -209,6 +234,9 @@ class Publisher:
 
     def undeclare(self) -> None:
         self._pub.undeclare()
+        if self._lane is not None:
+            self._lane.close()
+            self._lane = None
 
 
 def payload_bytes(sample: zenoh.Sample) -> bytes:
@@ -223,6 +251,35 @@ def payload_bytes(sample: zenoh.Sample) -> bytes:
     payload = sample.payload
     shm_buf = payload.as_shm()
     return bytes(shm_buf) if shm_buf is not None else payload.to_bytes()
+
+
+def frame_bytes(sample: zenoh.Sample) -> bytes:
+    """:func:`payload_bytes`, with a lane message (bus/shmlane.py) turned into the inline frame it stands for:
+    what a tool that keeps or forwards the bytes of any message needs (record, echo, bridges; a recording
+    never holds a descriptor). Raises DecodeError when a lane message cannot be read (another machine's,
+    overwritten, forged): the caller drops it like any malformed payload."""
+    data = payload_bytes(sample)
+    return shmlane.materialize(data) if data[:3] == shmlane.LANE_MAGIC else data
+
+
+class _Tokened:
+    """A Zenoh subscriber and the lane token announcing it (bus/shmlane.py), undeclared together."""
+
+    def __init__(self, session: zenoh.Session, key: str, handler: Any):
+        self._token = shmlane.declare_token(session, key)  # before the subscriber: see shmlane
+        self._sub = session.declare_subscriber(key, handler)
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+        if self._token is not None:
+            self._token.undeclare()
+
+
+def declare_subscriber(session: zenoh.Session, key: str, fn: Callable[[zenoh.Sample], Any]) -> Any:
+    """A direct-callback Zenoh subscriber for a tool that reads payloads with :func:`frame_bytes`, announced
+    as a followbus subscription of this host (so a lane publisher sends it descriptors only when it is on
+    the same machine; one elsewhere makes the publisher go inline)."""
+    return _Tokened(session, key, direct_callback(fn))
 
 
 class Subscriber:
@@ -240,12 +297,26 @@ class Subscriber:
         # A direct callback runs on Zenoh's receive thread, so messages on different keys reach the node
         # in the order they arrived (the default indirect callbacks run one thread per subscriber and
         # reorder them: a lockstep replay then diverges). The work here is a decode and an enqueue.
-        self._sub = session.declare_subscriber(key, direct_callback(self._callback))
+        # The lane token (declared first) lets a publisher on this host send large arrays through
+        # bus/shmlane.py: the decoded arrays are then read-only views of its segment.
+        self._sub = _Tokened(session, key, direct_callback(self._callback))
 
     def _callback(self, sample: zenoh.Sample) -> None:
         try:
             data = payload_bytes(sample)
-            msg = validate(decode(data, self.schema))
+            if data[:3] == shmlane.LANE_MAGIC:
+                desc, head = shmlane.split(data)
+                area = shmlane.open_blob_area(desc)
+                msg = validate(decode(head, self.schema, area))
+                size = len(head) + len(area)
+                del area
+            else:
+                msg = validate(decode(data, self.schema))
+                size = len(data)
+        except shmlane.LaneStale as exc:
+            self.stats.drop()
+            self._warn.warning("dropped a message on %s: %s", sample.key_expr, exc)
+            return
         except DecodeError as exc:
             self.stats.decode_error()
             self._warn.warning("dropped malformed message on %s: %s", sample.key_expr, exc)
@@ -254,7 +325,7 @@ class Subscriber:
             self.stats.decode_error()
             self._warn.warning("dropped unreadable sample on %s: %r", sample.key_expr, exc)
             return
-        self.stats.record(msg.header.stamp_ns, len(data))
+        self.stats.record(msg.header.stamp_ns, size)
         self.on_message(msg)
 
     def undeclare(self) -> None:

@@ -318,9 +318,11 @@ def encode_parts(msg: Message) -> tuple[bytes, list[np.ndarray]]:
     return encode_message_parts(msg.TYPE, SCHEMA_VERSION, msg.header, fields)
 
 
-def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None) -> M:
-    """Parse bytes into the typed message; raise DecodeError on anything that does not fit."""
-    type_name, version, header, obj = decode_message(data)
+def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None,
+           blob_area: memoryview | None = None) -> M:
+    """Parse bytes into the typed message; raise DecodeError on anything that does not fit. ``blob_area``:
+    the arrays' bytes, when they are not after the head (bus/shmlane.py)."""
+    type_name, version, header, obj = decode_message(data, blob_area)
     cls = SCHEMAS.get(type_name) if isinstance(type_name, str) else None
     if cls is None:
         raise DecodeError(f"unknown message type {type_name!r}")

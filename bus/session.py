@@ -36,6 +36,9 @@ class ZenohSettings:
     connect: list[str] = field(default_factory=lambda: [DEFAULT_ENDPOINT])
     multicast_scouting: bool = False
     shm: bool = True
+    # Large arrays between processes on this machine in followbus's own shared memory, a descriptor over
+    # Zenoh (bus/shmlane.py): used only while every subscriber of the key is a followbus one on this host.
+    shm_lane: bool = True
     connect_timeout_ms: int = 10_000  # a client keeps retrying its endpoints this long before failing
     # Raw json5 overrides applied last, e.g. {"access_control": {...}, "transport/link/tls": {...}}.
     config: dict[str, Any] = field(default_factory=dict)
@@ -43,7 +46,8 @@ class ZenohSettings:
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> ZenohSettings:
         data = dict(data or {})
-        unknown = set(data) - {"mode", "listen", "connect", "multicast_scouting", "shm", "connect_timeout_ms", "config"}
+        unknown = set(data) - {"mode", "listen", "connect", "multicast_scouting", "shm", "shm_lane", "connect_timeout_ms",
+                               "config"}
         if unknown:
             raise ValueError(f"unknown zenoh key(s): {', '.join(sorted(unknown))}")
         settings = cls(**data)
@@ -59,6 +63,7 @@ class ZenohSettings:
             connect=list(connect or self.connect or self.listen),
             multicast_scouting=False,
             shm=self.shm,
+            shm_lane=self.shm_lane,
             connect_timeout_ms=self.connect_timeout_ms,
             config=dict(self.config),
         )

@@ -217,7 +217,10 @@ def _zenoh_sender(path: str, plan: dict[str, Any], port: int) -> dict[str, Any]:
             body = shm.buffer_with(buf) if len(buf) >= SHM_THRESHOLD_BYTES else None
             pubs[ci].put(body if body is not None else buf)
     else:
-        pubs = [Publisher(session, f"bench/bus/c{ci}", "bench", shm=shm) for ci in range(len(plan["cells"]))]
+        # As a node publishes (bus/node.py): with the same-host lane when the settings have it (the default).
+        settings = _settings(port, listen=False)
+        pubs = [Publisher(session, f"bench/bus/c{ci}", "bench", shm=shm, lane=settings.shm_lane)
+                for ci in range(len(plan["cells"]))]
 
         def send(ci: int, i: int, buf: bytearray, image: np.ndarray) -> None:
             jpeg = image.ndim == 1  # the two small sizes travel as what they would be: compressed images
