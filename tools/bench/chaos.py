@@ -53,7 +53,7 @@ import zenoh
 from ...bus.codec import pack
 from ...bus.graph import Graph, load_graph
 from ...bus.health import HealthWatcher
-from ...bus.pubsub import Publisher, ShmPool, Subscriber, direct_callback, payload_bytes
+from ...bus.pubsub import Publisher, ShmPool, Subscriber, declare_subscriber, frame_bytes
 from ...bus.schemas import (
     Detections,
     Frame,
@@ -288,7 +288,7 @@ class Observer:
             Subscriber(session, graph.key("capture", "ground_truth"), self._on_truth, schema=GroundTruth,
                        logger=quiet),
         ]
-        self._frame_sub = session.declare_subscriber(graph.key("capture", "frame"), direct_callback(self._on_frame))
+        self._frame_sub = declare_subscriber(session, graph.key("capture", "frame"), self._on_frame)
 
     @property
     def command_decode_errors(self) -> int:
@@ -324,7 +324,10 @@ class Observer:
         if now - self._frame_copied < 0.5:
             return
         self._frame_copied = now
-        data = payload_bytes(sample)
+        try:
+            data = frame_bytes(sample)
+        except Exception:  # a lane frame overwritten meanwhile: the next one will do
+            return
         with self.lock:
             self._frame = data
 

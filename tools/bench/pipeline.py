@@ -60,7 +60,7 @@ def _graph_text(scene: str, port: int, namespace: str, detector: str, sim_delay_
 
 def run_bench_pipeline(args) -> int:
     from ...bus.graph import load_graph
-    from ...bus.pubsub import direct_callback, payload_bytes
+    from ...bus.pubsub import declare_subscriber, frame_bytes
     from ...bus.schemas import NodeStatus, decode
     from ...bus.session import open_session
     from ...vision.models import find_model
@@ -92,7 +92,7 @@ def run_bench_pipeline(args) -> int:
                 if not recording.is_set():
                     return
                 try:
-                    msg = decode(payload_bytes(sample), schema)
+                    msg = decode(frame_bytes(sample), schema)
                 except Exception:  # a malformed sample is not a latency figure
                     return
                 h = msg.header
@@ -107,17 +107,17 @@ def run_bench_pipeline(args) -> int:
                    ("prediction", "prior"): Prior, ("reid", "measurement"): Measurement,
                    ("prediction", "track"): Track, ("motor", "command"): MotorCommand}
         for st in STAGES:
-            subs.append(session.declare_subscriber(graph.key(*st), direct_callback(header_cb(st, schemas[st]))))
+            subs.append(declare_subscriber(session, graph.key(*st), header_cb(st, schemas[st])))
 
         def on_status(sample) -> None:
             try:
-                st = decode(payload_bytes(sample), NodeStatus)
+                st = decode(frame_bytes(sample), NodeStatus)
             except Exception:
                 return
             with lock:
                 pids[st.node] = st.pid
 
-        subs.append(session.declare_subscriber(f"{ns}/@status/*", direct_callback(on_status)))
+        subs.append(declare_subscriber(session, f"{ns}/@status/*", on_status))
         launcher = Launcher(graph, quiet=True, startup_timeout_s=60.0)
         ready = threading.Event()
         runner = threading.Thread(target=launcher.run, kwargs={"duration_s": args.duration + 120,

@@ -25,7 +25,7 @@ import numpy as np
 import zenoh
 
 from ...bus.codec import DecodeError
-from ...bus.pubsub import direct_callback, payload_bytes
+from ...bus.pubsub import declare_subscriber, frame_bytes
 from ...bus.schemas import (
     Frame,
     GroundPoints,
@@ -143,14 +143,14 @@ class FoxgloveBridge:
         self.session = open_session(settings)
         keys = info.keys
         self.subs = [
-            self.session.declare_subscriber(keys["points"], direct_callback(self._on_points)),
-            self.session.declare_subscriber(keys["group"], direct_callback(self._on_group)),
-            self.session.declare_subscriber(info.preview_key, direct_callback(self._on_preview)),
-            self.session.declare_subscriber(keys["track"], direct_callback(self._remember)),
-            self.session.declare_subscriber(keys["prior"], direct_callback(self._remember)),
-            self.session.declare_subscriber(keys["measurement"], direct_callback(self._remember)),
-            self.session.declare_subscriber(keys["command"], direct_callback(self._on_command)),
-            self.session.declare_subscriber(f"{ns}/@status/*", direct_callback(self._on_status)),
+            declare_subscriber(self.session, keys["points"], self._on_points),
+            declare_subscriber(self.session, keys["group"], self._on_group),
+            declare_subscriber(self.session, info.preview_key, self._on_preview),
+            declare_subscriber(self.session, keys["track"], self._remember),
+            declare_subscriber(self.session, keys["prior"], self._remember),
+            declare_subscriber(self.session, keys["measurement"], self._remember),
+            declare_subscriber(self.session, keys["command"], self._on_command),
+            declare_subscriber(self.session, f"{ns}/@status/*", self._on_status),
         ]
 
     @property
@@ -160,7 +160,7 @@ class FoxgloveBridge:
     @staticmethod
     def _decode(sample: zenoh.Sample) -> Message | None:
         try:
-            return decode(payload_bytes(sample))
+            return decode(frame_bytes(sample))
         except DecodeError as exc:
             log.debug("decode error on %s: %s", sample.key_expr, exc)
             return None

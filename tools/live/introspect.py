@@ -15,7 +15,7 @@ import zenoh
 
 from ...bus.codec import DecodeError
 from ...bus.health import HealthWatcher
-from ...bus.pubsub import direct_callback, payload_bytes
+from ...bus.pubsub import declare_subscriber, frame_bytes, payload_bytes
 from ...bus.schemas import decode, to_plain
 from ...bus.session import ZenohSettings, open_session
 from ..connect import open_client_session
@@ -38,18 +38,18 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
 
     def on_sample(sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        data = payload_bytes(sample)
         try:
+            data = frame_bytes(sample)
             msg_type = decode(data).TYPE
         except DecodeError:
-            msg_type = "?"
+            data, msg_type = payload_bytes(sample), "?"
         with lock:
             counts[key].append(time.monotonic_ns())
             sizes[key] += len(data)
             types[key] = msg_type
 
     session = open_client_session(settings)
-    sub = session.declare_subscriber(f"{namespace}/**", direct_callback(on_sample))
+    sub = declare_subscriber(session, f"{namespace}/**", on_sample)
     wait_for(args.seconds)
     sub.undeclare()
     session.close()
@@ -73,7 +73,7 @@ def cmd_echo(args, settings: ZenohSettings, namespace: str) -> int:
         if done.is_set():
             return
         try:
-            msg = decode(payload_bytes(sample))
+            msg = decode(frame_bytes(sample))
             text = json.dumps(to_plain(msg), default=str)
         except DecodeError as exc:
             text = json.dumps({"key": str(sample.key_expr), "decode_error": str(exc)})
@@ -83,7 +83,7 @@ def cmd_echo(args, settings: ZenohSettings, namespace: str) -> int:
             done.set()
 
     session = open_client_session(settings)
-    sub = session.declare_subscriber(args.key, direct_callback(on_sample))
+    sub = declare_subscriber(session, args.key, on_sample)
     first = _wait_first(lambda: seen[0] > 0, args.timeout, args.seconds, done)
     if first:
         wait_for(None if args.seconds is None else max(0.0, args.seconds - first), done)
@@ -122,7 +122,7 @@ def cmd_hz(args, settings: ZenohSettings, namespace: str) -> int:
     def on_sample(sample: zenoh.Sample) -> None:
         now = time.time_ns()
         try:
-            stamp = decode(payload_bytes(sample)).header.stamp_ns
+            stamp = decode(frame_bytes(sample)).header.stamp_ns
         except DecodeError:
             stamp = 0
         with lock:
@@ -131,7 +131,7 @@ def cmd_hz(args, settings: ZenohSettings, namespace: str) -> int:
                 latencies.append((now - stamp) / 1e6)
 
     session = open_client_session(settings)
-    sub = session.declare_subscriber(args.key, direct_callback(on_sample))
+    sub = declare_subscriber(session, args.key, on_sample)
     start = time.monotonic()
     if args.timeout is not None and not _wait_first(lambda: bool(arrivals), args.timeout, args.seconds):
         sub.undeclare()

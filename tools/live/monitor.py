@@ -33,7 +33,7 @@ from rich.text import Text
 
 from ...bus.codec import DecodeError
 from ...bus.health import HealthWatcher
-from ...bus.pubsub import direct_callback, payload_bytes
+from ...bus.pubsub import declare_subscriber, frame_bytes
 from ...bus.schemas import (
     Frame,
     GroundPoints,
@@ -296,9 +296,9 @@ class BusMonitor:
         self._session = session
         self._watcher = HealthWatcher(session, self.info.namespace, on_change=self._on_health)
         for name, key in self.info.keys.items():
-            self._subs.append(session.declare_subscriber(key, direct_callback(self._make_handler(name))))
+            self._subs.append(declare_subscriber(session, key, self._make_handler(name)))
         if self.want_preview:
-            self._subs.append(session.declare_subscriber(self.info.preview_key, direct_callback(self._on_preview)))
+            self._subs.append(declare_subscriber(session, self.info.preview_key, self._on_preview))
 
     def _close_session(self) -> None:
         for sub in self._subs:
@@ -379,7 +379,7 @@ class BusMonitor:
     def _make_handler(self, name: str) -> Callable[[zenoh.Sample], None]:
         def handler(sample: zenoh.Sample) -> None:
             try:
-                msg = decode(payload_bytes(sample), WATCHED[name][1])
+                msg = decode(frame_bytes(sample), WATCHED[name][1])
             except DecodeError as exc:
                 with self.lock:
                     self.decode_errors += 1
@@ -426,7 +426,7 @@ class BusMonitor:
 
     def _on_preview(self, sample: zenoh.Sample) -> None:
         try:
-            msg = decode(payload_bytes(sample), Frame)
+            msg = decode(frame_bytes(sample), Frame)
         except DecodeError:
             with self.lock:
                 self.decode_errors += 1

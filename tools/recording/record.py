@@ -57,7 +57,7 @@ import zenoh
 
 from ...bus.codec import DecodeError, Header, peek
 from ...bus.node import RECORDER_NAME
-from ...bus.pubsub import RateLimitedLog, direct_callback, payload_bytes
+from ...bus.pubsub import RateLimitedLog, declare_subscriber, frame_bytes
 from ...bus.schemas import Frame, decode
 from .. import __version__
 from . import foxglove_schemas as fox
@@ -218,8 +218,7 @@ class Recorder:
         for i, pattern in enumerate(self.opts.patterns):
             # Direct: the callback runs on zenoh's receive thread (it only copies and enqueues), which
             # keeps the order samples arrived in; zenoh-python's default hands each subscriber a thread.
-            self._subs.append(session.declare_subscriber(
-                pattern, direct_callback(self._callback_for(i))))
+            self._subs.append(declare_subscriber(session, pattern, self._callback_for(i)))
 
     def _callback_for(self, index: int):
         def callback(sample: zenoh.Sample) -> None:
@@ -232,7 +231,7 @@ class Recorder:
             if self._excluded and any(k.intersects(sample.key_expr) for k in self._excluded):
                 return
             try:
-                data = payload_bytes(sample)
+                data = frame_bytes(sample)
             except Exception as exc:  # never let one sample kill zenoh's callback thread
                 self._warn.warning("unreadable sample on %s: %r", key, exc)
                 return

@@ -100,7 +100,7 @@ class IsolatedTarget:
 
     def start(self) -> None:
         from ...bus.health import HealthWatcher
-        from ...bus.pubsub import Publisher, ShmPool, direct_callback
+        from ...bus.pubsub import Publisher, ShmPool, declare_subscriber
         from ...bus.session import open_session
 
         self.reference.start()
@@ -111,8 +111,8 @@ class IsolatedTarget:
         self._session = open_session(private.zenoh)  # takes the private port first; the node connects to it
         for topic in self.plan.outputs.values():
             # Direct callbacks keep the order of samples across keys (bus.pubsub.direct_callback).
-            self._subs.append(self._session.declare_subscriber(private.key(*topic.split("/", 1)),
-                                                               direct_callback(self._on_output(topic))))
+            self._subs.append(declare_subscriber(self._session, private.key(*topic.split("/", 1)),
+                                                 self._on_output(topic)))
         shm = ShmPool(REPLAY_SHM_BYTES) if private.zenoh.shm else None
         for topic in self.plan.inputs.values():
             self._pubs[topic] = Publisher(self._session, private.key(*topic.split("/", 1)), "replay", shm=shm)
@@ -134,9 +134,13 @@ class IsolatedTarget:
 
     def _on_output(self, topic: str):
         def callback(sample) -> None:
-            from ...bus.pubsub import payload_bytes
+            from ...bus.codec import DecodeError
+            from ...bus.pubsub import frame_bytes, payload_bytes
 
-            data = payload_bytes(sample)
+            try:
+                data = frame_bytes(sample)
+            except DecodeError:  # a lane message that cannot be read: kept as it came, the comparison shows it
+                data = payload_bytes(sample)
             awaited = topic not in self.plan.timer_topics or _header(data)[0] >= 0
             with self._cond:
                 self._received[topic].append(data)

@@ -1,0 +1,361 @@
+"""The same-host shared-memory lane (bus/shmlane.py), with real processes on loopback Zenoh: a kept frame stays
+intact while the publisher sends 20 more (and the ring falls back inline when readers hold all of it); forged
+descriptors are counted and dropped; a subscriber on another host, a plain Zenoh subscriber and the recorder
+get inline frames; a dead publisher's segments are removed; the kill switch."""
+
+from __future__ import annotations
+
+import json
+import mmap
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+
+from followbus.bus import shmlane
+from followbus.bus.codec import MAGIC
+from followbus.bus.pubsub import Publisher, Subscriber, direct_callback, payload_bytes
+from followbus.bus.schemas import Frame, decode, encode
+from followbus.bus.session import ZenohSettings, open_session
+
+from .conftest import followbus_argv, wait_until
+
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(shmlane.HOST_ID is None, reason="no usable /dev/shm on this machine")]
+
+H, W = 480, 640  # 921.6 KB frames: over the lane threshold
+
+PUBLISHER = """
+import json, sys, time
+import numpy as np
+from followbus.bus.pubsub import Publisher, ShmPool
+from followbus.bus.schemas import Frame
+from followbus.bus.session import ZenohSettings, open_session
+port, key, count, mode = int(sys.argv[1]), sys.argv[2], int(sys.argv[3]), sys.argv[4]
+s = open_session(ZenohSettings(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+pub = Publisher(s, key, "lanepub", shm=ShmPool(), lane=mode != "off")
+img = np.empty((480, 640, 3), np.uint8)
+
+def send(value, seq):
+    img.fill(value)
+    msg = Frame(width=640, height=480, encoding="bgr8", data=img)
+    msg.header.frame_seq = seq
+    pub.put(msg)
+
+deadline = time.monotonic() + (20 if mode == "lane" else 2)
+while time.monotonic() < deadline:  # warm-up frames (frame_seq -1) until the lane is ready
+    send(255, -1)
+    if mode == "lane" and pub._lane is not None and pub._lane.ready:
+        break
+    time.sleep(0.05)
+time.sleep(0.2)
+for i in range(count):
+    send(i, i)
+    time.sleep(0.01)
+lane = pub._lane
+print(json.dumps({"ready": bool(lane and lane.ready), "fallbacks": pub.lane_fallbacks,
+                  "segments": [seg.path for seg in lane._segments] if lane else []}), flush=True)
+sys.stdin.readline()  # the test says when to go
+pub.undeclare()
+s.close()
+"""
+
+
+def _publisher(port: int, key: str, count: int, mode: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", PUBLISHER, str(port), key, str(count), mode],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+
+def _finish(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        try:
+            proc.stdin.write("go\n")
+            proc.stdin.flush()
+            proc.wait(15)
+        except (OSError, subprocess.TimeoutExpired):
+            proc.kill()
+            proc.wait()
+
+
+def _lane_view(arr: np.ndarray) -> bool:
+    """Whether an array is a view of a lane segment's mapping (not of a private copy)."""
+    base = arr
+    while isinstance(base, np.ndarray):
+        base = base.base
+    return isinstance(base, memoryview) and isinstance(base.obj, mmap.mmap)
+
+
+def test_kept_frames_stay_intact_while_the_publisher_sends_on(port):
+    """The receiver keeps frames 0-9 (their segments stay locked) and checks every frame as it comes: the
+    publisher moves to other segments, grows its ring to the bound, then goes inline; nothing kept changes,
+    not even after the publisher has ended and unlinked its segments."""
+    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    kept: dict[int, Frame] = {}
+    seen: dict[int, bool] = {}  # frame_seq -> arrived as a lane view
+    wrong: list[int] = []
+
+    def on(msg: Frame) -> None:
+        i = msg.header.frame_seq
+        if i < 0:
+            return
+        if not (msg.data == i).all() or msg.data.flags.writeable:
+            wrong.append(i)
+        seen[i] = _lane_view(msg.data)
+        if i < 10:
+            kept[i] = msg
+
+    sub = Subscriber(session, "lane/frame", on, schema=Frame)
+    proc = _publisher(port, "lane/frame", 21, "lane")
+    try:
+        report = json.loads(proc.stdout.readline())
+        assert wait_until(lambda: len(seen) == 21, 10), sorted(seen)
+        assert report["ready"], report
+        assert not wrong, wrong
+        assert all(seen[i] for i in range(shmlane.MAX_SEGMENTS)), seen
+        # Ten frames kept: the ring reached its bound of 8 held segments, later frames went inline.
+        assert len(report["segments"]) == shmlane.MAX_SEGMENTS and report["fallbacks"] >= 1, report
+        assert not all(seen.values())
+        for i, msg in kept.items():
+            assert (msg.data == i).all(), f"kept frame {i} changed"
+        assert sub.stats.decode_errors == 0 and sub.stats.drops == 0
+    finally:
+        _finish(proc)
+    assert all(not os.path.exists(p) for p in report["segments"]), "the publisher unlinks its segments"
+    for i, msg in kept.items():  # the mappings outlive the names
+        assert (msg.data == i).all()
+    kept.clear()
+    sub.undeclare()
+    session.close()
+
+
+def _forge(desc, head: bytes | None = None) -> bytes:
+    raw = msgpack.packb(desc) if not isinstance(desc, bytes) else desc
+    if head is None:
+        msg = Frame(width=640, height=480, encoding="bgr8", data=np.zeros((480, 640, 3), np.uint8))
+        head = encode(msg)[:-(480 * 640 * 3)]
+    return shmlane.frame(raw, head)
+
+
+def test_forged_descriptors_are_counted_and_dropped(port, tmp_path):
+    """A descriptor is untrusted input: other paths, symlinks, FIFOs, files that are not segments, wrong
+    inodes or generations, absurd lengths, garbage. Each is a decode error (or, for a segment that was
+    rewritten, a drop), never a crash, and the subscriber keeps receiving."""
+    a = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    b = open_session(ZenohSettings(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    got: list[Frame] = []
+    sub = Subscriber(a, "lane/forged", got.append, schema=Frame)
+    pid = os.getpid()
+    made: list[str] = []
+
+    def shm(name: str) -> str:
+        path = os.path.join(shmlane.SHM_DIR, name)
+        made.append(path)
+        return path
+
+    not_segment = shm(f"followbus-{pid}-900001")
+    Path(not_segment).write_bytes(b"x" * (shmlane.DATA_OFFSET + 100))
+    os.symlink("/etc/passwd", shm(f"followbus-{pid}-900002"))
+    os.mkfifo(shm(f"followbus-{pid}-900003"))
+    writer = shmlane.LaneWriter(b, "lane/forged")
+    pub = Publisher(b, "lane/forged", "forger")
+    try:
+        real = msgpack.unpackb(writer.write([np.zeros(480 * 640 * 3, np.uint8)], 480 * 640 * 3))
+        name, ino, gen, length = real
+        errors = [
+            ["../../etc/passwd", 1, 1, 100], ["/etc/passwd", 1, 1, 100], [f"followbus-{pid}-1/../x", 1, 1, 100],
+            ["followbus-x-1", 1, 1, 100], [f"followbus-{pid}-900001", os.stat(not_segment).st_ino, 0, 100],
+            [f"followbus-{pid}-900002", 1, 1, 100], [f"followbus-{pid}-900003", 1, 1, 100],
+            [name, ino, gen, length * 4], [name, ino, gen, 1 << 40], [name, ino, -1, length], [name, ino, gen],
+            [name, "1", gen, length], "not a list",
+        ]
+        stale = [[name, ino + 1, gen, length], [name, ino, gen + 1, length], [f"followbus-{pid}-999999", 1, 1, 10]]
+        bad_bytes = [b"FBL", b"FBL\xff\xff\xff\xff", shmlane.frame(b"\xc1\xc1", b""), _forge(real, b"FB1junk"),
+                     shmlane.frame(msgpack.packb(real), encode(Frame(width=1, height=1, encoding="bgr8",
+                                                                     data=np.zeros((1, 1, 3), np.uint8))) + b"x")]
+        payloads = [_forge(d) for d in errors] + bad_bytes + [_forge(d) for d in stale]
+        raw = b.declare_publisher("lane/forged")
+        # The subscription reaches b first: resend a valid inline frame until it arrives.
+        probe = Frame(width=4, height=4, encoding="bgr8", data=np.zeros((4, 4, 3), np.uint8))
+        assert wait_until(lambda: pub.put(probe) and bool(got), 10, interval=0.2)
+        def big() -> list[Frame]:  # a probe may still arrive: count the forged frame only
+            return [m for m in got if m.data.shape == (480, 640, 3)]
+
+        for p in payloads:
+            raw.put(p)
+        good = _forge(real)
+        raw.put(good)  # a real descriptor still works after all that
+        expected_errors = len(errors) + len(bad_bytes)
+        assert wait_until(lambda: sub.stats.decode_errors == expected_errors and sub.stats.drops == len(stale)
+                          and len(big()) == 1, 10), (sub.stats.snapshot(), len(got))
+        assert _lane_view(big()[0].data)
+        raw.undeclare()
+    finally:
+        got.clear()
+        for path in made:
+            os.unlink(path)
+        writer.close()
+        pub.undeclare()
+        sub.undeclare()
+        b.close()
+        a.close()
+
+
+def test_a_subscriber_on_another_host_or_plain_zenoh_gets_inline_frames(port):
+    """A followbus subscriber announcing another host makes the publisher send inline, to everyone; a plain
+    Zenoh subscriber reading the bytes then gets the frame exactly as encode() writes it."""
+    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    other = session.liveliness().declare_token(
+        f"{shmlane.TOKEN_PREFIX}/0123456789abcdef/{'ab' * 8}/{b'lane/**'.hex()}")
+    lane_seen: list[bool] = []
+    raw_magic: list[bytes] = []
+    sub = Subscriber(session, "lane/remote", lambda m: m.header.frame_seq >= 0 and lane_seen.append(
+        _lane_view(m.data) or not (m.data == m.header.frame_seq).all()), schema=Frame)
+
+    def on_raw(sample) -> None:
+        data = payload_bytes(sample)
+        if data[:3] != MAGIC or decode(data).header.frame_seq >= 0:
+            raw_magic.append(data[:3])
+
+    raw = session.declare_subscriber("lane/remote", direct_callback(on_raw))
+    proc = _publisher(port, "lane/remote", 5, "plain")
+    try:
+        report = json.loads(proc.stdout.readline())
+        assert wait_until(lambda: len(lane_seen) == 5 and len(raw_magic) == 5, 10), (lane_seen, raw_magic)
+        assert not report["ready"] and not report["segments"], report
+        assert lane_seen == [False] * 5 and raw_magic == [MAGIC] * 5
+    finally:
+        _finish(proc)
+        raw.undeclare()
+        sub.undeclare()
+        other.undeclare()
+        session.close()
+
+
+def test_the_recorder_stores_inline_frames_while_the_lane_is_used(port, tmp_path):
+    """`followbus record` on the same host announces its subscription too: the publisher keeps the lane for
+    the node, and the recorder turns each lane message into the frame it stands for (a recording never
+    holds a descriptor)."""
+    from mcap.reader import make_reader
+
+    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    lane_seen: list[bool] = []
+    sub = Subscriber(session, "lr/frame", lambda m: m.header.frame_seq >= 0 and lane_seen.append(_lane_view(m.data)),
+                     schema=Frame)
+    out = tmp_path / "lane.mcap"
+    rec = subprocess.Popen(followbus_argv("record", "--topics", "lr/**", "-o", str(out), "--no-foxglove",
+                                          "--connect", f"tcp/127.0.0.1:{port}"),
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, stdin=subprocess.DEVNULL)
+    proc = None
+    try:
+        lines: list[str] = []
+        threading.Thread(target=lambda: lines.extend(rec.stdout), daemon=True).start()
+        assert wait_until(lambda: any("recording" in line for line in lines), 30), lines
+        time.sleep(1.0)
+        proc = _publisher(port, "lr/frame", 10, "lane")
+        report = json.loads(proc.stdout.readline())
+        assert report["ready"], report
+        assert wait_until(lambda: len(lane_seen) == 10, 10)
+        assert all(lane_seen), lane_seen
+        time.sleep(1.0)
+    finally:
+        if proc is not None:
+            _finish(proc)
+        rec.send_signal(signal.SIGINT)
+        rec.wait(30)
+        sub.undeclare()
+        session.close()
+    frames = {}
+    with open(out, "rb") as f:
+        for _schema, channel, message in make_reader(f).iter_messages():
+            assert channel.topic == "lr/frame"
+            assert message.data[:3] == MAGIC, "a recording holds frames, never lane descriptors"
+            msg = decode(message.data, Frame)
+            frames[msg.header.frame_seq] = msg
+    assert set(range(10)) <= set(frames), sorted(frames)
+    for i in range(10):
+        assert (frames[i].data == i).all()
+
+
+def test_a_dead_publishers_segments_are_removed():
+    """A publisher killed with SIGKILL leaves its segments in /dev/shm; the next lane publisher removes them
+    (those of live processes stay)."""
+    code = (
+        "import numpy as np, sys, time\n"
+        "from followbus.bus import shmlane\n"
+        "from followbus.bus.session import ZenohSettings, open_session\n"
+        "s = open_session(ZenohSettings(listen=[], connect=[]))\n"
+        "w = shmlane.LaneWriter(s, 'x/y')\n"
+        "w.write([np.ones(300_000, np.uint8)], 300_000)\n"
+        "print(w._segments[0].path, flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    path = proc.stdout.readline().strip()
+    assert os.path.exists(path) and f"followbus-{proc.pid}-" in path
+    session = open_session(ZenohSettings(listen=[], connect=[]))
+    mine = shmlane.LaneWriter(session, "x/z")
+    try:
+        mine.write([np.ones(300_000, np.uint8)], 300_000)
+        assert shmlane.clean_stale_segments() == 0 and os.path.exists(path)  # its publisher is alive
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        assert os.path.exists(path), "a killed process cannot clean up"
+        assert shmlane.clean_stale_segments() == 1
+        assert not os.path.exists(path) and os.path.exists(mine._segments[0].path)
+    finally:
+        mine.close()
+        session.close()
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_the_kill_switch_turns_the_lane_off(graph_file):
+    from followbus.bus.graph import load_graph
+    from followbus.bus.node import NodeRuntime
+
+    assert ZenohSettings.from_dict({}).shm_lane is True
+    assert ZenohSettings.from_dict({"shm_lane": False}).as_client().shm_lane is False
+    path = graph_file("  capture:\n    run: followbus.nodes.capture\n    outputs: [frame, ground_truth]\n"
+                      "    params: {source: 'scene:wall-occlusion'}\n")
+    for flag in (True, False):
+        path.write_text(path.read_text().replace("zenoh:\n", f"zenoh:\n  shm_lane: {str(flag).lower()}\n", 1))
+        runtime = NodeRuntime(load_graph(path), "capture")
+        try:
+            assert runtime.publishers["frame"]._lane_wanted is flag
+        finally:
+            runtime.session.close()
+        path.write_text(path.read_text().replace(f"  shm_lane: {str(flag).lower()}\n", "", 1))
+
+
+def test_a_publisher_without_followbus_subscribers_stays_inline(port):
+    """No token, no lane: a subscriber that announces nothing (another program on raw Zenoh) gets inline
+    frames when it is alone on the key."""
+    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    magic: list[bytes] = []
+    raw = session.declare_subscriber("lane/alone", direct_callback(lambda s: magic.append(payload_bytes(s)[:3])))
+    proc = _publisher(port, "lane/alone", 5, "plain")
+    try:
+        report = json.loads(proc.stdout.readline())
+        assert wait_until(lambda: len(magic) >= 5, 10)
+        assert set(magic) == {MAGIC} and not report["ready"] and not report["segments"], (magic, report)
+    finally:
+        _finish(proc)
+        raw.undeclare()
+        session.close()
+
+
+def test_segment_names_are_checked_before_anything_is_opened():
+    for name in ("followbus-1-2", "followbus-4294967295-0"):
+        assert shmlane._NAME.fullmatch(name)
+    for name in ("followbus-1-2/..", "../followbus-1-2", "followbus-1", "followbus--1-2", "followbus-1-2\0",
+                 "followbus-1-2 ", "Followbus-1-2", "followbus-12345678901-1"):
+        assert not shmlane._NAME.fullmatch(name), name
+    with pytest.raises(shmlane.DecodeError):
+        shmlane.open_blob_area(["followbus-1-2/../../etc/passwd", 1, 1, 1])
