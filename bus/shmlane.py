@@ -63,11 +63,15 @@ SEGMENT_MAGIC = b"FBLANE01"
 _SEG_HEADER = struct.Struct("<8sQQ")  # magic, generation, length of the data written
 DATA_OFFSET = 64  # data starts on a cache line
 LANE_THRESHOLD_BYTES = 256 * 1024  # arrays (blob area) from this size take the lane
-MAX_SEGMENTS = 8  # per publisher: past this, with every segment held by readers, the message goes inline
+# Per publisher. The ring turns over at least MIN_SEGMENTS: a descriptor stays readable for that many of the
+# publisher's messages even if no reader has locked it yet (a receiver running late gets it, not a drop).
+# Segments held by readers are skipped; past MAX_SEGMENTS, all held, the message goes inline.
+MIN_SEGMENTS = 4
+MAX_SEGMENTS = 8
 MAX_LANE_BYTES = 48 * 1024 * 1024  # = pubsub.MAX_PAYLOAD_BYTES: a descriptor naming more is refused
 MAX_DESCRIPTOR_BYTES = 256
 TOKEN_PREFIX = "@followbus/lane"
-_NAME = re.compile(r"followbus-([0-9]{1,10})-([0-9]{1,10})")
+_NAME = re.compile(r"followbus-([0-9a-f]{16})-([0-9]{1,10})-([0-9]{1,10})")  # host id, pid, number
 _counter = itertools.count()
 _own_paths: set[str] = set()
 _own_lock = threading.Lock()
@@ -81,17 +85,19 @@ class LaneStale(DecodeError):
 # --- where we are ------------------------------------------------------------------------------------
 
 def _compute_host_id() -> str | None:
-    """This machine and /dev/shm namespace: the boot id and the device and inode of /dev/shm, hashed.
-    None when there is no usable /dev/shm (the lane is then off)."""
+    """Who can read our segments and see our pids: the boot id, the device and inode of /dev/shm, the pid
+    namespace and the user, hashed (a container with its own /dev/shm or pids, another user: another
+    "host", served inline). None when there is no usable /dev/shm (the lane is then off)."""
     try:
         with open("/proc/sys/kernel/random/boot_id") as f:
             boot = f.read().strip()
         st = os.stat(SHM_DIR)
         if not stat.S_ISDIR(st.st_mode) or not os.access(SHM_DIR, os.W_OK):
             return None
+        pid_ns = os.readlink("/proc/self/ns/pid")
     except OSError:
         return None
-    return hashlib.sha256(f"{boot}:{st.st_dev}:{st.st_ino}".encode()).hexdigest()[:16]
+    return hashlib.sha256(f"{boot}:{st.st_dev}:{st.st_ino}:{pid_ns}:{os.getuid()}".encode()).hexdigest()[:16]
 
 
 HOST_ID = _compute_host_id()
@@ -145,7 +151,8 @@ def clean_stale_segments() -> int:
     me = os.getuid()
     for name in names:
         m = _NAME.fullmatch(name)
-        if m is None or _pid_alive(int(m.group(1))):
+        # Only segments named with our host id: their pids are in our pid namespace.
+        if m is None or m.group(1) != HOST_ID or _pid_alive(int(m.group(2))):
             continue
         path = os.path.join(SHM_DIR, name)
         try:
@@ -174,7 +181,7 @@ atexit.register(_unlink_own)
 
 class _Segment:
     def __init__(self) -> None:
-        self.name = f"followbus-{os.getpid()}-{next(_counter)}"
+        self.name = f"followbus-{HOST_ID}-{os.getpid()}-{next(_counter)}"
         self.path = os.path.join(SHM_DIR, self.name)
         self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
         with _own_lock:
@@ -282,6 +289,8 @@ class LaneWriter:
     def _acquire(self) -> _Segment | None:
         """The next segment no reader holds, locked exclusively (caller holds self._lock)."""
         n = len(self._segments)
+        if n < MIN_SEGMENTS:
+            return self._new_segment()
         for i in range(n):
             seg = self._segments[(self._next + i) % n]
             try:
@@ -292,6 +301,9 @@ class LaneWriter:
             return seg
         if n >= MAX_SEGMENTS:
             return None
+        return self._new_segment()
+
+    def _new_segment(self) -> _Segment:
         seg = _Segment()
         fcntl.flock(seg.fd, fcntl.LOCK_EX)
         self._segments.append(seg)
@@ -346,8 +358,11 @@ def open_blob_area(desc: Any) -> memoryview:
     if not (isinstance(desc, list) and len(desc) == 4):
         raise DecodeError("lane descriptor: expected [name, inode, generation, length]")
     name, ino, generation, length = desc
-    if not (isinstance(name, str) and _NAME.fullmatch(name)):
+    m = _NAME.fullmatch(name) if isinstance(name, str) else None
+    if m is None:
         raise DecodeError("lane descriptor: not a followbus segment name")
+    if m.group(1) != HOST_ID:
+        raise DecodeError("lane descriptor: a segment of another host")
     if not all(type(v) is int and v >= 0 for v in (ino, generation, length)) or length > MAX_LANE_BYTES:
         raise DecodeError("lane descriptor: bad inode, generation or length")
     path = os.path.join(SHM_DIR, name)

@@ -151,7 +151,7 @@ def test_forged_descriptors_are_counted_and_dropped(port, tmp_path):
     b = open_session(ZenohSettings(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
     got: list[Frame] = []
     sub = Subscriber(a, "lane/forged", got.append, schema=Frame)
-    pid = os.getpid()
+    pid, host = os.getpid(), shmlane.HOST_ID
     made: list[str] = []
 
     def shm(name: str) -> str:
@@ -159,23 +159,26 @@ def test_forged_descriptors_are_counted_and_dropped(port, tmp_path):
         made.append(path)
         return path
 
-    not_segment = shm(f"followbus-{pid}-900001")
+    not_segment = shm(f"followbus-{host}-{pid}-900001")
     Path(not_segment).write_bytes(b"x" * (shmlane.DATA_OFFSET + 100))
-    os.symlink("/etc/passwd", shm(f"followbus-{pid}-900002"))
-    os.mkfifo(shm(f"followbus-{pid}-900003"))
+    os.symlink("/etc/passwd", shm(f"followbus-{host}-{pid}-900002"))
+    os.mkfifo(shm(f"followbus-{host}-{pid}-900003"))
     writer = shmlane.LaneWriter(b, "lane/forged")
     pub = Publisher(b, "lane/forged", "forger")
     try:
         real = msgpack.unpackb(writer.write([np.zeros(480 * 640 * 3, np.uint8)], 480 * 640 * 3))
         name, ino, gen, length = real
         errors = [
-            ["../../etc/passwd", 1, 1, 100], ["/etc/passwd", 1, 1, 100], [f"followbus-{pid}-1/../x", 1, 1, 100],
-            ["followbus-x-1", 1, 1, 100], [f"followbus-{pid}-900001", os.stat(not_segment).st_ino, 0, 100],
-            [f"followbus-{pid}-900002", 1, 1, 100], [f"followbus-{pid}-900003", 1, 1, 100],
+            ["../../etc/passwd", 1, 1, 100], ["/etc/passwd", 1, 1, 100],
+            [f"followbus-{host}-{pid}-1/../x", 1, 1, 100], ["followbus-x-1", 1, 1, 100],
+            [f"followbus-{pid}-1", 1, 1, 100], [f"followbus-{'0' * 16}-{pid}-1", 1, 1, 100],  # another host's
+            [f"followbus-{host}-{pid}-900001", os.stat(not_segment).st_ino, 0, 100],  # not a segment
+            [f"followbus-{host}-{pid}-900002", 1, 1, 100], [f"followbus-{host}-{pid}-900003", 1, 1, 100],
             [name, ino, gen, length * 4], [name, ino, gen, 1 << 40], [name, ino, -1, length], [name, ino, gen],
             [name, "1", gen, length], "not a list",
         ]
-        stale = [[name, ino + 1, gen, length], [name, ino, gen + 1, length], [f"followbus-{pid}-999999", 1, 1, 10]]
+        stale = [[name, ino + 1, gen, length], [name, ino, gen + 1, length],
+                 [f"followbus-{host}-{pid}-999999", 1, 1, 10]]
         bad_bytes = [b"FBL", b"FBL\xff\xff\xff\xff", shmlane.frame(b"\xc1\xc1", b""), _forge(real, b"FB1junk"),
                      shmlane.frame(msgpack.packb(real), encode(Frame(width=1, height=1, encoding="bgr8",
                                                                      data=np.zeros((1, 1, 3), np.uint8))) + b"x")]
@@ -298,7 +301,7 @@ def test_a_dead_publishers_segments_are_removed():
     )
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     path = proc.stdout.readline().strip()
-    assert os.path.exists(path) and f"followbus-{proc.pid}-" in path
+    assert os.path.exists(path) and f"followbus-{shmlane.HOST_ID}-{proc.pid}-" in path
     session = open_session(ZenohSettings(listen=[], connect=[]))
     mine = shmlane.LaneWriter(session, "x/z")
     try:
@@ -352,10 +355,12 @@ def test_a_publisher_without_followbus_subscribers_stays_inline(port):
 
 
 def test_segment_names_are_checked_before_anything_is_opened():
-    for name in ("followbus-1-2", "followbus-4294967295-0"):
+    h = shmlane.HOST_ID
+    for name in (f"followbus-{h}-1-2", f"followbus-{h}-4294967295-0"):
         assert shmlane._NAME.fullmatch(name)
-    for name in ("followbus-1-2/..", "../followbus-1-2", "followbus-1", "followbus--1-2", "followbus-1-2\0",
-                 "followbus-1-2 ", "Followbus-1-2", "followbus-12345678901-1"):
+    for name in (f"followbus-{h}-1-2/..", f"../followbus-{h}-1-2", f"followbus-{h}-1", f"followbus-{h}--1-2",
+                 f"followbus-{h}-1-2\0", f"followbus-{h}-1-2 ", f"Followbus-{h}-1-2", f"followbus-{h}-12345678901-1",
+                 "followbus-1-2", f"followbus-{h}x-1-2"):
         assert not shmlane._NAME.fullmatch(name), name
     with pytest.raises(shmlane.DecodeError):
-        shmlane.open_blob_area(["followbus-1-2/../../etc/passwd", 1, 1, 1])
+        shmlane.open_blob_area([f"followbus-{h}-1-2/../../etc/passwd", 1, 1, 1])
