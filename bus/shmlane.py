@@ -46,6 +46,7 @@ import secrets
 import stat
 import struct
 import threading
+import time
 import weakref
 from typing import Any
 
@@ -346,25 +347,58 @@ def split(data: bytes | bytearray | memoryview) -> tuple[Any, memoryview]:
     return desc, view[_PREFIX.size + n:]
 
 
-def _release(fd: int) -> None:
-    with contextlib.suppress(OSError):
-        os.close(fd)  # closing the only descriptor of the open file releases its flock
+class _Mapped:
+    """A segment as this process maps it: one descriptor and one read-only mapping, shared by every message
+    read from it, and the shared lock held while any of those messages' arrays live (``refs``)."""
+
+    def __init__(self, name: str, fd: int, ino: int, size: int):
+        self.name, self.fd, self.ino, self.size = name, fd, ino, size
+        self.mm = mmap.mmap(fd, size, mmap.MAP_SHARED, mmap.PROT_READ)
+        self.array: np.ndarray | None = np.frombuffer(self.mm, np.uint8)  # read-only: PROT_READ
+        self.refs = 0
+        self.used = 0.0
+        self.evicted = False
+
+    def release(self) -> None:
+        with _cache_lock:
+            self.refs -= 1
+            if self.refs == 0:
+                with contextlib.suppress(OSError):
+                    fcntl.flock(self.fd, fcntl.LOCK_UN)
+                if self.evicted:
+                    self._close()
+
+    def _close(self) -> None:
+        """Unmap and close (caller holds _cache_lock, refs is 0: no array of ours is left)."""
+        self.array = None
+        with contextlib.suppress(BufferError, ValueError):
+            self.mm.close()
+        with contextlib.suppress(OSError):
+            os.close(self.fd)
+
+    def evict(self) -> None:
+        self.evicted = True
+        if self.refs == 0:
+            self._close()
 
 
-def open_blob_area(desc: Any) -> memoryview:
-    """A read-only view of the data a descriptor names, the segment locked shared for as long as the view
-    (or anything made from it) lives. DecodeError for a descriptor that is not acceptable, LaneStale when
-    the data was overwritten or removed since."""
-    if not (isinstance(desc, list) and len(desc) == 4):
-        raise DecodeError("lane descriptor: expected [name, inode, generation, length]")
-    name, ino, generation, length = desc
-    m = _NAME.fullmatch(name) if isinstance(name, str) else None
-    if m is None:
-        raise DecodeError("lane descriptor: not a followbus segment name")
-    if m.group(1) != HOST_ID:
-        raise DecodeError("lane descriptor: a segment of another host")
-    if not all(type(v) is int and v >= 0 for v in (ino, generation, length)) or length > MAX_LANE_BYTES:
-        raise DecodeError("lane descriptor: bad inode, generation or length")
+class _Held:
+    """What a message's arrays hang on: numpy makes it their base (``__array_interface__``), so the message
+    holds its segment's lock exactly as long as one of its arrays lives."""
+
+    def __init__(self, mapped: _Mapped, view: np.ndarray):
+        self.__array_interface__ = view.__array_interface__
+        self._view = view
+        weakref.finalize(self, mapped.release)
+
+
+_cache: dict[str, _Mapped] = {}
+_cache_lock = threading.Lock()
+_last_sweep = 0.0
+CACHE_IDLE_S = 2.0  # a segment no message has named this long is unmapped (its publisher may be gone)
+
+
+def _open_segment(name: str, ino: int, size: int) -> _Mapped:
     path = os.path.join(SHM_DIR, name)
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
@@ -378,24 +412,77 @@ def open_blob_area(desc: Any) -> memoryview:
             raise DecodeError(f"lane segment {name}: not a regular file of this user")
         if st.st_ino != ino:
             raise LaneStale(f"lane segment {name} was replaced")
-        size = DATA_OFFSET + length
         if st.st_size < size:
             raise DecodeError(f"lane segment {name}: {st.st_size} bytes, descriptor names {size}")
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise LaneStale(f"lane segment {name} is being rewritten") from None
-        mm = mmap.mmap(fd, size, mmap.MAP_SHARED, mmap.PROT_READ)
+        return _Mapped(name, fd, ino, st.st_size)
     except BaseException:
         os.close(fd)
         raise
-    weakref.finalize(mm, _release, fd)  # the lock lives as long as the mapping does
-    magic, gen, written = _SEG_HEADER.unpack_from(mm)
-    if magic != SEGMENT_MAGIC:
-        raise DecodeError(f"lane segment {name}: bad magic")
-    if gen != generation or written != length:
-        raise LaneStale(f"lane segment {name} was rewritten (generation {gen}, wanted {generation})")
-    return memoryview(mm)[DATA_OFFSET:size]
+
+
+def _sweep(now: float) -> None:
+    """Unmap segments idle for CACHE_IDLE_S (caller holds _cache_lock)."""
+    global _last_sweep
+    _last_sweep = now
+    for name, mapped in list(_cache.items()):
+        if mapped.refs == 0 and now - mapped.used > CACHE_IDLE_S:
+            del _cache[name]
+            mapped.evict()
+
+
+def open_blob_area(desc: Any) -> memoryview:
+    """A read-only view of the data a descriptor names, the segment locked shared for as long as the view
+    (or anything made from it) lives. DecodeError for a descriptor that is not acceptable, LaneStale when
+    the data was overwritten or removed since. A segment stays mapped between messages (no open, mmap and
+    page-table set-up per message) while its name and inode stay the same."""
+    if not (isinstance(desc, list) and len(desc) == 4):
+        raise DecodeError("lane descriptor: expected [name, inode, generation, length]")
+    name, ino, generation, length = desc
+    m = _NAME.fullmatch(name) if isinstance(name, str) else None
+    if m is None:
+        raise DecodeError("lane descriptor: not a followbus segment name")
+    if m.group(1) != HOST_ID:
+        raise DecodeError("lane descriptor: a segment of another host")
+    if not all(type(v) is int and v >= 0 for v in (ino, generation, length)) or length > MAX_LANE_BYTES:
+        raise DecodeError("lane descriptor: bad inode, generation or length")
+    size = DATA_OFFSET + length
+    try:
+        st = os.lstat(os.path.join(SHM_DIR, name))  # the name still leads to the segment we may have mapped
+    except FileNotFoundError:
+        raise LaneStale(f"lane segment {name} is gone") from None
+    except OSError as exc:
+        raise DecodeError(f"lane segment {name}: {os.strerror(exc.errno or errno.EIO)}") from None
+    now = time.monotonic()
+    with _cache_lock:
+        if now - _last_sweep > CACHE_IDLE_S:
+            _sweep(now)
+        mapped = _cache.get(name)
+        if mapped is not None and (mapped.ino != st.st_ino or mapped.ino != ino or mapped.size < size):
+            del _cache[name]
+            mapped.evict()
+            mapped = None
+        if mapped is None:
+            mapped = _cache[name] = _open_segment(name, ino, size)
+        mapped.used = now
+        if mapped.refs == 0:
+            try:
+                fcntl.flock(mapped.fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise LaneStale(f"lane segment {name} is being rewritten") from None
+        mapped.refs += 1
+    held = None
+    try:
+        magic, gen, written = _SEG_HEADER.unpack_from(mapped.mm)
+        if magic != SEGMENT_MAGIC:
+            raise DecodeError(f"lane segment {name}: bad magic")
+        if gen != generation or written != length:
+            raise LaneStale(f"lane segment {name} was rewritten (generation {gen}, wanted {generation})")
+        assert mapped.array is not None
+        held = _Held(mapped, mapped.array[DATA_OFFSET:size])
+    finally:
+        if held is None:
+            mapped.release()
+    return memoryview(np.asarray(held))
 
 
 def materialize(data: bytes | bytearray | memoryview) -> bytes:

@@ -6,7 +6,6 @@ get inline frames; a dead publisher's segments are removed; the kill switch."""
 from __future__ import annotations
 
 import json
-import mmap
 import os
 import signal
 import subprocess
@@ -87,9 +86,9 @@ def _finish(proc: subprocess.Popen) -> None:
 def _lane_view(arr: np.ndarray) -> bool:
     """Whether an array is a view of a lane segment's mapping (not of a private copy)."""
     base = arr
-    while isinstance(base, np.ndarray):
-        base = base.base
-    return isinstance(base, memoryview) and isinstance(base.obj, mmap.mmap)
+    while isinstance(base, (np.ndarray, memoryview)):
+        base = base.base if isinstance(base, np.ndarray) else base.obj
+    return isinstance(base, shmlane._Held)
 
 
 def test_kept_frames_stay_intact_while_the_publisher_sends_on(port):
@@ -364,3 +363,34 @@ def test_segment_names_are_checked_before_anything_is_opened():
         assert not shmlane._NAME.fullmatch(name), name
     with pytest.raises(shmlane.DecodeError):
         shmlane.open_blob_area([f"followbus-{h}-1-2/../../etc/passwd", 1, 1, 1])
+
+
+def test_a_held_message_locks_its_segment_and_a_grown_segment_is_mapped_again():
+    """In one process, writer and reader (as two processes would, through their own descriptors): while a
+    message's array lives the writer cannot take its segment; once it is gone the segment is rewritten, and
+    a segment grown for a larger message is mapped anew by the reader."""
+    session = open_session(ZenohSettings(listen=[], connect=[]))
+    writer = shmlane.LaneWriter(session, "x/held")
+    try:
+        small, large = 300_000, 3_000_000
+        descs = [msgpack.unpackb(writer.write([np.full(small, i, np.uint8)], small))
+                 for i in range(shmlane.MIN_SEGMENTS)]
+        held = np.frombuffer(shmlane.open_blob_area(descs[0]), np.uint8)
+        assert (held == 0).all() and not held.flags.writeable
+        # The ring comes back to segment 0: held, so skipped; the next one takes the message.
+        d = msgpack.unpackb(writer.write([np.full(small, 7, np.uint8)], small))
+        assert d[0] == descs[1][0] and len(writer._segments) == shmlane.MIN_SEGMENTS
+        with pytest.raises(shmlane.LaneStale):
+            shmlane.open_blob_area(descs[1])  # segment 1 was rewritten: its old generation is gone
+        assert (held == 0).all()
+        del held
+        for i in range(shmlane.MIN_SEGMENTS + 1):  # round the ring: segment 0 is free again, and grows
+            d = msgpack.unpackb(writer.write([np.full(large, 100 + i, np.uint8)], large))
+            area = np.frombuffer(shmlane.open_blob_area(d), np.uint8)
+            assert area.size == large and (area == 100 + i).all()
+            del area
+        with pytest.raises(shmlane.LaneStale):
+            shmlane.open_blob_area(descs[0])  # rewritten since
+    finally:
+        writer.close()
+        session.close()
