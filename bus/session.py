@@ -46,8 +46,8 @@ class ZenohSettings:
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> ZenohSettings:
         data = dict(data or {})
-        unknown = set(data) - {"mode", "listen", "connect", "multicast_scouting", "shm", "shm_lane", "connect_timeout_ms",
-                               "config"}
+        unknown = set(data) - {"mode", "listen", "connect", "multicast_scouting", "shm", "shm_lane",
+                               "connect_timeout_ms", "config"}
         if unknown:
             raise ValueError(f"unknown zenoh key(s): {', '.join(sorted(unknown))}")
         settings = cls(**data)

@@ -394,3 +394,31 @@ def test_a_held_message_locks_its_segment_and_a_grown_segment_is_mapped_again():
     finally:
         writer.close()
         session.close()
+
+
+def test_a_subscriber_in_the_publishers_own_session_gets_lane_frames_without_waiting(port):
+    """Zenoh runs a same-session subscriber's callback inside put(): the publisher must not send the descriptor
+    before its copy (the reader would wait for a lock the publishing thread holds) but after it."""
+    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    got: list[tuple[int, bool, bool]] = []
+    sub = Subscriber(session, "lane/self", lambda m: got.append(
+        (m.header.frame_seq, _lane_view(m.data), bool((m.data == m.header.frame_seq % 256).all()))), schema=Frame)
+    pub = Publisher(session, "lane/self", "self", lane=True)
+    img = np.empty((H, W, 3), np.uint8)
+    try:
+        for i in range(30):
+            img.fill(i)
+            msg = Frame(width=W, height=H, encoding="bgr8", data=img)
+            msg.header.frame_seq = i
+            t0 = time.perf_counter()
+            pub.put(msg)
+            assert time.perf_counter() - t0 < shmlane.LOCK_WAIT_S / 2 or i == 0
+            time.sleep(0.02)
+        assert wait_until(lambda: len(got) == 30, 5)
+        assert all(ok for _, _, ok in got) and sub.stats.drops == 0
+        assert any(lane for _, lane, _ in got), "the lane is used once the publisher has seen the token"
+    finally:
+        got.clear()
+        pub.undeclare()
+        sub.undeclare()
+        session.close()
