@@ -187,11 +187,10 @@ class Publisher:
         body: Any = None
         if self._lane_wanted and size - len(head) >= shmlane.LANE_THRESHOLD_BYTES:
             lane = self._lane or self._open_lane()
-            # The descriptor goes out first, the copy overlaps its trip (shmlane.LaneWriter.write).
-            if (lane is not None and lane.ready
-                    and lane.write(blobs, size - len(head), lambda desc: self._pub.put(shmlane.frame(desc, head)))):
-                self.stats.record(msg.header.stamp_ns, size)
-                return True
+            if lane is not None and lane.ready:
+                desc = lane.write(blobs, size - len(head))
+                if desc is not None:
+                    body = shmlane.frame(desc, head)
         if body is None and self.shm is not None and size >= SHM_THRESHOLD_BYTES:
             # Header and arrays written straight into the shared-memory buffer: no joined frame in between.
             body = self.shm.buffer_with_parts(head, blobs)

@@ -48,7 +48,6 @@ import struct
 import threading
 import time
 import weakref
-from collections.abc import Callable
 from typing import Any
 
 import msgpack
@@ -68,7 +67,7 @@ LANE_THRESHOLD_BYTES = 256 * 1024  # arrays (blob area) from this size take the 
 # Per publisher. The ring turns over at least MIN_SEGMENTS: a descriptor stays readable for that many of the
 # publisher's messages even if no reader has locked it yet (a receiver running late gets it, not a drop).
 # Segments held by readers are skipped; past MAX_SEGMENTS, all held, the message goes inline.
-MIN_SEGMENTS = int(os.environ.get("FBL_MIN", "4"))
+MIN_SEGMENTS = 4
 MAX_SEGMENTS = 8
 MAX_LANE_BYTES = 48 * 1024 * 1024  # = pubsub.MAX_PAYLOAD_BYTES: a descriptor naming more is refused
 MAX_DESCRIPTOR_BYTES = 256
@@ -105,28 +104,27 @@ def _compute_host_id() -> str | None:
 HOST_ID = _compute_host_id()
 
 
-def token_key(key_expr: str, zid: str) -> str:
-    """A fresh liveliness token key announcing a followbus subscription of ``key_expr`` on this host, by the
-    session ``zid``."""
-    return f"{TOKEN_PREFIX}/{HOST_ID or 'nolane'}/{zid}-{secrets.token_hex(8)}/{key_expr.encode().hex()}"
+def token_key(key_expr: str) -> str:
+    """A fresh liveliness token key announcing a followbus subscription of ``key_expr`` on this host."""
+    return f"{TOKEN_PREFIX}/{HOST_ID or 'nolane'}/{secrets.token_hex(8)}/{key_expr.encode().hex()}"
 
 
 def declare_token(session: Any, key_expr: str) -> Any:
     """Declare this subscription's lane token (before its subscriber); None if Zenoh refused it."""
     try:
-        return session.liveliness().declare_token(token_key(key_expr, str(session.info.zid())))
+        return session.liveliness().declare_token(token_key(key_expr))
     except Exception as exc:  # a closed session: the subscriber fails on its own right after
         log.debug("lane token for %s not declared: %r", key_expr, exc)
         return None
 
 
-def _parse_token(key: str) -> tuple[str, str, str] | None:
-    """(host id, session zid, subscribed key expression) of a token key; None if it is not one."""
+def _parse_token(key: str) -> tuple[str, str] | None:
+    """(host id, subscribed key expression) of a token key; None if it is not one."""
     parts = key.split("/")
     if len(parts) != 5 or "/".join(parts[:2]) != TOKEN_PREFIX:
         return None
     try:
-        return parts[2], parts[3].rsplit("-", 1)[0], bytes.fromhex(parts[4]).decode()
+        return parts[2], bytes.fromhex(parts[4]).decode()
     except ValueError:
         return None
 
@@ -238,11 +236,8 @@ class LaneWriter:
         self._segments: list[_Segment] = []
         self._next = 0
         self._lock = threading.Lock()
-        self._zid = str(session.info.zid())
-        self._tokens: dict[str, tuple[bool, bool]] = {}  # token key of a subscriber of our key -> (on this
-        # host, in this very session)
+        self._tokens: dict[str, bool] = {}  # token key -> whether it is a subscriber of our key on this host
         self.ready = False  # every known subscriber of the key is a followbus one on this host
-        self._local = False  # one of them is in our session: Zenoh delivers to it inside put()
         self.fallbacks = 0  # messages sent inline because every segment was held by readers
         self._live = session.liveliness().declare_subscriber(
             f"{TOKEN_PREFIX}/**", zenoh.handlers.Callback(self._on_token, indirect=False), history=True)
@@ -254,7 +249,7 @@ class LaneWriter:
         parsed = _parse_token(key)
         if parsed is None:
             return
-        host, zid, expr = parsed
+        host, expr = parsed
         try:
             relevant = self._key_expr.intersects(expr)
         except Exception:
@@ -266,20 +261,12 @@ class LaneWriter:
             if sample.kind == zenoh.SampleKind.DELETE:
                 self._tokens.pop(key, None)
             else:
-                self._tokens[key] = (host == HOST_ID, zid == self._zid)
-            self.ready = bool(self._tokens) and all(here for here, _ in self._tokens.values())
-            self._local = any(mine for _, mine in self._tokens.values())
+                self._tokens[key] = host == HOST_ID
+            self.ready = bool(self._tokens) and all(self._tokens.values())
 
-    def write(self, blobs: list[np.ndarray], nbytes: int,
-              send: Callable[[bytes], None] | None = None) -> bytes | None:
+    def write(self, blobs: list[np.ndarray], nbytes: int) -> bytes | None:
         """Write the arrays one after the other into a free segment; the descriptor (msgpack), or None when
-        every segment is held by readers and the ring is at its bound (nothing sent).
-
-        With ``send``, the descriptor is handed to it while the segment is still locked for writing, before
-        the copy: the copy then overlaps the descriptor's trip through Zenoh, and a reader that gets it
-        early waits for the lock (:func:`open_blob_area`). Not when a subscriber shares our session (Zenoh
-        runs its callback inside ``send``, which would wait for a lock this thread holds): copy, then send.
-        """
+        every segment is held by readers and the ring is at its bound."""
         with self._lock:
             seg = self._acquire()
             if seg is None:
@@ -287,11 +274,6 @@ class LaneWriter:
                 return None
             try:
                 seg.reserve(nbytes)
-                seg.generation += 1
-                desc = msgpack.packb([seg.name, seg.ino, seg.generation, nbytes])
-                early = send is not None and not self._local
-                if early:
-                    send(desc)  # type: ignore[misc]
                 view = seg.view
                 assert view is not None
                 end = DATA_OFFSET
@@ -299,12 +281,11 @@ class LaneWriter:
                     n = blob.nbytes
                     view[end:end + n] = blob.reshape(-1).view(np.uint8)
                     end += n
+                seg.generation += 1
                 _SEG_HEADER.pack_into(seg.mm, 0, SEGMENT_MAGIC, seg.generation, nbytes)  # type: ignore[arg-type]
+                return msgpack.packb([seg.name, seg.ino, seg.generation, nbytes])
             finally:
                 fcntl.flock(seg.fd, fcntl.LOCK_UN)
-        if send is not None and not early:
-            send(desc)
-        return desc
 
     def _acquire(self) -> _Segment | None:
         """The next segment no reader holds, locked exclusively (caller holds self._lock)."""
@@ -414,11 +395,7 @@ class _Held:
 _cache: dict[str, _Mapped] = {}
 _cache_lock = threading.Lock()
 _last_sweep = 0.0
-CACHE_IDLE_S = 2.0
-# A reader may get a descriptor while the writer still copies (LaneWriter.write): it polls the lock this
-# often, this long at most (a 2.76 MB copy takes 0.2-0.3 ms; past the bound the message counts as stale).
-LOCK_POLL_S = 20e-6
-LOCK_WAIT_S = 0.05  # a segment no message has named this long is unmapped (its publisher may be gone)
+CACHE_IDLE_S = 2.0  # a segment no message has named this long is unmapped (its publisher may be gone)
 
 
 def _open_segment(name: str, ino: int, size: int) -> _Mapped:
@@ -476,34 +453,23 @@ def open_blob_area(desc: Any) -> memoryview:
     except OSError as exc:
         raise DecodeError(f"lane segment {name}: {os.strerror(exc.errno or errno.EIO)}") from None
     now = time.monotonic()
-    deadline = now + LOCK_WAIT_S
-    while True:
-        with _cache_lock:
-            if now - _last_sweep > CACHE_IDLE_S:
-                _sweep(now)
-            mapped = _cache.get(name)
-            if mapped is not None and (mapped.ino != st.st_ino or mapped.ino != ino or mapped.size < size):
-                del _cache[name]
-                mapped.evict()
-                mapped = None
-            if mapped is None:
-                mapped = _cache[name] = _open_segment(name, ino, size)
-            mapped.used = now
-            locked = mapped.refs > 0  # another message of ours holds it: no writer can
-            if not locked:
-                try:
-                    fcntl.flock(mapped.fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-                    locked = True
-                except BlockingIOError:
-                    pass
-            if locked:
-                mapped.refs += 1
-                break
-        # The writer is still copying (it sends the descriptor first), or already rewriting: wait a little.
-        now = time.monotonic()
-        if now > deadline:
-            raise LaneStale(f"lane segment {name} stayed locked for writing")
-        time.sleep(LOCK_POLL_S)
+    with _cache_lock:
+        if now - _last_sweep > CACHE_IDLE_S:
+            _sweep(now)
+        mapped = _cache.get(name)
+        if mapped is not None and (mapped.ino != st.st_ino or mapped.ino != ino or mapped.size < size):
+            del _cache[name]
+            mapped.evict()
+            mapped = None
+        if mapped is None:
+            mapped = _cache[name] = _open_segment(name, ino, size)
+        mapped.used = now
+        if mapped.refs == 0:
+            try:
+                fcntl.flock(mapped.fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise LaneStale(f"lane segment {name} is being rewritten") from None
+        mapped.refs += 1
     held = None
     try:
         magic, gen, written = _SEG_HEADER.unpack_from(mapped.mm)
