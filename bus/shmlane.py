@@ -358,6 +358,20 @@ class _Mapped:
         self.refs = 0
         self.used = 0.0
         self.evicted = False
+        self._watched: dict[int, weakref.ref] = {}  # the weak references whose callbacks release
+
+    def hold(self, start: int, end: int) -> memoryview:
+        """A read-only view of bytes start..end for one message (the caller counted it in ``refs``): every
+        array decoded from it hangs on this view, whose end releases the message's share of the lock."""
+        assert self.array is not None
+        view = self.array[start:end]
+        ref = weakref.ref(view, self._gone)
+        self._watched[id(ref)] = ref
+        return memoryview(view)
+
+    def _gone(self, ref: weakref.ref) -> None:
+        self._watched.pop(id(ref), None)
+        self.release()
 
     def release(self) -> None:
         with _cache_lock:
@@ -382,18 +396,10 @@ class _Mapped:
             self._close()
 
 
-class _Held:
-    """What a message's arrays hang on: numpy makes it their base (``__array_interface__``), so the message
-    holds its segment's lock exactly as long as one of its arrays lives."""
-
-    def __init__(self, mapped: _Mapped, view: np.ndarray):
-        self.__array_interface__ = view.__array_interface__
-        self._view = view
-        weakref.finalize(self, mapped.release)
-
-
 _cache: dict[str, _Mapped] = {}
-_cache_lock = threading.Lock()
+# Re-entrant: a message's arrays may be collected (releasing their segment) by a garbage collection that
+# starts while this thread holds the lock.
+_cache_lock = threading.RLock()
 _last_sweep = 0.0
 CACHE_IDLE_S = 2.0  # a segment no message has named this long is unmapped (its publisher may be gone)
 
@@ -433,8 +439,11 @@ def _sweep(now: float) -> None:
 def open_blob_area(desc: Any) -> memoryview:
     """A read-only view of the data a descriptor names, the segment locked shared for as long as the view
     (or anything made from it) lives. DecodeError for a descriptor that is not acceptable, LaneStale when
-    the data was overwritten or removed since. A segment stays mapped between messages (no open, mmap and
-    page-table set-up per message) while its name and inode stay the same."""
+    the data was overwritten or removed since.
+
+    A segment stays mapped between messages (no open, mmap and page-table set-up per message) while
+    descriptors name it with the same inode and size; a cached mapping whose generation does not match is
+    dropped and the name opened afresh once (its file may have been replaced under the same name)."""
     if not (isinstance(desc, list) and len(desc) == 4):
         raise DecodeError("lane descriptor: expected [name, inode, generation, length]")
     name, ino, generation, length = desc
@@ -446,43 +455,38 @@ def open_blob_area(desc: Any) -> memoryview:
     if not all(type(v) is int and v >= 0 for v in (ino, generation, length)) or length > MAX_LANE_BYTES:
         raise DecodeError("lane descriptor: bad inode, generation or length")
     size = DATA_OFFSET + length
-    try:
-        st = os.lstat(os.path.join(SHM_DIR, name))  # the name still leads to the segment we may have mapped
-    except FileNotFoundError:
-        raise LaneStale(f"lane segment {name} is gone") from None
-    except OSError as exc:
-        raise DecodeError(f"lane segment {name}: {os.strerror(exc.errno or errno.EIO)}") from None
     now = time.monotonic()
-    with _cache_lock:
-        if now - _last_sweep > CACHE_IDLE_S:
-            _sweep(now)
-        mapped = _cache.get(name)
-        if mapped is not None and (mapped.ino != st.st_ino or mapped.ino != ino or mapped.size < size):
-            del _cache[name]
-            mapped.evict()
-            mapped = None
-        if mapped is None:
-            mapped = _cache[name] = _open_segment(name, ino, size)
-        mapped.used = now
-        if mapped.refs == 0:
-            try:
-                fcntl.flock(mapped.fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except BlockingIOError:
-                raise LaneStale(f"lane segment {name} is being rewritten") from None
-        mapped.refs += 1
-    held = None
-    try:
+    while True:
+        with _cache_lock:
+            if now - _last_sweep > CACHE_IDLE_S:
+                _sweep(now)
+            mapped = _cache.get(name)
+            if mapped is not None and (mapped.ino != ino or mapped.size < size):
+                del _cache[name]
+                mapped.evict()
+                mapped = None
+            fresh = mapped is None
+            if mapped is None:
+                mapped = _cache[name] = _open_segment(name, ino, size)
+            mapped.used = now
+            if mapped.refs == 0:  # else another message of ours holds it: no writer can have it
+                try:
+                    fcntl.flock(mapped.fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    raise LaneStale(f"lane segment {name} is being rewritten") from None
+            mapped.refs += 1
         magic, gen, written = _SEG_HEADER.unpack_from(mapped.mm)
+        if magic == SEGMENT_MAGIC and gen == generation and written == length:
+            return mapped.hold(DATA_OFFSET, size)
+        mapped.release()
         if magic != SEGMENT_MAGIC:
             raise DecodeError(f"lane segment {name}: bad magic")
-        if gen != generation or written != length:
+        if fresh:
             raise LaneStale(f"lane segment {name} was rewritten (generation {gen}, wanted {generation})")
-        assert mapped.array is not None
-        held = _Held(mapped, mapped.array[DATA_OFFSET:size])
-    finally:
-        if held is None:
-            mapped.release()
-    return memoryview(np.asarray(held))
+        with _cache_lock:
+            if _cache.get(name) is mapped:
+                del _cache[name]
+                mapped.evict()
 
 
 def materialize(data: bytes | bytearray | memoryview) -> bytes:
