@@ -366,32 +366,54 @@ def test_segment_names_are_checked_before_anything_is_opened():
         shmlane.open_blob_area([f"followbus-{h}-1-2/../../etc/passwd", 1, 1, 1])
 
 
-def test_a_held_message_locks_its_segment_and_a_grown_segment_is_mapped_again():
+def test_a_held_message_locks_its_segment_and_a_grown_segment_is_mapped_again(monkeypatch):
     """In one process, writer and reader (as two processes would, through their own descriptors): while a
     message's array lives the writer cannot take its segment; once it is gone the segment is rewritten, and
     a segment grown for a larger message is mapped anew by the reader."""
+    monkeypatch.setattr(shmlane, "REUSE_AFTER_S", 0.0)  # rewrite at once whatever no reader holds
     session = open_session(ZenohSettings(listen=[], connect=[]))
     writer = shmlane.LaneWriter(session, "x/held")
+    small, large = 300_000, 3_000_000
+
+    def write(value: int, n: int) -> list:
+        return msgpack.unpackb(writer.write([np.full(n, value, np.uint8)], n))
+
     try:
-        small, large = 300_000, 3_000_000
-        descs = [msgpack.unpackb(writer.write([np.full(small, i, np.uint8)], small))
-                 for i in range(shmlane.MIN_SEGMENTS)]
-        held = np.frombuffer(shmlane.open_blob_area(descs[0]), np.uint8)
+        first = write(0, small)
+        held = np.frombuffer(shmlane.open_blob_area(first), np.uint8)
         assert (held == 0).all() and not held.flags.writeable
-        # The ring comes back to segment 0: held, so skipped; the next one takes the message.
-        d = msgpack.unpackb(writer.write([np.full(small, 7, np.uint8)], small))
-        assert d[0] == descs[1][0] and len(writer._segments) == shmlane.MIN_SEGMENTS
+        second = write(1, small)  # the first segment is held: a second one
+        assert second[0] != first[0] and len(writer._segments) == 2
+        third = write(2, small)  # the second segment is free and the most recently written: rewritten
+        assert third[0] == second[0]
         with pytest.raises(shmlane.LaneStale):
-            shmlane.open_blob_area(descs[1])  # segment 1 was rewritten: its old generation is gone
+            shmlane.open_blob_area(second)
         assert (held == 0).all()
         del held
-        for i in range(shmlane.MIN_SEGMENTS + 1):  # round the ring: segment 0 is free again, and grows
-            d = msgpack.unpackb(writer.write([np.full(large, 100 + i, np.uint8)], large))
-            area = np.frombuffer(shmlane.open_blob_area(d), np.uint8)
-            assert area.size == large and (area == 100 + i).all()
-            del area
-        with pytest.raises(shmlane.LaneStale):
-            shmlane.open_blob_area(descs[0])  # rewritten since
+        fourth = write(3, large)  # the hottest free segment again, grown: the reader maps it anew
+        assert fourth[0] == second[0]
+        area = np.frombuffer(shmlane.open_blob_area(fourth), np.uint8)
+        assert area.size == large and (area == 3).all()
+        del area
+        assert shmlane.open_blob_area(first) is not None  # never rewritten, readable again once free
+    finally:
+        writer.close()
+        session.close()
+
+
+def test_a_descriptor_stays_readable_for_the_reuse_interval():
+    """Messages closer together than REUSE_AFTER_S go to different segments: a receiver running that late
+    still reads its message; after the interval the writer takes the most recently written segment."""
+    session = open_session(ZenohSettings(listen=[], connect=[]))
+    writer = shmlane.LaneWriter(session, "x/late")
+    try:
+        descs = [msgpack.unpackb(writer.write([np.full(300_000, i, np.uint8)], 300_000)) for i in range(3)]
+        assert len({d[0] for d in descs}) == 3
+        for i, d in enumerate(descs):
+            assert (np.frombuffer(shmlane.open_blob_area(d), np.uint8) == i).all()
+        time.sleep(shmlane.REUSE_AFTER_S * 1.5)
+        again = msgpack.unpackb(writer.write([np.full(300_000, 9, np.uint8)], 300_000))
+        assert again[0] == descs[-1][0] and len(writer._segments) == 3
     finally:
         writer.close()
         session.close()
