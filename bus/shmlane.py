@@ -4,28 +4,32 @@ zenoh-python 1.10 gives a received ``ZBytes``/``ZShm`` no buffer protocol, so a 
 payload out of Zenoh's shared memory. For large arrays between processes on the same machine this module
 carries the array bytes outside Zenoh instead, where the receiver can map them without a copy:
 
-* Writer (:class:`LaneWriter`, one per :class:`~.pubsub.Publisher`): a ring of segment files
-  ``/dev/shm/followbus-<pid>-<n>`` (tmpfs), each mmapped by the publisher for its lifetime. A segment is
-  rewritten only under ``flock(LOCK_EX | LOCK_NB)``; while a reader holds it, the writer takes the next one,
-  creates a new one (up to :data:`MAX_SEGMENTS`), and past that answers None (the publisher then sends the
-  message inline, as without a lane). Every write bumps the segment's generation.
+* Writer (:class:`LaneWriter`, one per :class:`~.pubsub.Publisher`): segment files
+  ``/dev/shm/followbus-<host id>-<pid>-<n>`` (tmpfs, mode 0600), each mmapped by the publisher for its
+  lifetime. A segment is rewritten only under ``flock(LOCK_EX | LOCK_NB)`` and no sooner than
+  :data:`REUSE_AFTER_S` after its last write; the writer takes the most recently written free one (its pages
+  are still cached), else creates one (up to :data:`MAX_SEGMENTS`), and with all held by readers answers
+  None (the publisher then sends the message inline, as without a lane). Every write bumps the segment's
+  generation. Segments only grow, and are unlinked when the publisher undeclares or the process exits;
+  those of a killed process are removed by the next lane publisher of this host (:func:`clean_stale_segments`).
 * Wire form (:data:`LANE_MAGIC`): ``b"FBL" | u32 N | msgpack [segment name, inode, generation, length] (N
   bytes) | the message's frame head`` (bus/codec.py: magic, head length, msgpack map); the head's
   out-of-band array references point into the segment's data instead of a blob area after the head.
-* Reader (:func:`open_blob_area`): opens the named segment (only names of the followbus pattern, directly
-  under /dev/shm, regular files of this user, of the inode named), takes ``flock(LOCK_SH | LOCK_NB)``, maps
-  it read-only and checks magic, generation and length. Decoded arrays are read-only numpy views of that
-  mapping; the lock is held (its descriptor stays open) until the last of them is gone, so a received array
-  stays valid and unchanged after the handler returns, as for an inline message. A segment rewritten since
-  the descriptor was sent (a reader too slow) raises :class:`LaneStale`; anything else wrong, DecodeError.
+* Reader (:func:`open_blob_area`): the descriptor is untrusted. Only names of the followbus pattern with this
+  host's id, opened directly under /dev/shm without following links, regular files of this user, of the
+  inode named, large enough; then ``flock(LOCK_SH | LOCK_NB)``, a read-only mapping (kept between messages),
+  magic, generation and length. Decoded arrays are read-only numpy views of that mapping; the shared lock is
+  held until the last array of the message is gone, so a received array stays valid and unchanged after the
+  handler returns, as for an inline message. A segment rewritten or removed since the descriptor was sent
+  raises :class:`LaneStale` (a drop); anything else wrong, DecodeError (a decode error).
 * Who gets descriptors: every followbus subscription declares a liveliness token
-  ``@followbus/lane/<host id>/<unique id>/<key expression, hex>`` (:func:`declare_token`), before its
-  subscriber. A lane publisher follows those tokens (:class:`LaneWriter` ``ready``) and writes to the lane
-  only while at least one token matches its key and every matching token carries its own host id (boot id
-  plus the identity of this /dev/shm); anything else (a subscriber on another machine, in another /dev/shm
-  namespace) makes it publish inline. A plain Zenoh subscriber that declares no token cannot be seen: it
-  gets descriptors while a followbus subscriber on the same host shares the key (README, bus section);
-  ``zenoh: shm_lane: false`` turns the lane off.
+  ``@followbus/lane/<host id>/<unique id>/<key expression, hex>`` (:func:`declare_token`) before its
+  subscriber. A lane publisher follows those tokens (``LaneWriter.ready``) and writes to the lane only while
+  at least one token matches its key and every matching token carries its own host id (boot id, /dev/shm's
+  device and inode, pid namespace, user); anything else (a subscriber on another machine, in a container
+  with its own /dev/shm or pids, of another user) makes it publish inline, to everyone. A plain Zenoh
+  subscriber that declares no token cannot be seen: it gets descriptors while a followbus subscriber on the
+  same host shares the key (README, Messages); ``zenoh: shm_lane: false`` turns the lane off.
 
 bus/ knows nothing of tracking: this module moves bytes.
 """

@@ -445,3 +445,33 @@ def test_a_subscriber_in_the_publishers_own_session_gets_lane_frames_without_wai
         pub.undeclare()
         sub.undeclare()
         session.close()
+
+
+def test_the_read_only_monitor_identity_can_announce_its_subscriptions(tmp_path, port):
+    """On the robot graph (router, access control) the monitor may declare no liveliness token of the graph's,
+    but its lane tokens pass: a laptop must be seen, or a robot publisher would send it descriptors. A forged
+    one can only make publishers send inline."""
+    from .test_monitor import DIAG_NODES, Launch, client, robot_graph
+
+    launch = Launch(robot_graph(tmp_path, port, DIAG_NODES))
+    sessions = []
+    try:
+        launch.wait_ready()
+        robot = open_session(client(port, "robot", "robot-secret"))
+        sessions.append(robot)
+        monitor = open_session(client(port, "monitor", "monitor-secret"))
+        sessions.append(monitor)
+        token = shmlane.declare_token(monitor, "t/**")
+        health = monitor.liveliness().declare_token("t/@health/ghost")  # refused, as before
+
+        def seen(prefix: str) -> set[str]:
+            return {str(r.ok.key_expr) for r in robot.liveliness().get(prefix, timeout=1.0) if r.ok is not None}
+
+        assert wait_until(lambda: any(k.endswith(b"t/**".hex()) for k in seen(f"{shmlane.TOKEN_PREFIX}/**")), 10)
+        assert "t/@health/ghost" not in seen("t/@health/*")
+        token.undeclare()
+        health.undeclare()
+    finally:
+        for session in sessions:
+            session.close()
+        launch.stop()
