@@ -176,7 +176,7 @@ def _zenoh_schema() -> dict[str, Any]:
         "connect": "endpoints to connect to",
         "multicast_scouting": "find peers by UDP multicast (off: only the endpoints above)",
         "shm": "shared memory for large payloads between processes on this machine",
-        "shm_lane": "large arrays (256 KiB and more) between followbus processes on this machine through "
+        "shm_lane": "large arrays (64 KiB and more) between followbus processes on this machine through "
                     "followbus's own shared memory, received without a copy; used only while every "
                     "subscriber of the key is a followbus one on this machine (false: always inline)",
         "connect_timeout_ms": "a client keeps retrying its endpoints this long before failing",

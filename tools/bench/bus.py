@@ -12,7 +12,7 @@ Fairness rules, the same for every path:
   the first 8 payload bytes; bus/: ``header.pub_ns``, set by ``Publisher.put`` before encoding), the
   receiver reads ``time.time_ns()`` once it holds a numpy array of the payload that stays valid after its
   handler returns (raw zenoh: a private copy, since zenoh-python 1.10 gives Python no view of a received
-  buffer; bus/: what a node gets, a private copy of an inline message or, from 256 KiB of arrays between
+  buffer; bus/: what a node gets, a private copy of an inline message or, from 64 KiB of arrays between
   processes of this host, a read-only view of the publisher's lane segment, locked while referenced
   (bus/shmlane.py); dora: the zero-copy Arrow view, which dora keeps valid as long as it is referenced);
 * CPU per message: ``time.process_time()`` of the sender over its counted sends plus that of the receiver
@@ -20,7 +20,7 @@ Fairness rules, the same for every path:
   receiver's window (``/proc/<pid>/task/*/schedstat``; ``dora run`` has no coordinator).
 
 bus/ publishes typed :class:`Frame` messages through :class:`Publisher` as a node does (zenoh shared memory
-from 64 KB, the same-host lane from 256 KiB when the zenoh settings have it, the default) and receives them
+from 64 KB, the same-host lane from 64 KiB of arrays when the zenoh settings have it, the default) and receives them
 through :class:`Subscriber` (decode, validation, decode-error accounting); raw zenoh puts the
 bytes (through a shared-memory buffer from 64 KB) and takes them out again. dora runs a dataflow the bench
 writes into a temporary directory (``dora run``: daemon in one process, listening on 127.0.0.1 only), nodes
