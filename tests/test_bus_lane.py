@@ -475,3 +475,36 @@ def test_the_read_only_monitor_identity_can_announce_its_subscriptions(tmp_path,
         for session in sessions:
             session.close()
         launch.stop()
+
+
+def test_a_tool_reading_bytes_gets_exactly_the_frame_encode_writes(port):
+    """A lane message turned back into bytes by a tool (record, echo, bridges: bus.pubsub.frame_bytes) is the
+    very frame encode() writes for that message: recordings and replays do not see the lane."""
+    from followbus.bus.pubsub import declare_subscriber, frame_bytes
+
+    a = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    b = open_session(ZenohSettings(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    got: dict[int, tuple[bytes, bytes]] = {}
+    sub = declare_subscriber(b, "lane/tool", lambda s: got.__setitem__(
+        len(got), (payload_bytes(s)[:3], frame_bytes(s))))
+    pub = Publisher(a, "lane/tool", "tool-test", lane=True)
+    rng = np.random.default_rng(5)
+    sent: list[bytes] = []
+    try:
+        for i in range(60):
+            msg = Frame(width=W, height=H, encoding="bgr8", data=rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
+            msg.header.frame_seq = i
+            pub.put(msg)
+            sent.append(encode(msg))  # the header put() filled in
+            time.sleep(0.02)
+        assert wait_until(lambda: len(got) >= 40, 10)
+        by_seq = {decode(data).header.seq: (magic, data) for magic, data in got.values()}
+        lane = [seq for seq, (magic, _) in by_seq.items() if magic == shmlane.LANE_MAGIC]
+        assert len(lane) >= 20, "the lane is used once the publisher has seen the tool's token"
+        for seq, (_magic, data) in by_seq.items():
+            assert data == sent[seq], f"message {seq} differs from encode()"
+    finally:
+        pub.undeclare()
+        sub.undeclare()
+        b.close()
+        a.close()
