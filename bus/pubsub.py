@@ -311,6 +311,7 @@ class Subscriber:
                 size = len(head) + len(area)
                 del area
             else:
+                shmlane.sweep_idle()
                 msg = validate(decode(data, self.schema))
                 size = len(data)
         except shmlane.LaneStale as exc:

@@ -445,6 +445,15 @@ def _sweep(now: float) -> None:
             mapped.evict()
 
 
+def sweep_idle() -> None:
+    """Unmap the segments no message has named for CACHE_IDLE_S (called on the receive path of every message,
+    so the mappings of a publisher that went away do not outlive it for long): a time check when nothing is due."""
+    now = time.monotonic()
+    if now - _last_sweep > CACHE_IDLE_S and _cache:
+        with _cache_lock:
+            _sweep(now)
+
+
 def open_blob_area(desc: Any) -> memoryview:
     """A read-only view of the data a descriptor names, the segment locked shared for as long as the view
     (or anything made from it) lives. DecodeError for a descriptor that is not acceptable, LaneStale when

@@ -508,3 +508,28 @@ def test_a_tool_reading_bytes_gets_exactly_the_frame_encode_writes(port):
         sub.undeclare()
         b.close()
         a.close()
+
+
+def test_an_idle_segment_is_unmapped(monkeypatch):
+    """A reader keeps a segment mapped between messages, not for ever: once no message has named it for
+    CACHE_IDLE_S it is unmapped (its publisher may be gone), unless a message of it is still held."""
+    monkeypatch.setattr(shmlane, "CACHE_IDLE_S", 0.05)
+    session = open_session(ZenohSettings(listen=[], connect=[]))
+    writer = shmlane.LaneWriter(session, "x/idle")
+    try:
+        first = msgpack.unpackb(writer.write([np.full(100_000, 1, np.uint8)], 100_000))
+        second = msgpack.unpackb(writer.write([np.full(100_000, 2, np.uint8)], 100_000))
+        kept = np.frombuffer(shmlane.open_blob_area(first), np.uint8)
+        assert (np.frombuffer(shmlane.open_blob_area(second), np.uint8) == 2).all()
+        assert {first[0], second[0]} <= set(shmlane._cache)
+        time.sleep(0.1)
+        shmlane.sweep_idle()
+        assert first[0] in shmlane._cache and second[0] not in shmlane._cache  # the held one stays
+        assert (kept == 1).all()
+        del kept
+        time.sleep(0.1)
+        shmlane.sweep_idle()
+        assert first[0] not in shmlane._cache
+    finally:
+        writer.close()
+        session.close()
