@@ -188,7 +188,8 @@ def _wire_cases():
         Measurement(header=header, state="TRACKING", accepted=np.bool_(True), box=np.arange(4.0),
                     candidates=rng.random((3, 5)), candidate_sources=("detection", "motion", "detection"),
                     m_fuse=np.float32(0.25), s_color=1, init_box=np.arange(8.0)[::2]),  # int for a float, strided
-        Track(header=header, state="OCCLUDED", box=np.array([[1.0, 2.0, 3.0, 4.0]])[0], velocity=np.zeros(2, np.float32)),
+        Track(header=header, state="OCCLUDED", box=np.array([[1.0, 2.0, 3.0, 4.0]])[0],
+              velocity=np.zeros(2, np.float32)),
         MotorCommand(header=header, vx_mps=float("nan"), range_m=None, wheel_radps=np.zeros((4,))),  # validate's job
         NodeStatus(header=header, node="ünïcode", pid=np.int64(12), topics={"a": {"b": [1, 2.5, None, "x"]}},
                    extra={"nested": (1, (2, 3)), "raw": b"\x00\x01", "arr": np.arange(3), "big": 2**63 - 1}),
