@@ -306,7 +306,8 @@ class FrameSynchronizer:
         ready: list[tuple[int, dict[str, Any]]] = []
         if not self._slots:
             return ready
-        newest_complete = None if self.max_lag_ns is None else max(
+        # One pending set cannot lag behind another: the scan is for two or more.
+        newest_complete = None if self.max_lag_ns is None or len(self._slots) < 2 else max(
             (s.stamp_ns for seq, s in self._slots.items()
              if s.stamp_ns is not None and not self._missing_same_frame(s, seq)), default=None)
         behind = False  # a set was skipped for lag: waiting any longer for feedback only adds to it
