@@ -209,6 +209,42 @@ def pack(obj: Mapping[str, Any]) -> bytes:
     return b"".join([head, *(memoryview(b).cast("B") for b in blobs)])
 
 
+INT_MIN, INT_LIMIT = -(2**63), 2**64  # the integers MessagePack carries
+
+
+def wire_value(value: Any, *, share_arrays: bool = False) -> Any:
+    """What :func:`unpack` gives back for ``value`` written by :func:`pack_parts`, made without the bytes:
+    the in-process runtime's copy of a message field (bus/inproc.py). An array becomes a read-only private
+    copy, C-ordered and little-endian, as the reader's view of the frame would be; lists, tuples and maps are
+    copied element by element. Any other type than plain None, bool, int, float, ASCII str, list, tuple and
+    str-keyed dict (a numpy scalar, a subclass, bytes, a large int...) takes the real way, written and read
+    back, so the rules are the writer's and the reader's by construction: what cannot be written raises as
+    :func:`pack_parts` does (TypeError, ...), what would not read back raises :class:`DecodeError`.
+    ``share_arrays``: a C-ordered little-endian array (``value`` itself) is not copied but viewed read-only,
+    for a caller that hands it over and never writes to it again."""
+    kind = type(value)
+    if kind is float or kind is bool or value is None:
+        return value
+    if kind is int:
+        return value if INT_MIN <= value < INT_LIMIT else _round_trip(value)
+    if kind is str:
+        return value if value.isascii() else _round_trip(value)
+    if kind is np.ndarray:
+        arr = _array_meta(value)
+        arr = arr.view() if share_arrays and arr is value else np.array(arr, copy=True)
+        arr.flags.writeable = False
+        return arr
+    if kind is list or kind is tuple:
+        return [wire_value(item) for item in value]
+    if kind is dict and all(type(key) is str and key.isascii() for key in value):
+        return {key: wire_value(item) for key, item in value.items()}
+    return _round_trip(value)
+
+
+def _round_trip(value: Any) -> Any:
+    return unpack(pack({"v": value}))["v"]
+
+
 def _split(data: bytes | bytearray | memoryview,
            blob_area: memoryview | None = None) -> tuple[memoryview, memoryview]:
     """(head, blob area) views of a frame; ``blob_area`` given: the frame is its head only and its arrays

@@ -3,9 +3,10 @@
 The nodes are the graph's own classes (graph.yaml ``run:``), hosted by the same :class:`NodeHost` as a node
 on the bus: the same frame synchroniser, sequence guards, feedback inputs (``offset: -1``), optional and
 ``sync: none`` inputs, replay hints and error guards. Only the transport differs: ``Node.publish`` hands the
-message to this runtime, which encodes it and gives every subscribed node its own decoded copy
-(bus.schemas ``encode``/``decode``/``validate``, so a node sees exactly what it would receive from the bus,
-and a malformed message is counted and dropped as there). No Zenoh, no threads, no wall clock.
+message to this runtime, which gives every subscribed node its own copy, validated: exactly what it would
+decode from the bus (bus.schemas ``wire_copy``, held to ``decode(encode(msg))`` by the codec tests, without
+making the bytes; ``wire=True`` makes and decodes them), and a malformed message is counted and dropped as
+there. Recorded topics also keep the encoded bytes. No Zenoh, no threads, no wall clock.
 
 **Scheduling.** Handlers take no simulated time. Messages are delivered breadth-first: each round takes
 everything queued for every node, then hands each node (in graph order) its messages in publication
@@ -33,18 +34,19 @@ hints.
 from __future__ import annotations
 
 import contextlib
-import copy
 import itertools
 import logging
 from collections import deque
 from collections.abc import Iterable, Iterator
 from typing import Any
 
-from .codec import DecodeError, peek
+import numpy as np
+
+from .codec import DecodeError, Header, peek
 from .graph import Graph, GraphError
 from .node import Clock, Node, NodeHost, validate_node
 from .pubsub import MAX_PAYLOAD_BYTES, RateLimitedLog
-from .schemas import Frame, Message, ReplayHint, decode, encode, validate
+from .schemas import Frame, Message, ReplayHint, decode, encode, validate, wire_copy
 from .stats import TopicStats
 
 log = logging.getLogger(__name__)
@@ -52,6 +54,9 @@ log = logging.getLogger(__name__)
 DEFAULT_CLOCK_START_NS = 1_700_000_000_000_000_000  # a plausible wall time (2023-11-14), ns
 MAX_ROUNDS = 10_000  # delivery rounds at one instant before a message loop is called runaway
 MAX_IDLE_STEPS = 10_000  # steps with neither the clock moving nor a message (a source polling with delay 0)
+# A copied message's size for the publication limit and the statistics: its arrays plus this for the rest (the
+# head of a small message is 100-300 bytes; the bytes are made only for recorded topics and with wire=True).
+HEAD_ALLOWANCE_BYTES = 256
 
 
 class InProcessError(RuntimeError):
@@ -100,7 +105,27 @@ class _Publisher:
         msg.header.source = self.source
         msg.header.pub_ns = self.owner.now_ns
         self._seq += 1
-        return self.owner._route(self.topic, encode(msg), msg.header.stamp_ns, self.stats)
+        return self.owner._publish(self.topic, msg, self.stats)
+
+
+def _own_copy(msg: Message) -> Message:
+    """A subscriber's own message and header over shared (read-only) values: copy.copy's result, at a fraction
+    of its cost (it is made for every message every subscriber receives)."""
+    new = object.__new__(type(msg))
+    new.__dict__.update(msg.__dict__)
+    header = object.__new__(Header)
+    header.__dict__.update(msg.header.__dict__)
+    new.header = header
+    return new
+
+
+def _as_received(payload: bytes | None, copied: Message | DecodeError | None) -> Message:
+    """A recorded publication as a subscriber got it; DecodeError if it could not (as decoding it would)."""
+    if copied is None:
+        return decode(payload)  # type: ignore[arg-type]  # only the bytes were published (inject_bytes, wire)
+    if isinstance(copied, DecodeError):
+        raise copied
+    return _own_copy(copied)
 
 
 class _Host(NodeHost):
@@ -119,26 +144,34 @@ class _Host(NodeHost):
         self.next_poll_ns: int | None = None  # set at start: every node is polled once, as live
         self.stopped = False
 
-    def receive(self, input_name: str, payload: bytes, stamp_ns: int, now_ns: int,
-                decoded: dict[Any, Message | DecodeError]) -> None:
-        """Decode and validate ``payload`` for this input and queue it. ``decoded``: what earlier subscribers of
-        the same publication made of it, by expected type; each subscriber gets its own copy of the message and
-        header (the arrays, read-only after decoding, are shared), as if it had decoded the bytes itself."""
+    def receive(self, input_name: str, sent: bytes | memoryview | Message | DecodeError, size: int, stamp_ns: int,
+                now_ns: int, checked: dict[Any, Message | DecodeError]) -> None:
+        """Queue what was published for this input: ``sent`` is the encoded message (decoded here), or the
+        runtime's copy of it (or why it would not decode). ``checked``: what earlier subscribers of the same
+        publication made of it, by expected type; each subscriber gets its own copy of the message and header
+        (the arrays, read-only, are shared), as if it had decoded the bytes itself."""
         queue = self.queues[input_name]
         schema = self.cls.INPUTS[input_name]
-        if schema not in decoded:
+        shared = checked.get(schema)
+        if shared is None:
             try:
-                decoded[schema] = validate(decode(payload, schema))
+                if isinstance(sent, DecodeError):
+                    raise sent
+                if not isinstance(sent, Message):
+                    shared = validate(decode(sent, schema))
+                elif schema is not None and type(sent) is not schema:
+                    raise DecodeError(f"expected {schema.TYPE}, got {sent.TYPE}")
+                else:
+                    shared = validate(sent)
             except DecodeError as exc:
-                decoded[schema] = exc
-        shared = decoded[schema]
+                shared = exc
+            checked[schema] = shared
         if isinstance(shared, DecodeError):
             queue.stats.decode_error()
             self._warn.warning("dropped malformed message on %s: %s", queue.stats.key, shared)
             return
-        msg = copy.copy(shared)
-        msg.header = copy.copy(shared.header)
-        queue.stats.record(stamp_ns, len(payload), now_ns=now_ns)
+        msg = _own_copy(shared)
+        queue.stats.record(stamp_ns, size, now_ns=now_ns)
         msg._arrival = next(self.owner._arrival)  # type: ignore[attr-defined]
         queue.push(msg)
 
@@ -150,7 +183,10 @@ class _Host(NodeHost):
         return items
 
     def pending(self) -> bool:
-        return any(q.items for q in self.queues.values())
+        for q in self.queues.values():  # noqa: SIM110  # a loop, not any(): asked for every node every round
+            if q.items:
+                return True
+        return False
 
     def status(self) -> dict[str, Any]:
         """The node's counters (what its NodeStatus would carry in ``extra`` and ``topics``)."""
@@ -168,14 +204,15 @@ class InProcessGraph:
     """Runs ``graph``'s nodes (or only ``nodes``) in this process; see the module docstring.
 
     ``record``: the topics (``node/output``) whose publications are kept for :meth:`outputs` and
-    :meth:`payloads` (default: all; frames are large). Inputs of nodes not run here can be fed with
+    :meth:`payloads` (default: all; frames are large); ``record_bytes=False`` keeps only the messages (for
+    :meth:`drain` and :meth:`outputs`), not their encoded bytes. Inputs of nodes not run here can be fed with
     :meth:`inject` (a topic of the graph: ``"detection/detections"``). Node setup runs on the first
     ``inject``/``step``/``run_*`` (or :meth:`start`), so :meth:`node` can be inspected before.
     """
 
     def __init__(self, graph: Graph, nodes: Iterable[str] | None = None, *, clock: str = "sim",
                  clock_start_ns: int = DEFAULT_CLOCK_START_NS, record: Iterable[str] | None = None,
-                 max_payload_bytes: int = MAX_PAYLOAD_BYTES):
+                 max_payload_bytes: int = MAX_PAYLOAD_BYTES, wire: bool = False, record_bytes: bool = True):
         if clock not in ("sim", "stamps"):
             raise ValueError(f"clock must be 'sim' or 'stamps', not {clock!r}")
         self.graph = graph
@@ -189,6 +226,8 @@ class InProcessGraph:
         self.now_ns = clock_start_ns
         self._sim_clock = Clock("sim", clock_start_ns)
         self.max_payload_bytes = max_payload_bytes
+        self.wire = wire
+        self.record_bytes = record_bytes or wire
         self._arrival = itertools.count()
         self._warn = RateLimitedLog(log)
         self.hosts: dict[str, _Host] = {}
@@ -204,7 +243,9 @@ class InProcessGraph:
         unknown = sorted(record_set - self.topics)
         if unknown:
             raise ValueError(f"record: no such topic {', '.join(unknown)} (topics: {', '.join(sorted(self.topics))})")
-        self._recorded: dict[str, list[bytes]] = {t: [] for t in record_set}
+        # topic -> (encoded message, the subscribers' copy of it or None when only the bytes exist)
+        self._recorded: dict[str, list[tuple[bytes | None, Message | DecodeError | None]]] = {
+            t: [] for t in record_set}
         self.published: dict[str, int] = dict.fromkeys(self.topics, 0)
         self.started = False
         self.closed = False
@@ -261,25 +302,36 @@ class InProcessGraph:
         topic = f"{node}/{output}"
         if topic not in self._recorded:
             raise KeyError(f"topic {topic!r} is not recorded (recorded: {', '.join(sorted(self._recorded))})")
-        return list(self._recorded[topic])
+        published = self._recorded[topic]
+        if any(payload is None for payload, _ in published):
+            raise ValueError(f"{topic}: recorded without its bytes (record_bytes=False): use outputs or drain")
+        return [payload for payload, _ in published]  # type: ignore[misc]
 
     def outputs(self, node: str, output: str) -> list[Message]:
-        """The messages ``node`` published on ``output``, decoded from what went out (recorded topics only)."""
-        return [decode(p) for p in self.payloads(node, output)]
-
-    def drain(self, topic: str) -> list[Message]:
-        """The messages published on a recorded ``topic`` (``node/output``) since the last drain, decoded, and
-        forgotten: a long run keeps nothing it has read."""
+        """The messages ``node`` published on ``output``, as its subscribers got them (recorded topics only)."""
+        topic = f"{node}/{output}"
         if topic not in self._recorded:
             raise KeyError(f"topic {topic!r} is not recorded (recorded: {', '.join(sorted(self._recorded))})")
-        payloads, self._recorded[topic] = self._recorded[topic], []
-        return [decode(p) for p in payloads]
+        return [_as_received(payload, copied) for payload, copied in self._recorded[topic]]
+
+    def drain(self, topic: str) -> list[Message]:
+        """The messages published on a recorded ``topic`` (``node/output``) since the last drain, as their
+        subscribers got them, and forgotten: a long run keeps nothing it has read."""
+        if topic not in self._recorded:
+            raise KeyError(f"topic {topic!r} is not recorded (recorded: {', '.join(sorted(self._recorded))})")
+        published, self._recorded[topic] = self._recorded[topic], []
+        return [_as_received(payload, copied) for payload, copied in published]
 
     # --- feeding --------------------------------------------------------------------------------
-    def inject(self, topic: str, msg: Message) -> bool:
+    def inject(self, topic: str, msg: Message, *, handover: bool = False) -> bool:
         """Publish ``msg`` on ``topic`` (``node/output``) as if its producer had, header as given; it reaches
-        the subscribed nodes at the next step. False if refused (size)."""
-        return self.inject_bytes(topic, encode(msg))
+        the subscribed nodes at the next step. False if refused (size). ``handover``: the caller gives the
+        message up and never writes to its arrays again, so the subscribers share them (read-only) instead
+        of each publication copying them (evaluation's frames, read from disk for this one use)."""
+        if topic not in self.topics:
+            raise ValueError(f"no topic {topic!r} in the graph (topics: {', '.join(sorted(self.topics))})")
+        self.start()
+        return self._publish(topic, msg, None, handover=handover)
 
     def inject_bytes(self, topic: str, payload: bytes, stamp_ns: int | None = None) -> bool:
         """Publish an encoded message (a recording's) on ``topic``; a malformed one is counted by each
@@ -300,23 +352,43 @@ class InProcessGraph:
         self.start()
         self.hosts[node].apply_hints([hint])
 
-    def _route(self, topic: str, payload: bytes, stamp_ns: int, stats: TopicStats | None) -> bool:
-        if len(payload) > self.max_payload_bytes:
+    def _publish(self, topic: str, msg: Message, stats: TopicStats | None, *, handover: bool = False) -> bool:
+        """A message published in this process: encoded (``wire=True``), or copied for the subscribers as they
+        would decode it (what cannot be encoded raises here, at the publisher, as ``encode`` would)."""
+        if self.wire:
+            return self._route(topic, encode(msg), msg.header.stamp_ns, stats)
+        try:
+            copied: Message | DecodeError = wire_copy(msg, share_arrays=handover)
+        except DecodeError as exc:  # written, but no subscriber could read it back: each counts it
+            copied = exc
+        size = HEAD_ALLOWANCE_BYTES + sum(v.nbytes for v in vars(msg).values() if isinstance(v, np.ndarray))
+        payload = encode(msg) if self.record_bytes and topic in self._recorded else None
+        return self._route(topic, copied, msg.header.stamp_ns, stats, size=size, payload=payload)
+
+    def _route(self, topic: str, sent: bytes | memoryview | Message | DecodeError, stamp_ns: int,
+               stats: TopicStats | None, *, size: int | None = None, payload: bytes | None = None) -> bool:
+        """Deliver ``sent`` (an encoded message, or the runtime's copy of one) to the subscribed nodes.
+        ``size``: the encoded size (an estimate when only the copy exists); ``payload``: the bytes to record."""
+        copied = isinstance(sent, (Message, DecodeError))
+        if not copied:
+            size, payload = len(sent), sent  # type: ignore[arg-type]
+        assert size is not None
+        if size > self.max_payload_bytes:
             if stats is not None:
                 stats.refuse()
             self._warn.warning("refused a %.1f MB message on %s: over the %.1f MB publication limit",
-                               len(payload) / 1e6, topic, self.max_payload_bytes / 1e6)
+                               size / 1e6, topic, self.max_payload_bytes / 1e6)
             return False
         if stats is not None:
-            stats.record(stamp_ns, len(payload), now_ns=self.now_ns)
+            stats.record(stamp_ns, size, now_ns=self.now_ns)
         self.published[topic] += 1
         recorded = self._recorded.get(topic)
         if recorded is not None:
-            recorded.append(payload)
-        decoded: dict[Any, Message | DecodeError] = {}  # one decode per expected type, not per subscriber
+            recorded.append((payload, sent if copied else None))  # type: ignore[arg-type]
+        checked: dict[Any, Message | DecodeError] = {}  # one check per expected type, not per subscriber
         for host, input_name in self._routes.get(topic, ()):
             if not host.stopped:
-                host.receive(input_name, payload, stamp_ns, self.now_ns, decoded)
+                host.receive(input_name, sent, size, stamp_ns, self.now_ns, checked)
         return True
 
     # --- running --------------------------------------------------------------------------------

@@ -28,7 +28,17 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 
 # Header is part of the frame layout, which bus/codec.py owns; re-exported here with the messages.
-from .codec import DecodeError, Header, decode_message, encode_message, encode_message_parts
+from .codec import (
+    INT_LIMIT,
+    INT_MIN,
+    DecodeError,
+    Header,
+    decode_message,
+    encode_message,
+    encode_message_parts,
+    header_from_wire,
+    wire_value,
+)
 from .typecheck import TypeMismatch, conform
 
 SCHEMA_VERSION = 1
@@ -348,6 +358,60 @@ def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None
             raise DecodeError(f"{type_name}.{name}: {exc}") from None
     if obj:
         raise DecodeError(f"{type_name}: unknown fields {sorted(obj)}")
+    return cls(**kwargs)  # type: ignore[return-value]
+
+
+def _plain_header_copy(h: Header) -> Header | None:
+    """The header as it would decode, when its values are the plain types the wire keeps as they are (as good
+    as always: then the header costs a copy, not a walk through wire_value); None otherwise."""
+    feedback = h.feedback
+    if not (type(h.seq) is int and type(h.stamp_ns) is int and type(h.frame_seq) is int and type(h.pub_ns) is int
+            and type(h.epoch_ns) is int and type(h.source) is str and h.source.isascii() and type(feedback) is dict
+            and all(INT_MIN <= v < INT_LIMIT for v in (h.seq, h.stamp_ns, h.frame_seq, h.pub_ns, h.epoch_ns))
+            and all(type(k) is str and k.isascii() and type(f) is int and INT_MIN <= f < INT_LIMIT
+                    for k, f in feedback.items())):
+        return None
+    return Header(h.seq, h.stamp_ns, h.frame_seq, h.source, h.pub_ns, h.epoch_ns, dict(feedback))
+
+
+def wire_copy(msg: M, *, share_arrays: bool = False) -> M:
+    """What ``decode(encode(msg))`` gives, made without the bytes (bus/codec.py ``wire_value`` for the header
+    and every field, then :func:`decode`'s own type checks): the in-process runtime's copy of a published
+    message, for every subscriber a copy of its own, as the bus would give it. Raises what :func:`encode`
+    raises for a value that cannot be written and :class:`DecodeError` for one that would not decode;
+    ``tests/test_bus_codec.py`` holds it to ``decode(encode(msg))``. ``share_arrays``: the message's own
+    arrays are viewed read-only, not copied (the caller hands the message over; see ``wire_value``)."""
+    cls = type(msg)
+    if SCHEMAS.get(cls.TYPE) is not cls:
+        raise DecodeError(f"unknown message type {cls.TYPE!r}")
+    plan = _field_plan(cls)
+    # As on the bus: the whole message is written (a value that cannot be written raises at once) before any of
+    # it is read (what would not read back is a DecodeError, then the header, then each field's type).
+    header = _plain_header_copy(msg.header)
+    raw = [getattr(msg, name) for name, _, _ in plan]
+    if header is None:
+        raw.insert(0, msg.header.to_wire())
+    unreadable: DecodeError | None = None
+    values: list[Any] = []
+    for value in raw:
+        try:
+            values.append(wire_value(value, share_arrays=share_arrays))
+        except DecodeError as exc:
+            unreadable = unreadable or exc
+            values.append(None)
+    if unreadable is not None:
+        raise unreadable
+    if header is None:
+        header = header_from_wire(values.pop(0))[0]
+    kwargs: dict[str, Any] = {"header": header}
+    for (name, hint, exact), value in zip(plan, values, strict=True):
+        if exact is not None and type(value) is exact:
+            kwargs[name] = value
+            continue
+        try:
+            kwargs[name] = conform(value, hint)
+        except TypeMismatch as exc:
+            raise DecodeError(f"{cls.TYPE}.{name}: {exc}") from None
     return cls(**kwargs)  # type: ignore[return-value]
 
 

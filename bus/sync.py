@@ -52,6 +52,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 FEEDBACK_KEEP = 64  # feedback messages remembered per input
+_NEVER_NS = 2**63  # no set pending: nothing expires
 MAX_SEQ_AHEAD = 64  # frames a stream may jump ahead of the newest one with no stamp time passing...
 MAX_FRAMES_PER_S = 1000  # ...plus this many per second of stamp time
 MAX_FRAME_INTERVAL_NS = 10_000_000_000  # a stamp may not run ahead by more than 10 s per frame
@@ -167,11 +168,16 @@ class FrameSynchronizer:
         self.dropped = 0  # sets dropped: required input missing at timeout, superseded, or overflow
         self.late = 0  # sets dropped for lagging more than max_lag_ns behind a complete newer one
         self.feedback_fallbacks = 0  # sets that went on with older (or no) feedback
+        # A poll's outcome changes only with what was offered (or hinted) since, or once a set's deadline passes:
+        # until then polling again returns nothing at once (a node polls after every message it handles).
+        self._dirty = True
+        self._wake_ns = 0
 
     # --- input ----------------------------------------------------------------------------------
     def add(self, name: str, frame_seq: int, msg: Any, now_ns: int, *, stamp_ns: int | None = None,
             epoch_ns: int = 0) -> str:
         """Offer one message; returns the verdict (``accepted``, ``stale``, ``implausible``, ``resynced``)."""
+        self._dirty = True
         if name in self._feedback:
             return self._add_feedback(name, frame_seq, msg, epoch_ns)
         lacked = self._lacked.get(frame_seq)
@@ -196,6 +202,7 @@ class FrameSynchronizer:
         return verdict
 
     def _add_feedback(self, name: str, seq: int, msg: Any, epoch_ns: int) -> str:
+        self._dirty = True
         if self.guard.epoch_mismatch(epoch_ns):
             self.guard.stale += 1
             return STALE
@@ -210,6 +217,7 @@ class FrameSynchronizer:
         return ACCEPTED
 
     def _restart(self) -> None:
+        self._dirty = True
         self.dropped += len(self._slots)
         self._slots.clear()
         for store in self._feedback.values():
@@ -222,6 +230,7 @@ class FrameSynchronizer:
 
     def force_feedback(self, frame_seq: int, used: dict[str, int]) -> None:
         """Replay: frame ``frame_seq`` takes exactly these feedback frames (-1: none), as the live run did."""
+        self._dirty = True
         if frame_seq not in self._forced:
             insort(self._forced_frames, frame_seq)
         self._forced[frame_seq] = dict(used)
@@ -240,6 +249,7 @@ class FrameSynchronizer:
 
     def skip(self, frame_seq: int) -> None:
         """Replay: frame ``frame_seq`` is not handled, as the live run did not handle it."""
+        self._dirty = True
         self._skipped.add(frame_seq)
 
     # --- output ---------------------------------------------------------------------------------
@@ -285,9 +295,21 @@ class FrameSynchronizer:
 
     def poll(self, now_ns: int) -> list[tuple[int, dict[str, Any]]]:
         """Sets ready to be handled, in frame order, as (frame_seq, {input: message or None})."""
+        if not self._dirty and now_ns < self._wake_ns:
+            return []
+        ready = self._poll(now_ns)
+        self._dirty = False
+        self._wake_ns = min((self._deadline(slot) for slot in self._slots.values()), default=_NEVER_NS)
+        return ready
+
+    def _poll(self, now_ns: int) -> list[tuple[int, dict[str, Any]]]:
         ready: list[tuple[int, dict[str, Any]]] = []
-        newest_complete = max((s.stamp_ns for seq, s in self._slots.items()
-                               if s.stamp_ns is not None and not self._missing_same_frame(s, seq)), default=None)
+        if not self._slots:
+            return ready
+        # One pending set cannot lag behind another: the scan is for two or more.
+        newest_complete = None if self.max_lag_ns is None or len(self._slots) < 2 else max(
+            (s.stamp_ns for seq, s in self._slots.items()
+             if s.stamp_ns is not None and not self._missing_same_frame(s, seq)), default=None)
         behind = False  # a set was skipped for lag: waiting any longer for feedback only adds to it
         # A set still without a required input at its deadline is dropped wherever it stands, not only once it
         # is first in line: a set waiting for its feedback must not shield sets numbered ahead of the stream

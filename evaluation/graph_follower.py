@@ -85,9 +85,15 @@ class GraphFollower:
         if not self.params.camera_motion_compensation and "egomotion" in nodes:
             nodes.remove("egomotion")  # as in the graph without the node: priors are not warped
         g = InProcessGraph(graph, nodes=nodes, clock="sim", clock_start_ns=CLOCK_BASE_NS,
-                           record=list(self.recorded))
+                           record=list(self.recorded), record_bytes=False)  # read with drain: no bytes needed
         g.start()
         return g
+
+    def prepare(self, init_box: Sequence[float] | None) -> None:
+        """Build the graph (node set-up: the re-ID model loaded) now, told whom to follow, rather than in the first
+        step: evaluation times steps, and a set-up is not a frame."""
+        if self.graph is None:
+            self.graph = self._start(init_box)
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray, t_ns: int, v_ego_mps: Sequence[float] = (0.0, 0.0),
              init_box: Sequence[float] | None = None,
@@ -105,8 +111,10 @@ class GraphFollower:
         # Odometry first: prediction takes the newest sample not after the frame's stamp.
         g.inject("motor/odometry", stamped(Odometry(vx_mps=float(v_ego_mps[0]), vy_mps=float(v_ego_mps[1]))))
         bgr = np.ascontiguousarray(frame_bgr)
+        # A read-only image (the runner's, decoded from disk for this run alone) is shared with the nodes rather
+        # than copied for them: nobody can write to it any more.
         g.inject("capture/frame", stamped(Frame(width=bgr.shape[1], height=bgr.shape[0], encoding="bgr8",
-                                                data=bgr)))
+                                                data=bgr)), handover=not bgr.flags.writeable)
         low = low_detections if low_detections is not None and self.uses_low_scores else None
         g.inject("detection/detections", stamped(Detections(
             boxes=np.asarray(detections, np.float32).reshape(-1, 5), backend="eval",

@@ -68,6 +68,15 @@ def render_dom(url: str, tmp: Path, budget_ms: int, window: str = "1280,900") ->
     return _run(argv, profile).stdout
 
 
+def docs_picture(name: str, tmp: Path) -> Path:
+    """Where a test writes a page's picture that the README shows: a temporary file, unless the run is asked to
+    refresh the README's pictures (``FOLLOWBUS_UPDATE_PICTURES=1``): then docs/NAME, to be committed. A test
+    run leaves the checkout as it found it."""
+    if os.environ.get("FOLLOWBUS_UPDATE_PICTURES") == "1":
+        return Path(__file__).resolve().parents[1] / "docs" / name
+    return tmp / name
+
+
 def screenshot(url: str, out: Path, tmp: Path, budget_ms: int, window: str = "1280,900") -> tuple[int, int]:
     """Write a PNG of the page to ``out``; returns its (width, height) read back from the file."""
     profile = tmp / f"chromium-{time.monotonic_ns()}"

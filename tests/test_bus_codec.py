@@ -133,3 +133,101 @@ def test_inline_array_shapes_read_as_json_reads_them(shape, ok):
     else:
         with pytest.raises(DecodeError):
             unpack(frame)
+
+
+# --------------------------------------------------------------------------- wire_copy: decode(encode(m)), no bytes
+
+def _same(got, want, where: str) -> None:
+    """The same types, values (NaN as NaN), dtypes, shapes and bytes, all the way down; arrays read-only."""
+    assert type(got) is type(want), (where, type(got), type(want))
+    if isinstance(want, np.ndarray):
+        assert (got.dtype, got.shape, got.tobytes()) == (want.dtype, want.shape, want.tobytes()), where
+        assert not got.flags.writeable and not want.flags.writeable, where
+    elif isinstance(want, dict):
+        assert list(got) == list(want), where
+        for key in want:
+            _same(got[key], want[key], f"{where}.{key}")
+    elif isinstance(want, list):
+        assert len(got) == len(want), where
+        for i, (g, w) in enumerate(zip(got, want, strict=True)):
+            _same(g, w, f"{where}[{i}]")
+    elif isinstance(want, float) and want != want:
+        assert got != got, where
+    else:
+        assert got == want, where
+
+
+def _same_as_decoded(copy, decoded) -> None:
+    assert type(copy) is type(decoded)
+    for name, want in vars(decoded).items():
+        _same(getattr(copy, name), want, name)
+
+
+def _outcome(fn, msg):
+    try:
+        return fn(msg)
+    except DecodeError:
+        return DecodeError
+    except Exception as exc:  # what encode raises for a value it cannot write
+        return type(exc)
+
+
+def _wire_cases():
+    from followbus.bus.schemas import SCHEMAS, GroupState, MotorCommand, NodeStatus, Prior, ReplayHint, Track
+
+    rng = np.random.default_rng(3)
+    header = Header(seq=4, stamp_ns=1_700_000_000_123_456_789, frame_seq=12, source="reid", pub_ns=9, epoch_ns=7,
+                    feedback={"template": 11})
+    cases = [cls() for cls in SCHEMAS.values()]  # every registered type, defaults
+    cases += [
+        Frame(header=header, width=8, height=4, data=rng.integers(0, 255, (4, 8, 3), np.uint8)),
+        Frame(header=header, width=640, height=480, data=rng.integers(0, 255, (480, 640, 3), np.uint8)),  # blob
+        Prior(header=header, initialised=True, state=rng.normal(size=4), size=np.array([30.0, 80.0]),
+              covariance=np.eye(4)[::-1], innovation_cov=np.asfortranarray(rng.normal(size=(2, 2))),  # not C order
+              gate_chi2=np.float64(9.2), box=np.array([1, 2, 3, 4], ">f8")),  # numpy scalar, big-endian
+        Measurement(header=header, state="TRACKING", accepted=np.bool_(True), box=np.arange(4.0),
+                    candidates=rng.random((3, 5)), candidate_sources=("detection", "motion", "detection"),
+                    m_fuse=np.float32(0.25), s_color=1, init_box=np.arange(8.0)[::2]),  # int for a float, strided
+        Track(header=header, state="OCCLUDED", box=np.array([[1.0, 2.0, 3.0, 4.0]])[0],
+              velocity=np.zeros(2, np.float32)),
+        MotorCommand(header=header, vx_mps=float("nan"), range_m=None, wheel_radps=np.zeros((4,))),  # validate's job
+        NodeStatus(header=header, node="ünïcode", pid=np.int64(12), topics={"a": {"b": [1, 2.5, None, "x"]}},
+                   extra={"nested": (1, (2, 3)), "raw": b"\x00\x01", "arr": np.arange(3), "big": 2**63 - 1}),
+        ReplayHint(header=header, feedback={"reid": np.int32(3)}),
+        GroupState(header=header, centre_m=np.array(1.5), ellipse_weights=np.array([0.2, 0.8])),  # 0-d array
+        # what cannot be written, or would not read back
+        NodeStatus(header=header, extra={"too big": 2**64}),
+        NodeStatus(header=header, extra={"obj": object()}),
+        NodeStatus(header=header, extra={"complex": 1j}),
+        NodeStatus(header=header, extra={3: "int key"}),
+        Track(header=header, state=7),
+        Prior(header=header, state=np.zeros(4, np.complex128)),
+        Frame(header=Header(frame_seq=np.int64(3), source="cam"), data=np.zeros((0, 0, 3), np.uint8)),
+    ]
+    return cases
+
+
+@pytest.mark.parametrize("msg", _wire_cases(), ids=lambda m: m.TYPE)
+def test_wire_copy_is_exactly_what_decoding_the_encoded_message_gives(msg):
+    from followbus.bus.schemas import wire_copy
+
+    expected = _outcome(lambda m: decode(encode(m)), msg)
+    got = _outcome(wire_copy, msg)
+    if isinstance(expected, type):  # both must fail the same way: at the writer, or at the reader
+        assert got is expected
+        return
+    _same_as_decoded(got, expected)
+
+
+def test_wire_copy_owns_its_arrays_and_header():
+    from followbus.bus.schemas import Prior, wire_copy
+
+    state = np.zeros(4)
+    msg = Prior(header=Header(feedback={"reid": 1}), state=state)
+    copied = wire_copy(msg)
+    state[0] = 5.0  # the publisher reuses its buffer for the next frame
+    msg.header.feedback["reid"] = 2
+    msg.header.seq = 9
+    assert copied.state[0] == 0.0 and copied.header.feedback == {"reid": 1} and copied.header.seq == 0
+    with pytest.raises(ValueError):
+        copied.state[0] = 1.0  # read-only, as a decoded array

@@ -317,11 +317,13 @@ def _scene_graph(frames: int, *extra: str):
                           f"capture.max_frames={frames}", *extra)
 
 
-def test_whole_graph_runs_bit_identically_twice():
+def test_whole_graph_runs_bit_identically_twice_with_or_without_the_bytes():
+    """Run twice: once with every message encoded and decoded (wire=True), once with the subscribers' copies
+    made without the bytes (the default): every node must publish the same bytes."""
     runs = []
-    for _ in range(2):
-        with InProcessGraph(_scene_graph(60), record=["prediction/track", "motor/command", "reid/measurement",
-                                                      "template/template"]) as g:
+    for wire in (True, False):
+        with InProcessGraph(_scene_graph(60), wire=wire, record=["prediction/track", "motor/command",
+                                                                  "reid/measurement", "template/template"]) as g:
             assert g.run_frames(60) == 60
             runs.append({t: g.payloads(*t.split("/")) for t in ("prediction/track", "motor/command",
                                                                  "reid/measurement", "template/template")})
@@ -407,9 +409,11 @@ def test_malformed_message_is_counted_and_dropped():
     with InProcessGraph(_relay_graph(4, "drop_oldest"), nodes=["relay", "sink"]) as g:
         g.inject_bytes("ticker/tick", b"not a followbus message")
         g.inject_bytes("ticker/tick", encode(stamped(Detections(), 0, g.now_ns)))  # the wrong type
+        g.inject("ticker/tick", stamped(Detections(), 0, g.now_ns))  # the same, as a message (no bytes made)
+        g.inject("ticker/tick", stamped(Tick(value=1), -5, g.now_ns))  # a header out of range
         _ticks(g, 1)
         g.deliver()
-        assert g.status("relay")["topics"]["fb/ticker/tick"]["decode_errors"] == 2
+        assert g.status("relay")["topics"]["fb/ticker/tick"]["decode_errors"] == 4
         assert g.status("relay")["extra"]["handler_errors"] == 0
         assert [m.value for m in g.outputs("relay", "tick")] == [0]
 

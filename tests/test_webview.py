@@ -23,7 +23,7 @@ from followbus.tools.live.monitor import GraphInfo, _group_line, group_view
 from followbus.tools.live.webview import health_rows, is_loopback_bind, screen_state, web_token
 from followbus.tracking.groundplane import floor_to_image, to_odometry_frame
 
-from .chromium import element_text, have_chromium, page_layout, render_dom, require_chromium, screenshot
+from .chromium import docs_picture, element_text, have_chromium, page_layout, render_dom, require_chromium, screenshot
 from .conftest import REPO, followbus_argv, free_port, wait_until
 from .test_graph_group import _graph_copies
 from .test_monitor import Launch, _interrupt, robot_graph
@@ -368,7 +368,7 @@ def test_group_graph_page_draws_the_ellipses(tmp_path, port):
         layout = page_layout(dom)
         ground, video = layout["ground"], layout["video"]
         assert ground["top"] >= video["bottom"] and ground["bottom"] <= 1000, layout
-        shot = REPO / "docs" / "webview-group.png"
+        shot = docs_picture("webview-group.png", tmp_path)
         assert screenshot(f"http://127.0.0.1:{web_port}/", shot, tmp_path, budget_ms=3000, window=window) == (
             1280, 1000)
         png = cv2.imread(str(shot))
