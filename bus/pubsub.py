@@ -265,8 +265,8 @@ def frame_bytes(sample: zenoh.Sample) -> bytes:
 class _Tokened:
     """A Zenoh subscriber and the lane token announcing it (bus/shmlane.py), undeclared together."""
 
-    def __init__(self, session: zenoh.Session, key: str, handler: Any):
-        self._token = shmlane.declare_token(session, key)  # before the subscriber: see shmlane
+    def __init__(self, session: zenoh.Session, key: str, handler: Any, *, inline: bool = False):
+        self._token = shmlane.declare_token(session, key, inline=inline)  # before the subscriber: see shmlane
         self._sub = session.declare_subscriber(key, handler)
 
     def undeclare(self) -> None:
@@ -275,11 +275,13 @@ class _Tokened:
             self._token.undeclare()
 
 
-def declare_subscriber(session: zenoh.Session, key: str, fn: Callable[[zenoh.Sample], Any]) -> Any:
+def declare_subscriber(session: zenoh.Session, key: str, fn: Callable[[zenoh.Sample], Any], *,
+                       inline: bool = False) -> Any:
     """A direct-callback Zenoh subscriber for a tool that reads payloads with :func:`frame_bytes`, announced
     as a followbus subscription of this host (so a lane publisher sends it descriptors only when it is on
-    the same machine; one elsewhere makes the publisher go inline)."""
-    return _Tokened(session, key, direct_callback(fn))
+    the same machine; one elsewhere makes the publisher go inline). ``inline``: it must get every message,
+    stalls included (bus/shmlane.py ``declare_token``): the publishers of the key go inline while it is there."""
+    return _Tokened(session, key, direct_callback(fn), inline=inline)
 
 
 class Subscriber:

@@ -111,15 +111,25 @@ def _compute_host_id() -> str | None:
 HOST_ID = _compute_host_id()
 
 
-def token_key(key_expr: str) -> str:
-    """A fresh liveliness token key announcing a followbus subscription of ``key_expr`` on this host."""
-    return f"{TOKEN_PREFIX}/{HOST_ID or 'nolane'}/{secrets.token_hex(8)}/{key_expr.encode().hex()}"
+INLINE_HOST = "inline"  # a token's host for a subscription that wants every message inline (see declare_token)
 
 
-def declare_token(session: Any, key_expr: str) -> Any:
-    """Declare this subscription's lane token (before its subscriber); None if Zenoh refused it."""
+def token_key(key_expr: str, *, inline: bool = False) -> str:
+    """A fresh liveliness token key announcing a followbus subscription of ``key_expr`` on this host (or one
+    that wants inline messages: no host's id, so publishers of the key go inline while it is there)."""
+    host = INLINE_HOST if inline else (HOST_ID or "nolane")
+    return f"{TOKEN_PREFIX}/{host}/{secrets.token_hex(8)}/{key_expr.encode().hex()}"
+
+
+def declare_token(session: Any, key_expr: str, *, inline: bool = False) -> Any:
+    """Declare this subscription's lane token (before its subscriber); None if Zenoh refused it.
+
+    ``inline``: the subscription must get every message, however long it stalls (the recorder). A segment is
+    rewritten one frame period after its last write, so a reader that stalls longer finds the frames it
+    missed gone (counted as drops): a live consumer wants the newest frame anyway, a recording wants them
+    all. Such a token makes the publishers of the key send inline, to everyone, while it is declared."""
     try:
-        return session.liveliness().declare_token(token_key(key_expr))
+        return session.liveliness().declare_token(token_key(key_expr, inline=inline))
     except Exception as exc:  # a closed session: the subscriber fails on its own right after
         log.debug("lane token for %s not declared: %r", key_expr, exc)
         return None

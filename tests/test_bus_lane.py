@@ -241,10 +241,11 @@ def test_a_subscriber_on_another_host_or_plain_zenoh_gets_inline_frames(port):
         session.close()
 
 
-def test_the_recorder_stores_inline_frames_while_the_lane_is_used(port, tmp_path):
-    """`followbus record` on the same host announces its subscription too: the publisher keeps the lane for
-    the node, and the recorder turns each lane message into the frame it stands for (a recording never
-    holds a descriptor)."""
+def test_while_recording_the_publisher_goes_inline_so_the_recording_loses_nothing(port, tmp_path):
+    """`followbus record` announces a subscription that wants every message inline: a lane segment is rewritten
+    a frame period after its last write, so a recorder stalled longer would lose frames. While it records, the
+    publisher sends inline to everyone (the node gets private copies), and the recording holds every frame,
+    never a descriptor."""
     from mcap.reader import make_reader
 
     session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
@@ -261,11 +262,11 @@ def test_the_recorder_stores_inline_frames_while_the_lane_is_used(port, tmp_path
         threading.Thread(target=lambda: lines.extend(rec.stdout), daemon=True).start()
         assert wait_until(lambda: any("recording" in line for line in lines), 30), lines
         time.sleep(1.0)
-        proc = _publisher(port, "lr/frame", 10, "lane")
+        proc = _publisher(port, "lr/frame", 10, "plain")  # lane on, not waiting for it to be ready
         report = json.loads(proc.stdout.readline())
-        assert report["ready"], report
+        assert not report["ready"], report  # the recorder's token is not a lane reader's
         assert wait_until(lambda: len(lane_seen) == 10, 10)
-        assert all(lane_seen), lane_seen
+        assert not any(lane_seen), lane_seen
         time.sleep(1.0)
     finally:
         if proc is not None:
