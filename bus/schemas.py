@@ -328,6 +328,17 @@ def encode_parts(msg: Message) -> tuple[bytes, list[np.ndarray]]:
     return encode_message_parts(msg.TYPE, SCHEMA_VERSION, msg.header, fields)
 
 
+def _field_value(type_name: str, name: str, hint: Any, exact: Any, value: Any) -> Any:
+    """A read field checked against its annotation (a value of the exact pass-through type as it is); the
+    same rule for decode and wire_copy. DecodeError if it does not fit."""
+    if exact is not None and type(value) is exact:
+        return value
+    try:
+        return conform(value, hint)
+    except TypeMismatch as exc:
+        raise DecodeError(f"{type_name}.{name}: {exc}") from None
+
+
 def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None,
            blob_area: memoryview | None = None) -> M:
     """Parse bytes into the typed message; raise DecodeError on anything that does not fit. ``blob_area``:
@@ -348,14 +359,7 @@ def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None
             if name in cls.ADDED:
                 continue  # an older message: the field's default
             raise DecodeError(f"{type_name}: missing field {name!r}")
-        value = obj.pop(name)
-        if exact is not None and type(value) is exact:
-            kwargs[name] = value
-            continue
-        try:
-            kwargs[name] = conform(value, hint)
-        except TypeMismatch as exc:
-            raise DecodeError(f"{type_name}.{name}: {exc}") from None
+        kwargs[name] = _field_value(type_name, name, hint, exact, obj.pop(name))
     if obj:
         raise DecodeError(f"{type_name}: unknown fields {sorted(obj)}")
     return cls(**kwargs)  # type: ignore[return-value]
@@ -405,13 +409,7 @@ def wire_copy(msg: M, *, share_arrays: bool = False) -> M:
         header = header_from_wire(values.pop(0))[0]
     kwargs: dict[str, Any] = {"header": header}
     for (name, hint, exact), value in zip(plan, values, strict=True):
-        if exact is not None and type(value) is exact:
-            kwargs[name] = value
-            continue
-        try:
-            kwargs[name] = conform(value, hint)
-        except TypeMismatch as exc:
-            raise DecodeError(f"{cls.TYPE}.{name}: {exc}") from None
+        kwargs[name] = _field_value(cls.TYPE, name, hint, exact, value)
     return cls(**kwargs)  # type: ignore[return-value]
 
 
