@@ -297,29 +297,29 @@ class InProcessGraph:
         ``topics`` (per-topic counts, drops, decode errors)."""
         return self.hosts[name].status()
 
+    def _published_on(self, topic: str) -> list[tuple[bytes | None, Message | DecodeError | None]]:
+        """What was recorded of ``topic``; KeyError naming the recorded ones if it is not recorded."""
+        if topic not in self._recorded:
+            raise KeyError(f"topic {topic!r} is not recorded (recorded: {', '.join(sorted(self._recorded))})")
+        return self._recorded[topic]
+
     def payloads(self, node: str, output: str) -> list[bytes]:
         """The encoded messages ``node`` published on ``output``, in order (recorded topics only)."""
         topic = f"{node}/{output}"
-        if topic not in self._recorded:
-            raise KeyError(f"topic {topic!r} is not recorded (recorded: {', '.join(sorted(self._recorded))})")
-        published = self._recorded[topic]
+        published = self._published_on(topic)
         if any(payload is None for payload, _ in published):
             raise ValueError(f"{topic}: recorded without its bytes (record_bytes=False): use outputs or drain")
         return [payload for payload, _ in published]  # type: ignore[misc]
 
     def outputs(self, node: str, output: str) -> list[Message]:
         """The messages ``node`` published on ``output``, as its subscribers got them (recorded topics only)."""
-        topic = f"{node}/{output}"
-        if topic not in self._recorded:
-            raise KeyError(f"topic {topic!r} is not recorded (recorded: {', '.join(sorted(self._recorded))})")
-        return [_as_received(payload, copied) for payload, copied in self._recorded[topic]]
+        return [_as_received(payload, copied) for payload, copied in self._published_on(f"{node}/{output}")]
 
     def drain(self, topic: str) -> list[Message]:
         """The messages published on a recorded ``topic`` (``node/output``) since the last drain, as their
         subscribers got them, and forgotten: a long run keeps nothing it has read."""
-        if topic not in self._recorded:
-            raise KeyError(f"topic {topic!r} is not recorded (recorded: {', '.join(sorted(self._recorded))})")
-        published, self._recorded[topic] = self._recorded[topic], []
+        published = self._published_on(topic)
+        self._recorded[topic] = []
         return [_as_received(payload, copied) for payload, copied in published]
 
     # --- feeding --------------------------------------------------------------------------------

@@ -202,7 +202,6 @@ class FrameSynchronizer:
         return verdict
 
     def _add_feedback(self, name: str, seq: int, msg: Any, epoch_ns: int) -> str:
-        self._dirty = True
         if self.guard.epoch_mismatch(epoch_ns):
             self.guard.stale += 1
             return STALE

@@ -98,8 +98,7 @@ class GraphFollower:
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray, t_ns: int, v_ego_mps: Sequence[float] = (0.0, 0.0),
              init_box: Sequence[float] | None = None,
              low_detections: np.ndarray | None = None) -> tuple[tuple[float, ...] | None, dict[str, Any]]:
-        if self.graph is None:
-            self.graph = self._start(init_box)
+        self.prepare(init_box)  # the first step builds the graph, unless the caller prepared it
         g, k = self.graph, self.k
         stamp = CLOCK_BASE_NS + int(t_ns)
         g.run_until(stamp)
