@@ -259,7 +259,7 @@ def frame_bytes(sample: zenoh.Sample) -> bytes:
     never holds a descriptor). Raises DecodeError when a lane message cannot be read (another machine's,
     overwritten, forged): the caller drops it like any malformed payload."""
     data = payload_bytes(sample)
-    return shmlane.materialize(data) if data[:3] == shmlane.LANE_MAGIC else data
+    return shmlane.materialize(data) if shmlane.is_lane(data) else data
 
 
 class _Tokened:
@@ -306,7 +306,7 @@ class Subscriber:
     def _callback(self, sample: zenoh.Sample) -> None:
         try:
             data = payload_bytes(sample)
-            if data[:3] == shmlane.LANE_MAGIC:
+            if shmlane.is_lane(data):
                 desc, head = shmlane.split(data)
                 area = shmlane.open_blob_area(desc)
                 msg = validate(decode(head, self.schema, area))

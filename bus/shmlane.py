@@ -348,7 +348,8 @@ def frame(descriptor: bytes, head: bytes) -> bytes:
 # --- the reader --------------------------------------------------------------------------------------
 
 def is_lane(data: bytes | bytearray | memoryview) -> bool:
-    return bytes(data[:3]) == LANE_MAGIC
+    """Whether a payload is a lane message (else an inline frame, or garbage for the decoder to refuse)."""
+    return data[:3] == LANE_MAGIC
 
 
 def split(data: bytes | bytearray | memoryview) -> tuple[Any, memoryview]:
