@@ -31,6 +31,14 @@ from typing import Any, ClassVar
 import zenoh
 
 from .graph import Graph, GraphError, NodeSpec
+from .liveness import (
+    HANDLER_FAILURE_LIMIT,
+    POLL_FAILURE_LIMIT,
+    STOPPED_WORKING_EXIT,
+    FailureBudget,
+    NodeStoppedWorking,
+    ProductionWatch,
+)
 from .pubsub import InputQueue, Publisher, RateLimitedLog, ShmPool, Subscriber
 from .schemas import Frame, Message, NodeStatus, ReplayHint
 from .session import open_session
@@ -254,6 +262,7 @@ class Node:
         if self.runtime.provenance is not None:
             msg.header.feedback = dict(self.runtime.provenance)
         self.runtime.publishers[output].put(msg)
+        self.runtime.production.published(time.monotonic())
 
     def note(self, key: str, value: int) -> None:
         """Record a choice this handler made that a replay must repeat (e.g. which odometry sample, by stamp,
@@ -365,6 +374,11 @@ class NodeHost:
         self.latest: dict[str, Message] = {}
         self.handler_errors = 0
         self.resets = 0
+        # Working, not just alive (bus/liveness.py): consecutive failures of poll and of the handlers, and
+        # when this node last published.
+        self.poll_failures = FailureBudget(POLL_FAILURE_LIMIT)
+        self.handler_failures = FailureBudget(HANDLER_FAILURE_LIMIT)
+        self.production = ProductionWatch()
         self._frame_failures = 0  # consecutive
         self.provenance: dict[str, int] | None = None  # feedback used by the set being handled
         self._warn = RateLimitedLog(self.log)
@@ -394,7 +408,8 @@ class NodeHost:
         self.next_timer_ns = self.clock.now_ns() + self.timer_ns if self.timer_ns else None
 
     def sync_counters(self) -> dict[str, Any]:
-        extra: dict[str, Any] = {"handler_errors": self.handler_errors, "resets": self.resets}
+        extra: dict[str, Any] = {"handler_errors": self.handler_errors, "resets": self.resets,
+                                 "poll_failures": self.poll_failures.streak}
         if self.sync is not None:
             extra.update(self.sync.counters())
         if self._guards:
@@ -405,13 +420,47 @@ class NodeHost:
 
     def _guarded(self, what: str, fn, *args) -> Any:
         try:
-            return fn(*args)
+            result = fn(*args)
         except Exception:
-            # A bug or an unexpected message must not take the robot down: count, log, go on.
+            # A bug or an unexpected message must not take the robot down: count, log, go on. Past
+            # HANDLER_FAILURE_LIMIT failures in a row the node stops working (check_working).
             self.handler_errors += 1
+            self.handler_failures.failed()
             if self.handler_errors <= 3 or self.handler_errors % 100 == 0:
                 self.log.exception("%s failed (%d errors so far)", what, self.handler_errors)
             return None
+        self.handler_failures.succeeded()
+        return result
+
+    def poll_once(self, now_ns: int) -> float | None:
+        """Poll the node: seconds until the next poll, None for "never again" (the source is done).
+
+        A poll that raises is retried after a backoff (0.05 s doubling to 1 s), never dropped for good: one
+        failed camera read must not silence a source while its process looks up. POLL_FAILURE_LIMIT failures
+        in a row raise NodeStoppedWorking (the process exits, the launcher restarts it)."""
+        try:
+            delay = self.node.poll(now_ns)
+        except Exception as exc:
+            self.handler_errors += 1
+            backoff_s = self.poll_failures.failed()
+            if self.poll_failures.exhausted:
+                raise NodeStoppedWorking(f"poll failed {self.poll_failures.streak} times in a row "
+                                         f"(last: {exc!r})") from exc
+            self.log.exception("poll failed (%d in a row); retrying in %.2f s", self.poll_failures.streak,
+                               backoff_s)
+            return backoff_s
+        self.poll_failures.succeeded()
+        return delay
+
+    def check_working(self, polling: bool) -> None:
+        """Raise NodeStoppedWorking when the handlers keep failing, or a source (``polling``: its poll is still
+        scheduled) that has published before has been silent for many of its own periods."""
+        if self.handler_failures.exhausted:
+            raise NodeStoppedWorking(f"{self.handler_failures.streak} handler calls failed in a row")
+        silent_s = self.production.silent_s(time.monotonic()) if polling else None
+        if silent_s is not None:
+            raise NodeStoppedWorking(f"published nothing for {silent_s:.1f} s (bound "
+                                     f"{self.production.bound_s():.1f} s: its period x {self.production.periods})")
 
     def apply_hints(self, hints: list[Message]) -> None:
         """Replay: what the live run did with some frames (ReplayHint), handed over before those frames' inputs."""
@@ -611,7 +660,6 @@ class NodeRuntime(NodeHost):
         signal.signal(signal.SIGINT, handler)
 
     def run(self) -> None:
-        node = self.node
         self.start()
         self._status_thread.start()
         self.log.info("node %s up (%s)", self.spec.name, self.spec.run)
@@ -641,8 +689,9 @@ class NodeRuntime(NodeHost):
                 now = self.clock.now_ns()
                 self.run_timer(now)
                 if next_poll_wall is not None and time.monotonic() >= next_poll_wall:
-                    delay = self._guarded("poll", node.poll, now)
+                    delay = self.poll_once(now)
                     next_poll_wall = None if delay is None else time.monotonic() + max(0.0, delay)
+                self.check_working(polling=next_poll_wall is not None)
         finally:
             self.close()
 
@@ -662,7 +711,14 @@ class NodeRuntime(NodeHost):
 
 
 def run_node(graph: Graph, name: str, *, clock: str = "wall") -> int:
+    """Run a node until it is stopped: 0, or STOPPED_WORKING_EXIT when it stopped working (bus/liveness.py),
+    so the launcher restarts it; its liveliness token is gone by then (close)."""
     runtime = NodeRuntime(graph, name, clock=clock)
     runtime.install_signal_handlers()
-    runtime.run()
+    try:
+        runtime.run()
+    except NodeStoppedWorking as exc:
+        runtime.log.error("node %s stopped working: %s; exiting with status %d to be restarted", name, exc,
+                          STOPPED_WORKING_EXIT)
+        return STOPPED_WORKING_EXIT
     return 0

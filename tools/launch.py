@@ -26,6 +26,7 @@ from ..bus.health import (
     launcher_key,
     process_table,
 )
+from ..bus.liveness import STOPPED_WORKING_EXIT
 from ..bus.node import LAUNCH_ID_ENV, LAUNCHED_NODES_ENV
 from ..bus.pubsub import Publisher, direct_callback
 from ..bus.session import open_session
@@ -235,6 +236,11 @@ class Launcher:
                 said = child.last_error or child.last_line
                 why = f": {said[:160]}" if said else ""
                 out.append(f"{child.name} {what} (exited {len(child.failures)} times, last status {last_code}){why}")
+            elif any(code == STOPPED_WORKING_EXIT for _, code in child.failures):
+                # Restarted, and maybe working again, but a scripted run must not pass as if nothing happened.
+                said = child.last_error or child.last_line
+                out.append(f"{child.name} stopped working and was restarted ({child.restarts} restarts)"
+                           + (f": {said[:160]}" if said else ""))
         if self.watch_outputs and not self.interrupted:
             silent = [c.name for c in self.children if c.spec.run != "<tool>" and c.spec.outputs and not c.published]
             if silent:
