@@ -176,9 +176,10 @@ def _zenoh_schema() -> dict[str, Any]:
         "connect": "endpoints to connect to",
         "multicast_scouting": "find peers by UDP multicast (off: only the endpoints above)",
         "shm": "shared memory for large payloads between processes on this machine",
-        "shm_lane": "large arrays (64 KiB and more) between followbus processes on this machine through "
-                    "followbus's own shared memory, received without a copy; used only while every "
-                    "subscriber of the key is a followbus one on this machine (false: always inline)",
+        "shm_lane": "opt-in (default false): large arrays (64 KiB and more) between followbus processes on this "
+                    "machine through sealed shared memory (memfd), received without a copy; a plain subscriber "
+                    "of the key still gets the real message; keep it off where the bus's ACL must protect "
+                    "frames (graph.robot.yaml)",
         "connect_timeout_ms": "a client keeps retrying its endpoints this long before failing",
         "config": "raw zenoh json5 settings applied last, e.g. transport/auth/usrpwd, access_control, "
                   "transport/link/tls",

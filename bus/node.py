@@ -593,7 +593,7 @@ class NodeRuntime(NodeHost):
             self.queues[inp.name] = queue
             self.subscribers.append(Subscriber(
                 self.session, key, self._enqueuer(queue), schema=self.cls.INPUTS[inp.name], stats=stats,
-                logger=self.log,
+                logger=self.log, lane=graph.zenoh.shm_lane,
             ))
         self._hints: list[ReplayHint] = []
         if clock == "stamps" and self.sync is not None:

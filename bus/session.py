@@ -36,9 +36,9 @@ class ZenohSettings:
     connect: list[str] = field(default_factory=lambda: [DEFAULT_ENDPOINT])
     multicast_scouting: bool = False
     shm: bool = True
-    # Large arrays between processes on this machine in followbus's own shared memory, a descriptor over
-    # Zenoh (bus/shmlane.py): used only while every subscriber of the key is a followbus one on this host.
-    shm_lane: bool = True
+    # Large arrays between followbus processes on this machine in sealed shared memory, a descriptor over Zenoh
+    # (bus/shmlane.py). Opt-in: end to end it saves nothing measurable at the shipped resolution (BENCHMARKS.md).
+    shm_lane: bool = False
     connect_timeout_ms: int = 10_000  # a client keeps retrying its endpoints this long before failing
     # Raw json5 overrides applied last, e.g. {"access_control": {...}, "transport/link/tls": {...}}.
     config: dict[str, Any] = field(default_factory=dict)

@@ -218,9 +218,9 @@ class Recorder:
         for i, pattern in enumerate(self.opts.patterns):
             # Direct: the callback runs on zenoh's receive thread (it only copies and enqueues), which
             # keeps the order samples arrived in; zenoh-python's default hands each subscriber a thread.
-            # Inline: a recording keeps every frame, even across a stall of the recorder (a slow disk) that the
-            # same-host lane would turn into lost frames (bus/shmlane.py); the graph goes inline while recording.
-            self._subs.append(declare_subscriber(session, pattern, self._callback_for(i), inline=True))
+            # On the real keys, not the lane's side keys (bus/shmlane.py): publishers send the recorder the
+            # messages themselves, so a stall of the recorder (a slow disk) loses no frame to a rewritten segment.
+            self._subs.append(declare_subscriber(session, pattern, self._callback_for(i)))
 
     def _callback_for(self, index: int):
         def callback(sample: zenoh.Sample) -> None:
