@@ -22,6 +22,7 @@ log = logging.getLogger(__name__)
 
 SHM_THRESHOLD_BYTES = 64 * 1024
 SHM_POOL_BYTES = 64 * 1024 * 1024
+SHM_RETRY_S = 5.0  # after a failed shared-memory allocation, large payloads go inline this long, then retry
 CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
 # Zenoh queues each priority separately on a link: a "real_time" message is not stuck behind a backlog of
 # "data" ones (frames, a flood of bad payloads), which is what a stop command needs.
@@ -70,17 +71,22 @@ class RateLimitedLog:
 
 
 class ShmPool:
-    """Lazily created shared-memory provider shared by a process's publishers."""
+    """Lazily created shared-memory provider shared by a process's publishers.
+
+    A failed allocation (no /dev/shm, /dev/shm full, pool exhausted) sends that payload over the network path
+    and is tried again :data:`SHM_RETRY_S` later, never turned off for good: /dev/shm filled by something else
+    for a while must not cost the rest of the process's life."""
 
     def __init__(self, size_bytes: int = SHM_POOL_BYTES):
         self.size_bytes = size_bytes
         self._provider: Any = None
-        self._failed = False
+        self._retry_at = 0.0  # time.monotonic() before which shared memory is not tried again
+        self.failures = 0
         self._lock = threading.Lock()
 
     def _alloc(self, n: int) -> Any | None:
-        """A buffer of n bytes (caller holds the lock); None once shared memory turned out unusable."""
-        if self._failed:
+        """A buffer of n bytes (caller holds the lock); None while shared memory is unusable."""
+        if time.monotonic() < self._retry_at:
             return None
         try:
             import zenoh.shm as zshm
@@ -88,9 +94,12 @@ class ShmPool:
             if self._provider is None:
                 self._provider = zshm.ShmProvider.default_backend(self.size_bytes)
             return self._provider.alloc(n, zshm.GarbageCollect(zshm.Defragment()))
-        except Exception as exc:  # no /dev/shm, pool exhausted, ...: fall back to plain bytes
-            log.warning("shared memory unavailable (%s); publishing large payloads over the network path", exc)
-            self._failed = True
+        except Exception as exc:  # no /dev/shm, pool exhausted, ...: fall back to plain bytes for a while
+            self.failures += 1
+            if self.failures == 1 or self.failures % 100 == 0:
+                log.warning("shared memory unavailable (%s); publishing large payloads over the network path, "
+                            "trying again in %.0f s (%d failures)", exc, SHM_RETRY_S, self.failures)
+            self._retry_at = time.monotonic() + SHM_RETRY_S
             return None
 
     def warm_up(self) -> None:

@@ -12,6 +12,7 @@ listening on any other address without authentication is logged loudly (:func:`e
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
 import json
 import logging
@@ -129,10 +130,19 @@ def exposure(settings: ZenohSettings) -> str | None:
 
 
 def open_session(settings: ZenohSettings | None = None) -> zenoh.Session:
+    """Open a Zenoh session. With shared memory on, a session Zenoh cannot give shared memory (/dev/shm full:
+    "Unable to create POSIX shm segment") opens without it, with a warning: a node that crash-loops at start
+    because something else filled /dev/shm would stop the robot for nothing."""
     settings = settings or ZenohSettings()
     warning = exposure(settings)
     if warning:
         log.warning("zenoh: %s", warning)
     log.debug("opening zenoh session: mode=%s listen=%s connect=%s", settings.mode, settings.listen,
               settings.connect)
-    return zenoh.open(build_config(settings))
+    try:
+        return zenoh.open(build_config(settings))
+    except zenoh.ZError as exc:
+        if not settings.shm or "shm" not in str(exc).lower():
+            raise
+        log.warning("zenoh: shared memory unavailable (%s); opening the session without it", exc)
+        return zenoh.open(build_config(dataclasses.replace(settings, shm=False)))

@@ -36,8 +36,22 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--detector", default="yolox", choices=("yolox", "yolox640", "hog", "simulated"),
                    help="detection backend (default yolox = YOLOX-nano@416; falls back to hog without the model)")
     p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
+    p.add_argument("--resolution", default="640x480", metavar="WxH", type=_resolution,
+                   help="the scene's frame size (default 640x480; e.g. 1280x720, 1920x1080)")
+    p.add_argument("--lane", choices=("on", "off"), default="off",
+                   help="the same-host shared-memory lane (zenoh: shm_lane; default off, as graph.yaml)")
     p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1280x720, not {text!r}") from None
+    if not (32 <= w <= 7680 and 32 <= h <= 4320):
+        raise argparse.ArgumentTypeError(f"{text}: width 32-7680 and height 32-4320 pixels")
+    return w, h
 
 
 def _chaos_args(p: argparse.ArgumentParser) -> None:
