@@ -569,7 +569,8 @@ class NodeRuntime(NodeHost):
         if self.spec.nice is not None:
             _set_priority(self.spec.nice, logging.getLogger(f"followbus.{name}"))
         self._own_session = session is None
-        self.session = session or open_session(graph.zenoh)
+        launched = os.environ.get(LAUNCH_ID_ENV) is not None  # the launcher's session is the hub (session.py)
+        self.session = session or open_session(graph.zenoh.as_launched_node() if launched else graph.zenoh)
         self.started_ns = time.time_ns()
         self.subscribers: list[Subscriber] = []
         self.queues: dict[str, InputQueue] = {}

@@ -70,6 +70,18 @@ class ZenohSettings:
         )
 
 
+    def as_launched_node(self) -> ZenohSettings:
+        """A node the launcher started, on a router graph with access control (graph.robot.yaml): it listens
+        nowhere and connects to the launcher's session, the hub, which holds every listen endpoint and enforces
+        the access control for every link from outside. The node's own copy of the rules goes: user/password
+        authentication is one-way (the connecting side presents its password), so on the node's side the
+        hub's link carries no user name and an allow-list would refuse the hub itself."""
+        if self.mode != "router" or "access_control" not in self.config:
+            return self
+        config = {k: v for k, v in self.config.items() if k != "access_control"}
+        return dataclasses.replace(self, listen=[], connect=list(self.connect or self.listen), config=config)
+
+
 def build_config(settings: ZenohSettings) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(settings.mode))
