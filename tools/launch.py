@@ -225,22 +225,9 @@ class Launcher:
 
     def problems(self) -> list[str]:
         """What went wrong in the run that just ended, one phrase per node: a node that failed for good or
-        crash-looped (with the last error it printed), and, for a run that lasted its duration with
-        ``watch_outputs``, a node that never published any of its outputs."""
-        out = []
-        for child in self.children:
-            last_t, last_code = child.failures[-1] if child.failures else (0.0, child.exit_code)
-            recent = [t for t, _ in child.failures if t >= last_t - CRASH_LOOP_WINDOW_S]
-            if child.failed or len(recent) >= CRASH_LOOP_EXITS:
-                what = "failed for good" if child.failed else "crash-looped"
-                said = child.last_error or child.last_line
-                why = f": {said[:160]}" if said else ""
-                out.append(f"{child.name} {what} (exited {len(child.failures)} times, last status {last_code}){why}")
-            elif any(code == STOPPED_WORKING_EXIT for _, code in child.failures):
-                # Restarted, and maybe working again, but a scripted run must not pass as if nothing happened.
-                said = child.last_error or child.last_line
-                out.append(f"{child.name} stopped working and was restarted ({child.restarts} restarts)"
-                           + (f": {said[:160]}" if said else ""))
+        crash-looped (with the last error it printed), one that stopped working and was restarted, and, for a
+        run that lasted its duration with ``watch_outputs``, a node that never published any of its outputs."""
+        out = [phrase for phrase in map(_failure, self.children) if phrase]
         if self.watch_outputs and not self.interrupted:
             silent = [c.name for c in self.children if c.spec.run != "<tool>" and c.spec.outputs and not c.published]
             if silent:
@@ -344,6 +331,21 @@ class Launcher:
         if self.log_file is not None:
             self.log_file.close()
         return status
+
+
+def _failure(child: Child) -> str | None:
+    """One phrase for a child that failed for good, crash-looped or stopped working (bus/liveness.py); else None."""
+    said = child.last_error or child.last_line
+    why = f": {said[:160]}" if said else ""
+    last_t, last_code = child.failures[-1] if child.failures else (0.0, child.exit_code)
+    recent = [t for t, _ in child.failures if t >= last_t - CRASH_LOOP_WINDOW_S]
+    if child.failed or len(recent) >= CRASH_LOOP_EXITS:
+        what = "failed for good" if child.failed else "crash-looped"
+        return f"{child.name} {what} (exited {len(child.failures)} times, last status {last_code}){why}"
+    if any(code == STOPPED_WORKING_EXIT for _, code in child.failures):
+        # Restarted, and maybe working again, but a scripted run must not pass as if nothing happened.
+        return f"{child.name} stopped working and was restarted ({child.restarts} restarts){why}"
+    return None
 
 
 def install_stop_signals(launcher: Launcher) -> None:
