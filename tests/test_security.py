@@ -363,3 +363,22 @@ def test_robot_graph_over_tls_needs_the_ca(tmp_path, port):
         assert "Traceback" not in out
     finally:
         launch.stop()
+
+
+def test_a_health_watcher_tracks_a_bounded_number_of_names(port, monkeypatch):
+    """On an open bus anyone may declare tokens under `<ns>/@health/`: a watcher (the monitor, a source's start-up
+    barrier) keeps at most MAX_WATCHED_NODES names and counts the rest."""
+    from followbus.bus import health
+
+    monkeypatch.setattr(health, "MAX_WATCHED_NODES", 20)
+    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    try:
+        watcher = HealthWatcher(session, "flood", watch_status=False)
+        tokens = [session.liveliness().declare_token(f"flood/@health/n{i}") for i in range(100)]
+        assert wait_until(lambda: watcher.ignored >= 80, 10), watcher.ignored
+        assert len(watcher.nodes) == 20
+        for token in tokens:
+            token.undeclare()
+        watcher.close()
+    finally:
+        session.close()
