@@ -39,7 +39,7 @@ NAMESPACE_RE = re.compile(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
 TOP_KEYS = {"extends", "name", "namespace", "zenoh", "nodes", "max_lag_ms"}
 DEFAULT_MAX_LAG_MS = 150.0  # a frame set further behind the newest complete one is skipped (bus.sync)
 NODE_KEYS = {"run", "inputs", "outputs", "params", "restart", "host", "sync_timeout_ms", "max_lag_ms", "nice",
-             "description"}
+             "realtime", "description"}
 INPUT_KEYS = {"from", "queue", "policy", "sync", "offset", "optional"}
 RESTART_KEYS = {"policy", "max_restarts", "backoff_ms", "max_backoff_ms"}
 POLICIES = ("drop_oldest", "block")
@@ -109,6 +109,7 @@ class NodeSpec:
     sync_timeout_ms: float = 100.0
     max_lag_ms: float | None = None  # None: the graph's; 0: never skip a lagging frame set
     nice: int | None = None  # CPU priority of the node's process (-20 highest .. 19); None: inherited
+    realtime: int | None = None  # SCHED_RR priority (1..99) where permitted, else ``nice``; None: not real-time
     line: int | None = None
     param_lines: dict[str, int] = field(default_factory=dict)
 
@@ -450,6 +451,13 @@ def _parse_node(name: str, key_node: yaml.Node, node: yaml.Node, path: str) -> N
         if not -20 <= value <= 19:
             raise GraphError(path, _line(fields["nice"][1]), f"node {name!r}: nice must be in -20..19")
         spec.nice = value
+    if "realtime" in fields:
+        value = _expect(_plain(fields["realtime"][1], path), int, path, _line(fields["realtime"][1]),
+                        f"node {name!r}: realtime")
+        if not 1 <= value <= 99:
+            raise GraphError(path, _line(fields["realtime"][1]), f"node {name!r}: realtime must be in 1..99 "
+                                                                 "(a SCHED_RR priority)")
+        spec.realtime = value
     return spec
 
 

@@ -332,8 +332,20 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
     return cls, params
 
 
-def _set_priority(nice: int, log: logging.Logger) -> None:
-    """Run this process at CPU priority ``nice``: the motor's watchdog must keep its timing on a busy machine."""
+def _set_priority(nice: int | None, realtime: int | None, log: logging.Logger) -> None:
+    """Run this process in the real-time class at ``realtime`` (SCHED_RR), or else at CPU priority ``nice``: the
+    motor's watchdog must keep its timing on a busy machine. Called before the session opens, so the threads
+    Zenoh starts (which deliver the node's messages) inherit it."""
+    if realtime is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(realtime))
+            log.info("running real-time (SCHED_RR priority %d)", realtime)
+            return
+        except (OSError, AttributeError) as exc:  # needs root or CAP_SYS_NICE (and RT bandwidth in a container)
+            log.warning("could not run real-time (SCHED_RR %d: %s); falling back to %s", realtime, exc,
+                        f"nice {nice}" if nice is not None else "the inherited priority")
+    if nice is None:
+        return
     try:
         os.nice(nice - os.nice(0))
     except OSError as exc:  # raising priority needs root or CAP_SYS_NICE
@@ -517,8 +529,7 @@ class NodeRuntime(NodeHost):
         if clock == "sim":
             raise ValueError("a node on the bus runs on wall time or stamps; simulated time is bus.inproc's")
         super().__init__(graph, name, Clock(clock))
-        if self.spec.nice is not None:
-            _set_priority(self.spec.nice, logging.getLogger(f"followbus.{name}"))
+        _set_priority(self.spec.nice, self.spec.realtime, logging.getLogger(f"followbus.{name}"))
         self._own_session = session is None
         self.session = session or open_session(graph.zenoh)
         self.started_ns = time.time_ns()

@@ -1,9 +1,10 @@
 """``followbus bench chaos``: the tracking graph under faults. Does the loop always recover?
 
 The harness launches the tracking graph of graph.yaml (private loopback port and namespace; the demo
-scene, looping, real time at 30 Hz; the ``simulated`` detector by default) and tries one fault at a
-time: SIGKILL of each node (the launcher restarts it), SIGSTOP of prediction for 2 s, CPU burners, a
-slow detector, and messages injected on the real bus from the harness's own Zenoh session (a track
+scene, looping, real time at 30 Hz; the real YOLOX-nano detector by default), optionally under a background
+load of ``--burners N`` processes spinning a CPU each for the whole run, and tries one fault at a time: SIGKILL
+of each node (the launcher restarts it), SIGSTOP of prediction for 2 s, a stretch of following under the
+load, a slow (simulated) detector, and messages injected on the real bus from the harness's own Zenoh session (a track
 stamped an hour ahead, a far-future frame_seq, a NaN measurement, malformed payloads, a flood of
 frames). An observer on the same bus records every track, motor command and ground-truth message
 with its receive time, and after each fault the harness checks:
@@ -21,6 +22,9 @@ with its receive time, and after each fault the harness checks:
 * fault-specific checks: the node really restarted, malformed messages were counted in
   ``decode_errors`` with no restart, p99 capture→command latency and the fraction of captured frames
   that produced a command under load.
+
+Every figure comes with the machine's load: the 1-minute load average is sampled through the run and
+printed with the summary (and each fault's result), since a bound that holds on a quiet machine may not.
 
 If the loop did not recover, the next fault starts on a freshly launched graph, so one lock-up does
 not spoil the others. Pure harness: nothing here changes the graph's code paths.
@@ -465,10 +469,10 @@ class ChaosGraph:
 
 @dataclass
 class ChaosOptions:
-    detector: str = "simulated"  # simulated | yolox416
+    detector: str = "yolox416"  # yolox416 | simulated
     scene: str = "corridor-occlusion"
-    burners: int = 2
-    load_s: float = 10.0  # burners and detector delay: how long the load lasts
+    burners: int = 0  # processes spinning a CPU each for the whole run (background load)
+    load_s: float = 10.0  # the load fault and the detector delay: how long the measured stretch lasts
     recovery_bound_s: float = 2.0  # fault over (node back / injection done) -> following again
     hold_s: float = 3.0  # then: tracking most of this long
     hold_fraction: float = 0.5
@@ -485,6 +489,7 @@ class ChaosOptions:
     restart_timeout_s: float = 30.0
     record: bool = False
     port: int = 0
+    namespace: str = ""  # default chaos<port>
     workdir: Path | None = None
     log_file: Path | None = None
 
@@ -534,6 +539,7 @@ class FaultResult:
     latency_p50_ms: float | None = None
     latency_p99_ms: float | None = None
     processed: float | None = None
+    load1: float | None = None  # 1-minute load average when the fault's judgement ended
     relaunched: bool = False
     notes: list[str] = field(default_factory=list)
 
@@ -584,25 +590,29 @@ def _stop_prediction(run: ChaosRunner) -> Injection:
     return Injection(start, time.time_ns(), expect_pause=True, notes=["prediction SIGSTOPped for 2 s"])
 
 
-def _burners(run: ChaosRunner) -> Injection:
+def start_burners(n: int) -> list[subprocess.Popen]:
+    """``n`` processes spinning a CPU each (at the default priority), dying with this one."""
     from ..launch import _die_with_parent
 
-    n = run.options.burners
-    procs = []
+    return [subprocess.Popen([sys.executable, "-c", "while 1: pass"], preexec_fn=_die_with_parent,
+                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL) for _ in range(n)]
+
+
+def stop_burners(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        p.kill()
+    for p in procs:
+        p.wait()
+
+
+def _load(run: ChaosRunner) -> Injection:
+    # The run's background burners (--burners) are the load; this stretch measures following under it.
     start = time.time_ns()
-    try:
-        for _ in range(n):
-            procs.append(subprocess.Popen([sys.executable, "-c", "while 1: pass"], preexec_fn=_die_with_parent,
-                                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL))
-        time.sleep(run.options.load_s)
-    finally:
-        for p in procs:
-            p.kill()
-        for p in procs:
-            p.wait()
+    time.sleep(run.options.load_s)
     end = time.time_ns()
-    return Injection(start, end, load_window=(start + NS, end), check_load_processed=True,
-                     notes=[f"{n} CPU burners for {run.options.load_s:.0f} s on {os.cpu_count()} cores"])
+    return Injection(start, end, load_window=(start, end), check_load_processed=True,
+                     notes=[f"{run.options.burners} background CPU burners on {os.cpu_count()} cores, "
+                            f"load average {os.getloadavg()[0]:.1f}, {run.options.load_s:.0f} s measured"])
 
 
 def _detector_delay(run: ChaosRunner) -> Injection:
@@ -783,7 +793,8 @@ def _faults() -> dict[str, Fault]:
         *(Fault(f"kill-{n}", f"SIGKILL {n}; the launcher restarts it", _kill(n))
           for n in ("detection", "prediction", "reid", "template", "motor")),
         Fault("stop-prediction-2s", "SIGSTOP prediction for 2 s, then SIGCONT", _stop_prediction),
-        Fault("burners", "processes burning a CPU each (--burners, default 2) for --load-seconds", _burners),
+        Fault("load", "--load-seconds of following under the run's load (--burners background CPU burners): "
+                      "p99 capture->command and frames answered", _load),
         Fault("detector-delay-80ms", "the simulated detector takes 80 ms per frame (sim_delay_ms: 80)",
               _detector_delay, variant="delay80", simulated_only=True),
         Fault("future-stamp-track", "a TRACKING track stamped one hour ahead on prediction/track, then SIGKILL "
@@ -805,7 +816,7 @@ def _faults() -> dict[str, Fault]:
 
 
 FAULTS: dict[str, Fault] = _faults()
-ALIASES = {"capture-restart": "kill-capture", "burners-2": "burners"}
+ALIASES = {"capture-restart": "kill-capture", "burners": "load", "burners-2": "load"}
 CI_FAULTS = ("future-stamp-track", "future-seq-frame", "future-seq-detections", "nan-measurement", "kill-capture",
              "kill-reid", "malformed", "flood")
 
@@ -847,7 +858,7 @@ class ChaosRunner:
         self.options = options
         self.progress = progress or (lambda _line: None)
         self.port = options.port or _free_port()
-        self.namespace = f"chaos{self.port}"
+        self.namespace = options.namespace or f"chaos{self.port}"
         self._tmp: tempfile.TemporaryDirectory | None = None
         self.workdir = options.workdir
         self.graph: ChaosGraph | None = None
@@ -861,6 +872,9 @@ class ChaosRunner:
         self._publishers: dict[tuple[str, str, str, bool], Publisher] = {}
         self._last_survived = True
         self.launches = 0
+        self._burners: list[subprocess.Popen] = []
+        self.load_samples: list[float] = []  # 1-minute load average, once a second through the run
+        self._sampling = threading.Event()
 
     # -- lifecycle
     def __enter__(self) -> ChaosRunner:
@@ -876,6 +890,8 @@ class ChaosRunner:
             self.session = open_session(graph.zenoh)  # the harness holds the port: it outlives every node
             self.health = HealthWatcher(self.session, self.namespace)
             self.observer = Observer(self.session, graph, self.limits)
+            self._burners = start_burners(self.options.burners)
+            threading.Thread(target=self._sample_load, name="chaos-load", daemon=True).start()
         except BaseException:
             self.close()
             raise
@@ -884,7 +900,14 @@ class ChaosRunner:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def _sample_load(self) -> None:
+        while not self._sampling.wait(1.0):
+            self.load_samples.append(os.getloadavg()[0])
+
     def close(self) -> None:
+        self._sampling.set()
+        stop_burners(self._burners)
+        self._burners = []
         if self.stopped_pid is not None:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(self.stopped_pid, signal.SIGCONT)
@@ -1123,7 +1146,7 @@ class ChaosRunner:
             commands=len(commands), watchdog_ms=wd.worst_ms, watchdog_bound_ms=self.watchdog_bound_ms,
             back_s=inj.back_s, recovery_s=recovery_s, recovery_bound_s=opts.recovery_bound_s, hidden_s=hidden_s,
             held=held, latency_p50_ms=figures.get("p50_ms"), latency_p99_ms=figures.get("p99_ms"),
-            processed=figures.get("processed"), relaunched=relaunched,
+            processed=figures.get("processed"), load1=os.getloadavg()[0], relaunched=relaunched,
             notes=inj.notes + [f"{name}: {detail}" for name, (passed, detail) in checks.items() if passed],
         )
 
@@ -1153,6 +1176,7 @@ def summarise(results: Sequence[FaultResult]) -> list[dict[str, Any]]:
         p99 = [r.latency_p99_ms for r in rs if r.latency_p99_ms is not None]
         p50 = [r.latency_p50_ms for r in rs if r.latency_p50_ms is not None]
         proc = [r.processed for r in rs if r.processed is not None]
+        load = [r.load1 for r in rs if r.load1 is not None]
         rows.append({
             "fault": name, "tried": len(rs), "survived": sum(r.survived for r in rs),
             "unsafe": sum(r.unsafe_commands for r in rs), "watchdog_worst_ms": max(wd) if wd else None,
@@ -1160,7 +1184,7 @@ def summarise(results: Sequence[FaultResult]) -> list[dict[str, Any]]:
             "recovery_median_s": statistics.median(rec) if rec else None, "recovery_max_s": max(rec) if rec else None,
             "not_resumed": sum(r.recovery_s is None for r in rs), "held_min": min(held) if held else None,
             "p50_ms": max(p50) if p50 else None, "p99_ms": max(p99) if p99 else None,
-            "processed_min": min(proc) if proc else None,
+            "processed_min": min(proc) if proc else None, "load1_max": max(load) if load else None,
             "failures": sorted({f.split(":", 1)[0] for r in rs for f in r.failures}),
         })
     return rows
@@ -1168,8 +1192,9 @@ def summarise(results: Sequence[FaultResult]) -> list[dict[str, Any]]:
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     lines = ["| fault | survived / tried | unsafe cmds | watchdog stop ms (worst) | node back s | "
-             "recovery s (median / max) | tracking held (min) | p50 / p99 ms | processed | failed checks |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "recovery s (median / max) | tracking held (min) | p50 / p99 ms | processed | load (max) | "
+             "failed checks |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         rec = (f"{_fmt(r['recovery_median_s'], '.2f')} / {_fmt(r['recovery_max_s'], '.2f')}"
                + (f" ({r['not_resumed']} never)" if r["not_resumed"] else ""))
@@ -1179,7 +1204,8 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
                      f"{_fmt(None if r['held_min'] is None else 100 * r['held_min'], '.0f')}"
                      f"{'' if r['held_min'] is None else ' %'} | {lat} | "
                      f"{_fmt(None if r['processed_min'] is None else 100 * r['processed_min'], '.0f')}"
-                     f"{'' if r['processed_min'] is None else ' %'} | {', '.join(r['failures']) or '—'} |")
+                     f"{'' if r['processed_min'] is None else ' %'} | {_fmt(r['load1_max'], '.1f')} | "
+                     f"{', '.join(r['failures']) or '—'} |")
     return "\n".join(lines)
 
 
@@ -1208,6 +1234,7 @@ def run_bench_chaos(args: Any) -> int:
     options = ChaosOptions(detector=args.detector, scene=args.scene, burners=args.burners, load_s=args.load_seconds,
                            recovery_bound_s=args.recovery_bound, hold_s=args.hold,
                            malformed_per_key=args.malformed_per_key, record=args.record, port=args.port,
+                           namespace=args.namespace,
                            log_file=Path(args.log))
     total = len(faults) * args.repeat
     results: list[FaultResult] = []
@@ -1235,6 +1262,7 @@ def run_bench_chaos(args: Any) -> int:
                              f"unsafe {result.unsafe_commands})"
                              + "".join(f"\n    {f}" for f in result.failures))
             launches = runner.launches
+            load_samples = list(runner.load_samples)
     except ChaosError as exc:
         print(f"bench chaos: {exc}", file=sys.stderr)
         return 1
@@ -1244,15 +1272,48 @@ def run_bench_chaos(args: Any) -> int:
     rows = summarise(results)
     print()
     print(format_table(rows))
-    survived = sum(r.survived for r in results)
-    print(f"\n{survived} of {len(results)} fault runs survived; {sum(r.unsafe_commands for r in results)} unsafe "
-          f"commands; {launches} launch{'es' if launches != 1 else ''} of the graph; "
-          f"{time.monotonic() - started:.0f} s; "
-          f"watchdog bound {results[0].watchdog_bound_ms:.0f} ms, recovery bound {options.recovery_bound_s:.1f} s"
-          if results else "no faults run")
+    head = headline(results, load_samples, options)
+    print()
+    print(format_headline(head, launches, time.monotonic() - started) if results else "no faults run")
     if args.json:
         Path(args.json).write_text(json.dumps({
             "options": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(options).items()},
-            "cpu_count": os.cpu_count(), "load_average": os.getloadavg(),
+            "cpu_count": os.cpu_count(), "load_average": os.getloadavg(), "headline": head,
+            "load_samples": load_samples,
             "summary": rows, "runs": [dataclasses.asdict(r) for r in results]}, indent=1, ensure_ascii=False))
-    return 0 if results and survived == len(results) else 1
+    return 0 if results and head["survived"] == len(results) else 1
+
+
+def headline(results: Sequence[FaultResult], load_samples: Sequence[float], options: ChaosOptions) -> dict[str, Any]:
+    """The figures a reader compares across runs and machines: load, survival, unsafe commands, the worst stop,
+    following latency and frames answered under load (the load fault's)."""
+    wd = [r.watchdog_ms for r in results if r.watchdog_ms is not None]
+    p99 = [r.latency_p99_ms for r in results if r.latency_p99_ms is not None]
+    proc = [r.processed for r in results if r.processed is not None]
+    return {
+        "detector": options.detector, "burners": options.burners, "cpu_count": os.cpu_count(),
+        "load1_mean": statistics.fmean(load_samples) if load_samples else None,
+        "load1_max": max(load_samples) if load_samples else None,
+        "loadavg_end": Path("/proc/loadavg").read_text().strip() if Path("/proc/loadavg").exists() else None,
+        "runs": len(results), "survived": sum(r.survived for r in results),
+        "unsafe_commands": sum(r.unsafe_commands for r in results),
+        "commands": sum(r.commands for r in results),
+        "stop_max_ms": max(wd) if wd else None, "stop_bound_ms": options.watchdog_bound_ms,
+        "following_p99_ms": max(p99) if p99 else None, "p99_bound_ms": options.load_p99_ms,
+        "frames_answered_min": min(proc) if proc else None,
+    }
+
+
+def format_headline(head: dict[str, Any], launches: int, elapsed_s: float) -> str:
+    answered = head["frames_answered_min"]
+    return "\n".join([
+        f"load: {head['burners']} background burners on {head['cpu_count']} cores; 1-min load average "
+        f"{_fmt(head['load1_mean'], '.1f')} mean, {_fmt(head['load1_max'], '.1f')} max; "
+        f"/proc/loadavg at the end: {head['loadavg_end']}",
+        f"survived: {head['survived']} of {head['runs']} fault runs ({head['detector']} detector); "
+        f"unsafe commands: {head['unsafe_commands']} of {head['commands']}",
+        f"stop latency max: {_fmt(head['stop_max_ms'], '.0f')} ms (bound {head['stop_bound_ms']:.0f}); "
+        f"following p99: {_fmt(head['following_p99_ms'], '.0f')} ms (bound {head['p99_bound_ms']:.0f}); "
+        f"frames answered: {_fmt(None if answered is None else 100 * answered, '.0f')} %",
+        f"{launches} launch{'es' if launches != 1 else ''} of the graph; {elapsed_s:.0f} s",
+    ])
