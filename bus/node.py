@@ -74,7 +74,21 @@ def params_from_dict(cls: type, data: dict[str, Any]) -> Any:
     return cls(**kwargs)
 
 
+def _non_finite(value: Any) -> bool:
+    """Whether a parameter value holds NaN or ±inf anywhere (in a list or mapping too)."""
+    if isinstance(value, float):
+        return not math.isfinite(value)
+    if isinstance(value, (list, tuple)):
+        return any(_non_finite(v) for v in value)
+    if isinstance(value, dict):
+        return any(_non_finite(v) for v in value.values())
+    return False
+
+
 def _coerce(value: Any, hint: Any, key: str) -> Any:
+    # No parameter means anything with NaN or inf: a NaN gate never follows, an infinite timeout never fires.
+    if _non_finite(value):
+        raise ParamError(key, f"parameter {key!r} must be finite, not {value!r}")
     try:
         return conform(value, hint)
     except TypeMismatch as exc:
@@ -288,7 +302,10 @@ class Node:
 def load_node_class(run: str) -> type[Node]:
     import importlib
 
-    module = importlib.import_module(run)
+    try:
+        module = importlib.import_module(run)
+    except (ValueError, TypeError) as exc:  # "" or a relative name ("..template"): not a module name
+        raise ImportError(f"{run!r} is not a module name ({exc})") from exc
     cls = getattr(module, "NODE", None)
     if not (isinstance(cls, type) and issubclass(cls, Node)):
         raise ImportError(f"module {run!r} has no NODE class deriving from followbus.bus.node.Node")

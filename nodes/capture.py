@@ -56,6 +56,13 @@ class Capture(Node):
         params = super().parse_params(raw)
         if params.pace not in ("realtime", "fast"):
             raise ParamError("pace", f"pace must be 'realtime' or 'fast', not {params.pace!r}")
+        for key, low in (("width_px", 16), ("height_px", 16), ("preview_width_px", 16), ("max_in_flight", 1),
+                         ("jpeg_quality", 1), ("fps", 0), ("max_frames", 0), ("wait_for_consumers_s", 0),
+                         ("start_delay_s", 0)):
+            if getattr(params, key) < low:
+                raise ParamError(key, f"{key} must be >= {low}, not {getattr(params, key)!r}")
+        if params.jpeg_quality > 100:
+            raise ParamError("jpeg_quality", f"jpeg_quality must be in 1..100, not {params.jpeg_quality!r}")
         return params
 
     @classmethod
