@@ -226,10 +226,16 @@ def _is_mcap(source: str) -> bool:
 def mcap_frame_channel(path: str, frame_key: str = "") -> tuple[Any, str]:
     """(summary, frame key) of a recording to read frames from (bus/recording.py, the one reader of
     recordings); SourceError when the file is missing, unreadable or has no frames."""
-    from ..bus.recording import RecordingError, frame_channel  # here: a camera-fed capture never loads mcap
+    from ..bus.recording import (  # here: a camera-fed capture never loads mcap
+        RecordingError,
+        chunks_to_skip,
+        frame_channel,
+    )
 
     try:
-        return frame_channel(path, frame_key)
+        summary, key = frame_channel(path, frame_key)
+        chunks_to_skip(path, None, "refuse")  # a corrupt chunk: `followbus recover` makes a file without it
+        return summary, key
     except RecordingError as exc:
         reason = str(exc).removeprefix(f"{path}: ")
         raise SourceError(f"MCAP source {path!r}: {reason}") from exc
