@@ -452,28 +452,34 @@ def _parse_node(name: str, key_node: yaml.Node, node: yaml.Node, path: str) -> N
     if "host" in fields:
         spec.host = _expect(_plain(fields["host"][1], path), str, path, _line(fields["host"][1]),
                             f"node {name!r}: host")
+    _parse_node_options(spec, fields, path)
+    return spec
+
+
+def _bounded_int(node: yaml.Node, path: str, what: str, low: int, high: int, meaning: str) -> int:
+    value = _expect(_plain(node, path), int, path, _line(node), what)
+    if not low <= value <= high:
+        raise GraphError(path, _line(node), f"{what} must be in {low}..{high}{meaning}")
+    return value
+
+
+def _parse_node_options(spec: NodeSpec, fields: dict[str, tuple[yaml.Node, yaml.Node]], path: str) -> None:
+    """The node's scheduling options: sync_timeout_ms, max_lag_ms, nice, realtime."""
+    name = spec.name
     if "sync_timeout_ms" in fields:
-        value = _expect(_plain(fields["sync_timeout_ms"][1], path), (int, float), path,
-                        _line(fields["sync_timeout_ms"][1]), f"node {name!r}: sync_timeout_ms")
+        node = fields["sync_timeout_ms"][1]
+        value = _expect(_plain(node, path), (int, float), path, _line(node), f"node {name!r}: sync_timeout_ms")
         if not (math.isfinite(value) and value > 0):
-            raise GraphError(path, _line(fields["sync_timeout_ms"][1]),
+            raise GraphError(path, _line(node),
                              f"node {name!r}: sync_timeout_ms must be a finite number > 0, not {value!r}")
         spec.sync_timeout_ms = float(value)
     if "max_lag_ms" in fields:
         spec.max_lag_ms = _non_negative_ms(fields["max_lag_ms"][1], path, f"node {name!r}: max_lag_ms")
     if "nice" in fields:
-        value = _expect(_plain(fields["nice"][1], path), int, path, _line(fields["nice"][1]), f"node {name!r}: nice")
-        if not -20 <= value <= 19:
-            raise GraphError(path, _line(fields["nice"][1]), f"node {name!r}: nice must be in -20..19")
-        spec.nice = value
+        spec.nice = _bounded_int(fields["nice"][1], path, f"node {name!r}: nice", -20, 19, "")
     if "realtime" in fields:
-        value = _expect(_plain(fields["realtime"][1], path), int, path, _line(fields["realtime"][1]),
-                        f"node {name!r}: realtime")
-        if not 1 <= value <= 99:
-            raise GraphError(path, _line(fields["realtime"][1]), f"node {name!r}: realtime must be in 1..99 "
-                                                                 "(a SCHED_RR priority)")
-        spec.realtime = value
-    return spec
+        spec.realtime = _bounded_int(fields["realtime"][1], path, f"node {name!r}: realtime", 1, 99,
+                                     " (a SCHED_RR priority)")
 
 
 def _non_negative_ms(node: yaml.Node, path: str, what: str) -> float:

@@ -1164,27 +1164,25 @@ def _fmt(value: float | None, spec: str, none: str = "—") -> str:
     return none if value is None else format(value, spec)
 
 
+def _worst(results: Sequence[FaultResult], attr: str, pick: Callable[[list[Any]], Any] = max) -> Any:
+    """``pick`` (max, min, median) of a figure over the results that have it; None when none has."""
+    values = [getattr(r, attr) for r in results if getattr(r, attr) is not None]
+    return pick(values) if values else None
+
+
 def summarise(results: Sequence[FaultResult]) -> list[dict[str, Any]]:
     """One row per fault over repeats: tried, survived, worst figures."""
     rows: list[dict[str, Any]] = []
     for name in dict.fromkeys(r.fault for r in results):
         rs = [r for r in results if r.fault == name]
-        rec = [r.recovery_s for r in rs if r.recovery_s is not None]
-        wd = [r.watchdog_ms for r in rs if r.watchdog_ms is not None]
-        back = [r.back_s for r in rs if r.back_s is not None]
-        held = [r.held for r in rs if r.held is not None]
-        p99 = [r.latency_p99_ms for r in rs if r.latency_p99_ms is not None]
-        p50 = [r.latency_p50_ms for r in rs if r.latency_p50_ms is not None]
-        proc = [r.processed for r in rs if r.processed is not None]
-        load = [r.load1 for r in rs if r.load1 is not None]
         rows.append({
             "fault": name, "tried": len(rs), "survived": sum(r.survived for r in rs),
-            "unsafe": sum(r.unsafe_commands for r in rs), "watchdog_worst_ms": max(wd) if wd else None,
-            "back_max_s": max(back) if back else None,
-            "recovery_median_s": statistics.median(rec) if rec else None, "recovery_max_s": max(rec) if rec else None,
-            "not_resumed": sum(r.recovery_s is None for r in rs), "held_min": min(held) if held else None,
-            "p50_ms": max(p50) if p50 else None, "p99_ms": max(p99) if p99 else None,
-            "processed_min": min(proc) if proc else None, "load1_max": max(load) if load else None,
+            "unsafe": sum(r.unsafe_commands for r in rs), "watchdog_worst_ms": _worst(rs, "watchdog_ms"),
+            "back_max_s": _worst(rs, "back_s"), "recovery_median_s": _worst(rs, "recovery_s", statistics.median),
+            "recovery_max_s": _worst(rs, "recovery_s"), "not_resumed": sum(r.recovery_s is None for r in rs),
+            "held_min": _worst(rs, "held", min), "p50_ms": _worst(rs, "latency_p50_ms"),
+            "p99_ms": _worst(rs, "latency_p99_ms"), "processed_min": _worst(rs, "processed", min),
+            "load1_max": _worst(rs, "load1"),
             "failures": sorted({f.split(":", 1)[0] for r in rs for f in r.failures}),
         })
     return rows
@@ -1287,9 +1285,6 @@ def run_bench_chaos(args: Any) -> int:
 def headline(results: Sequence[FaultResult], load_samples: Sequence[float], options: ChaosOptions) -> dict[str, Any]:
     """The figures a reader compares across runs and machines: load, survival, unsafe commands, the worst stop,
     following latency and frames answered under load (the load fault's)."""
-    wd = [r.watchdog_ms for r in results if r.watchdog_ms is not None]
-    p99 = [r.latency_p99_ms for r in results if r.latency_p99_ms is not None]
-    proc = [r.processed for r in results if r.processed is not None]
     return {
         "detector": options.detector, "burners": options.burners, "cpu_count": os.cpu_count(),
         "load1_mean": statistics.fmean(load_samples) if load_samples else None,
@@ -1298,9 +1293,9 @@ def headline(results: Sequence[FaultResult], load_samples: Sequence[float], opti
         "runs": len(results), "survived": sum(r.survived for r in results),
         "unsafe_commands": sum(r.unsafe_commands for r in results),
         "commands": sum(r.commands for r in results),
-        "stop_max_ms": max(wd) if wd else None, "stop_bound_ms": options.watchdog_bound_ms,
-        "following_p99_ms": max(p99) if p99 else None, "p99_bound_ms": options.load_p99_ms,
-        "frames_answered_min": min(proc) if proc else None,
+        "stop_max_ms": _worst(results, "watchdog_ms"), "stop_bound_ms": options.watchdog_bound_ms,
+        "following_p99_ms": _worst(results, "latency_p99_ms"), "p99_bound_ms": options.load_p99_ms,
+        "frames_answered_min": _worst(results, "processed", min),
     }
 
 
