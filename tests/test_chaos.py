@@ -88,6 +88,9 @@ def test_watchdog_report_wants_a_stop_within_the_bound_of_the_last_track():
     # After a LOST track the motor has already stopped: a pause then needs no watchdog.
     lost = [*tracks[:-1], _track((last - T0) / MS, "LOST")]
     assert not watchdog_report(lost, commands, T0, T0 + 3000 * MS, 130, 200).violations
+    # While the motor process itself is dead (kill-motor) no stop can reach the bus: the MCU's hold_ms covers it.
+    down = (last - 50 * MS, last + 2000 * MS)
+    assert not watchdog_report(tracks, commands, T0, T0 + 3000 * MS, 130, 200, motor_down=down).violations
 
 
 def test_recovery_ignores_commands_answering_injected_tracks():

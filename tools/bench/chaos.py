@@ -193,13 +193,15 @@ class WatchdogReport:
 
 
 def watchdog_report(tracks: Sequence[TrackObs], commands: Sequence[CommandObs], t0_ns: int, t1_ns: int,
-                    timeout_ms: float, bound_ms: float) -> WatchdogReport:
+                    timeout_ms: float, bound_ms: float, motor_down: tuple[int, int] | None = None) -> WatchdogReport:
     """Stop latency for every pause in the track stream inside [t0, t1] that follows a moving state.
 
     A pause longer than ``timeout_ms`` gets its stop latency measured when a zero command came in it;
     a pause longer than ``bound_ms`` without a zero command within ``bound_ms`` is a violation. Times are
     the publishers' ``pub_ns`` (prediction's, the motor's; same machine clock), so the harness's own
-    scheduling does not enter the figure; the window [t0, t1] is on receive times.
+    scheduling does not enter the figure; the window [t0, t1] is on receive times. ``motor_down``: the motor
+    process's own death (kill to back up, pub_ns clock): a pause that starts then, or within the bound before,
+    cannot be answered by a stop on the bus; the MCU's own stop covers it (each command's hold_ms, README).
     """
     report = WatchdogReport()
     seq = sorted((t for t in tracks if t0_ns <= t.recv_ns <= t1_ns), key=lambda t: t.pub_ns)
@@ -209,6 +211,8 @@ def watchdog_report(tracks: Sequence[TrackObs], commands: Sequence[CommandObs], 
         nxt = seq[i + 1].pub_ns if i + 1 < len(seq) else end
         gap_ms = (nxt - last.pub_ns) / MS
         if gap_ms <= timeout_ms or last.state not in MOVING_STATES:
+            continue
+        if motor_down is not None and motor_down[0] - bound_ms * MS <= last.pub_ns <= motor_down[1]:
             continue
         stop = next((z for z in zeros if last.pub_ns < z <= nxt), None)
         if stop is not None:
@@ -506,6 +510,7 @@ class Injection:
     load_window: tuple[int, int] | None = None
     injected_stamps: set[int] = field(default_factory=set)
     expect_pause: bool = False  # the fault stops the track stream (noted when no watchdog stop was seen)
+    motor_down: tuple[int, int] | None = None  # the motor process itself was dead (kill -> back up)
     check_load_processed: bool = False
     after: Callable[[], None] | None = None  # checks that need the status messages after the fault
 
@@ -1044,7 +1049,8 @@ class ChaosRunner:
         ok = _wait(back, self.options.restart_timeout_s)
         h = self.health.snapshot()[node]
         end = h.since_ns if ok else time.time_ns()
-        inj = Injection(start, end, back_s=(end - start) / NS if ok else None, expect_pause=node != "motor")
+        inj = Injection(start, end, back_s=(end - start) / NS if ok else None, expect_pause=node != "motor",
+                        motor_down=(start, end) if node == "motor" else None)
         _check(inj.checks, "restarted", ok,
                f"{node} back after {(end - start) / NS:.1f} s (pid {pid} -> {self.graph.pid(node)})" if ok
                else f"{node} not back within {self.options.restart_timeout_s:.0f} s")
@@ -1105,7 +1111,7 @@ class ChaosRunner:
                + (f" (first: {unsafe[0][1]})" if unsafe else "")
                + (f", {undecodable} undecodable" if undecodable else ""))
         wd = watchdog_report(tracks, commands, inj.start_ns - NS, t_end - 300 * MS,
-                             self.limits.watchdog_timeout_ms, self.watchdog_bound_ms)
+                             self.limits.watchdog_timeout_ms, self.watchdog_bound_ms, inj.motor_down)
         _check(checks, "watchdog", not wd.violations,
                "; ".join(wd.violations[:3]) + (f" (+{len(wd.violations) - 3} more)" if len(wd.violations) > 3 else "")
                if wd.violations else (f"worst stop {wd.worst_ms:.0f} ms" if wd.stops_ms else
