@@ -257,6 +257,10 @@ def _node_schema(runs: dict[str, tuple[type, ...]]) -> dict[str, Any]:
         "nice": {"type": "integer", "minimum": -20, "maximum": 19,
                  "description": "CPU priority of the node's process (-20 highest); below 0 needs the right to "
                                 "raise priority (root or CAP_SYS_NICE), else it runs at the inherited priority"},
+        "realtime": {"type": "integer", "minimum": 1, "maximum": 99,
+                     "description": "run the node's process in the real-time class (SCHED_RR at this priority) "
+                                    "where permitted (root or CAP_SYS_NICE), else at `nice` with a warning: "
+                                    "for light, timing-critical nodes (the motor's watchdog) only"},
     }
     return {
         "type": "object", "required": ["run"], "additionalProperties": False,

@@ -82,7 +82,21 @@ def params_from_dict(cls: type, data: dict[str, Any]) -> Any:
     return cls(**kwargs)
 
 
+def _non_finite(value: Any) -> bool:
+    """Whether a parameter value holds NaN or ±inf anywhere (in a list or mapping too)."""
+    if isinstance(value, float):
+        return not math.isfinite(value)
+    if isinstance(value, (list, tuple)):
+        return any(_non_finite(v) for v in value)
+    if isinstance(value, dict):
+        return any(_non_finite(v) for v in value.values())
+    return False
+
+
 def _coerce(value: Any, hint: Any, key: str) -> Any:
+    # No parameter means anything with NaN or inf: a NaN gate never follows, an infinite timeout never fires.
+    if _non_finite(value):
+        raise ParamError(key, f"parameter {key!r} must be finite, not {value!r}")
     try:
         return conform(value, hint)
     except TypeMismatch as exc:
@@ -297,7 +311,10 @@ class Node:
 def load_node_class(run: str) -> type[Node]:
     import importlib
 
-    module = importlib.import_module(run)
+    try:
+        module = importlib.import_module(run)
+    except (ValueError, TypeError) as exc:  # "" or a relative name ("..template"): not a module name
+        raise ImportError(f"{run!r} is not a module name ({exc})") from exc
     cls = getattr(module, "NODE", None)
     if not (isinstance(cls, type) and issubclass(cls, Node)):
         raise ImportError(f"module {run!r} has no NODE class deriving from followbus.bus.node.Node")
@@ -341,8 +358,20 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
     return cls, params
 
 
-def _set_priority(nice: int, log: logging.Logger) -> None:
-    """Run this process at CPU priority ``nice``: the motor's watchdog must keep its timing on a busy machine."""
+def _set_priority(nice: int | None, realtime: int | None, log: logging.Logger) -> None:
+    """Run this process in the real-time class at ``realtime`` (SCHED_RR), or else at CPU priority ``nice``: the
+    motor's watchdog must keep its timing on a busy machine. Called before the session opens, so the threads
+    Zenoh starts (which deliver the node's messages) inherit it."""
+    if realtime is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(realtime))
+            log.info("running real-time (SCHED_RR priority %d)", realtime)
+            return
+        except (OSError, AttributeError) as exc:  # needs root or CAP_SYS_NICE (and RT bandwidth in a container)
+            log.warning("could not run real-time (SCHED_RR %d: %s); falling back to %s", realtime, exc,
+                        f"nice {nice}" if nice is not None else "the inherited priority")
+    if nice is None:
+        return
     try:
         os.nice(nice - os.nice(0))
     except OSError as exc:  # raising priority needs root or CAP_SYS_NICE
@@ -566,8 +595,7 @@ class NodeRuntime(NodeHost):
         if clock == "sim":
             raise ValueError("a node on the bus runs on wall time or stamps; simulated time is bus.inproc's")
         super().__init__(graph, name, Clock(clock))
-        if self.spec.nice is not None:
-            _set_priority(self.spec.nice, logging.getLogger(f"followbus.{name}"))
+        _set_priority(self.spec.nice, self.spec.realtime, logging.getLogger(f"followbus.{name}"))
         self._own_session = session is None
         launched = os.environ.get(LAUNCH_ID_ENV) is not None  # the launcher's session is the hub (session.py)
         self.session = session or open_session(graph.zenoh.as_launched_node() if launched else graph.zenoh)

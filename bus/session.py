@@ -16,6 +16,8 @@ import dataclasses
 import ipaddress
 import json
 import logging
+import math
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -52,9 +54,33 @@ class ZenohSettings:
         if unknown:
             raise ValueError(f"unknown zenoh key(s): {', '.join(sorted(unknown))}")
         settings = cls(**data)
-        if settings.mode not in MODES:
-            raise ValueError(f"zenoh mode must be one of {MODES}, not {settings.mode!r}")
+        settings.check()
         return settings
+
+    def check(self) -> None:
+        """Raise ValueError (one line) unless a session could be opened with these settings: types, endpoints,
+        and the config Zenoh itself builds from them (unknown or mistyped ``config`` keys)."""
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, not {self.mode!r}")
+        for key in ("listen", "connect"):
+            value = getattr(self, key)
+            if not isinstance(value, list) or not all(isinstance(ep, str) for ep in value):
+                raise ValueError(f"{key} must be a list of endpoints like {DEFAULT_ENDPOINT}, not {value!r}")
+            for endpoint in value:
+                check_endpoint(endpoint, listening=key == "listen")
+        for key in ("multicast_scouting", "shm", "shm_lane"):
+            if not isinstance(getattr(self, key), bool):
+                raise ValueError(f"{key} must be true or false, not {getattr(self, key)!r}")
+        timeout = self.connect_timeout_ms
+        if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not math.isfinite(timeout) \
+                or timeout <= 0:
+            raise ValueError(f"connect_timeout_ms must be a finite number > 0, not {timeout!r}")
+        if not isinstance(self.config, dict):
+            raise ValueError(f"config must be a mapping of zenoh json5 keys, not {self.config!r}")
+        try:
+            build_config(self)
+        except zenoh.ZError as exc:
+            raise ValueError(zenoh_error_text(exc)) from None
 
     def as_client(self, connect: list[str] | None = None) -> ZenohSettings:
         """The same network, joined as a client (tools that only watch: monitor, echo, record)."""
@@ -69,7 +95,6 @@ class ZenohSettings:
             config=dict(self.config),
         )
 
-
     def as_launched_node(self) -> ZenohSettings:
         """A node the launcher started, on a router graph with access control (graph.robot.yaml): it listens
         nowhere and connects to the launcher's session, the hub, which holds every listen endpoint and enforces
@@ -80,6 +105,39 @@ class ZenohSettings:
             return self
         config = {k: v for k, v in self.config.items() if k != "access_control"}
         return dataclasses.replace(self, listen=[], connect=list(self.connect or self.listen), config=config)
+
+
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+
+
+def check_endpoint(endpoint: str, listening: bool) -> None:
+    """Raise ValueError unless an IP endpoint (``tcp/host:port``) has a valid address and port: Zenoh accepts
+    ``tcp/999.1.1.1:99999`` in a config and only fails when it opens (a listener after a long timeout)."""
+    proto, sep, address = endpoint.partition("/")
+    if not sep or not proto or not address:
+        raise ValueError(f"endpoint {endpoint!r} must look like <protocol>/<address>, e.g. {DEFAULT_ENDPOINT}")
+    if proto not in _IP_PROTOCOLS:
+        return  # unixsock-stream/..., serial/...: Zenoh's own config check below
+    host, colon, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+    if not colon or not port.isdigit() or not (0 if listening else 1) <= int(port) <= 65535:
+        raise ValueError(f"endpoint {endpoint!r}: the port must be a number in {0 if listening else 1}..65535")
+    host = host.strip("[]")
+    if re.fullmatch(r"[0-9.]+", host) or ":" in host:  # an IP address, not a host name
+        try:
+            ipaddress.ip_address(host)
+        except ValueError:
+            raise ValueError(f"endpoint {endpoint!r}: {host!r} is not an IP address") from None
+    elif not re.fullmatch(r"[A-Za-z0-9]([A-Za-z0-9\-.]*[A-Za-z0-9])?", host):
+        raise ValueError(f"endpoint {endpoint!r}: {host!r} is not a host name or an IP address")
+
+
+def zenoh_error_text(exc: Exception) -> str:
+    """Zenoh's config error without its Rust debug wrapping: ``Json5Err(Message { msg: "unknown field ..." })``
+    → ``unknown field ...``."""
+    text = str(exc)
+    match = re.search(r'msg: "((?:[^"\\]|\\.)*)"', text) or re.search(r'Str\("((?:[^"\\]|\\.)*)"\)', text)
+    detail = match.group(1).replace('\\"', '"') if match else text.split(" at /", 1)[0]
+    return f"config: {detail}"
 
 
 def build_config(settings: ZenohSettings) -> zenoh.Config:
@@ -100,7 +158,10 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
         conf.insert_json5("connect/timeout_ms", json.dumps(settings.connect_timeout_ms))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shm))
     for key, value in settings.config.items():
-        conf.insert_json5(key, json.dumps(value))
+        try:
+            conf.insert_json5(key, json.dumps(value))
+        except zenoh.ZError as exc:  # name the key: Zenoh's own message may not
+            raise zenoh.ZError(f"{key}: {zenoh_error_text(exc).removeprefix('config: ')}") from None
     return conf
 
 

@@ -56,6 +56,13 @@ class Capture(Node):
         params = super().parse_params(raw)
         if params.pace not in ("realtime", "fast"):
             raise ParamError("pace", f"pace must be 'realtime' or 'fast', not {params.pace!r}")
+        for key, low in (("width_px", 16), ("height_px", 16), ("preview_width_px", 16), ("max_in_flight", 1),
+                         ("jpeg_quality", 1), ("fps", 0), ("max_frames", 0), ("wait_for_consumers_s", 0),
+                         ("start_delay_s", 0)):
+            if getattr(params, key) < low:
+                raise ParamError(key, f"{key} must be >= {low}, not {getattr(params, key)!r}")
+        if params.jpeg_quality > 100:
+            raise ParamError("jpeg_quality", f"jpeg_quality must be in 1..100, not {params.jpeg_quality!r}")
         return params
 
     @classmethod
@@ -219,10 +226,16 @@ def _is_mcap(source: str) -> bool:
 def mcap_frame_channel(path: str, frame_key: str = "") -> tuple[Any, str]:
     """(summary, frame key) of a recording to read frames from (bus/recording.py, the one reader of
     recordings); SourceError when the file is missing, unreadable or has no frames."""
-    from ..bus.recording import RecordingError, frame_channel  # here: a camera-fed capture never loads mcap
+    from ..bus.recording import (  # here: a camera-fed capture never loads mcap
+        RecordingError,
+        chunks_to_skip,
+        frame_channel,
+    )
 
     try:
-        return frame_channel(path, frame_key)
+        summary, key = frame_channel(path, frame_key)
+        chunks_to_skip(path, None, "refuse")  # a corrupt chunk: `followbus recover` makes a file without it
+        return summary, key
     except RecordingError as exc:
         reason = str(exc).removeprefix(f"{path}: ")
         raise SourceError(f"MCAP source {path!r}: {reason}") from exc

@@ -61,6 +61,7 @@ def _play_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loop", action="store_true", help="start again at the end")
     p.add_argument("--start-paused", action="store_true", help="wait for space (or s) before the first message")
     p.add_argument("--status", action="store_true", help="also publish recorded @status messages")
+    _on_corrupt_arg(p)
     connect_args(p)
 
 
@@ -94,7 +95,16 @@ def _replay_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
                    help="--isolated: seconds to wait for the node to come up (default 60)")
     p.add_argument("--max-frames", type=int, default=0, metavar="N", help="only the first N frames")
+    _on_corrupt_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _on_corrupt_arg(p: argparse.ArgumentParser) -> None:
+    from ...bus.recording import ON_CORRUPT
+
+    p.add_argument("--on-corrupt", choices=ON_CORRUPT, default="refuse",
+                   help="a chunk failing its CRC (checked before anything is used): refuse (the default: exit 2 "
+                        "naming the chunk and its time range) or skip it with a warning")
 
 
 def _info_args(p: argparse.ArgumentParser) -> None:

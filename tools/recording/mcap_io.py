@@ -56,6 +56,8 @@ from ...bus.recording import (
     BUS_SCHEMA_PREFIX,
     RecordingError,
     Salvage,
+    corrupt_chunks,
+    open_recording,
     read_metadata,
     read_summary,
     salvage_records,
@@ -306,6 +308,9 @@ class RecoverResult:
 
 def recover(in_path: str | Path, out_path: str | Path, compression: str | None = None) -> RecoverResult:
     """Rewrite every complete chunk (and metadata) of a possibly truncated MCAP file into a valid one."""
+    with open_recording(in_path) as f:  # a regular file, long enough, and an MCAP one: else nothing is written
+        if f.read(8) != MCAP0_MAGIC:
+            raise RecordingError(f"{in_path}: not an MCAP file")
     result = RecoverResult()
     found = Salvage()
     schemas: dict[int, Schema] = {}
@@ -403,6 +408,14 @@ def cmd_info(args) -> int:
             print(f"write error: {rec['write_error']} (the recording ends at its last complete chunk)")
     else:
         print("recorder:    no recording_stats (the recorder did not stop cleanly)")
+    bad = corrupt_chunks(path)
+    print(f"integrity:   {len(summary.chunk_indexes) - len(bad)} of {len(summary.chunk_indexes)} chunks pass their "
+          "CRC" + "".join(f"\n  corrupt:   {c.describe()}" for c in bad))
+    _print_channels(summary, stats, duration)
+    return 1 if bad else 0
+
+
+def _print_channels(summary: Any, stats: Any, duration: float) -> None:
     counts = stats.channel_message_counts if stats else {}
     rows = []
     for ch in summary.channels.values():
@@ -415,7 +428,6 @@ def cmd_info(args) -> int:
     print(f"\n{'topic':<{width}}  {'schema':<26} {'encoding':<{enc_width}} {'count':>7} {'rate Hz':>8}")
     for topic, schema_name, enc, n, rate in sorted(rows):
         print(f"{topic:<{width}}  {schema_name:<26} {enc:<{enc_width}} {n:>7} {rate:>8.1f}")
-    return 0
 
 
 def cmd_recover(args) -> int:
@@ -424,13 +436,14 @@ def cmd_recover(args) -> int:
     if dst.resolve() == src.resolve():
         print("followbus: recover writes a new file; choose another -o", file=sys.stderr)
         return 2
+    existed = dst.exists()
     try:
         result = recover(src, dst, args.compression)
-    except RecordingError as exc:
-        print(f"followbus: {exc}", file=sys.stderr)
-        return 2
-    except McapError as exc:
-        print(f"followbus: {src}: not an MCAP file ({exc})", file=sys.stderr)
+    except (RecordingError, McapError) as exc:
+        if not existed:  # nothing half-written left behind
+            dst.unlink(missing_ok=True)
+        print(f"followbus: {exc}" if isinstance(exc, RecordingError) else f"followbus: {src}: not an MCAP file ({exc})",
+              file=sys.stderr)
         return 2
     state = "the file was complete" if result.complete else f"stopped at the cut ({result.stopped_by or 'EOF'})"
     print(f"recovered {result.messages} messages from {result.chunks} complete chunks and {result.metadata} "

@@ -43,7 +43,14 @@ from ...bus.codec import HEADER_KEY, DecodeError, _split
 from ...bus.graph import GraphError, load_graph
 from ...bus.inproc import InProcessError, InProcessGraph
 from ...bus.node import load_node_class
-from ...bus.recording import RecordingError, bus_channels, is_bus_channel, read_metadata, read_summary
+from ...bus.recording import (
+    RecordingError,
+    bus_channels,
+    chunks_to_skip,
+    is_bus_channel,
+    read_metadata,
+    read_summary,
+)
 from ...bus.schemas import Message, ReplayHint, decode
 from .replay_feed import Feed, _header, recording_first_frame
 
@@ -211,6 +218,7 @@ class ReplayOptions:
     startup_timeout_s: float = 60.0
     max_frames: int = 0
     progress: bool = True
+    on_corrupt: str = "refuse"  # a chunk failing its CRC: refuse, or skip (bus.recording.ON_CORRUPT)
 
 
 @dataclass
@@ -309,6 +317,8 @@ class ReplayPlan:
                 log.warning("the recording has no messages on %s", key)
         if not any(key in recorded for key in self.inputs):
             raise RecordingError(f"{path}: none of the inputs were recorded ({', '.join(self.inputs)})")
+        # Before the node sees anything: a corrupt chunk would make --verify blame the node for the damage.
+        self.skip_chunks = chunks_to_skip(path, set(self.inputs) | set(self.outputs), options.on_corrupt)
         # Nodes whose live decisions are replayed: those with feedback inputs (bus.sync).
         self.feedback_inputs = {name: [i.name for i in self.graph.nodes[name].inputs.values()
                                        if i.sync == "frame" and i.offset] for name in self.nodes}
@@ -413,7 +423,7 @@ class Replayer:
                 target = IsolatedTarget(self._inproc, self.report, self.opts, Path(tmp))
             try:
                 target.start()
-                self.report.recording_first_frame = recording_first_frame(self.path)
+                self.report.recording_first_frame = recording_first_frame(self.path, self.plan.skip_chunks)
                 self._feed(target)
             except (RuntimeError, InProcessError) as exc:
                 self.report.error = str(exc)
@@ -593,7 +603,8 @@ def cmd_replay(args) -> int:
             nodes=[n.strip() for n in args.node.split(",") if n.strip()], graph_path=args.graph,
             params=parse_param_overrides(args.param or []), verify=args.verify, isolated=args.isolated,
             tolerance=Tolerance(args.rtol, args.atol), frame_timeout_s=args.timeout,
-            startup_timeout_s=args.startup_timeout, max_frames=args.max_frames or 0, progress=not args.no_progress)
+            startup_timeout_s=args.startup_timeout, max_frames=args.max_frames or 0, progress=not args.no_progress,
+            on_corrupt=args.on_corrupt)
         if not options.nodes:
             raise ValueError("--node: name a node (or several, comma-separated)")
         replayer = Replayer(Path(args.file), options)
