@@ -17,9 +17,10 @@ from typing import Any
 
 from . import __version__
 from .bench.commands import COMMANDS as BENCH_COMMANDS
-from .command import Command, Lazy, add_commands, describe, graph_arg, load_graph, settings
+from .command import Command, Lazy, add_commands, describe, graph_arg, identity_args, load_graph, settings
 from .live.commands import COMMANDS as LIVE_COMMANDS
 from .recording.commands import COMMANDS as RECORDING_COMMANDS
+from .runs.commands import COMMANDS as RUNS_COMMANDS
 
 EXIT_BAD_INPUT = 2
 
@@ -66,6 +67,8 @@ def _launch_args(p: argparse.ArgumentParser) -> None:
                    help="seconds between SIGTERM and SIGKILL at shutdown (default 5)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter (YAML value), e.g. --set capture.source=camera:0; repeatable")
+    identity_args(p, auto=True)
+    p.add_argument("--log-dir", metavar="DIR", help="also write each node's output to DIR/NODE.log (`followbus up`)")
 
 
 def _demo_args(p: argparse.ArgumentParser) -> None:
@@ -84,6 +87,7 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
                    help="where this run's node logs go (default: a new state/demo-YYYYmmdd-HHMMSS.log per run)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter, e.g. --set detection.backend=hog; repeatable")
+    identity_args(p, auto=True)
 
 
 def _node_args(p: argparse.ArgumentParser) -> None:
@@ -165,10 +169,16 @@ def cmd_schema(args) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import run_demo
+    from .demo import default_graph_path, run_demo
+    from .runs.claims import claim_from_args
 
+    args.graph = default_graph_path(args.graph)
+    held = claim_from_args(args, "demo")
     graph, overrides = demo_graph(args.graph, args.scene, args.overrides)
-    return run_demo(graph, args.duration, Path(args.log) if args.log else None, overrides)
+    try:
+        return run_demo(graph, args.duration, Path(args.log) if args.log else None, overrides)
+    finally:
+        held.close()
 
 
 def demo_graph(path: str, scene: str | None, given_overrides: list[str]) -> tuple[Any, list[str]]:
@@ -214,7 +224,9 @@ def cmd_launch(args) -> int:
     from ..bus.graph import apply_overrides
     from ..bus.node import RECORDER_NAME
     from .launch import Launcher, install_stop_signals
+    from .runs.claims import claim_from_args
 
+    held = claim_from_args(args, "up" if args.log_dir else "launch", args.log_dir or "")
     graph = load_graph(args.graph)
     apply_overrides(graph, args.overrides)
     only = [n.strip() for n in args.only.split(",")] if args.only else None
@@ -228,13 +240,17 @@ def cmd_launch(args) -> int:
     try:
         launcher = Launcher(graph, only=only, host=args.host, startup_timeout_s=args.startup_timeout,
                             grace_s=args.grace, extra_children=extra, overrides=args.overrides,
-                            watch_outputs=args.duration is not None)
+                            watch_outputs=args.duration is not None,
+                            log_dir=Path(args.log_dir) if args.log_dir else None, quiet=bool(args.log_dir))
     except ValueError as exc:
         print(f"followbus: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     install_stop_signals(launcher)
     logging.getLogger("followbus.launch").setLevel(logging.INFO)
-    status = launcher.run(args.duration)
+    try:
+        status = launcher.run(args.duration)
+    finally:
+        held.close()
     problems = launcher.problems() if args.duration is not None else []
     if problems:
         # A scripted run (CI, a smoke test) must not pass with a node that crash-looped or stayed silent.
@@ -282,6 +298,7 @@ COMMANDS: tuple[Command, ...] = (
             cmd_check),
     Command("schema", "print the JSON Schema of graph.yaml (editors validate and complete with it)", _schema_args,
             cmd_schema),
+    *RUNS_COMMANDS,
     *LIVE_COMMANDS,
     *BENCH_COMMANDS,
     *RECORDING_COMMANDS,

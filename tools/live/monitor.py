@@ -96,7 +96,7 @@ def monitor_settings(graph_path: str | None, connect: list[str] | None, user: st
     base: dict[str, Any] = {}
     endpoints = list(connect or [])
     if graph_path and Path(graph_path).exists():
-        from ...bus.graph import load_graph
+        from ..command import load_graph
 
         graph = load_graph(graph_path)
         base = dict(graph.zenoh.config)
@@ -126,7 +126,7 @@ class GraphInfo:
         owners = {out: node for out, (node, _) in WATCHED.items()}
         preview_owner = PREVIEW[0]
         if graph_path and Path(graph_path).exists():
-            from ...bus.graph import load_graph
+            from ..command import load_graph
 
             graph = load_graph(graph_path)
             info.namespace = graph.namespace
