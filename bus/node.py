@@ -156,6 +156,7 @@ class DownstreamBarrier:
         launched = os.environ.get(LAUNCHED_NODES_ENV)
         if launched:
             started = set(launched.split(","))
+            self.waiting_for &= started  # a consumer the launcher did not start (launch --only) never comes
             frontier = {name}
             while frontier:
                 fed = {n for n, spec in graph.nodes.items() if n in started and n not in self.waiting_for | {name}
@@ -202,6 +203,9 @@ class Node:
     # of what to follow on the first frame (set from the source's first ground-truth box, see first_truth_box).
     SOURCE_PARAM: ClassVar[str | None] = None
     INIT_BOX_PARAM: ClassVar[str | None] = None
+    # The param naming a file the node keeps its state in across restarts: a replay clears it, so it neither
+    # starts from nor overwrites the live graph's state.
+    STATE_FILE_PARAM: ClassVar[str | None] = None
 
     def __init__(self, params: Any, runtime: NodeHost):
         self.params = params

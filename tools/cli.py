@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -245,6 +246,7 @@ def cmd_launch(args) -> int:
     except ValueError as exc:
         print(f"followbus: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    _warn_unfed(graph, [c.name for c in launcher.children if c.spec.run != "<tool>"], bool(only or args.host))
     install_stop_signals(launcher)
     logging.getLogger("followbus.launch").setLevel(logging.INFO)
     try:
@@ -257,6 +259,15 @@ def cmd_launch(args) -> int:
         print(f"followbus launch: {'; '.join(problems)}", file=sys.stderr, flush=True)
         return status or 1
     return status
+
+
+def _warn_unfed(graph, started: list[str], partial: bool) -> None:
+    """launch --only/--host: say at once which inputs of the started nodes nothing started here produces."""
+    unfed = [f"{name}.{inp.name} ({inp.source_node}/{inp.source_output})" for name in started
+             for inp in graph.nodes[name].inputs.values() if inp.source_node not in started]
+    if partial and unfed:
+        print(f"followbus launch: no producer launched for {', '.join(unfed)}: they wait for a node started "
+              "elsewhere (or a replay)", file=sys.stderr, flush=True)
 
 
 def _validate(graph, overrides: list[str] | None = None, *, opened: set[str] | None = None,
@@ -335,12 +346,14 @@ def main(argv: list[str] | None = None) -> int:
     from ..bus.graph import GraphError
     from ..vision.models import ModelError
     from .connect import BusUnreachable, explain_connect_failure, is_connect_failure
-    from .errors import UsageError
+    from .errors import INTERRUPTED, UsageError
 
+    _note_interrupts()
     # A user's mistake (or a graph that is not running) is one line on stderr and exit status 2; a failure
     # found while running (a node crashed, nothing arrived, a replay differs) is reported by the command: 1.
     try:
-        return args.run(args)
+        status = args.run(args)
+        return 130 if INTERRUPTED.is_set() else status
     except BrokenPipeError:
         # The reader went away (`followbus info F | head`): stop quietly, as any Unix tool does. Standard output
         # is pointed at /dev/null so the interpreter's final flush does not fail a second time.
@@ -360,6 +373,19 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         return 130
+
+
+def _note_interrupts() -> None:
+    """Ctrl-C raises KeyboardInterrupt as ever, and is remembered: a command that catches it to stop cleanly
+    still exits 130 (the shell's convention, README). A SIGINT ignored by the caller (a background job) stays so."""
+    from .errors import INTERRUPTED
+
+    def on_sigint(_signum, _frame) -> None:
+        INTERRUPTED.set()
+        raise KeyboardInterrupt
+
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, on_sigint)
 
 
 if __name__ == "__main__":

@@ -69,20 +69,21 @@ def _move_port(endpoints: list[str], old: int, new: int) -> list[str]:
 
 
 def apply_identity(graph: Any, environ: dict[str, str] | None = None) -> Any:
-    """Apply $FOLLOWBUS_DOMAIN / $FOLLOWBUS_NAMESPACE / $FOLLOWBUS_PORT to a loaded graph (in place; returned)."""
+    """Apply $FOLLOWBUS_NAMESPACE / $FOLLOWBUS_PORT (replacing the graph's) and then $FOLLOWBUS_DOMAIN (moving
+    both) to a loaded graph, in place; returned."""
     env = os.environ if environ is None else environ
     domain = parse_domain(env.get(DOMAIN_ENV), f"${DOMAIN_ENV}") or 0
-    namespace = env.get(NAMESPACE_ENV) or (f"{graph.namespace}-d{domain}" if domain else None)
-    port = parse_port(env.get(PORT_ENV), f"${PORT_ENV}")
+    namespace = env.get(NAMESPACE_ENV) or graph.namespace
     old = well_known_port(graph.zenoh)
-    if port is None and domain and old is not None:
-        port = old + domain
-    if namespace:
-        from ..bus.graph import NAMESPACE_RE
+    port = parse_port(env.get(PORT_ENV), f"${PORT_ENV}") or old
+    if domain:
+        namespace = f"{namespace}-d{domain}"
+        port = port + domain if port is not None else None
+    from ..bus.graph import NAMESPACE_RE
 
-        if not NAMESPACE_RE.match(namespace):
-            raise UsageError(f"namespace {namespace!r} is not a valid key prefix (letters, digits, _ - and /)")
-        graph.namespace = namespace
+    if not NAMESPACE_RE.match(namespace):
+        raise UsageError(f"namespace {namespace!r} is not a valid key prefix (letters, digits, _ - and /)")
+    graph.namespace = namespace
     if port is not None and old is not None and port != old:
         graph.zenoh.listen = _move_port(graph.zenoh.listen, old, port)
         graph.zenoh.connect = _move_port(graph.zenoh.connect, old, port)

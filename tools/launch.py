@@ -349,7 +349,11 @@ class Launcher:
 
 
 def install_stop_signals(launcher: Launcher) -> None:
+    from .errors import INTERRUPTED
+
     def handler(signum, _frame):
+        if signum == signal.SIGINT:
+            INTERRUPTED.set()
         log.info("received %s: stopping the graph", signal.Signals(signum).name)
         launcher.request_stop()
 

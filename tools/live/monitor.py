@@ -661,8 +661,11 @@ def run_monitor(args: Any) -> int:
                 console.file.write(SEPARATOR + "\n")
                 show(console, monitor.snapshot())
                 time.sleep(0.5)
-    except KeyboardInterrupt:
-        pass
     finally:
         monitor.close()
+    if not monitor.ever_connected:  # a timed run that never saw the graph: not a success
+        from ..connect import explain_connect_failure
+
+        print(f"followbus: {explain_connect_failure(settings)}", file=sys.stderr)
+        return 2
     return 0
