@@ -156,7 +156,6 @@ class DownstreamBarrier:
         launched = os.environ.get(LAUNCHED_NODES_ENV)
         if launched:
             started = set(launched.split(","))
-            self.waiting_for &= started  # a consumer the launcher did not start (launch --only) never comes
             frontier = {name}
             while frontier:
                 fed = {n for n, spec in graph.nodes.items() if n in started and n not in self.waiting_for | {name}

@@ -53,31 +53,6 @@ def test_launch_only_names_the_inputs_nothing_launched_produces(graph_file):
                                              "they wait for a node started elsewhere (or a replay)")
 
 
-def test_a_source_does_not_wait_for_consumers_that_were_not_launched(graph_file, monkeypatch):
-    """capture holds frame 0 until its consumers listen: under launch --only, only for those launched."""
-    from types import SimpleNamespace
-
-    from followbus.bus.graph import load_graph
-    from followbus.bus.node import LAUNCHED_NODES_ENV, DownstreamBarrier
-    from followbus.bus.session import open_session
-
-    graph = load_graph(graph_file("  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n"
-                                  "  sink:\n    run: followbus.nodes.diagnostics_sink\n"
-                                  "    inputs: {tick: ticker/tick}\n"))
-    session = open_session(graph.zenoh)
-    try:
-        runtime = SimpleNamespace(graph=graph, spec=graph.nodes["ticker"], log=None, session=session)
-        monkeypatch.setenv(LAUNCHED_NODES_ENV, "ticker")
-        alone = DownstreamBarrier(runtime, 15.0, 0.0)
-        monkeypatch.setenv(LAUNCHED_NODES_ENV, "ticker,sink")
-        both = DownstreamBarrier(runtime, 15.0, 0.0)
-        assert (alone.waiting_for, both.waiting_for) == (set(), {"sink"})
-        alone.close()
-        both.close()
-    finally:
-        session.close()
-
-
 def test_monitor_that_never_reached_a_graph_fails_in_one_line(tmp_path, port):
     result = run_followbus("monitor", "--connect", f"tcp/127.0.0.1:{port}", "--seconds", "1", timeout=30)
     assert one_error_line(result).startswith(f"followbus: no graph is running on tcp/127.0.0.1:{port}")

@@ -262,12 +262,22 @@ def cmd_launch(args) -> int:
 
 
 def _warn_unfed(graph, started: list[str], partial: bool) -> None:
-    """launch --only/--host: say at once which inputs of the started nodes nothing started here produces."""
+    """launch --only/--host: say at once which inputs of the started nodes nothing started here produces, and which
+    consumers outside it a source waits for before its first message (bus/node.py DownstreamBarrier)."""
+    if not partial:
+        return
     unfed = [f"{name}.{inp.name} ({inp.source_node}/{inp.source_output})" for name in started
              for inp in graph.nodes[name].inputs.values() if inp.source_node not in started]
-    if partial and unfed:
+    if unfed:
         print(f"followbus launch: no producer launched for {', '.join(unfed)}: they wait for a node started "
               "elsewhere (or a replay)", file=sys.stderr, flush=True)
+    for source in (n for n in started if not graph.nodes[n].inputs):
+        waits = sorted(c for c, spec in graph.nodes.items() if c not in started
+                       and any(i.source_node == source for i in spec.inputs.values()))
+        if waits:
+            print(f"followbus launch: {source} waits for {', '.join(waits)} (not launched here) up to its "
+                  f"wait_for_consumers_s before its first message (--set {source}.wait_for_consumers_s=0: at once)",
+                  file=sys.stderr, flush=True)
 
 
 def _validate(graph, overrides: list[str] | None = None, *, opened: set[str] | None = None,
