@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..command import Command, Lazy, describe, identity_args
+from ..command import Command, Lazy, connect_args, describe, identity_args
 
 
 def _up_args(p: argparse.ArgumentParser) -> None:
@@ -56,6 +56,30 @@ def _graph_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", metavar="FILE", help="write to FILE instead of standard output")
 
 
+def _param_get_args(p: argparse.ArgumentParser) -> None:
+    describe(p, "Print the value a running node's parameter has now (and whether it can be changed live).",
+             "example: followbus param get reid.reid_threshold")
+    p.add_argument("target", metavar="NODE.PARAM")
+    connect_args(p, timeout=False)
+
+
+def _param_set_args(p: argparse.ArgumentParser) -> None:
+    describe(p, "Change a parameter of a running node, for the parameters the node declares live-tunable; checked "
+                "as at launch. The change shows in the node's status (params_set) and is published on "
+                "<ns>/<node>/parameter_events, so a recording keeps it. It lasts until the node restarts.",
+             "example: followbus param set reid.reid_threshold 0.8")
+    p.add_argument("target", metavar="NODE.PARAM")
+    p.add_argument("value", help="a YAML value, as --set takes it")
+    connect_args(p, timeout=False)
+
+
+PARAM_COMMANDS: tuple[Command, ...] = (
+    Command("get", "a running node's parameter", _param_get_args, Lazy("runs.params_cmd", "cmd_param_get")),
+    Command("set", "change a live-tunable parameter of a running node", _param_set_args,
+            Lazy("runs.params_cmd", "cmd_param_set")),
+)
+
+
 def _check_logs(args: argparse.Namespace) -> int:
     if len(args.names) > 2:
         from ..errors import UsageError
@@ -70,5 +94,6 @@ COMMANDS: tuple[Command, ...] = (
     Command("logs", "a node's log of a graph started with `up` (-f: follow)", _logs_args, _check_logs),
     Command("down", "stop a graph started with `up` (or any running launch)", _down_args,
             Lazy("runs.detached", "cmd_down")),
+    Command("param", "read or change a running node's parameters", subcommands=PARAM_COMMANDS, metavar="get|set"),
     Command("graph", "draw a graph's nodes and keys (DOT or SVG)", _graph_args, Lazy("runs.drawing_cmd", "cmd_graph")),
 )
