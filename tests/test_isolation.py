@@ -120,3 +120,15 @@ def test_two_demos_at_once_each_run_their_own_graph(tmp_path):
     assert sum("running in domain 1:" in out for out in outs) == 1, outs
     for out in outs:
         assert re.search(r"TSR@20px \d", out), out
+
+
+def test_demo_from_another_directory_runs_the_checkouts_graph(tmp_path, monkeypatch, capsys):
+    from followbus.tools.demo import default_graph_path
+
+    monkeypatch.chdir(tmp_path)
+    assert default_graph_path("graph.yaml") == str(REPO / "graph.yaml")
+    said = capsys.readouterr().out.strip()
+    assert said == f"no graph.yaml in {tmp_path}: running the checkout's {REPO / 'graph.yaml'}"
+    (tmp_path / "graph.yaml").write_text("")
+    assert default_graph_path("graph.yaml") == "graph.yaml"  # one here is the user's
+    assert default_graph_path("mine.yaml") == "mine.yaml"  # a missing --graph: the loader's own line
