@@ -31,6 +31,11 @@ examples:
   followbus launch graph.yaml             run the graph (one process per node)
   followbus launch graph.yaml --only capture,detection --duration 10
   followbus node detection                run one node of ./graph.yaml in this terminal
+  followbus demo --domain auto            in the first domain where no graph runs (FOLLOWBUS_DOMAIN=N: that one)
+  followbus up graph.yaml                 in the background, a log file per node; then: ps, logs, down
+  followbus logs followbus-demo reid -f   one node's log of a graph started with up
+  followbus param set reid.reid_threshold 0.8   change a live-tunable parameter of a running node
+  followbus graph graph.yaml --svg -o g.svg     draw the nodes and keys (or --dot)
   followbus topics                        keys seen on the bus with their rates
   followbus echo fb/prediction/track      print decoded messages
   followbus hz fb/capture/frame           rate and latency of one key
@@ -44,7 +49,8 @@ examples:
   followbus models                        where the ONNX models are found; checks their SHA-256
 
 Every command that talks to the bus reads the zenoh settings of --graph (default ./graph.yaml);
---connect tcp/HOST:7447 joins another machine's graph as a client instead.
+--connect tcp/HOST:7447 joins another machine's graph as a client instead. $FOLLOWBUS_DOMAIN=N (as launch
+--domain N) moves every command and node to the graph's port + N and namespace <namespace>-dN.
 """
 
 
