@@ -6,10 +6,11 @@ from __future__ import annotations
 import json
 import re
 import subprocess
+import time
 
 import pytest
 
-from .conftest import REPO, followbus_argv, run_followbus, wait_until
+from .conftest import REPO, followbus_argv, run_followbus
 
 pytestmark = pytest.mark.slow
 
@@ -32,12 +33,17 @@ def test_param_get_set_on_a_running_node(graph_file):
     try:
         got = run_followbus("param", "get", "ticker.rate_hz", "--graph", graph)
         assert (got.returncode, got.stdout.strip()) == (0, "ticker.rate_hz = 20.0")
-        assert wait_until(lambda: _set(graph, "5").returncode == 0, 10)  # the echo's subscription may lag
+        # Set until the echo (a process that takes a moment to subscribe) has heard the event.
+        deadline = time.monotonic() + 30
+        while events.poll() is None and time.monotonic() < deadline:
+            done = _set(graph, "5")
+            assert done.returncode == 0 and done.stdout.strip().endswith("-> 5.0"), done.stderr
+            time.sleep(1.0)
         assert run_followbus("param", "get", "ticker.rate_hz", "--graph", graph).stdout.strip() == \
             "ticker.rate_hz = 5.0"
         status = run_followbus("echo", "o1lp/@status/ticker", "-n", "1", "--graph", graph, "--timeout", "5")
         assert '"params_set": {"rate_hz": 5.0}' in status.stdout, status.stdout
-        line = events.communicate(timeout=30)[0]
+        line = events.communicate(timeout=5)[0]
         event = json.loads(line.split(": ", 1)[1])
         assert event["state"] == "param_set" and event["extra"]["param"] == "rate_hz"
         assert event["extra"]["value"] == 5.0
