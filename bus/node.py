@@ -31,6 +31,7 @@ from typing import Any, ClassVar
 import zenoh
 
 from .graph import Graph, GraphError, NodeSpec
+from .live_params import LiveParams
 from .liveness import (
     HANDLER_FAILURE_LIMIT,
     POLL_FAILURE_LIMIT,
@@ -224,6 +225,12 @@ class Node:
     # of what to follow on the first frame (set from the source's first ground-truth box, see first_truth_box).
     SOURCE_PARAM: ClassVar[str | None] = None
     INIT_BOX_PARAM: ClassVar[str | None] = None
+    # The param naming a file the node keeps its state in across restarts: a replay clears it, so it neither
+    # starts from nor overwrites the live graph's state.
+    STATE_FILE_PARAM: ClassVar[str | None] = None
+    # Params `followbus param set` may change while the node runs (bus/live_params.py): only those the node's code
+    # reads afresh on every message from its params objects.
+    LIVE_PARAMS: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self, params: Any, runtime: NodeHost):
         self.params = params
@@ -636,6 +643,8 @@ class NodeRuntime(NodeHost):
         self._status_pub = Publisher(self.session, graph.status_key(self.spec.name), self.spec.name,
                                      congestion="drop")
         self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
+        self._event_pubs: dict[str, Publisher] = {}
+        self.live_params = LiveParams(self, self._publish_event)
 
     def start(self) -> None:
         super().start()
@@ -658,10 +667,18 @@ class NodeRuntime(NodeHost):
             self._hints.append(hint)  # type: ignore[arg-type]
             self._cond.notify_all()
 
+    def _publish_event(self, key: str, msg: NodeStatus) -> None:
+        if key not in self._event_pubs:
+            self._event_pubs[key] = Publisher(self.session, key, self.spec.name)
+        self._event_pubs[key].put(msg)
+        self._status_pub.put(self.status())  # the new value in the status at once, not a second later
+
     def status(self) -> NodeStatus:
         topics = {p.key: p.stats.snapshot() for p in self.publishers.values()}
         topics.update({q.stats.key: q.stats.snapshot() for q in self.queues.values()})
         extra = self.sync_counters()
+        if self.live_params.changed:
+            extra["params_set"] = dict(self.live_params.changed)
         try:
             extra.update(self.node.status_extra())
         except Exception as exc:  # status must never take the node down
@@ -730,6 +747,8 @@ class NodeRuntime(NodeHost):
         if self._token is not None:
             with contextlib.suppress(Exception):
                 self._token.undeclare()
+        with contextlib.suppress(Exception):
+            self.live_params.close()
         for sub in self.subscribers:
             with contextlib.suppress(Exception):
                 sub.undeclare()

@@ -35,6 +35,7 @@ class TickerParams:
 class Ticker(Node):
     OUTPUTS = {"tick": Tick}
     Params = TickerParams
+    LIVE_PARAMS = frozenset({"rate_hz"})  # read on every tick (followbus param set)
 
     def setup(self) -> None:
         self.value = 0

@@ -44,6 +44,7 @@ class MotorParams:
 
 class Motor(Node):
     INPUTS = {"track": Track}
+    LIVE_PARAMS = frozenset({"max_track_age_ms"})  # read on every track (followbus param set)
     REQUIRED_INPUTS = frozenset({"track"})
     OUTPUTS = {"command": MotorCommand, "odometry": Odometry}
     EXPRESS = frozenset({"command"})

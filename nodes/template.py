@@ -47,6 +47,7 @@ class TemplateNode(Node):
     INPUTS = {"frame": Frame, "measurement": Measurement}
     REQUIRED_INPUTS = frozenset({"frame", "measurement"})
     OUTPUTS = {"template": Template}
+    STATE_FILE_PARAM = "state_file"
 
     @classmethod
     def params_classes(cls) -> tuple[type, ...]:

@@ -103,9 +103,11 @@ def viewer_args(p: argparse.ArgumentParser) -> None:
 # --- what commands that join the bus need --------------------------------------------------------------
 
 def load_graph(path: str) -> Any:
+    """The graph file with this process's identity applied ($FOLLOWBUS_DOMAIN, ..., tools/identity.py)."""
     from ..bus.graph import load_graph as load
+    from .identity import apply_identity
 
-    return load(path)
+    return apply_identity(load(path))
 
 
 def settings(args: argparse.Namespace) -> Any:
@@ -117,7 +119,9 @@ def settings(args: argparse.Namespace) -> Any:
     elif Path(args.graph).exists():
         out = load_graph(args.graph).zenoh.as_client()
     else:
-        out = ZenohSettings().as_client()
+        from .identity import apply_identity
+
+        out = apply_identity(_DefaultGraph()).zenoh.as_client()
     if getattr(args, "connect_timeout", None) is not None:
         out.connect_timeout_ms = max(1, round(args.connect_timeout * 1000))
     return out
@@ -126,4 +130,26 @@ def settings(args: argparse.Namespace) -> Any:
 def namespace(args: argparse.Namespace) -> str:
     if Path(getattr(args, "graph", "graph.yaml")).exists():
         return load_graph(args.graph).namespace
-    return "fb"
+    from .identity import apply_identity
+
+    return apply_identity(_DefaultGraph()).namespace
+
+
+class _DefaultGraph:
+    """What a tool assumes with no graph file: namespace fb on the default endpoint (then the identity)."""
+
+    def __init__(self) -> None:
+        from ..bus.session import ZenohSettings
+
+        self.namespace = "fb"
+        self.zenoh = ZenohSettings()
+
+
+def identity_args(p: argparse.ArgumentParser, auto: bool = False) -> None:
+    """A launched graph's identity on the bus (tools/identity.py): refused when that namespace already runs there."""
+    p.add_argument("--domain", metavar="N" + ("|auto" if auto else ""),
+                   help="run in domain N: the graph's port + N and namespace <namespace>-dN, apart from every other "
+                        "domain (default: $FOLLOWBUS_DOMAIN, else 0: the graph as written)"
+                        + ("; auto: the first domain where no graph runs" if auto else ""))
+    p.add_argument("--namespace", help="bus namespace (default: the graph's, or $FOLLOWBUS_NAMESPACE)")
+    p.add_argument("--port", help="the well-known port peers meet on (default: the graph's, or $FOLLOWBUS_PORT)")

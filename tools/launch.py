@@ -77,8 +77,10 @@ class Launcher:
     def __init__(self, graph: Graph, *, only: list[str] | None = None, host: str | None = None,
                  startup_timeout_s: float = 30.0, grace_s: float = 5.0, extra_env: dict[str, str] | None = None,
                  extra_children: list[tuple[str, list[str]]] | None = None, quiet: bool = False,
-                 overrides: list[str] | None = None, log_file: Path | None = None, watch_outputs: bool = False):
+                 overrides: list[str] | None = None, log_file: Path | None = None, watch_outputs: bool = False,
+                 log_dir: Path | None = None):
         self.graph = graph
+        self.log_dir = log_dir  # a log file per node (<log_dir>/<node>.log) besides the prefixed lines
         # Subscribe to every node's outputs until its first message: problems() names the silent ones.
         self.watch_outputs = watch_outputs
         self.interrupted = False  # stopped by Ctrl-C/SIGTERM rather than by its duration
@@ -137,7 +139,11 @@ class Launcher:
     def _pump(self, child: Child, stream) -> None:
         width = max(len(c.name) for c in self.children)
         prefix = f"[{child.name:<{width}}] "
+        own = open(self.log_dir / f"{child.name}.log", "ab") if self.log_dir else None  # noqa: SIM115
         for raw in iter(stream.readline, b""):
+            if own is not None:
+                own.write(raw)
+                own.flush()
             line = raw.decode(errors="replace").rstrip()
             if ERROR_LINE_RE.search(line.strip()):
                 child.last_error = line.strip()
@@ -145,6 +151,8 @@ class Launcher:
                 child.last_line = line.strip()
             self._print(prefix + line)
         stream.close()
+        if own is not None:
+            own.close()
 
     def _start(self, child: Child) -> None:
         child.proc = subprocess.Popen(
@@ -349,7 +357,11 @@ def _failure(child: Child) -> str | None:
 
 
 def install_stop_signals(launcher: Launcher) -> None:
+    from .errors import INTERRUPTED
+
     def handler(signum, _frame):
+        if signum == signal.SIGINT:
+            INTERRUPTED.set()
         log.info("received %s: stopping the graph", signal.Signals(signum).name)
         launcher.request_stop()
 

@@ -187,13 +187,20 @@ def cmd_play(args, settings) -> int:
     try:
         session = open_session(settings)
     except zenoh.ZError as exc:
-        print(f"followbus: cannot join the bus via {', '.join(settings.connect)}: {exc}", file=sys.stderr)
+        from ..connect import explain_connect_failure, is_connect_failure
+
+        said = explain_connect_failure(settings) if is_connect_failure(exc) else f"cannot join the bus: {exc}"
+        print(f"followbus: {said}", file=sys.stderr)
         return 2
     player = Player(session, path, keys, remaps, rate=rate, loop=args.loop, paused=args.start_paused,
                     shm=settings.shm, keyboard=keyboard)
     player.skip_chunks = skip
 
-    def on_signal(_signum, _frame):
+    def on_signal(signum, _frame):
+        if signum == signal.SIGINT:
+            from ..errors import INTERRUPTED
+
+            INTERRUPTED.set()  # exit 130, once the player has stopped cleanly
         player.stop_event.set()
 
     signal.signal(signal.SIGINT, on_signal)

@@ -262,6 +262,18 @@ class ReplayReport:
         return not verify or not (self.mismatch_count or self.missing or self.extra or not self.outputs_compared)
 
 
+def _forget_state_file(name: str, spec: Any, params: dict[str, Any], given: dict[str, Any]) -> None:
+    """A replayed node keeps no state file (unless --param names one): the live graph's state/template.npz is
+    neither read at its start nor overwritten by a replay."""
+    try:
+        key = load_node_class(spec.run).STATE_FILE_PARAM
+    except ImportError:
+        return
+    if key and params.get(key) and key not in given:
+        log.info("%s: %s=%s not used by the replay (the live graph's state)", name, key, params[key])
+        params[key] = ""
+
+
 class ReplayPlan:
     """What is replayed: the graph as recorded (params applied), the nodes, and which recorded keys are
     their inputs (produced outside them) and their outputs."""
@@ -288,6 +300,7 @@ class ReplayPlan:
         for name in self.nodes:
             spec = self.graph.nodes[name]
             params = json.loads(recorded_params[name]) if name in recorded_params else dict(spec.params)
+            _forget_state_file(name, spec, params, overrides.get(name, {}))
             params.update(overrides.get(name, {}))
             spec.params = params  # what the runtime builds the node with
             self.params[name] = params
