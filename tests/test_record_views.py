@@ -20,9 +20,9 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from followbus.bus.recording import BUS_MESSAGE_ENCODING
 from followbus.bus.schemas import SCHEMAS, Detections, Frame, MotorCommand, Odometry, Track, decode
-from followbus.tools.recording.record import RecordOptions, Recorder, ros2_path
+from followbus.tools.recording.record import Recorder, RecordOptions, ros2_path
 
-from .conftest import REPO, free_port, run_followbus
+from .conftest import free_port, run_followbus
 
 ROS2_TYPES = {"image": "sensor_msgs/msg/CompressedImage", "twist": "geometry_msgs/msg/Twist",
               "odometry": "nav_msgs/msg/Odometry", "detections2d": "vision_msgs/msg/Detection2DArray"}
