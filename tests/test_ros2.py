@@ -213,3 +213,28 @@ def _iou(a, b) -> float:
     x2, y2 = min(a[0] + a[2], b[0] + b[2]), min(a[1] + a[3], b[1] + b[3])
     inter = max(0.0, x2 - x1) * max(0.0, y2 - y1)
     return inter / (a[2] * a[3] + b[2] * b[3] - inter)
+
+
+def test_the_ros2_node_can_reach_a_router_of_its_own():
+    """``connect``: a session of its own to the ROS 2 side (owned: closed by the node), not the graph's."""
+    from followbus.nodes.ros2 import ros_session
+
+    port = free_port()
+    router = _session(port, listen=True)
+    got: list[zenoh.Sample] = []
+    sub = router.declare_subscriber("0/**", got.append)
+    session, owned = ros_session(None, f"tcp/127.0.0.1:{port}")
+    try:
+        assert owned
+        node = Ros2Node(session, "followbus")
+        pub = node.publisher("/cmd_vel", ros2.TWIST)
+        time.sleep(0.5)
+        pub.publish(ros2.twist(0.5, 0.0, 0.0))
+        assert wait_until(lambda: len(got) == 1, 5)
+        node.close()
+    finally:
+        session.close()
+        sub.undeclare()
+        router.close()
+    graph_session = object()
+    assert ros_session(graph_session, "") == (graph_session, False)  # type: ignore[arg-type]
