@@ -201,3 +201,23 @@ def test_a_recorded_demo_run_decodes_without_followbus(tmp_path):
     assert len(ros2["n1demo/motor/command/twist"]) == len(commands[1])
     assert len(ros2["n1demo/capture/frame/image"]) == len(views["n1demo/capture/frame/image"]) > 0
     assert len(ros2["n1demo/detection/detections/detections2d"]) > 0 and ros2["n1demo/motor/odometry/odometry"]
+
+
+def test_bench_record_views_measures_before_and_now(tmp_path, capsys):
+    """`followbus bench record-views`: both rows per round, per frame of the recording; no frames: exit 2."""
+    import argparse
+
+    from followbus.tools.bench.record_views import run_bench_record_views
+    from followbus.tools.recording.mcap_io import RecordingWriter
+
+    path = tmp_path / "small.mcap"
+    writer = RecordingWriter(path)
+    for i, (key, msg) in enumerate(list(sample_messages().items()) * 2):
+        msg.header.stamp_ns = 1_000_000_000 + i
+        writer.write(writer.bus_channel(key, msg.TYPE), msg.header.stamp_ns, msg.encode())
+    writer.finish()
+    args = argparse.Namespace(file=str(path), rounds=1, frame_output="frame")
+    assert run_bench_record_views(args) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines() if line.startswith("1 ")]
+    assert [r[1] for r in rows] == ["before", "now"] and all(float(r[2]) > 0 for r in rows)
+    assert run_bench_record_views(argparse.Namespace(file=str(path), rounds=1, frame_output="nothing")) == 2

@@ -40,7 +40,7 @@ def _record_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk-seconds", type=float, default=1.0, metavar="S",
                    help="close and flush a chunk at least this often: all a SIGKILL can lose (default 1)")
     p.add_argument("--jpeg-quality", type=int, default=80, metavar="Q",
-                   help="JPEG quality of the Foxglove copies of bgr8 frames (default 80)")
+                   help="JPEG quality of the image views of bgr8 frames (default 80)")
     p.add_argument("--no-foxglove", "--no-views", action="store_true", dest="no_foxglove",
                    help="store the bus messages only (no ROS 2 / JSON / Foxglove views)")
     p.add_argument("--raw-images", action="store_true",

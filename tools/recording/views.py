@@ -101,6 +101,8 @@ def json_schema(type_name: str) -> ViewSchema:
 
 def _plain(value: Any) -> Any:
     if isinstance(value, np.ndarray):
+        if value.dtype.kind in "iub" or (value.dtype.kind == "f" and np.isfinite(value).all()):
+            return value.tolist()  # the common case, without a Python step per element
         value = value.tolist()
     if isinstance(value, float):
         return value if math.isfinite(value) else None
@@ -113,8 +115,13 @@ def _plain(value: Any) -> Any:
     return value
 
 
+@cache
+def _field_names(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(cls))
+
+
 def json_view(msg: Message) -> bytes:
-    return json.dumps({f.name: _plain(getattr(msg, f.name)) for f in dataclasses.fields(msg)},
+    return json.dumps({name: _plain(getattr(msg, name)) for name in _field_names(type(msg))},
                       allow_nan=False, separators=(",", ":")).encode()
 
 
