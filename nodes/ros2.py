@@ -49,9 +49,9 @@ class Ros2Params:
     connect: str = ""  # a Zenoh endpoint of the ROS 2 side (its rmw_zenohd router); "": the graph's session
 
 
-def check_topic(topic: str, what: str) -> None:
+def check_topic(topic: str, what: str, example: str = "/cmd_vel") -> None:
     if not topic.startswith("/") or "//" in topic or topic.endswith("/") or " " in topic:
-        raise ParamError(what, f"{what} must be an absolute ROS 2 topic name like /cmd_vel, not {topic!r}")
+        raise ParamError(what, f"{what} must be an absolute ROS 2 topic name like {example}, not {topic!r}")
 
 
 def ros_session(graph_session: zenoh.Session | None, connect: str) -> tuple[zenoh.Session, bool]:
@@ -133,7 +133,7 @@ def ros2_image_topic(source: str) -> tuple[str, str]:
     """(topic, message type) of a ``ros2:<topic>`` source; SourceError for a malformed one."""
     topic = source[len(ROS2_SOURCE_PREFIX):].strip()
     try:
-        check_topic(topic, "source")
+        check_topic(topic, "source", "/camera/image_raw")
     except ParamError as exc:
         raise SourceError(f"ROS 2 source {source!r}: {exc}") from None
     return topic, ros2.COMPRESSED_IMAGE if topic.endswith("/compressed") else ros2.IMAGE
