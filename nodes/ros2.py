@@ -94,7 +94,7 @@ class Ros2Out(Node):
     def on_message(self, name: str, msg: Message) -> None:
         if not isinstance(msg, MotorCommand):
             return
-        self.last_command_ns = self.wall_ns()
+        self.last_command_ns = self.monotonic_ns()  # a watchdog: no stamp may steer it
         self._send(ros2.command_twist(msg), moving=bool(msg.vx_mps or msg.vy_mps or msg.wz_radps))
         point = ros2.target_point(msg)
         if self.target is not None and point is not None:
@@ -107,7 +107,7 @@ class Ros2Out(Node):
 
     def poll(self, now_ns: int) -> float | None:
         stale_ns = self.params.stale_after_ms * 1e6
-        if self.moving and self.last_command_ns is not None and now_ns - self.last_command_ns > stale_ns:
+        if self.moving and self.last_command_ns is not None and self.monotonic_ns() - self.last_command_ns > stale_ns:
             self.log.warning("no motor command for %.0f ms: zero Twist on %s", self.params.stale_after_ms,
                              self.params.cmd_vel_topic)
             self._send(ros2.twist(0.0, 0.0, 0.0), moving=False)

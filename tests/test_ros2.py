@@ -238,3 +238,73 @@ def test_the_ros2_node_can_reach_a_router_of_its_own():
         router.close()
     graph_session = object()
     assert ros_session(graph_session, "") == (graph_session, False)  # type: ignore[arg-type]
+
+
+class _Clock:
+    def __init__(self):
+        self.t_ns = 1_000_000_000
+
+    def monotonic_ns(self) -> int:
+        return self.t_ns
+
+    def wall_ns(self) -> int:
+        return self.t_ns
+
+    now_ns = wall_ns
+
+
+def test_the_ros2_node_sends_a_zero_twist_when_commands_stop_or_it_stops():
+    """The node only forwards, and never leaves a ROS 2 base moving on followbus's last word: a command older
+    than stale_after_ms (200) is followed by a zero Twist, and so is its teardown; a stopped base gets no repeats."""
+    from types import SimpleNamespace
+
+    from followbus.bus.schemas import MotorCommand
+    from followbus.nodes.ros2 import Ros2Out, Ros2Params
+
+    port = free_port()
+    session, listener_session = _session(port, listen=True), _session(port, listen=False)
+    clock = _Clock()
+    runtime = SimpleNamespace(spec=SimpleNamespace(name="ros2"), latest={}, session=session, clock=clock,
+                              provenance=None, publishers={})
+    node = Ros2Out(Ros2Params(cmd_vel_topic="/n1/cmd_vel", target_topic="/n1/target"), runtime)
+    twists, targets = [], []
+    listener = Ros2Node(listener_session, "listener")
+    listener.subscription("/n1/cmd_vel", ros2.TWIST, lambda m, _s: twists.append((m.linear.x, m.angular.z)))
+    listener.subscription("/n1/target", ros2.POINT_STAMPED, lambda m, _s: targets.append((m.point.x, m.point.y)))
+    try:
+        node.setup()
+        time.sleep(0.5)
+        node.on_message("command", MotorCommand(vx_mps=0.5, wz_radps=0.2, range_m=2.0, bearing_rad=0.0))
+        clock.t_ns += 150_000_000
+        node.poll(clock.t_ns)  # 150 ms: still fresh
+        clock.t_ns += 100_000_000
+        node.poll(clock.t_ns)  # 250 ms: stale -> zero
+        node.poll(clock.t_ns)  # stopped: nothing more
+        node.on_message("command", MotorCommand(vx_mps=0.3))
+        node.teardown()  # moving -> zero
+        assert wait_until(lambda: len(twists) == 4, 5), twists
+        assert twists == [(0.5, 0.2), (0.0, 0.0), (0.3, 0.0), (0.0, 0.0)]
+        assert targets == [(2.0, 0.0)]  # the second command had no target
+    finally:
+        listener.close()
+        listener_session.close()
+        session.close()
+
+
+def test_a_malformed_sample_is_counted_and_dropped():
+    port = free_port()
+    session, other = _session(port, listen=True), _session(port, listen=False)
+    got: list = []
+    node = Ros2Node(session, "followbus_capture")
+    sub = node.subscription("/n1/camera/image_raw", ros2.IMAGE, lambda m, _s: got.append(m))
+    try:
+        time.sleep(0.5)
+        other.put(sub.key, b"\x00\x01\x00\x00 not an image")
+        good = ros2.serialize(ros2.image(_frame(np.zeros((4, 6, 3), np.uint8)), "cam"), ros2.IMAGE)
+        other.put(sub.key, good, attachment=attachment(1, 5, bytes(16)))
+        assert wait_until(lambda: sub.errors == 1 and sub.received == 1, 5), (sub.errors, sub.received)
+        assert got[0].width == 6 and ros2.image_pixels(got[0]).shape == (4, 6, 3)
+    finally:
+        node.close()
+        other.close()
+        session.close()
