@@ -59,6 +59,7 @@ from typing import Any
 
 import zenoh
 
+from ...bus import ros2
 from ...bus.codec import DecodeError, Header, peek
 from ...bus.node import RECORDER_NAME
 from ...bus.pubsub import RateLimitedLog, declare_subscriber, frame_bytes
@@ -204,6 +205,8 @@ class Recorder:
         self._closed_counts: dict[str, int] = {}  # bus messages per key in the files already finished
         self.ros2_writer: RecordingWriter | None = None
         self.writer = self._open_writer()
+        if options.foxglove:
+            ros2.typestore()  # built now, not by the first frame's conversion while the graph starts
         self._key_exprs = [zenoh.KeyExpr(p) for p in options.patterns]
         self._excluded = [zenoh.KeyExpr(p) for p in options.exclude]
         self._subs: list[Any] = []
