@@ -24,7 +24,8 @@ def _record_args(p: argparse.ArgumentParser) -> None:
              "status 1. Ends with received/written/dropped counts and the messages lost upstream "
              "(header.seq gaps).",
              "examples:\n  followbus record -o recordings/run1.mcap --duration 60\n"
-             "  followbus record --topics 'fb/capture/**' 'fb/prediction/**' --status",
+             "  followbus record --topics 'fb/capture/**' 'fb/prediction/**' --status\n"
+             "  followbus record -o recordings/day.mcap --split-size 1000    # day_0.mcap, day_1.mcap, ... of 1 GB",
              raw=True)
     p.add_argument("-o", "--output", metavar="FILE", help="output file (default recordings/<graph>-<time>.mcap)")
     p.add_argument("--topics", nargs="+", metavar="PATTERN", help="key expressions to record (default <ns>/**)")
