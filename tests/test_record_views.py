@@ -221,3 +221,19 @@ def test_bench_record_views_measures_before_and_now(tmp_path, capsys):
     rows = [line.split() for line in capsys.readouterr().out.splitlines() if line.startswith("1 ")]
     assert [r[1] for r in rows] == ["before", "now"] and all(float(r[2]) > 0 for r in rows)
     assert run_bench_record_views(argparse.Namespace(file=str(path), rounds=1, frame_output="nothing")) == 2
+
+
+def test_split_duration_starts_a_new_file_on_time(tmp_path):
+    path = tmp_path / "timed.mcap"
+    recorder = Recorder(RecordOptions(output=path, patterns=["t/**"], split_seconds=0.3, ros2_file=False), {})
+    recorder.start_threads()
+    for i in range(10):
+        msg = MotorCommand(vx_mps=0.1 * i)
+        msg.header.stamp_ns, msg.header.seq = 1_000_000_000 + i, i
+        recorder._enqueue("t/motor/command", msg.encode())
+        time.sleep(0.1)
+    report = recorder.stop()
+    assert 2 <= len(report.files) <= 5 and report.files[0].name == "timed_0.mcap", report.files
+    assert report.ros2_files == [] and not list(tmp_path.glob("*.ros2.mcap"))
+    twists = [t for f in report.files for t in decode_every_view(f).get("t/motor/command/twist", [])]
+    assert [round(t.linear.x, 9) for t in twists] == [round(0.1 * i, 9) for i in range(10)]
