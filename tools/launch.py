@@ -32,6 +32,7 @@ from ..bus.pubsub import Publisher, direct_callback
 from ..bus.session import open_session
 
 log = logging.getLogger("followbus.launch")
+TOOL_GRACE_S = 30.0  # a tool beside the graph (the recorder) gets this long to stop after SIGTERM
 
 PR_SET_PDEATHSIG = 1
 # A node that fails again after being restarted this recently is crash-looping: its restarts are not helping.
@@ -316,12 +317,14 @@ class Launcher:
         for child in running:
             with contextlib.suppress(ProcessLookupError):
                 child.proc.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + self.grace_s
+        stopped_at = time.monotonic()
         for child in running:
+            # The recorder drains its queue to disk and finalises the file: killed, it leaves one to `recover`.
+            grace_s = self.grace_s if child.spec.run != "<tool>" else max(self.grace_s, TOOL_GRACE_S)
             try:
-                child.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+                child.proc.wait(timeout=max(0.0, stopped_at + grace_s - time.monotonic()))
             except subprocess.TimeoutExpired:
-                log.warning("%s did not stop within %.1f s; killing it", child.name, self.grace_s)
+                log.warning("%s did not stop within %.1f s; killing it", child.name, grace_s)
                 child.proc.kill()
                 child.proc.wait()
         for child in self.children:

@@ -54,6 +54,19 @@ def _resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _record_views_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "Feed a recording's bus messages through the recorder's convert and write work, in one process, "
+             "with the views as they were (base64 JPEG JSON, annotations) and as they are (ROS 2 CDR, JSON of "
+             "every message, annotations, the .ros2.mcap companion); per frame, rounds alternated.",
+             "example: followbus launch graph.yaml --duration 20 --record run.mcap --set detection.backend=simulated\n"
+             "         followbus bench record-views run.mcap --rounds 3", raw=True)
+    p.add_argument("file", help="a recording (followbus record / launch --record)")
+    p.add_argument("--rounds", type=int, default=3, help="rounds of before, now (default 3)")
+    p.add_argument("--frame-output", default="frame", metavar="NAME",
+                   help="frames are counted on the keys <node>/NAME (default frame)")
+
+
 def _chaos_args(p: argparse.ArgumentParser) -> None:
     describe(p,
              "Launch graph.yaml on a private loopback port (scene looping at 30 Hz, the real YOLOX-nano\n"
@@ -158,6 +171,8 @@ COMMANDS = (
                 Lazy("bench.pipeline", "run_bench_pipeline")),
         Command("chaos", "fault injection: does the live loop always recover? (RELIABILITY.md)", _chaos_args,
                 Lazy("bench.chaos", "run_bench_chaos")),
+        Command("record-views", "what the recorder's views cost per frame (convert and write), before and now",
+                _record_views_args, Lazy("bench.record_views", "run_bench_record_views")),
     )),
     Command("eval", "score followers on sequences (paper metrics, baselines, ablations, plots)", _eval_args,
             Lazy("bench.eval", "cmd_eval")),
