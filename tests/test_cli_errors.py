@@ -362,8 +362,12 @@ def test_eval_folder_that_is_not_a_sequence_and_data_root(tmp_path):
     folder.mkdir()
     (folder / "a.txt").write_text("x")
     line = one_error_line(run_followbus("eval", str(folder), "--out", str(tmp_path / "out")))
-    assert line == (f"followbus: {folder}: neither a SOT (img/ + groundtruth.txt) nor a MOT (seqinfo.ini + "
-                    "gt/gt.txt) sequence")
+    assert line == (f"followbus: {folder}: not a sequence folder (followbus/LaSOT: img/ + groundtruth.txt; OTB: "
+                    "img/ + groundtruth_rect.txt; GOT-10k: frames + groundtruth.txt; MOTChallenge: img1/ + gt/gt.txt)")
+    (folder / "img").mkdir()
+    line = one_error_line(run_followbus("eval", str(folder), "--out", str(tmp_path / "out")))
+    assert line == (f"followbus: {folder}: img/ has no ground truth beside it: groundtruth.txt (followbus, LaSOT) "
+                    "or groundtruth_rect.txt (OTB) is missing")
     env = dict(os.environ, FOLLOWBUS_DATA=str(folder))
     result = subprocess.run(followbus_argv("eval", "all", "--out", str(tmp_path / "out")), capture_output=True,
                             text=True, timeout=60, cwd=tmp_path, env=env, stdin=subprocess.DEVNULL)

@@ -32,7 +32,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 def expand_sequences(specs: list[str]) -> list[str]:
     """``all`` → every sequence under the data root; ``scene:<name>`` and directories pass through."""
-    from ...evaluation.datasets import find_data_root, list_sequences, load_sequence
+    from ...evaluation.datasets import find_data_root, list_sequences
 
     out: list[str] = []
     for s in specs:
@@ -52,15 +52,25 @@ def expand_sequences(specs: list[str]) -> list[str]:
                 raise ValueError(f"unknown scene {s!r}; available: {', '.join(SCENES)}")
             out.append(s)
         else:
-            if not Path(s).is_dir():
-                raise FileNotFoundError(f"{s}: not a directory (a sequence folder, scene:<name> or all)")
-            # Read before any work starts (no pixels: cheap), so a folder that is not a sequence is one line.
-            try:
-                load_sequence(s)
-            except (OSError, ValueError) as exc:
-                raise ValueError(str(exc)) from exc
-            out.append(s)
+            out += _sequence_folders(s)
     return out
+
+
+def _sequence_folders(spec: str) -> list[str]:
+    """A sequence folder of any layout, or a folder of them (a benchmark's root); each read before any work
+    starts (no pixels: cheap), so a folder that is not a sequence is one line naming what is missing."""
+    from ...evaluation.datasets import detect_layout, load_sequence, sequences_in
+
+    path = Path(spec)
+    if not path.is_dir():
+        raise FileNotFoundError(f"{spec}: not a directory (a sequence folder, scene:<name> or all)")
+    folders = [path] if detect_layout(path) is not None else sequences_in(path) or [path]
+    for folder in folders:
+        try:
+            load_sequence(folder)
+        except (OSError, ValueError) as exc:
+            raise ValueError(str(exc)) from exc
+    return [str(f) for f in folders]
 
 
 # --------------------------------------------------------------------------- reporting
