@@ -33,9 +33,11 @@ from followbus.vision.models import (
 from .conftest import REPO, followbus_argv, run_followbus
 
 MODELS = REPO / "models"
-SHIPPED = ("osnet_x0_25_msmt17.onnx", "yolox_nano_416.onnx", "yolox_nano_640.onnx")
+SHIPPED = ("osnet_x0_25_msmt17.onnx", "yolox_nano_416.onnx", "yolox_nano_512.onnx", "yolox_nano_640.onnx",
+           "yolox_nano_640_int8.onnx")
 APACHE, MIT = "LICENSE.yolox-onnx.Apache-2.0", "LICENSE.osnet-torchreid.MIT"
-LICENCES = {"yolox_nano_416.onnx": APACHE, "yolox_nano_640.onnx": APACHE, "osnet_x0_25_msmt17.onnx": MIT}
+LICENCES = {"yolox_nano_416.onnx": APACHE, "yolox_nano_512.onnx": APACHE, "yolox_nano_640.onnx": APACHE,
+            "yolox_nano_640_int8.onnx": APACHE, "osnet_x0_25_msmt17.onnx": MIT}
 
 
 def _truncated_copy(directory: Path, name: str = "yolox_nano_416.onnx") -> Path:
@@ -214,7 +216,7 @@ def test_followbus_models_lists_and_checks_the_shipped_models() -> None:
     for name in SHIPPED:
         assert f"used  {MODELS.resolve() / name}" in out
     assert out.count("SHA-256 OK") >= len(SHIPPED) and "MISMATCH" not in out and "MISSING" not in out
-    assert "all 3 shipped models present and intact" in out
+    assert f"all {len(SHIPPED)} shipped models present and intact" in out
     help_text = run_followbus("models", "--help", timeout=60).stdout
     assert "SHA256SUMS" in help_text and MODELS_ENV in help_text and "--model-dir" in help_text
 
@@ -240,13 +242,14 @@ def test_followbus_models_reports_a_missing_model(tmp_path: Path) -> None:
     repo_models = tmp_path / "repo" / "models"
     repo_models.mkdir(parents=True)
     shutil.copy(MODELS / "SHA256SUMS", repo_models / "SHA256SUMS")
-    for name in ("yolox_nano_416.onnx", "osnet_x0_25_msmt17.onnx"):
+    present = [name for name in SHIPPED if name != "yolox_nano_640.onnx"]
+    for name in present:
         shutil.copy(MODELS / name, repo_models / name)
     res = _run_without_models(tmp_path, "models")
     assert res.returncode == 1, res.stdout + res.stderr
     assert "yolox_nano_640.onnx" in res.stdout and "MISSING" in res.stdout
     assert "git checkout -- models/yolox_nano_640.onnx" in res.stdout and "1 problem(s)" in res.stdout
-    assert res.stdout.count("SHA-256 OK") == 2
+    assert res.stdout.count("SHA-256 OK") == len(present)
 
 
 def test_other_commands_report_a_corrupt_model_in_one_line(tmp_path: Path) -> None:

@@ -40,6 +40,7 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
                         "the model)")
     p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
     p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
+    p.add_argument("--namespace", default="", help="graph namespace (default bench<port>)")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
 
 

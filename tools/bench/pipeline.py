@@ -86,7 +86,7 @@ def run_bench_pipeline(args) -> int:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
-    ns = f"bench{port}"
+    ns = args.namespace or f"bench{port}"
     pub: dict[tuple[str, str], dict[int, tuple[int, int]]] = {st: {} for st in STAGES}
     pids: dict[str, int] = {}
     lock = threading.Lock()
