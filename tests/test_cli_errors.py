@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 import zenoh
 
 from followbus.bus.node import ParamError
@@ -353,7 +354,8 @@ def test_eval_without_a_model_points_at_the_simulated_detector(tmp_path):
                              str(tmp_path / "out"), "--max-frames", "3"], capture_output=True, text=True,
                             timeout=120, cwd=tmp_path, env=env, stdin=subprocess.DEVNULL)
     line = one_error_line(result)
-    assert line.startswith("followbus: yolox model yolox_nano_416.onnx not found"), line
+    size = yaml.safe_load((REPO / "graph.yaml").read_text())["nodes"]["detection"]["params"]["input_size"]
+    assert line.startswith(f"followbus: yolox model yolox_nano_{size}.onnx not found"), line
     assert line.endswith("; or score without a model: --detector simulated (ground truth + noise)"), line
 
 

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from followbus.nodes.detection import DetectionParams, detector_from_params
 from followbus.vision.detectors import (
@@ -33,6 +34,9 @@ from followbus.vision.models import (
 from .conftest import REPO, followbus_argv, run_followbus
 
 MODELS = REPO / "models"
+# the model graph.yaml's detection node loads (the demo's and eval's default detector)
+GRAPH_MODEL = "yolox_nano_{}.onnx".format(
+    yaml.safe_load((REPO / "graph.yaml").read_text())["nodes"]["detection"]["params"]["input_size"])
 SHIPPED = ("osnet_x0_25_msmt17.onnx", "yolox_nano_416.onnx", "yolox_nano_512.onnx", "yolox_nano_640.onnx",
            "yolox_nano_640_int8.onnx")
 APACHE, MIT = "LICENSE.yolox-onnx.Apache-2.0", "LICENSE.osnet-torchreid.MIT"
@@ -185,7 +189,7 @@ def test_demo_refuses_to_start_without_a_model_and_node_exits_with_one_line(tmp_
     assert res.returncode == 2, res.stdout + res.stderr
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
-    assert "backend 'auto' needs the YOLOX model yolox_nano_416.onnx" in lines[0] and "backend: hog" in lines[0]
+    assert f"backend 'auto' needs the YOLOX model {GRAPH_MODEL}" in lines[0] and "backend: hog" in lines[0]
     assert "launching" not in res.stdout  # nothing was started
     # The detection node itself, as a real process: one error line, exit status 1.
     g = graph_file("  detection:\n    run: followbus.nodes.detection\n    inputs:\n"
@@ -199,7 +203,7 @@ def test_demo_refuses_to_start_without_a_model_and_node_exits_with_one_line(tmp_
 
 
 def test_demo_refuses_a_corrupt_model_before_launching(tmp_path: Path) -> None:
-    bad = _truncated_copy(tmp_path / "m")
+    bad = _truncated_copy(tmp_path / "m", GRAPH_MODEL)
     res = run_followbus("demo", "--set", f"detection.model_dir={bad.parent}", "--duration", "1", timeout=60)
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stdout + res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and str(bad) in res.stderr and "corrupt" in res.stderr
