@@ -355,7 +355,9 @@ def test_eval_without_a_model_points_at_the_simulated_detector(tmp_path):
                             timeout=120, cwd=tmp_path, env=env, stdin=subprocess.DEVNULL)
     line = one_error_line(result)
     size = yaml.safe_load((REPO / "graph.yaml").read_text())["nodes"]["detection"]["params"]["input_size"]
-    assert line.startswith(f"followbus: yolox model yolox_nano_{size}.onnx not found"), line
+    # eval's default detector is graph.yaml's (backend auto)
+    assert line.startswith(f"followbus: detector backend 'auto' needs the YOLOX model yolox_nano_{size}.onnx, "
+                           "which is missing"), line
     assert line.endswith("; or score without a model: --detector simulated (ground truth + noise)"), line
 
 
