@@ -44,6 +44,20 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
 
 
+def _detector_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "The cost of each detector side by side: CPU and wall ms per inference on frames of the built-in "
+             "scenes, with graph.yaml's detection threads, every detector once per round (BENCHMARKS.md, "
+             "\"Detectors side by side\").",
+             "example: followbus bench detector --detectors yolox,yolox512,yolox640 --rounds 4")
+    p.add_argument("--detectors", default="yolox,yolox512,yolox640,yolox640-int8,yolox416-openvino,"
+                   "yolox512-openvino,yolox640-openvino", metavar="LIST",
+                   help="comma-separated --detector names (default: every YOLOX variant; the first is the unit)")
+    p.add_argument("--rounds", type=int, default=4, help="rounds (default 4)")
+    p.add_argument("--frames", type=int, default=7, metavar="N", help="frames per scene, 3 scenes (default 7)")
+    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
+
 def _chaos_args(p: argparse.ArgumentParser) -> None:
     describe(p,
              "Launch graph.yaml on a private loopback port (scene looping at 30 Hz, simulated detector)\n"
@@ -152,6 +166,8 @@ COMMANDS = (
                 Lazy("bench.bus", "run_bench_bus")),
         Command("pipeline", "end-to-end latency capture -> motor command through the launched graph", _pipeline_args,
                 Lazy("bench.pipeline", "run_bench_pipeline")),
+        Command("detector", "CPU and wall ms per inference of each detector, side by side", _detector_args,
+                Lazy("bench.detector", "run_bench_detector")),
         Command("chaos", "fault injection: does the live loop always recover? (RELIABILITY.md)", _chaos_args,
                 Lazy("bench.chaos", "run_bench_chaos")),
     )),
