@@ -118,8 +118,11 @@ def build_int8(args: argparse.Namespace) -> int:
 
 
 def cmd_models(args: argparse.Namespace) -> int:
-    if args.build_int8:
-        return build_int8(args)
+    return build_int8(args) if args.build_int8 else check_models(args)
+
+
+def check_models(args: argparse.Namespace) -> int:
+    """The listing: the search path and every copy of every shipped model, checked."""
     model_dir: str | None = args.model_dir
     dirs = search_path(model_dir)
     print("model search path (first match wins):")

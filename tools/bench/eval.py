@@ -238,6 +238,17 @@ def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command
 # --------------------------------------------------------------------------- command
 
 
+def _wants_trace(args) -> bool:
+    """Whether the followers record every frame's details (--trace, and --video, which draws them)."""
+    return bool(args.trace or args.video)
+
+
+def _say_frame_files(args, out: Path) -> None:
+    if _wants_trace(args):
+        print(f"per-frame traces in {out / 'trace'}, OTB result files in {out / 'tracker_results'}"
+              + (f", videos in {out / 'videos'}" if args.video else ""))
+
+
 def _write_frames(run: SequenceRun, out: Path, args, method: str) -> None:
     """--trace: every method's per-frame trace and OTB result file; --video: the MP4 of ``method``'s run."""
     from ...evaluation.trace import file_stem, write_run_files
@@ -325,7 +336,7 @@ def cmd_eval(args) -> int:
         notes.append(f"peer trackers {', '.join(peers)} skipped: {reason}")
         methods = [m for m in methods if m not in peers]
     try:
-        factories = method_factories(methods, ablations=args.ablations, trace=args.trace or args.video)
+        factories = method_factories(methods, ablations=args.ablations, trace=_wants_trace(args))
     except ValueError as exc:
         print(f"followbus: {exc}", file=sys.stderr)
         return 2
@@ -371,9 +382,7 @@ def cmd_eval(args) -> int:
                  "annotated person (SOT sequences annotate only the target, so switches there are always 0); "
                  "Wrong re-lock = an episode of >= 10 frames with an output that does not overlap the target's box "
                  "(following someone else; counted on every sequence).")
-    if args.trace or args.video:
-        print(f"per-frame traces in {out / 'trace'}, OTB result files in {out / 'tracker_results'}"
-              + (f", videos in {out / 'videos'}" if args.video else ""))
+    _say_frame_files(args, out)
     md, js = write_report(runs, methods, out, command, _detector_label(args.detector), notes)
     print(f"wrote {md}, {js} and plots in {out / 'plots'}")
     print((out / "results.md").read_text(encoding="utf-8"))
