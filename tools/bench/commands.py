@@ -36,8 +36,8 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds of measurement (default 20)")
     p.add_argument("--detector", default="graph", choices=tuple(DETECTOR_PRESETS),
                    help="detector (default graph: graph.yaml's own detection params; yolox = YOLOX-nano@416, "
-                        "yolox640, yolox640-int8, *-openvino: the same ONNX on OpenVINO; falls back to hog without "
-                        "the model)")
+                        "yolox512, yolox640, yolox640-int8, *-openvino: the same ONNX on OpenVINO; falls back to "
+                        "hog without the model)")
     p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
     p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
     p.add_argument("--namespace", default="", help="graph namespace (default bench<port>)")
@@ -142,8 +142,8 @@ def _eval_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ablations", action="store_true", help="also run the paper's Table 6 ablations of followbus")
     p.add_argument("--detector", default=None, choices=tuple(DETECTOR_PRESETS),
                    help="detections for every method (default graph: graph.yaml's own detection params, what the "
-                        "robot runs; yolox = YOLOX-nano@416, yolox640, yolox640-int8 (static INT8), yolox416-openvino "
-                        "and yolox640-openvino (the same ONNX on OpenVINO), hog, simulated; with --graph-check: "
+                        "robot runs; yolox = YOLOX-nano@416, yolox512, yolox640, yolox640-int8 (static INT8), "
+                        "yolox*-openvino (the same ONNX on OpenVINO), hog, simulated; with --graph-check: "
                         "simulated for scenes, graph for sequence dirs)")
     p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default results/)")
     p.add_argument("--trace", action="store_true",
