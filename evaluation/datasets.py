@@ -1,9 +1,16 @@
 """Evaluation sequences on disk: single-target (OTB/UAV123-style) and MOTChallenge layouts.
 
-SOT: ``<dir>/img/*.jpg`` (sorted), ``groundtruth.txt`` (one ``x,y,w,h`` per image; ``NaN`` rows or a
-non-positive size = target absent → ``None``), ``meta.json`` (``fps``).
-MOT: ``<dir>/img1/*.jpg``, ``gt/gt.txt`` (MOTChallenge), ``seqinfo.ini`` (``frameRate``, ``imWidth``,
-``imHeight``, ``imExt``). Nothing here reads pixels: image sizes come from seqinfo.ini or the image header.
+Recognised by their files (:data:`LAYOUTS`), as users have them:
+
+- followbus SOT: ``<dir>/img/*.jpg`` (sorted), ``groundtruth.txt`` (one ``x,y,w,h`` per image; ``NaN`` rows or a
+  non-positive size = target absent → ``None``), ``meta.json`` (``fps``);
+- OTB: ``img/`` + ``groundtruth_rect.txt`` (comma, tab or space separated);
+- LaSOT: ``img/`` + ``groundtruth.txt`` + ``full_occlusion.txt`` / ``out_of_view.txt`` (flagged frames: absent);
+- GOT-10k: frames + ``groundtruth.txt`` + ``absence.label`` in one folder, ``meta_info.ini`` (``anno_fps``);
+- MOTChallenge: ``<dir>/img1/*.jpg``, ``gt/gt.txt``, ``seqinfo.ini`` (``frameRate``, ``imWidth``, ``imHeight``,
+  ``imExt``; without it 30 fps and the first image's size).
+
+Nothing here reads pixels: image sizes come from seqinfo.ini or the image header.
 """
 
 from __future__ import annotations
@@ -15,6 +22,7 @@ import math
 import os
 import re
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -27,16 +35,26 @@ from .mot_metrics import PEDESTRIAN_CLASS, load_mot_file, load_mot_regions
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "LAYOUTS",
     "Sequence",
     "choose_follow_target",
+    "detect_layout",
     "find_data_root",
     "list_sequences",
+    "load_got10k_sequence",
+    "load_lasot_sequence",
     "load_mot_sequence",
+    "load_otb_sequence",
     "load_sequence",
     "load_sot_sequence",
+    "sequences_in",
 ]
 
 SOT_TARGET_ID = 1  # the single annotated target of a SOT sequence gets this id in ``all_gt``
+DEFAULT_FPS = 30.0  # OTB, LaSOT and a MOTChallenge folder without seqinfo.ini state none
+GOT10K_FPS = 10.0
+OTB_GROUNDTRUTH = ("groundtruth_rect.txt", "groundtruth_rect.1.txt")
+LASOT_FLAGS = ("full_occlusion.txt", "out_of_view.txt")
 _IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 
 
@@ -57,6 +75,7 @@ class Sequence:
     # MOT16/17: per frame every gt row, ignored ones included, and which are distractors (MOT scoring
     # preprocessing, mot_metrics.remove_distractor_matches); empty for SOT and MOT15
     gt_regions: list[tuple[np.ndarray, np.ndarray] | None] = field(default_factory=list)
+    layout: str = "followbus"  # the on-disk format it was read from (datasets.LAYOUTS)
 
     @property
     def frames(self) -> int:
@@ -146,25 +165,84 @@ def choose_follow_target(people: list[tuple[int, Box]], width: int, height: int)
 # --------------------------------------------------------------------------- loaders
 
 
+def _sot(d: Path, images: list[Path], gt: list[Box | None], fps: float, name: str, layout: str) -> Sequence:
+    """A single-target Sequence from its images and per-image boxes (counts must agree: a silent truncation
+    would mis-score)."""
+    if not images:
+        raise FileNotFoundError(f"{d}: no images ({layout} layout)")
+    if len(gt) != len(images):
+        raise ValueError(f"{d}: {len(images)} images but {len(gt)} groundtruth rows")
+    width, height = _image_size(images[0])
+    return Sequence(
+        name=name, kind="sot", path=d, image_paths=images, fps=fps, width=width, height=height, gt_boxes=gt,
+        all_gt=[[] if b is None else [(SOT_TARGET_ID, b)] for b in gt], target_id=SOT_TARGET_ID, layout=layout)
+
+
 def load_sot_sequence(directory: str | Path) -> Sequence:
+    """followbus's own layout: ``img/`` + ``groundtruth.txt`` + ``meta.json`` (fps, name)."""
     d = Path(directory)
     images = _sorted_images(d / "img")
     if not images:
         raise FileNotFoundError(f"{d}: no images in img/")
     gt = _parse_sot_groundtruth(d / "groundtruth.txt")
-    if len(gt) != len(images):
-        # a silent truncation would mis-score; fail instead
-        raise ValueError(f"{d}: {len(images)} images but {len(gt)} groundtruth rows")
     meta_path = d / "meta.json"
     meta = json.loads(meta_path.read_text(encoding="utf-8")) if meta_path.exists() else {}
-    fps = float(meta.get("fps", 30.0))
     if "fps" not in meta:
         log.warning("%s: no fps in meta.json, assuming 30", d)
-    width, height = _image_size(images[0])
-    return Sequence(
-        name=str(meta.get("name", d.name)), kind="sot", path=d, image_paths=images, fps=fps, width=width,
-        height=height, gt_boxes=gt, all_gt=[[] if b is None else [(SOT_TARGET_ID, b)] for b in gt],
-        target_id=SOT_TARGET_ID)
+    return _sot(d, images, gt, float(meta.get("fps", 30.0)), str(meta.get("name", d.name)), "followbus")
+
+
+def _absent(gt: list[Box | None], flags: list[bool], d: Path, what: str) -> list[Box | None]:
+    """``gt`` with the frames ``flags`` marks (occluded, out of view, absent) as None."""
+    if len(flags) != len(gt):
+        raise ValueError(f"{d}: {what} has {len(flags)} flags for {len(gt)} groundtruth rows")
+    return [None if flag else box for box, flag in zip(gt, flags, strict=True)]
+
+
+def _read_flags(path: Path) -> list[bool]:
+    """0/1 flags separated by commas, spaces or newlines (LaSOT's one-line files, GOT-10k's one per line)."""
+    return [bool(int(float(v))) for v in _SPLIT.split(path.read_text(encoding="utf-8").strip()) if v]
+
+
+def load_otb_sequence(directory: str | Path) -> Sequence:
+    """OTB-100: ``img/`` + ``groundtruth_rect.txt`` (comma, tab or space separated; ``groundtruth_rect.1.txt``,
+    the first target, when a clip annotates two), 30 fps."""
+    d = Path(directory)
+    gt_path = next((p for p in OTB_GROUNDTRUTH if (d / p).is_file()), OTB_GROUNDTRUTH[0])
+    return _sot(d, _sorted_images(d / "img"), _parse_sot_groundtruth(d / gt_path), DEFAULT_FPS, d.name, "otb")
+
+
+def load_lasot_sequence(directory: str | Path) -> Sequence:
+    """LaSOT: ``img/`` + ``groundtruth.txt`` + ``full_occlusion.txt`` / ``out_of_view.txt`` (frames flagged in
+    either have no target: absent), 30 fps."""
+    d = Path(directory)
+    gt = _parse_sot_groundtruth(d / "groundtruth.txt")
+    for flags in LASOT_FLAGS:
+        if (d / flags).is_file():
+            gt = _absent(gt, _read_flags(d / flags), d, flags)
+    return _sot(d, _sorted_images(d / "img"), gt, DEFAULT_FPS, d.name, "lasot")
+
+
+def _got10k_fps(d: Path) -> float:
+    """``anno_fps: 10Hz`` of meta_info.ini (GOT-10k annotates at 10 Hz), else 10."""
+    meta = d / "meta_info.ini"
+    text = meta.read_text(encoding="utf-8", errors="replace") if meta.is_file() else ""
+    m = re.search(r"anno_fps:\s*([0-9.]+)", text)
+    return float(m.group(1)) if m else GOT10K_FPS
+
+
+def load_got10k_sequence(directory: str | Path) -> Sequence:
+    """GOT-10k: the frames beside ``groundtruth.txt`` (``00000001.jpg``...), ``absence.label`` (1 = absent);
+    a test-split clip annotates its first frame only and cannot be scored."""
+    d = Path(directory)
+    images = _sorted_images(d)
+    gt = _parse_sot_groundtruth(d / "groundtruth.txt")
+    if len(gt) == 1 and len(images) > 1:
+        raise ValueError(f"{d}: groundtruth.txt annotates 1 of {len(images)} frames (a GOT-10k test clip): "
+                         "nothing to score against")
+    if (d / "absence.label").is_file():
+        gt = _absent(gt, _read_flags(d / "absence.label"), d, "absence.label")
+    return _sot(d, images, gt, _got10k_fps(d), d.name, "got10k")
 
 
 def load_mot_sequence(directory: str | Path) -> Sequence:
@@ -173,7 +251,8 @@ def load_mot_sequence(directory: str | Path) -> Sequence:
     d = Path(directory)
     ini = configparser.ConfigParser()
     if not ini.read(d / "seqinfo.ini", encoding="utf-8"):
-        raise FileNotFoundError(f"{d}: no seqinfo.ini")
+        log.warning("%s: no seqinfo.ini: img1/, %g fps, the size of the first image", d, DEFAULT_FPS)
+        ini.read_dict({"Sequence": {"frameRate": str(DEFAULT_FPS)}})
     info = ini["Sequence"]
     images = _sorted_images(d / info.get("imDir", "img1"), info.get("imExt"))
     n = info.getint("seqLength", fallback=len(images))
@@ -203,26 +282,78 @@ def load_mot_sequence(directory: str | Path) -> Sequence:
     return Sequence(
         name=info.get("name", d.name), kind="mot", path=d, image_paths=images,
         fps=float(info.get("frameRate", "30")), width=width, height=height, gt_boxes=gt_boxes,
-        all_gt=all_gt, target_id=target, gt_regions=[regions.get(k + 1) for k in range(n)] if regions else [])
+        all_gt=all_gt, target_id=target, gt_regions=[regions.get(k + 1) for k in range(n)] if regions else [],
+        layout="mot")
+
+
+# The layouts, in the order they are recognised: (name, kind, test on the folder, loader). LaSOT before the
+# followbus layout it contains (img/ + groundtruth.txt), which comes before GOT-10k (groundtruth.txt beside the
+# frames).
+def _is_mot(d: Path) -> bool:
+    return (d / "gt" / "gt.txt").is_file() and ((d / "seqinfo.ini").is_file() or (d / "img1").is_dir())
+
+
+def _is_lasot(d: Path) -> bool:
+    return _is_followbus_sot(d) and any((d / f).is_file() for f in LASOT_FLAGS)
+
+
+def _is_followbus_sot(d: Path) -> bool:
+    return (d / "groundtruth.txt").is_file() and (d / "img").is_dir()
+
+
+def _is_otb(d: Path) -> bool:
+    return (d / "img").is_dir() and any((d / f).is_file() for f in OTB_GROUNDTRUTH)
+
+
+def _is_got10k(d: Path) -> bool:
+    return (d / "groundtruth.txt").is_file() and any(p.suffix.lower() in _IMAGE_EXTS for p in d.iterdir())
+
+
+LAYOUTS: tuple[tuple[str, Literal["sot", "mot"], Callable[[Path], bool], Callable[[Path], Sequence]], ...] = (
+    ("mot", "mot", _is_mot, load_mot_sequence),
+    ("lasot", "sot", _is_lasot, load_lasot_sequence),
+    ("followbus", "sot", _is_followbus_sot, load_sot_sequence),
+    ("otb", "sot", _is_otb, load_otb_sequence),
+    ("got10k", "sot", _is_got10k, load_got10k_sequence),
+)
+LAYOUT_HELP = ("followbus/LaSOT: img/ + groundtruth.txt; OTB: img/ + groundtruth_rect.txt; GOT-10k: frames + "
+               "groundtruth.txt; MOTChallenge: img1/ + gt/gt.txt")
+
+
+def detect_layout(path: Path) -> str | None:
+    """The name of the layout ``path`` holds (a key of :data:`LAYOUTS`), or None."""
+    if not path.is_dir():
+        return None
+    return next((name for name, _, test, _ in LAYOUTS if test(path)), None)
 
 
 def _kind_of(path: Path) -> Literal["sot", "mot"] | None:
-    if (path / "seqinfo.ini").is_file() and (path / "gt" / "gt.txt").is_file():
-        return "mot"
-    if (path / "groundtruth.txt").is_file() and (path / "img").is_dir():
-        return "sot"
-    return None
+    name = detect_layout(path)
+    return next((kind for n, kind, _, _ in LAYOUTS if n == name), None)
+
+
+def what_is_missing(d: Path) -> str:
+    """One line: why ``d`` is not a sequence folder of any layout, naming the file that is missing."""
+    if (d / "img1").is_dir() or (d / "gt").is_dir():
+        missing = "gt/gt.txt" if (d / "img1").is_dir() else "img1/"
+        return f"{d}: a MOTChallenge folder needs img1/ and gt/gt.txt; {missing} is missing"
+    if (d / "img").is_dir():
+        return (f"{d}: img/ has no ground truth beside it: groundtruth.txt (followbus, LaSOT) or "
+                "groundtruth_rect.txt (OTB) is missing")
+    if (d / "groundtruth.txt").is_file():
+        return (f"{d}: groundtruth.txt has no frames: img/ (followbus, LaSOT) or the images beside it "
+                "(GOT-10k) are missing")
+    return f"{d}: not a sequence folder ({LAYOUT_HELP})"
 
 
 def load_sequence(directory: str | Path) -> Sequence:
-    """Load either layout, recognised by its files."""
+    """Load any layout of :data:`LAYOUTS`, recognised by its files; a ValueError naming what is missing else."""
     d = Path(directory)
-    kind = _kind_of(d)
-    if kind == "mot":
-        return load_mot_sequence(d)
-    if kind == "sot":
-        return load_sot_sequence(d)
-    raise ValueError(f"{d}: neither a SOT (img/ + groundtruth.txt) nor a MOT (seqinfo.ini + gt/gt.txt) sequence")
+    name = detect_layout(d)
+    for layout, _, _, loader in LAYOUTS:
+        if layout == name:
+            return loader(d)
+    raise ValueError(what_is_missing(d))
 
 
 # --------------------------------------------------------------------------- discovery
@@ -260,3 +391,10 @@ def list_sequences(root: str | Path, kind: Literal["sot", "mot"] | None = None) 
             continue
         out += sorted(p for p in (r / sub).iterdir() if p.is_dir() and _kind_of(p) == sub)
     return out
+
+
+def sequences_in(folder: str | Path) -> list[Path]:
+    """The sequence folders directly inside ``folder`` (a benchmark's root: OTB-100, a LaSOT class, GOT-10k's
+    val/), sorted; empty when there is none."""
+    f = Path(folder)
+    return sorted(p for p in f.iterdir() if detect_layout(p) is not None) if f.is_dir() else []

@@ -19,8 +19,9 @@ import numpy as np
 
 from ..bus.graph import Graph, load_graph
 from ..bus.inproc import InProcessGraph
-from ..bus.schemas import Detections, Frame, Measurement, Odometry, Prior, Template, Track
+from ..bus.schemas import CameraMotion, Detections, Frame, Measurement, Odometry, Prior, Template, Track
 from ..tracking.params import TrackerParams
+from .trace import ReidCapture, frame_record
 
 GRAPH_PATH = Path(__file__).resolve().parents[1] / "graph.yaml"
 TRACKING_NODES = ("egomotion", "prediction", "reid", "template")
@@ -29,6 +30,7 @@ TRACKING_NODES = ("egomotion", "prediction", "reid", "template")
 CLOCK_BASE_NS = 1_700_000_000_000_000_000
 EPOCH_NS = CLOCK_BASE_NS
 MAX_STEPS_PER_FRAME = 1000
+TRANSFORM_TOPIC = "egomotion/transform"
 
 
 class GraphFollowerError(RuntimeError):
@@ -66,10 +68,15 @@ class GraphFollower:
     for that frame, :meth:`node` a node instance (as a test would inspect it)."""
 
     def __init__(self, params: TrackerParams | None = None, graph_path: Path = GRAPH_PATH, *,
-                 details: bool = False) -> None:
+                 details: bool = False, trace: bool = False) -> None:
         self.params = params or TrackerParams()
-        # Eval reads the track and the template's η; tests (details=True) also the measurement and prior.
-        self.recorded = self.DETAILS if details else self.RECORDED
+        # Eval reads the track and the template's η; tests (details=True) also the measurement and prior;
+        # ``trace`` (followbus eval --trace) also the camera motion and re-ID's scores: info["trace"] each frame.
+        self.recorded = self.DETAILS if details or trace else self.RECORDED
+        self.trace = trace
+        self.capture = ReidCapture()
+        self.transforms: dict[int, CameraMotion] = {}
+        self.loose: list[str] = []  # recorded topics a frame may lack or get late
         self.graph_path = graph_path
         self.uses_low_scores = self.params.low_score_stage
         self.graph: InProcessGraph | None = None
@@ -84,10 +91,36 @@ class GraphFollower:
         nodes = [n for n in TRACKING_NODES if n in graph.nodes]
         if not self.params.camera_motion_compensation and "egomotion" in nodes:
             nodes.remove("egomotion")  # as in the graph without the node: priors are not warped
+        self.loose = [TRANSFORM_TOPIC] if self.trace and "egomotion" in nodes else []
         g = InProcessGraph(graph, nodes=nodes, clock="sim", clock_start_ns=CLOCK_BASE_NS,
-                           record=list(self.recorded), record_bytes=False)  # read with drain: no bytes needed
+                           record=[*self.recorded, *self.loose], record_bytes=False)  # read with drain: no bytes needed
         g.start()
+        if self.trace:
+            self._instrument(g.node("reid").reid)
         return g
+
+    def _instrument(self, reid: Any) -> None:
+        """Keep what the in-process re-ID computes beyond its message (every candidate's scores, the classifier's
+        score of each contender) in :attr:`capture`, by wrapping its methods on this instance only."""
+        capture, step, embed = self.capture, reid.step, reid._embed
+        score = reid.identity.score
+        asked: list[tuple[float, ...]] = []
+
+        def traced_step(*args: Any, **kwargs: Any) -> Any:
+            capture.clear()
+            capture.result = step(*args, **kwargs)
+            return capture.result
+
+        def traced_embed(frame_bgr: np.ndarray, boxes: list[Any]) -> Any:
+            asked[:] = [tuple(float(v) for v in b) for b in boxes]
+            return embed(frame_bgr, boxes)
+
+        def traced_score(embs: np.ndarray) -> Any:
+            scores = score(embs)
+            capture.identity.update(zip(asked, (float(v) for v in np.ravel(scores)), strict=False))
+            return scores
+
+        reid.step, reid._embed, reid.identity.score = traced_step, traced_embed, traced_score
 
     def prepare(self, init_box: Sequence[float] | None) -> None:
         """Build the graph (node set-up: the re-ID model loaded) now, told whom to follow, rather than in the first
@@ -121,7 +154,11 @@ class GraphFollower:
         self.last = out = self._outputs_of(g, k)
         self.k += 1
         box = None if out.track.box is None else tuple(float(v) for v in out.track.box)
-        return box, {"state": out.track.state, "eta": 0.0 if out.template is None else float(out.template.eta)}
+        info: dict[str, Any] = {"state": out.track.state,
+                                "eta": 0.0 if out.template is None else float(out.template.eta)}
+        if self.trace:
+            info["trace"] = frame_record(out, self.capture, self.transforms.pop(k, None))
+        return box, info
 
     def node(self, name: str) -> Any:
         if self.graph is None:
@@ -134,6 +171,8 @@ class GraphFollower:
         got: dict[str, Any] = {}
         for _ in range(MAX_STEPS_PER_FRAME):
             g.deliver()
+            for msg in (m for topic in self.loose for m in g.drain(topic)):
+                self.transforms[msg.header.frame_seq] = msg  # optional for prediction: may come after the track
             for topic in self.recorded:
                 for msg in g.drain(topic):
                     if msg.header.frame_seq != k:

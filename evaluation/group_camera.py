@@ -115,10 +115,11 @@ def detect_sequence(seq: Sequence, detector: str, cache_dir: Path | None, n_fram
     import cv2
 
     from ..vision.detectors import split_by_score
-    from .runner import LOW_SCORE_THRESHOLD, SCORE_THRESHOLD, make_eval_detector
+    from .runner import LOW_SCORE_THRESHOLD, SCORE_THRESHOLD, detector_key, make_eval_detector
 
     key = str(Path(seq.path).resolve())
-    det_key = f"{detector}-low{LOW_SCORE_THRESHOLD:g}"   # as evaluation/runner.py: the low-score boxes too
+    # as evaluation/runner.py: the low-score boxes too
+    det_key = f"{detector_key(detector)}-low{LOW_SCORE_THRESHOLD:g}"
     path = detcache.cache_path(cache_dir, key, det_key, n_frames) if cache_dir is not None else None
     cached = detcache.load(path, n_frames) if path is not None else None
     from_cache = cached is not None
@@ -138,7 +139,7 @@ def detect_sequence(seq: Sequence, detector: str, cache_dir: Path | None, n_fram
     return [split_by_score(d, SCORE_THRESHOLD, LOW_SCORE_THRESHOLD)[0] for d in cached.per_frame], from_cache
 
 
-def open_camera_sequence(directory: str | Path, detector: str = "yolox", cache_dir: Path | None = None,
+def open_camera_sequence(directory: str | Path, detector: str = "graph", cache_dir: Path | None = None,
                          max_frames: int = 0) -> CameraSequence:
     seq = load_sequence(directory)
     n = seq.frames if not max_frames else min(max_frames, seq.frames)
@@ -209,7 +210,7 @@ def format_camera_table(results: dict[str, tuple[CameraSequence, dict[str, Camer
     return "\n".join(lines) + "\n"
 
 
-def run_camera(sequences: list[Path], detector: str = "yolox", cache_dir: Path | None = None, max_frames: int = 0,
+def run_camera(sequences: list[Path], detector: str = "graph", cache_dir: Path | None = None, max_frames: int = 0,
                methods: list[str] | None = None) -> dict[str, tuple[CameraSequence, dict[str, CameraResult]]]:
     out: dict[str, tuple[CameraSequence, dict[str, CameraResult]]] = {}
     for d in sequences:
@@ -218,7 +219,7 @@ def run_camera(sequences: list[Path], detector: str = "yolox", cache_dir: Path |
     return out
 
 
-def cmd_eval_group_camera(out: Path, command: str, sequences: list[str] | None = None, detector: str = "yolox",
+def cmd_eval_group_camera(out: Path, command: str, sequences: list[str] | None = None, detector: str = "graph",
                           max_frames: int = 0) -> int:
     """Print the per-sequence table; write group_camera.md and group_camera.json under ``out``. Exit 2 with one
     line when there is no data."""

@@ -28,6 +28,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..tracking.params import TrackerParams
+from ..vision.detector_presets import DETECTOR_PRESETS, apply_detector_preset, preset_of
 from . import detcache
 from .baselines import KalmanFollower, PeerFollower, peer_kind
 from .datasets import load_sequence
@@ -37,7 +38,10 @@ from .mot_metrics import MotMetrics, evaluate_mot, remove_distractor_matches
 
 log = logging.getLogger(__name__)
 
-DETECTORS = ("yolox", "yolox640", "hog", "simulated")
+# Detector names (vision/detectors.py DETECTOR_PRESETS); ``graph`` = graph.yaml's own detection params, the
+# detector the robot runs (the default).
+DETECTORS = tuple(DETECTOR_PRESETS)
+DEFAULT_DETECTOR = "graph"
 # Table 6 of the paper: one switch off at a time.
 ABLATIONS: dict[str, dict[str, bool]] = {
     "followbus w/o geometric cue": {"use_geometry": False},
@@ -91,14 +95,15 @@ class _NoEgo:
         self.inner.update_reference(box)
 
 
-def method_factories(methods: Sequence[str], ablations: bool = False,
-                     base: TrackerParams | None = None) -> dict[str, Callable[[float], Follower]]:
-    """Method name → factory(fps) of a fresh follower. Unknown names raise ValueError."""
+def method_factories(methods: Sequence[str], ablations: bool = False, base: TrackerParams | None = None,
+                     trace: bool = False) -> dict[str, Callable[[float], Follower]]:
+    """Method name → factory(fps) of a fresh follower. Unknown names raise ValueError. ``trace``: followbus and
+    its ablations record every frame's prior, candidates, camera motion and reason (info["trace"])."""
     base = base or TrackerParams()
     out: dict[str, Callable[[float], Follower]] = {}
     for m in methods:
         if m == "followbus":
-            out[m] = lambda fps, p=base: GraphFollower(p)
+            out[m] = lambda fps, p=base: GraphFollower(p, trace=trace)
         elif m == "kalman":
             out[m] = lambda fps, p=base: _NoEgo(KalmanFollower(accel_std_px_s2=p.accel_std_px_s2, r_px2=p.r0_px2,
                                                                init_velocity_std_px_s=p.init_velocity_std_px_s,
@@ -112,7 +117,7 @@ def method_factories(methods: Sequence[str], ablations: bool = False,
     if ablations:
         for name, switches in ABLATIONS.items():
             params = TrackerParams.from_dict({**base.to_dict(), **switches})
-            out[name] = lambda fps, p=params: GraphFollower(p)
+            out[name] = lambda fps, p=params: GraphFollower(p, trace=trace)
     return out
 
 
@@ -253,16 +258,39 @@ def read_ahead(read: Callable[[int], Any], n: int, depth: int = READ_AHEAD_FRAME
 # --------------------------------------------------------------------------- detectors
 
 
+def detection_params(name: str) -> dict[str, Any]:
+    """graph.yaml's detection-node params switched to the detector ``name`` (``graph``: as they are)."""
+    import yaml
+
+    from .graph_follower import GRAPH_PATH
+
+    graph = yaml.safe_load(GRAPH_PATH.read_text(encoding="utf-8"))
+    return apply_detector_preset(dict(graph["nodes"]["detection"].get("params") or {}), name)
+
+
+def detector_key(name: str) -> str:
+    """The identity of the detector ``name`` in the detection cache and the reports: its preset name (``graph``
+    resolved to the preset graph.yaml amounts to, so both share a cache), else its params."""
+    if name != "graph":
+        return name
+    params = detection_params(name)
+    found = preset_of(params)
+    if found is not None:
+        return found
+    keys = ("backend", "model_file", "input_size", "runtime")
+    return "graph-" + "-".join(str(params.get(k, "")) for k in keys)
+
+
 def make_eval_detector(name: str, seed: int = 0, score_threshold: float = SCORE_THRESHOLD):
-    from ..vision.detectors import make_detector
+    """The detector ``name`` as the detection node builds it from its params (model, input size, runtime,
+    threads), down to ``score_threshold``."""
+    from ..nodes.detection import Detection, detector_from_params
 
     if name not in DETECTORS:
         raise ValueError(f"unknown detector {name!r}; choose one of {', '.join(DETECTORS)}")
-    if name == "simulated":
-        return make_detector("simulated", seed=seed)
-    if name.startswith("yolox"):
-        return make_detector("yolox", input_size=640 if name == "yolox640" else 416, score_threshold=score_threshold)
-    return make_detector(name, score_threshold=score_threshold)
+    params = detection_params(name)
+    params.update(score_threshold=SCORE_THRESHOLD, low_score_threshold=score_threshold, seed=seed)
+    return detector_from_params(Detection.parse_params(params))
 
 
 # --------------------------------------------------------------------------- running
@@ -335,7 +363,8 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
     path = None
     if cache_dir is not None:
         # simulated detections depend on the seed: it is part of the key
-        det_key = f"{detector}-seed{seed}" if detector == "simulated" else detector
+        det_key = detector_key(detector)
+        det_key = f"{det_key}-seed{seed}" if det_key == "simulated" else det_key
         if low_score_threshold < SCORE_THRESHOLD:
             det_key += f"-low{low_score_threshold:g}"
         path = detcache.cache_path(cache_dir, seq.key, det_key, seq.n_frames)
@@ -364,7 +393,8 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
             all_dets = cached.per_frame[k]
         else:
             t0 = time.perf_counter()
-            all_dets = det.detect(item.bgr, item.truth) if detector == "simulated" else det.detect(item.bgr)
+            simulated = getattr(det, "is_simulated", False)
+            all_dets = det.detect(item.bgr, item.truth) if simulated else det.detect(item.bgr)
             det_ms.append((time.perf_counter() - t0) * 1e3)
             all_dets = np.asarray(all_dets, dtype=np.float32).reshape(-1, 5)
             det_frames.append(all_dets)

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..bus.node import Node, ParamError
 from ..bus.schemas import Detections, Frame, GroundTruth, Message
-from ..vision.detectors import BACKENDS, DetectorUnavailable, SimulatedDetector, make_detector, split_by_score
+from ..vision.detectors import BACKENDS, RUNTIMES, DetectorUnavailable, SimulatedDetector, make_detector, split_by_score
 
 
 @dataclass
@@ -32,7 +32,8 @@ class DetectionParams:
     # consumer reads the boxes above score_threshold only. Equal to score_threshold: none published.
     low_score_threshold: float = 0.1
     nms_iou: float = 0.45
-    threads: int = 0  # onnxruntime intra-op threads; 0 = its default
+    threads: int = 0  # inference threads; 0 = the runtime's default
+    runtime: str = "onnxruntime"  # onnxruntime | openvino: what infers the ONNX file (backends yolox, yolov8)
     sim_noise_px: float = 4.0
     sim_miss_rate: float = 0.05
     sim_false_positive_rate: float = 0.02
@@ -48,7 +49,7 @@ def detector_from_params(p: DetectionParams):
     detector = make_detector(
         p.backend, model_dir=p.model_dir or None, model_file=p.model_file or None,
         input_size=p.input_size, score_threshold=min(p.low_score_threshold, p.score_threshold), nms_iou=p.nms_iou,
-        threads=p.threads or None, noise_px=p.sim_noise_px, miss_rate=p.sim_miss_rate,
+        threads=p.threads or None, runtime=p.runtime, noise_px=p.sim_noise_px, miss_rate=p.sim_miss_rate,
         false_positive_rate=p.sim_false_positive_rate, seed=p.seed,
     )
     if isinstance(detector, SimulatedDetector):
@@ -75,6 +76,8 @@ class Detection(Node):
         if params.input_size < 32 or params.input_size % 32:
             raise ParamError("input_size", "input_size must be a positive multiple of 32 (the detector's largest "
                                            f"stride), e.g. 416 or 640, not {params.input_size!r}")
+        if params.runtime not in RUNTIMES:
+            raise ParamError("runtime", f"runtime must be one of {', '.join(RUNTIMES)}, not {params.runtime!r}")
         if not params.sim_delay_ms >= 0:
             raise ParamError("sim_delay_ms", f"sim_delay_ms must be >= 0, not {params.sim_delay_ms!r}")
         if not 0.0 <= params.low_score_threshold <= params.score_threshold:

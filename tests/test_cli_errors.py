@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 import zenoh
 
 from followbus.bus.node import ParamError
@@ -354,7 +355,10 @@ def test_eval_without_a_model_points_at_the_simulated_detector(tmp_path):
                              str(tmp_path / "out"), "--max-frames", "3"], capture_output=True, text=True,
                             timeout=120, cwd=tmp_path, env=env, stdin=subprocess.DEVNULL)
     line = one_error_line(result)
-    assert line.startswith("followbus: yolox model yolox_nano_416.onnx not found"), line
+    size = yaml.safe_load((REPO / "graph.yaml").read_text())["nodes"]["detection"]["params"]["input_size"]
+    # eval's default detector is graph.yaml's (backend auto)
+    assert line.startswith(f"followbus: detector backend 'auto' needs the YOLOX model yolox_nano_{size}.onnx, "
+                           "which is missing"), line
     assert line.endswith("; or score without a model: --detector simulated (ground truth + noise)"), line
 
 
@@ -363,8 +367,12 @@ def test_eval_folder_that_is_not_a_sequence_and_data_root(tmp_path):
     folder.mkdir()
     (folder / "a.txt").write_text("x")
     line = one_error_line(run_followbus("eval", str(folder), "--out", str(tmp_path / "out")))
-    assert line == (f"followbus: {folder}: neither a SOT (img/ + groundtruth.txt) nor a MOT (seqinfo.ini + "
-                    "gt/gt.txt) sequence")
+    assert line == (f"followbus: {folder}: not a sequence folder (followbus/LaSOT: img/ + groundtruth.txt; OTB: "
+                    "img/ + groundtruth_rect.txt; GOT-10k: frames + groundtruth.txt; MOTChallenge: img1/ + gt/gt.txt)")
+    (folder / "img").mkdir()
+    line = one_error_line(run_followbus("eval", str(folder), "--out", str(tmp_path / "out")))
+    assert line == (f"followbus: {folder}: img/ has no ground truth beside it: groundtruth.txt (followbus, LaSOT) "
+                    "or groundtruth_rect.txt (OTB) is missing")
     env = dict(os.environ, FOLLOWBUS_DATA=str(folder))
     result = subprocess.run(followbus_argv("eval", "all", "--out", str(tmp_path / "out")), capture_output=True,
                             text=True, timeout=60, cwd=tmp_path, env=env, stdin=subprocess.DEVNULL)

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from followbus.nodes.detection import DetectionParams, detector_from_params
 from followbus.vision.detectors import (
@@ -33,9 +34,14 @@ from followbus.vision.models import (
 from .conftest import REPO, followbus_argv, run_followbus
 
 MODELS = REPO / "models"
-SHIPPED = ("osnet_x0_25_msmt17.onnx", "yolox_nano_416.onnx", "yolox_nano_640.onnx")
+# the model graph.yaml's detection node loads (the demo's and eval's default detector)
+GRAPH_MODEL = "yolox_nano_{}.onnx".format(
+    yaml.safe_load((REPO / "graph.yaml").read_text())["nodes"]["detection"]["params"]["input_size"])
+SHIPPED = ("osnet_x0_25_msmt17.onnx", "yolox_nano_416.onnx", "yolox_nano_512.onnx", "yolox_nano_640.onnx",
+           "yolox_nano_640_int8.onnx")
 APACHE, MIT = "LICENSE.yolox-onnx.Apache-2.0", "LICENSE.osnet-torchreid.MIT"
-LICENCES = {"yolox_nano_416.onnx": APACHE, "yolox_nano_640.onnx": APACHE, "osnet_x0_25_msmt17.onnx": MIT}
+LICENCES = {"yolox_nano_416.onnx": APACHE, "yolox_nano_512.onnx": APACHE, "yolox_nano_640.onnx": APACHE,
+            "yolox_nano_640_int8.onnx": APACHE, "osnet_x0_25_msmt17.onnx": MIT}
 
 
 def _truncated_copy(directory: Path, name: str = "yolox_nano_416.onnx") -> Path:
@@ -183,7 +189,7 @@ def test_demo_refuses_to_start_without_a_model_and_node_exits_with_one_line(tmp_
     assert res.returncode == 2, res.stdout + res.stderr
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
-    assert "backend 'auto' needs the YOLOX model yolox_nano_416.onnx" in lines[0] and "backend: hog" in lines[0]
+    assert f"backend 'auto' needs the YOLOX model {GRAPH_MODEL}" in lines[0] and "backend: hog" in lines[0]
     assert "launching" not in res.stdout  # nothing was started
     # The detection node itself, as a real process: one error line, exit status 1.
     g = graph_file("  detection:\n    run: followbus.nodes.detection\n    inputs:\n"
@@ -197,7 +203,7 @@ def test_demo_refuses_to_start_without_a_model_and_node_exits_with_one_line(tmp_
 
 
 def test_demo_refuses_a_corrupt_model_before_launching(tmp_path: Path) -> None:
-    bad = _truncated_copy(tmp_path / "m")
+    bad = _truncated_copy(tmp_path / "m", GRAPH_MODEL)
     res = run_followbus("demo", "--set", f"detection.model_dir={bad.parent}", "--duration", "1", timeout=60)
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stdout + res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and str(bad) in res.stderr and "corrupt" in res.stderr
@@ -214,7 +220,7 @@ def test_followbus_models_lists_and_checks_the_shipped_models() -> None:
     for name in SHIPPED:
         assert f"used  {MODELS.resolve() / name}" in out
     assert out.count("SHA-256 OK") >= len(SHIPPED) and "MISMATCH" not in out and "MISSING" not in out
-    assert "all 3 shipped models present and intact" in out
+    assert f"all {len(SHIPPED)} shipped models present and intact" in out
     help_text = run_followbus("models", "--help", timeout=60).stdout
     assert "SHA256SUMS" in help_text and MODELS_ENV in help_text and "--model-dir" in help_text
 
@@ -240,13 +246,14 @@ def test_followbus_models_reports_a_missing_model(tmp_path: Path) -> None:
     repo_models = tmp_path / "repo" / "models"
     repo_models.mkdir(parents=True)
     shutil.copy(MODELS / "SHA256SUMS", repo_models / "SHA256SUMS")
-    for name in ("yolox_nano_416.onnx", "osnet_x0_25_msmt17.onnx"):
+    present = [name for name in SHIPPED if name != "yolox_nano_640.onnx"]
+    for name in present:
         shutil.copy(MODELS / name, repo_models / name)
     res = _run_without_models(tmp_path, "models")
     assert res.returncode == 1, res.stdout + res.stderr
     assert "yolox_nano_640.onnx" in res.stdout and "MISSING" in res.stdout
     assert "git checkout -- models/yolox_nano_640.onnx" in res.stdout and "1 problem(s)" in res.stdout
-    assert res.stdout.count("SHA-256 OK") == 2
+    assert res.stdout.count("SHA-256 OK") == len(present)
 
 
 def test_other_commands_report_a_corrupt_model_in_one_line(tmp_path: Path) -> None:

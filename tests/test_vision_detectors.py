@@ -225,3 +225,52 @@ def test_simulated_detector_noise_model_and_determinism() -> None:
     sim.set_truth([])
     assert sum(len(sim.detect(img)) for _ in range(50)) > 50  # false positives appear
     assert "not a detection accuracy" in sim.name
+
+
+# ----------------------------------------------------------------------------- runtimes, presets, INT8
+
+
+def _street_frame() -> np.ndarray:
+    for k, frame in enumerate(make_scene("lookalike", seed=0).frames()):
+        if k == 30:  # the target and its look-alike both in view
+            return frame.bgr
+    raise AssertionError("scene too short")
+
+
+@pytest.mark.slow
+def test_openvino_runtime_gives_the_onnxruntime_boxes() -> None:
+    pytest.importorskip("openvino", reason="openvino not installed (pip install openvino)")
+    bgr = _street_frame()
+    ort = make_detector("yolox", model_dir=str(_models_dir()), threads=1)
+    ov = make_detector("yolox", model_dir=str(_models_dir()), threads=1, runtime="openvino")
+    a, b = ort.detect(bgr), ov.detect(bgr)
+    assert ov.name.endswith("(openvino)") and len(a) == len(b) >= 2
+    np.testing.assert_allclose(b[:, :4], a[:, :4], atol=1.0)  # float kernels differ in the last digits only
+    np.testing.assert_allclose(b[:, 4], a[:, 4], atol=0.01)
+
+
+def test_unknown_runtime_is_refused() -> None:
+    with pytest.raises(ValueError, match="unknown runtime 'tensorrt'; choose one of onnxruntime, openvino"):
+        make_detector("yolox", runtime="tensorrt")
+
+
+@pytest.mark.slow
+def test_int8_and_512_models_find_the_people_the_640_model_finds() -> None:
+    bgr = _street_frame()
+    ref = make_detector("yolox", input_size=640, threads=1).detect(bgr)
+    for kwargs in ({"input_size": 640, "model_file": "yolox_nano_640_int8.onnx"}, {"input_size": 512}):
+        dets = make_detector("yolox", threads=1, **kwargs).detect(bgr)
+        assert len(ref) >= 2 and all(best_iou(dets, r[:4]) > 0.7 for r in ref if r[4] >= 0.5), (kwargs, dets, ref)
+
+
+def test_presets_name_what_graph_params_amount_to() -> None:
+    from followbus.vision.detector_presets import DETECTOR_PRESETS, apply_detector_preset, preset_of
+
+    graph_like = {"backend": "auto", "input_size": 416, "threads": 1}
+    assert preset_of(graph_like) == "yolox"
+    assert apply_detector_preset(dict(graph_like), "graph") == graph_like
+    for name in DETECTOR_PRESETS:
+        if name != "graph":
+            assert preset_of(apply_detector_preset(dict(graph_like), name)) == name
+    with pytest.raises(ValueError, match="unknown detector 'yolo9'"):
+        apply_detector_preset({}, "yolo9")

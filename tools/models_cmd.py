@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 
 from ..vision.models import (
@@ -35,6 +36,7 @@ fails with a message naming the file instead of producing wrong detections."""
 EPILOG = f"""\
 examples:
   followbus models                         check the shipped models
+  followbus models --build-int8            rebuild models/yolox_nano_640_int8.onnx (the recipe: vision/quantize.py)
   followbus models --model-dir /opt/models as the node with `model_dir: /opt/models`
   {MODELS_ENV}=/opt/models followbus models
   git checkout -- models                   restore the shipped files after a MISMATCH"""
@@ -45,6 +47,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     describe(p, DESCRIPTION, EPILOG, raw=True)
     p.add_argument("--model-dir", metavar="DIR", default=None,
                    help="a directory tried first, like the detection node's model_dir parameter")
+    p.add_argument("--build-int8", action="store_true",
+                   help="instead: quantize yolox_nano_640.onnx to INT8 (onnxruntime static quantization, "
+                        "vision/quantize.py) and print its SHA-256 against models/SHA256SUMS; needs `onnx` "
+                        "(pip install 'followbus[quantize]')")
+    p.add_argument("--calibration", metavar="DIR", action="append",
+                   help="with --build-int8: images to calibrate on, repeatable (default: the evaluation data, "
+                        "../shared/data, when present, else frames of the built-in scenes; the shipped file "
+                        "used ../shared/data)")
+    p.add_argument("--output", metavar="FILE", type=Path, default=None,
+                   help="with --build-int8: where to write it (default models/yolox_nano_640_int8.onnx)")
 
 
 def _mb(size_bytes: int) -> str:
@@ -75,7 +87,42 @@ def _describe(check: ModelCheck) -> str:
     return f"SHA-256 MISMATCH: {check.sha256}, expected {check.expected_sha256}"
 
 
+INT8_MODEL = "yolox_nano_640_int8.onnx"
+
+
+def build_int8(args: argparse.Namespace) -> int:
+    """``--build-int8``: the recipe of the shipped INT8 detector, re-run."""
+    from ..evaluation.datasets import find_data_root
+    from ..vision.models import file_sha256, resolve_model
+    from ..vision.quantize import calibration_images, quantize_yolox, read_frames, scene_frames
+
+    try:
+        import onnx  # noqa: F401  (quantization only)
+    except ImportError:
+        print("followbus models: --build-int8 needs onnx: pip install 'followbus[quantize]'", file=sys.stderr)
+        return 2
+    folders = [Path(c) for c in args.calibration or []]
+    root = None if folders else find_data_root()
+    images = calibration_images(folders or ([root] if root else []))
+    if folders and not images:
+        print(f"followbus models: no images under {', '.join(map(str, folders))}", file=sys.stderr)
+        return 2
+    frames = read_frames(images) if images else scene_frames()
+    print(f"calibrating on {len(images) or 'built-in scene'} frames{f' from {root}' if root else ''}")
+    out = args.output or shipped_models_dir() / INT8_MODEL
+    quantize_yolox(resolve_model("yolox_nano_640.onnx", args.model_dir), out, frames, 640)
+    sha, expected = file_sha256(out), known_checksums().get(INT8_MODEL)
+    same = "matches models/SHA256SUMS" if sha == expected else f"differs from models/SHA256SUMS ({expected})"
+    print(f"wrote {out}: SHA-256 {sha} ({same})")
+    return 0
+
+
 def cmd_models(args: argparse.Namespace) -> int:
+    return build_int8(args) if args.build_int8 else check_models(args)
+
+
+def check_models(args: argparse.Namespace) -> int:
+    """The listing: the search path and every copy of every shipped model, checked."""
     model_dir: str | None = args.model_dir
     dirs = search_path(model_dir)
     print("model search path (first match wins):")

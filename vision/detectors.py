@@ -223,6 +223,53 @@ def _ort_session(model_path: Path, threads: int | None) -> Any:
                          "(run `followbus models` to check the shipped ones)") from exc
 
 
+RUNTIMES = ("onnxruntime", "openvino")
+
+
+class _OpenVinoSession:
+    """An OpenVINO compiled model behind the two calls :class:`_OnnxDetector` makes of an onnxruntime session
+    (``get_inputs()[0].name/.shape`` and ``run(None, feeds)``), so either runtime infers the same ONNX file."""
+
+    class _Input:
+        def __init__(self, name: str, shape: list[Any]) -> None:
+            self.name, self.shape = name, shape
+
+    def __init__(self, model_path: Path, threads: int | None) -> None:
+        import openvino as ov  # deferred: only this runtime needs it
+
+        core = ov.Core()
+        config: dict[str, Any] = {"PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": "1"}
+        if threads:
+            config["INFERENCE_NUM_THREADS"] = int(threads)
+        try:
+            self._compiled = core.compile_model(core.read_model(str(model_path)), "CPU", config)
+        except Exception as exc:  # OpenVINO raises RuntimeError with multi-line text
+            lines = str(exc).strip().splitlines()
+            raise ModelError(f"model file {model_path} cannot be loaded by OpenVINO "
+                             f"({lines[0] if lines else type(exc).__name__})") from exc
+        port = self._compiled.inputs[0]
+        shape = [d.get_length() if d.is_static else None for d in port.get_partial_shape()]
+        self._input = self._Input(port.get_any_name(), shape)
+        self._request = self._compiled.create_infer_request()
+
+    def get_inputs(self) -> list[Any]:
+        return [self._input]
+
+    def run(self, _outputs: Any, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+        result = self._request.infer(feeds)
+        return [np.asarray(result[self._compiled.outputs[0]])]
+
+
+def _inference_session(model_path: Path, threads: int | None, runtime: str) -> Any:
+    if runtime == "openvino":
+        try:
+            return _OpenVinoSession(model_path, threads)
+        except ImportError as exc:
+            raise ModelError("runtime 'openvino' needs the openvino package (pip install openvino); "
+                             "or set `runtime: onnxruntime`") from exc
+    return _ort_session(model_path, threads)
+
+
 def _static_square_size(shape: Sequence[Any]) -> int | None:
     """Input side of an NCHW model when both H and W are fixed and equal, else None."""
     if len(shape) == 4 and isinstance(shape[2], int) and isinstance(shape[3], int) and shape[2] == shape[3]:
@@ -243,10 +290,11 @@ class _OnnxDetector:
         score_threshold: float = 0.3,
         nms_iou: float = 0.45,
         threads: int | None = None,
+        runtime: str = "onnxruntime",
     ) -> None:
         self.model_path = Path(model_path)
         verify_model(self.model_path)  # a corrupt file must not reach onnxruntime (or worse, load and misdetect)
-        self.session = _ort_session(self.model_path, threads)
+        self.session = _inference_session(self.model_path, threads, runtime)
         inp = self.session.get_inputs()[0]
         self.input_name = inp.name
         model_size = _static_square_size(inp.shape)
@@ -256,7 +304,8 @@ class _OnnxDetector:
         self.input_size = model_size or input_size or self.default_size
         self.score_threshold = float(score_threshold)
         self.nms_iou = float(nms_iou)
-        self.name = f"{self.kind}:{self.model_path.name}@{self.input_size}"
+        suffix = "" if runtime == "onnxruntime" else f" ({runtime})"
+        self.name = f"{self.kind}:{self.model_path.name}@{self.input_size}{suffix}"
         self.last_infer_ms = 0.0
 
     def _infer(self, blob: np.ndarray) -> np.ndarray:
@@ -542,6 +591,7 @@ def make_detector(
     score_threshold: float = 0.3,
     nms_iou: float = 0.45,
     threads: int | None = None,
+    runtime: str = "onnxruntime",
     noise_px: float = 4.0,
     miss_rate: float = 0.05,
     false_positive_rate: float = 0.02,
@@ -553,11 +603,14 @@ def make_detector(
     models/). A model that is missing from the search path, fails its SHA-256 check or does not
     load raises :class:`DetectorUnavailable`, for ``auto`` too: there is no silent fallback to HOG,
     whose detections are far worse; ``hog`` is an explicit choice. ``simulated`` ignores the image
-    and needs ground truth (see :class:`SimulatedDetector`).
+    and needs ground truth (see :class:`SimulatedDetector`). ``runtime`` (one of :data:`RUNTIMES`) infers
+    the ONNX backends' file with onnxruntime or OpenVINO.
     """
     backend = backend.strip().lower()
     if backend not in BACKENDS:
         raise ValueError(f"unknown detector backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if runtime not in RUNTIMES:
+        raise ValueError(f"unknown runtime {runtime!r}; choose one of {', '.join(RUNTIMES)}")
     if backend == "hog":
         return HogDetector(score_threshold=score_threshold, nms_iou=nms_iou)
     if backend == "simulated":
@@ -567,7 +620,8 @@ def make_detector(
     assert path is not None
     cls = YoloV8Detector if backend == "yolov8" else YoloxDetector
     try:
-        det = cls(path, input_size=input_size, score_threshold=score_threshold, nms_iou=nms_iou, threads=threads)
+        det = cls(path, input_size=input_size, score_threshold=score_threshold, nms_iou=nms_iou, threads=threads,
+                  runtime=runtime)
     except ModelError as exc:
         raise DetectorUnavailable(str(exc)) from exc
     log.info("detector %s -> %s (model %s; search path: %s)",
@@ -582,6 +636,7 @@ def best_iou(dets: np.ndarray, box: Sequence[float]) -> float:
 
 __all__ = [
     "BACKENDS",
+    "RUNTIMES",
     "Detector",
     "DetectorUnavailable",
     "HogDetector",

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ...vision.detector_presets import DETECTOR_PRESETS
 from ..command import Command, Lazy, describe
 
 
@@ -33,14 +34,31 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
              "p50/p99 from the message headers, CPU per node and dropped frames.",
              "example: followbus bench pipeline --duration 20 --detector yolox")
     p.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds of measurement (default 20)")
-    p.add_argument("--detector", default="yolox", choices=("yolox", "yolox640", "hog", "simulated"),
-                   help="detection backend (default yolox = YOLOX-nano@416; falls back to hog without the model)")
+    p.add_argument("--detector", default="graph", choices=tuple(DETECTOR_PRESETS),
+                   help="detector (default graph: graph.yaml's own detection params; yolox = YOLOX-nano@416, "
+                        "yolox512, yolox640, yolox640-int8, *-openvino: the same ONNX on OpenVINO; falls back to "
+                        "hog without the model)")
     p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
     p.add_argument("--resolution", default="640x480", metavar="WxH", type=_resolution,
                    help="the scene's frame size (default 640x480; e.g. 1280x720, 1920x1080)")
     p.add_argument("--lane", choices=("on", "off"), default="off",
                    help="the same-host shared-memory lane (zenoh: shm_lane; default off, as graph.yaml)")
     p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
+    p.add_argument("--namespace", default="", help="graph namespace (default bench<port>)")
+    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
+
+def _detector_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "The cost of each detector side by side: CPU and wall ms per inference on frames of the built-in "
+             "scenes, with graph.yaml's detection threads, every detector once per round (BENCHMARKS.md, "
+             "\"Detectors side by side\").",
+             "example: followbus bench detector --detectors yolox,yolox512,yolox640 --rounds 4")
+    p.add_argument("--detectors", default="yolox,yolox512,yolox640,yolox640-int8,yolox416-openvino,"
+                   "yolox512-openvino,yolox640-openvino", metavar="LIST",
+                   help="comma-separated --detector names (default: every YOLOX variant; the first is the unit)")
+    p.add_argument("--rounds", type=int, default=4, help="rounds (default 4)")
+    p.add_argument("--frames", type=int, default=7, metavar="N", help="frames per scene, 3 scenes (default 7)")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
 
 
@@ -131,9 +149,12 @@ def _eval_args(p: argparse.ArgumentParser) -> None:
              "ByteTrack, OC-SORT, BoT-SORT) follow the id of the track overlapping the "
              "first ground-truth box; on MOT sequences they also get MOTA/IDF1/HOTA of "
              "their whole output. `make` installs them (requirements-peers.txt).",
-             "examples:\n  followbus eval all --ablations --detector yolox640\n"
+             "examples:\n  followbus eval all --ablations              graph.yaml's detector\n"
+             "  followbus eval all --method followbus --detector yolox640-openvino\n"
              "  followbus eval ../shared/data/sot/otb-jogging scene:wall-occlusion "
              "--method followbus\n"
+             "  followbus eval ~/data/OTB100/Human3 --trace --video     an OTB folder, every frame, an MP4\n"
+             "  followbus eval ~/data/LaSOT/person                     every sequence of a folder\n"
              "  followbus eval ../shared/data/mot/tud-campus --method followbus "
              "--method peer:bytetrack --method peer:botsort\n"
              "  followbus eval scene:wall-occlusion --graph-check\n"
@@ -152,10 +173,19 @@ def _eval_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--method", action="append", metavar="M",
                    help="followbus | kalman | peer:bytetrack|ocsort|botsort; repeatable (default followbus + kalman)")
     p.add_argument("--ablations", action="store_true", help="also run the paper's Table 6 ablations of followbus")
-    p.add_argument("--detector", default=None, choices=("yolox", "yolox640", "hog", "simulated"),
-                   help="detections for every method (default yolox = YOLOX-nano@416; with --graph-check: "
-                        "simulated for scenes, yolox for sequence dirs)")
+    p.add_argument("--detector", default=None, choices=tuple(DETECTOR_PRESETS),
+                   help="detections for every method (default graph: graph.yaml's own detection params, what the "
+                        "robot runs; yolox = YOLOX-nano@416, yolox512, yolox640, yolox640-int8 (static INT8), "
+                        "yolox*-openvino (the same ONNX on OpenVINO), hog, simulated; with --graph-check: "
+                        "simulated for scenes, graph for sequence dirs)")
     p.add_argument("--out", type=Path, default=Path("results"), help="output directory (default results/)")
+    p.add_argument("--trace", action="store_true",
+                   help="also write, per sequence and method, every frame: trace/<seq>/<method>.jsonl (output, "
+                        "state, prior and its gate, candidates with colour/geometry/classifier scores, camera "
+                        "motion, reason) and tracker_results/<method>/<seq>.txt (OTB toolkit format)")
+    p.add_argument("--video", action="store_true",
+                   help="also write videos/<seq>-<method>.mp4 of the first method's run: ground truth (green), "
+                        "output (red), gate (cyan), candidates with their fused scores (implies the trace data)")
     p.add_argument("--max-frames", type=int, default=0, metavar="N", help="only the first N frames per sequence")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated detector (default 0)")
     p.add_argument("--graph-check", action="store_true",
@@ -169,6 +199,8 @@ COMMANDS = (
                 Lazy("bench.bus", "run_bench_bus")),
         Command("pipeline", "end-to-end latency capture -> motor command through the launched graph", _pipeline_args,
                 Lazy("bench.pipeline", "run_bench_pipeline")),
+        Command("detector", "CPU and wall ms per inference of each detector, side by side", _detector_args,
+                Lazy("bench.detector", "run_bench_detector")),
         Command("chaos", "fault injection: does the live loop always recover? (RELIABILITY.md)", _chaos_args,
                 Lazy("bench.chaos", "run_bench_chaos")),
         Command("record-views", "what the recorder's views cost per frame (convert and write), before and now",

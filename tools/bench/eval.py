@@ -23,7 +23,9 @@ from typing import Any
 import numpy as np
 
 from ...evaluation.metrics import SingleTargetMetrics, aggregate, format_markdown_table
-from ...evaluation.runner import SequenceRun
+from ...evaluation.runner import DEFAULT_DETECTOR, SequenceRun, detector_key
+from ...evaluation.trace import worst_episodes_markdown
+from ...vision.detector_presets import apply_detector_preset
 
 log = logging.getLogger("followbus.eval")
 
@@ -32,7 +34,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 def expand_sequences(specs: list[str]) -> list[str]:
     """``all`` → every sequence under the data root; ``scene:<name>`` and directories pass through."""
-    from ...evaluation.datasets import find_data_root, list_sequences, load_sequence
+    from ...evaluation.datasets import find_data_root, list_sequences
 
     out: list[str] = []
     for s in specs:
@@ -52,15 +54,25 @@ def expand_sequences(specs: list[str]) -> list[str]:
                 raise ValueError(f"unknown scene {s!r}; available: {', '.join(SCENES)}")
             out.append(s)
         else:
-            if not Path(s).is_dir():
-                raise FileNotFoundError(f"{s}: not a directory (a sequence folder, scene:<name> or all)")
-            # Read before any work starts (no pixels: cheap), so a folder that is not a sequence is one line.
-            try:
-                load_sequence(s)
-            except (OSError, ValueError) as exc:
-                raise ValueError(str(exc)) from exc
-            out.append(s)
+            out += _sequence_folders(s)
     return out
+
+
+def _sequence_folders(spec: str) -> list[str]:
+    """A sequence folder of any layout, or a folder of them (a benchmark's root); each read before any work
+    starts (no pixels: cheap), so a folder that is not a sequence is one line naming what is missing."""
+    from ...evaluation.datasets import detect_layout, load_sequence, sequences_in
+
+    path = Path(spec)
+    if not path.is_dir():
+        raise FileNotFoundError(f"{spec}: not a directory (a sequence folder, scene:<name> or all)")
+    folders = [path] if detect_layout(path) is not None else sequences_in(path) or [path]
+    for folder in folders:
+        try:
+            load_sequence(folder)
+        except (OSError, ValueError) as exc:
+            raise ValueError(str(exc)) from exc
+    return [str(f) for f in folders]
 
 
 # --------------------------------------------------------------------------- reporting
@@ -172,6 +184,13 @@ def mot_table(runs: list[SequenceRun], methods: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _episode_json(boxes: list, run: SequenceRun) -> dict[str, Any] | None:
+    from ...evaluation.trace import worst_episode
+
+    ep = worst_episode(boxes, run.gt_boxes, run.other_gt)
+    return None if ep is None else {"first_frame": ep.first, "frames": ep.length, "followed": ep.followed}
+
+
 def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command: str, detector: str,
                  notes: list[str]) -> tuple[Path, Path]:
     out.mkdir(parents=True, exist_ok=True)
@@ -187,6 +206,7 @@ def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command
     md.append(summary_matrix(runs, methods))
     md.append(format_markdown_table(rows))
     md.append(mot_table(runs, methods))
+    md.append(worst_episodes_markdown(runs, methods))
     md.append(timing_table(runs, methods))
     md += ["### Notes", ""] + [f"- {n}" for n in notes] + [""]
     md_path = out / "results.md"
@@ -200,6 +220,7 @@ def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command
             "detections_cached": r.detections_cached,
             "detector_ceiling": _metrics_json(r.ceiling) if r.ceiling is not None else None,
             "methods": {m: {**_metrics_json(mr.metrics), "tracker_ms": _num(mr.tracker_ms_mean),
+                            "worst_episode": _episode_json(mr.boxes, r),
                             **({"mot": {k: _num(v) for k, v in mr.mot.as_dict().items()}} if mr.mot else {})}
                         for m, mr in r.runs.items() if mr.metrics is not None},
         }
@@ -217,6 +238,37 @@ def write_report(runs: list[SequenceRun], methods: list[str], out: Path, command
 # --------------------------------------------------------------------------- command
 
 
+def _wants_trace(args) -> bool:
+    """Whether the followers record every frame's details (--trace, and --video, which draws them)."""
+    return bool(args.trace or args.video)
+
+
+def _say_frame_files(args, out: Path) -> None:
+    if _wants_trace(args):
+        print(f"per-frame traces in {out / 'trace'}, OTB result files in {out / 'tracker_results'}"
+              + (f", videos in {out / 'videos'}" if args.video else ""))
+
+
+def _write_frames(run: SequenceRun, out: Path, args, method: str) -> None:
+    """--trace: every method's per-frame trace and OTB result file; --video: the MP4 of ``method``'s run."""
+    from ...evaluation.trace import file_stem, write_run_files
+
+    if args.trace:
+        write_run_files(run, out)
+    if args.video:
+        from ...evaluation.render import render_run
+
+        path = out / "videos" / f"{file_stem(run.sequence.name)}-{file_stem(method)}.mp4"
+        n = render_run(run, method, path)
+        log.info("wrote %s (%d frames)", path, n)
+
+
+def _detector_label(name: str) -> str:
+    """``graph`` named with what it amounts to (the report says which detector the robot runs)."""
+    return f"graph.yaml's ({detector_key(name)})" if name == "graph" else name
+
+
+
 def cmd_eval(args) -> int:
     from ...evaluation.baselines import peer_available
     from ...evaluation.plots import plot_sequence
@@ -229,7 +281,8 @@ def cmd_eval(args) -> int:
         if args.detector == "simulated":
             print("followbus: --group --camera needs a real detector (yolox, yolox640 or hog)", file=sys.stderr)
             return 2
-        return cmd_eval_group_camera(Path(args.out), command, args.sequences or None, args.detector or "yolox",
+        return cmd_eval_group_camera(Path(args.out), command, args.sequences or None,
+                                     args.detector or DEFAULT_DETECTOR,
                                      args.max_frames)
     if getattr(args, "camera", False):
         print("followbus: --camera goes with --group", file=sys.stderr)
@@ -268,7 +321,7 @@ def cmd_eval(args) -> int:
                   + (f"; first mismatch at frame {res['first_mismatch']}" if res["mismatches"] else ""))
             status |= 0 if res["mismatches"] == 0 and res["missing"] == 0 and res["compared"] > 0 else 1
         return status
-    args.detector = args.detector or "yolox"
+    args.detector = args.detector or DEFAULT_DETECTOR
     try:
         seqs = expand_sequences(args.sequences)
     except (FileNotFoundError, ValueError) as exc:
@@ -283,7 +336,7 @@ def cmd_eval(args) -> int:
         notes.append(f"peer trackers {', '.join(peers)} skipped: {reason}")
         methods = [m for m in methods if m not in peers]
     try:
-        factories = method_factories(methods, ablations=args.ablations)
+        factories = method_factories(methods, ablations=args.ablations, trace=_wants_trace(args))
     except ValueError as exc:
         print(f"followbus: {exc}", file=sys.stderr)
         return 2
@@ -302,13 +355,14 @@ def cmd_eval(args) -> int:
                                progress=True)
         except ModelError as exc:
             hint = ""
-            if args.detector.startswith("yolox"):
+            if args.detector not in ("hog", "simulated"):
                 hint = ("; or score without a model: --detector simulated (ground truth + noise)"
                         if spec.startswith("scene:") else "; or --detector hog (no model, far less accurate)")
             print(f"followbus: {exc}{hint}", file=sys.stderr)
             return 2
         runs.append(run)
         plot_sequence(run, out / "plots")
+        _write_frames(run, out, args, methods[0])
         fb = run.runs.get("followbus")
         if fb is not None and fb.metrics is not None:
             log.info("%s: followbus TSR %.3f CLE %.1f px", seq.name, fb.metrics.tsr, fb.metrics.cle)
@@ -328,22 +382,14 @@ def cmd_eval(args) -> int:
                  "annotated person (SOT sequences annotate only the target, so switches there are always 0); "
                  "Wrong re-lock = an episode of >= 10 frames with an output that does not overlap the target's box "
                  "(following someone else; counted on every sequence).")
-    md, js = write_report(runs, methods, out, command, args.detector, notes)
+    _say_frame_files(args, out)
+    md, js = write_report(runs, methods, out, command, _detector_label(args.detector), notes)
     print(f"wrote {md}, {js} and plots in {out / 'plots'}")
     print((out / "results.md").read_text(encoding="utf-8"))
     return 0
 
 
 # --------------------------------------------------------------------------- graph check
-
-
-def _set_detector(params: dict[str, Any], detector: str) -> dict[str, Any]:
-    """Detection-node params switched to ``detector`` as ``followbus eval --detector`` names it."""
-    if detector.startswith("yolox"):
-        params.update(backend="yolox", input_size=640 if detector == "yolox640" else 416)
-    else:
-        params["backend"] = detector
-    return params
 
 
 def derived_graph(source: str, port: int, namespace: str, init_box: list[float], max_frames: int,
@@ -360,7 +406,7 @@ def derived_graph(source: str, port: int, namespace: str, init_box: list[float],
     cap = g["nodes"]["capture"]
     cap.setdefault("inputs", {})["ack"] = {"from": "prediction/track", "sync": "none"}
     cap["params"].update(source=source, pace="fast", max_frames=max_frames, max_in_flight=max_in_flight)
-    _set_detector(g["nodes"]["detection"]["params"], detector)
+    apply_detector_preset(g["nodes"]["detection"]["params"], detector)
     for node in g["nodes"].values():
         # Lockstep loses nothing, so a timeout could only mean a slow (cold, loaded) node, and a set
         # emitted without its feedback would make the graph diverge from the in-process run.
@@ -378,8 +424,8 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
     same detector; compare the track boxes frame by frame.
 
     ``detector``: simulated (scenes only: the graph's detection node rebuilds its input from the capture's
-    ground truth) or a real one, yolox / yolox640 / hog, run by the detection node on the frames it receives
-    and in-process on the frames read here. Default: simulated for scenes, yolox otherwise.
+    ground truth) or a real one (a name of vision/detector_presets.py), run by the detection node on the frames
+    it receives and in-process on the frames read here. Default: simulated for scenes, graph.yaml's otherwise.
 
     Returns {"compared", "mismatches", "missing", "first_mismatch", "graph", "inproc", "detector"}.
     """
@@ -391,10 +437,10 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
     from ...vision.detectors import SimulatedDetector
 
     is_scene = spec.startswith("scene:")
-    detector = detector or ("simulated" if is_scene else "yolox")
+    detector = detector or ("simulated" if is_scene else DEFAULT_DETECTOR)
     # the detection node's params as the graph runs them (thresholds, threads, model), switched to ``detector``
     graph_detection = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]["detection"]
-    node_params = Detection.parse_params(_set_detector(dict(graph_detection["params"]), detector))
+    node_params = Detection.parse_params(apply_detector_preset(dict(graph_detection["params"]), detector))
     if detector == "simulated" and not is_scene:
         raise ValueError(f"{spec}: simulated detections are reproduced by the graph for scenes only; "
                          "use --detector yolox|yolox640|hog")

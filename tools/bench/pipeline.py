@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from ...vision.detector_presets import apply_detector_preset
+
 log = logging.getLogger("followbus.bench")
 
 REPO = Path(__file__).resolve().parents[2]
@@ -52,15 +54,25 @@ def _graph_text(scene: str, port: int, namespace: str, detector: str, sim_delay_
         g["nodes"]["capture"]["params"].update(width_px=resolution[0], height_px=resolution[1])
     if lane is not None:
         g["zenoh"]["shm_lane"] = lane
-    det = g["nodes"]["detection"]["params"]
-    if detector.startswith("yolox"):
-        det.update(backend="yolox", input_size=640 if detector == "yolox640" else 416)
-    else:
-        det["backend"] = detector
-        if sim_delay_ms:
-            det["sim_delay_ms"] = float(sim_delay_ms)
+    det = apply_detector_preset(g["nodes"]["detection"]["params"], "yolox" if detector == "yolox416" else detector)
+    if sim_delay_ms:
+        det["sim_delay_ms"] = float(sim_delay_ms)
     g["nodes"]["template"]["params"]["state_file"] = ""  # every launch starts from the same template
     return yaml.safe_dump(g, sort_keys=False)
+
+
+def _model_present(detector: str) -> bool:
+    """Whether the detector's model file (if it has one) is on the model search path."""
+    from ...evaluation.runner import detection_params
+    from ...vision.detectors import DetectorUnavailable, resolve_detector_model
+
+    p = detection_params(detector)
+    try:
+        resolve_detector_model(str(p.get("backend", "auto")), model_dir=p.get("model_dir") or None,
+                               model_file=p.get("model_file") or None, input_size=int(p.get("input_size", 416)))
+    except DetectorUnavailable:
+        return False
+    return True
 
 
 def run_bench_pipeline(args) -> int:
@@ -68,11 +80,10 @@ def run_bench_pipeline(args) -> int:
     from ...bus.pubsub import declare_subscriber, frame_bytes
     from ...bus.schemas import NodeStatus, decode
     from ...bus.session import open_session
-    from ...vision.models import find_model
     from ..launch import Launcher
 
     detector = args.detector
-    if detector.startswith("yolox") and find_model(f"yolox_nano_{640 if detector == 'yolox640' else 416}.onnx") is None:
+    if not _model_present(detector):
         print("bench pipeline: YOLOX model not found; using hog (figures are not comparable)", flush=True)
         detector = "hog"
     port = args.port
@@ -80,7 +91,7 @@ def run_bench_pipeline(args) -> int:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
-    ns = f"bench{port}"
+    ns = args.namespace or f"bench{port}"
     pub: dict[tuple[str, str], dict[int, tuple[int, int]]] = {st: {} for st in STAGES}
     pids: dict[str, int] = {}
     lock = threading.Lock()
