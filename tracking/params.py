@@ -105,6 +105,12 @@ class TrackerParams:
     # the egomotion node that measures it; `followbus eval --ablations` scores "followbus w/o camera-motion
     # compensation".
     camera_motion_compensation: bool = True
+    # Issue 22: the camera motion's uncertainty (egomotion's std_px) widens the prior's position covariance by
+    # std² (and so the gate); a fit more doubtful than camera_motion_doubt_px does not move a coasting prior
+    # (no detection matched on the previous frame), it widens it by the displacement it would have applied.
+    # A frame with no fit while the camera moves widens the prior by the last displacement seen.
+    camera_motion_uncertainty: bool = True
+    camera_motion_doubt_px: float = 4.0
 
     # --- ablation switches (paper Table 6) ------------------------------------------------
     use_geometry: bool = True  # False: S_geo off, ω = 1 (M_fuse = S_color)
@@ -116,7 +122,7 @@ class TrackerParams:
         positive = (
             "morph_kernel_px", "bins_h", "bins_s", "dt_ms", "gate_chi2", "gamma", "r0_px2",
             "lost_after_ms", "motion_max_changed_fraction", "identity_sample_every_frames", "identity_max_crops",
-            "ridge_lambda", "gate_scale_max", "gate_fast_height_fraction",
+            "ridge_lambda", "gate_scale_max", "gate_fast_height_fraction", "camera_motion_doubt_px",
         )
         for name in positive:
             if getattr(self, name) <= 0:

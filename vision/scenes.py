@@ -401,7 +401,7 @@ def render_figure(
 
 # scene:overlay: the pan's amplitude (fraction of the image width) and period.
 PAN_AMPLITUDE_FRACTION = 0.45
-PAN_PERIOD_S = 4.0
+PAN_PERIOD_S = 2.6
 # scene:bumpy: bumps (t_s, dx, dy) in px at 640x480 (scaled with the height), the settling time constant, the
 # fraction of a bump exposed on its own frame, and how much of a smeared figure a detector can still use.
 BUMPS = [(1.2, 0.0, 48.0), (2.5, -20.0, -50.0), (3.7, 15.0, 45.0), (5.0, 0.0, -58.0), (6.3, -30.0, 40.0),
@@ -515,7 +515,10 @@ def _spec(name: str) -> _Spec:
     if name == "overlay":
         # The target walks left and right as the camera pans with it (Scene._pan_px): it stays near the image
         # centre while the hall, the look-alike and the bystander sweep past; the overlay never moves.
-        return _Spec(name, 10.0, _HALL, [
+        street = replace(_HALL, kind="street", ceiling=False, half_width_m=5.0, wall_height_m=10.0, far_m=45.0,
+                         floor_bgr=(150, 158, 165), floor_alt_bgr=(120, 128, 136), wall_bgr=(150, 175, 200),
+                         top_bgr=(235, 200, 150), ambient=1.0, lights=[], tile_m=0.45)
+        return _Spec(name, 10.0, street, [
             _Actor("target", _TARGET, [(0.0, 0.0, 4.0), (10.0, 0.0, 4.8)], sway_m=0.05),
             _Actor("distractor", _LOOKALIKE, [(0.0, 1.3, 5.6), (10.0, 0.7, 6.0)], sway_m=0.05),
             _Actor("distractor", _BYSTANDER, [(0.0, -2.6, 7.0), (10.0, -1.8, 7.5)], sway_m=0.04),
