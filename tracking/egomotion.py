@@ -163,6 +163,9 @@ def background_mask(shape: tuple[int, int], boxes: np.ndarray | None, scale: tup
     return mask
 
 
+CORNER_REGIONS = (4, 3)  # columns, rows of the corner budget's regions
+
+
 class EgoMotionEstimator:
     """Stateful per-stream estimator: call :meth:`step` on every frame in order."""
 
@@ -204,9 +207,22 @@ class EgoMotionEstimator:
         return np.concatenate(parts) if parts else None
 
     def _good_corners(self, grey: np.ndarray, mask: np.ndarray, n: int) -> np.ndarray | None:
+        """Up to ``n`` corners, an equal share from each of CORNER_REGIONS regions: a patch of strong corners
+        (screen-fixed text, a checkered logo) cannot take the whole budget before the map knows it is fixed."""
         p = self.params
-        return cv2.goodFeaturesToTrack(grey, maxCorners=n, qualityLevel=p.corner_quality,
-                                       minDistance=p.min_corner_distance_px, mask=mask, blockSize=3)
+        h, w = grey.shape[:2]
+        cols, rows = CORNER_REGIONS
+        share = max(-(-n // (cols * rows)), 1)
+        found = []
+        for r in range(rows):
+            for c in range(cols):
+                y0, y1, x0, x1 = r * h // rows, (r + 1) * h // rows, c * w // cols, (c + 1) * w // cols
+                pts = cv2.goodFeaturesToTrack(grey[y0:y1, x0:x1], maxCorners=share, qualityLevel=p.corner_quality,
+                                              minDistance=p.min_corner_distance_px, mask=mask[y0:y1, x0:x1],
+                                              blockSize=3)
+                if pts is not None:
+                    found.append(pts + np.array([x0, y0], np.float32))
+        return np.concatenate(found) if found else None
 
     def _static_mask(self, shape: tuple[int, ...]) -> np.ndarray | None:
         """uint8 mask (255) of the work image's static cells; None when there is none."""
