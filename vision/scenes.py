@@ -53,10 +53,10 @@ SCENES: dict[str, str] = {
     "lost-target": "8 s hall: target walks out of view to the right at ~3.5 s and never returns",
     "group-walk": "20 s hall: a group of 5 walks away together (no single target; follow the group, seed 004), "
     "one member is hidden behind another for ~4.5 s, a passer-by walks towards the robot beside them",
-    "overlay": "10 s hall seen by a camera panning with the target (up to ~16 px/frame) through a burned-in clock, "
-    "a logo and a strip of the robot's own body fixed in the image; a look-alike and a bystander nearby",
-    "bumpy": "10 s hall from a robot on a bumpy floor: seven 40-60 px jerks of the whole image, each smearing its "
-    "frame (no detection of anyone there), settling within ~0.2 s; three people around the target",
+    "overlay": "10 s street seen by a camera panning to and fro (up to ~23 px/frame) through a burned-in clock, "
+    "a logo and a strip of the robot's own body fixed in the image; a look-alike crosses behind the target",
+    "bumpy": "10 s hall from a robot on a bumpy floor: seven 54-58 px jerks of the whole image, each smearing its "
+    "frame (no detection of anyone there), settling over ~2 s; three people around the target",
 }
 DEFAULT_SCENE = "corridor-occlusion"
 
@@ -400,13 +400,13 @@ def render_figure(
 
 
 # scene:overlay: the pan's amplitude (fraction of the image width) and period.
-PAN_AMPLITUDE_FRACTION = 0.45
-PAN_PERIOD_S = 2.6
+PAN_AMPLITUDE_FRACTION = 0.35
+PAN_PERIOD_S = 2.0
 # scene:bumpy: bumps (t_s, dx, dy) in px at 640x480 (scaled with the height), the settling time constant, the
 # fraction of a bump exposed on its own frame, and how much of a smeared figure a detector can still use.
-BUMPS = [(1.2, 0.0, 48.0), (2.5, -20.0, -50.0), (3.7, 15.0, 45.0), (5.0, 0.0, -58.0), (6.3, -30.0, 40.0),
-         (7.6, 25.0, -45.0), (8.8, 0.0, 60.0)]
-BUMP_SETTLE_S = 0.2
+BUMPS = [(1.2, 30.0, 45.0), (2.5, -10.0, -55.0), (3.7, 45.0, 30.0), (5.0, -25.0, -52.0), (6.3, 50.0, 22.0),
+         (7.6, -25.0, -50.0), (8.8, 35.0, 45.0)]
+BUMP_SETTLE_S = 2.0
 SMEAR_EXPOSURE = 0.8
 SMEAR_DETECTABLE = 0.2  # below SimulatedDetector.MIN_VISIBLE_FRACTION (0.3): the jerk frame has no detection
 
@@ -513,20 +513,20 @@ def _spec(name: str) -> _Spec:
     if name == "group-walk":
         return _Spec(name, 20.0, _HALL, _group_walk_actors())
     if name == "overlay":
-        # The target walks left and right as the camera pans with it (Scene._pan_px): it stays near the image
-        # centre while the hall, the look-alike and the bystander sweep past; the overlay never moves.
+        # The camera pans to and fro (Scene._pan_px): the whole scene sweeps across the image, the overlay
+        # never moves; the look-alike walks across behind the target.
         street = replace(_HALL, kind="street", ceiling=False, half_width_m=5.0, wall_height_m=10.0, far_m=45.0,
                          floor_bgr=(150, 158, 165), floor_alt_bgr=(120, 128, 136), wall_bgr=(150, 175, 200),
                          top_bgr=(235, 200, 150), ambient=1.0, lights=[], tile_m=0.45)
         return _Spec(name, 10.0, street, [
             _Actor("target", _TARGET, [(0.0, 0.0, 4.0), (10.0, 0.0, 4.8)], sway_m=0.05),
-            _Actor("distractor", _LOOKALIKE, [(0.0, 1.3, 5.6), (10.0, 0.7, 6.0)], sway_m=0.05),
+            _Actor("distractor", _LOOKALIKE, [(0.0, 1.6, 5.6), (10.0, -1.2, 6.0)], sway_m=0.05),
             _Actor("distractor", _BYSTANDER, [(0.0, -2.6, 7.0), (10.0, -1.8, 7.5)], sway_m=0.04),
         ], camera="pan", overlay=True)
     if name == "bumpy":
         return _Spec(name, 10.0, _HALL, [
             _Actor("target", _TARGET, [(0.0, 0.0, 2.8), (10.0, 0.2, 4.4)], sway_m=0.06),
-            _Actor("distractor", _LOOKALIKE, [(0.0, -0.95, 3.4), (10.0, -0.8, 5.0)], sway_m=0.05),
+            _Actor("distractor", _LOOKALIKE, [(0.0, -0.6, 3.0), (10.0, -0.55, 4.6)], sway_m=0.05),
             _Actor("distractor", _BYSTANDER, [(0.0, 1.8, 6.5), (10.0, 1.3, 3.0)], sway_m=0.04),
             _Actor("distractor", _PASSER, [(1.0, -3.5, 8.0), (9.0, 3.5, 8.0)], sway_m=0.03),
         ], camera="bumpy")
@@ -742,8 +742,6 @@ class Scene:
                     prev_pos[k] = None
                     continue
                 x_m, z_m = pos
-                if spec.camera == "pan" and actor.role == "target":
-                    x_m -= self._pan_px(t) * z_m / cam.f_px  # the camera pans with the target
                 speed = lateral = 0.0
                 if prev_pos[k] is not None:
                     vx_m, vz_m = (x_m - prev_pos[k][0]) / dt, (z_m - prev_pos[k][1]) / dt
