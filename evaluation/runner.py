@@ -62,6 +62,8 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o rival hypothesis": {"temporal_consistency": False},
     "followbus w/o reference across failed fits": {"max_reference_age_frames": 0},
     "followbus w/o camera-motion uncertainty": {"camera_motion_uncertainty": False},
+    # issue 22: a far re-lock on δ_switch alone, as before (no δ_id / N_id confirmation)
+    "followbus w/o identity-confirmed far re-lock": {"far_relock_needs_identity": False},
 }
 # graph.yaml's detection node: boxes scoring score_threshold or more are "the detections" every method sees;
 # those in [low_score_threshold, score_threshold) only reach a method that asks for them (``uses_low_scores``):
