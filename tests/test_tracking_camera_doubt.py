@@ -1,7 +1,8 @@
 """Issue 22 end to end on its two scenes, through the graph's own tracking nodes (in-process, simulated detector):
 screen-fixed content must not steer the camera-motion estimate (scene:overlay), and after a jerk whose frame had
 no detection the target's own detection must be taken again on the next frame (scene:bumpy). Both fail with the
-egomotion and prediction of 9b304ee (overlay: lost on 12 of the first 50 frames; bumpy: 2 frames after the first jerk)."""
+egomotion and prediction of 9b304ee (overlay: lost on 12 of the first 50 frames; bumpy: 2 frames after the first
+jerk)."""
 
 from __future__ import annotations
 
