@@ -321,7 +321,6 @@ class Predictor:
         self.motion_mismatched = 0
         self.motion_held = 0  # doubtful motions that only widened a coasting prior
         self._motion_t_ns: int | None = None  # the stamp up to which the camera's motion has been applied
-        self._last_shift_px = 0.0  # the last applied motion's displacement (the unknown's scale when none comes)
         self._coasting = False  # no detection matched on the last applied frame
 
     @property
@@ -358,20 +357,19 @@ class Predictor:
         """Seed 002 §3.3's warp with issue 22's doubt. A motion that starts where the applied chain ends (the
         filter's last stamp, or an earlier frame whose fit failed: egomotion then spans both steps) warps the
         prior and widens it by its std²; a doubtful one (std above camera_motion_doubt_px) leaves a coasting
-        prior in place, widened by the displacement it would have applied. No motion: widen by the last one."""
+        prior in place, widened by the displacement it would have applied. No motion: the prior as predicted."""
         p = self.params
         chained = motion is not None and motion.t_ns == t_ns and motion.from_t_ns in (from_t_ns, self._motion_t_ns)
         if motion is not None and not chained:
             self.motion_mismatched += 1
         if not chained:
-            if p.camera_motion_uncertainty and self._last_shift_px > 0.0:
-                self.kf.widen(self._last_shift_px**2 * np.eye(2))
+            # No widening here: whether a transform came in time depends on the live timing (an optional
+            # input), and the launched graph, its replay and the in-process run must compute the same prior.
             return
         assert motion is not None
         self._motion_t_ns = t_ns
         centre = self.kf.x[:2].copy()
         shift = motion.matrix[:, :2] @ centre + motion.matrix[:, 2] - centre
-        self._last_shift_px = float(np.hypot(*shift))
         if not p.camera_motion_uncertainty:
             self.kf.warp(motion.matrix)
             self.warped += 1

@@ -114,7 +114,7 @@ class TrackerParams:
     # Issue 22: the camera motion's uncertainty (egomotion's std_px) widens the prior's position covariance by
     # std² (and so the gate); a fit more doubtful than camera_motion_doubt_px does not move a coasting prior
     # (no detection matched on the previous frame), it widens it by the displacement it would have applied.
-    # A frame with no fit while the camera moves widens the prior by the last displacement seen.
+    # (A frame without a transform is not widened: whether one came in time depends on live timing.)
     camera_motion_uncertainty: bool = True
     camera_motion_doubt_px: float = 4.0
 
