@@ -408,6 +408,7 @@ BUMPS = [(1.2, 30.0, 45.0), (2.5, -10.0, -55.0), (3.7, 45.0, 30.0), (5.0, -25.0,
          (7.6, -25.0, -50.0), (8.8, 35.0, 45.0)]
 BUMP_SETTLE_S = 2.0
 SMEAR_EXPOSURE = 0.8
+VIBRATION_PX = {"ego": (2.0, 1.2), "bumpy": (0.6, 0.6)}  # per-frame jitter σ (x, y) of a vibrating camera
 SMEAR_DETECTABLE = 0.2  # below SimulatedDetector.MIN_VISIBLE_FRACTION (0.3): the jerk frame has no detection
 
 
@@ -420,6 +421,13 @@ def motion_smear(bgr: np.ndarray, direction: tuple[float, float], length_px: flo
         a = i - c
         kernel[int(round(c + a * direction[1])), int(round(c + a * direction[0]))] = 1.0
     return cv2.filter2D(bgr, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
+
+
+def _detectable(target_vis: float, others_vis: list[float], blur_px: float) -> tuple[float, list[float]]:
+    """Visible fractions as a detector sees them: smeared over 40-60 px, no figure keeps enough sharp pixels."""
+    if blur_px <= 0.0:
+        return target_vis, others_vis
+    return target_vis * SMEAR_DETECTABLE, [v * SMEAR_DETECTABLE for v in others_vis]
 
 
 def draw_overlay(bgr: np.ndarray, t_s: float) -> None:
@@ -694,6 +702,16 @@ class Scene:
         pitch_px = 2.0 * math.sin(2 * math.pi * t / 0.9)
         return x_cam, yaw_px, pitch_px, vy
 
+    def _screen_effects(self, frame: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, float]:
+        """The screen-fixed overlay (scene:overlay) and a jerk's smear (scene:bumpy): the frame and the smear's
+        length (0: none)."""
+        if self._spec.overlay:
+            draw_overlay(frame, t)
+        blur_px = self._jerk_blur_px(t, dt)
+        if blur_px > 0.0:
+            frame = motion_smear(frame, self._jerk_direction(t, dt), blur_px)
+        return frame, blur_px
+
     def _jerk_blur_px(self, t: float, dt: float) -> float:
         """Smear length of the frame at ``t``: a bump's own frame is exposed while the image jolts."""
         if self._spec.camera != "bumpy":
@@ -722,9 +740,8 @@ class Scene:
 
         for i in range(self.n_frames):
             t = i * dt
-            if spec.camera in ("ego", "bumpy"):
-                sigma = (2.0, 1.2) if spec.camera == "ego" else (0.6, 0.6)
-                jit = 0.6 * jit + rng.normal(0.0, sigma)  # vibration: correlated jitter
+            if spec.camera in VIBRATION_PX:
+                jit = 0.6 * jit + rng.normal(0.0, VIBRATION_PX[spec.camera])  # vibration: correlated jitter
             x_cam, rot_dx, rot_dy, vy = self._ego(t)
             strafe_px = -cam.f_px * x_cam / self.EGO_BACKGROUND_DEPTH_M
             # Crop the wide background so its content moves by the whole-image shift.
@@ -790,11 +807,7 @@ class Scene:
                 cv2.copyTo(patch[y0 - by : y1 - by, x0 - bx : x1 - bx], mask[y0 - by : y1 - by, x0 - bx : x1 - bx],
                            frame[y0:y1, x0:x1])
 
-            if spec.overlay:
-                draw_overlay(frame, t)
-            blur_px = self._jerk_blur_px(t, dt)
-            if blur_px > 0.0:
-                frame = motion_smear(frame, self._jerk_direction(t, dt), blur_px)
+            frame, blur_px = self._screen_effects(frame, t, dt)
             # Optics and sensor: slight defocus, then fresh noise (never the same bank entry twice).
             frame = cv2.GaussianBlur(frame, (3, 3), 0.7)
             noise_idx = (noise_idx + 1 + int(rng.integers(0, len(bank) - 1))) % len(bank)
@@ -816,10 +829,7 @@ class Scene:
                 else:
                     d_boxes.append(box)
                     d_vis.append(v)
-            if blur_px > 0.0:
-                # Smeared over 40-60 px, no figure keeps enough sharp pixels for a detector to fire on it.
-                target_vis *= SMEAR_DETECTABLE
-                d_vis = [v * SMEAR_DETECTABLE for v in d_vis]
+            target_vis, d_vis = _detectable(target_vis, d_vis, blur_px)
             # Ego velocity: forward speed of a robot keeping pace with the walker, plus the strafe.
             ego_v = {"ego": (0.9, vy), "bumpy": (0.5, 0.0)}.get(spec.camera, (0.0, 0.0))
             yield SceneFrame(
