@@ -284,6 +284,14 @@ class CameraMotion(Message):
     tracked: int = 0  # points the fit was made from
     from_stamp_ns: int = 0
     reason: str = ""
+    # The fit's uncertainty (issue 22; tracking/egomotion.py), px at full resolution.
+    residual_px: float = 0.0  # RMS distance of the inliers from the fit
+    spread: float = 0.0  # fraction of the image's grid cells holding an inlier
+    rival_px: float = 0.0  # how far the competing hypothesis moves the image centre from this one
+    rival_inliers: int = 0
+    agreement_px: float = -1.0  # distance from the previous frame's motion at the image centre; -1: none
+    std_px: float = 0.0  # 1-σ of the displacement a point gets (prediction widens its prior by it)
+    static_cells: int = 0  # grid cells taken for screen-fixed content and left out of the fit
 
 
 M = TypeVar("M", bound=Message)

@@ -48,13 +48,16 @@ class GraphFrame:
 
 
 def tracking_graph(params: TrackerParams, init_box: Sequence[float] | None,
-                   graph_path: Path = GRAPH_PATH) -> Graph:
+                   graph_path: Path = GRAPH_PATH, egomotion: dict[str, Any] | None = None) -> Graph:
     """graph.yaml with ``params`` as every tracking node's tracker parameters, told whom to follow (``None``:
-    re-ID picks the person itself, as on the robot), no template file read or written."""
+    re-ID picks the person itself, as on the robot), no template file read or written; ``egomotion`` overrides
+    the egomotion node's parameters (an ablation)."""
     graph = load_graph(graph_path)
     tracker = params.to_dict()
     for name in ("prediction", "reid", "template"):
         graph.nodes[name].params.update(tracker)
+    if egomotion and "egomotion" in graph.nodes:
+        graph.nodes["egomotion"].params.update(egomotion)
     if init_box is not None:
         graph.nodes["reid"].params["init_box"] = [float(v) for v in init_box]
     graph.nodes["template"].params["state_file"] = ""
@@ -68,8 +71,9 @@ class GraphFollower:
     for that frame, :meth:`node` a node instance (as a test would inspect it)."""
 
     def __init__(self, params: TrackerParams | None = None, graph_path: Path = GRAPH_PATH, *,
-                 details: bool = False, trace: bool = False) -> None:
+                 details: bool = False, trace: bool = False, egomotion: dict[str, Any] | None = None) -> None:
         self.params = params or TrackerParams()
+        self.egomotion = dict(egomotion or {})
         # Eval reads the track and the template's η; tests (details=True) also the measurement and prior;
         # ``trace`` (followbus eval --trace) also the camera motion and re-ID's scores: info["trace"] each frame.
         self.recorded = self.DETAILS if details or trace else self.RECORDED
@@ -87,7 +91,7 @@ class GraphFollower:
     DETAILS = (*RECORDED, "prediction/prior", "reid/measurement")
 
     def _start(self, init_box: Sequence[float] | None) -> InProcessGraph:
-        graph = tracking_graph(self.params, init_box, self.graph_path)
+        graph = tracking_graph(self.params, init_box, self.graph_path, self.egomotion)
         nodes = [n for n in TRACKING_NODES if n in graph.nodes]
         if not self.params.camera_motion_compensation and "egomotion" in nodes:
             nodes.remove("egomotion")  # as in the graph without the node: priors are not warped

@@ -15,6 +15,7 @@ the robot runs, in the graph's own data order.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import queue
@@ -27,6 +28,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from ..tracking.egomotion import EgoMotionParams
 from ..tracking.params import TrackerParams
 from ..vision.detector_presets import DETECTOR_PRESETS, apply_detector_preset, preset_of
 from . import detcache
@@ -43,7 +45,7 @@ log = logging.getLogger(__name__)
 DETECTORS = tuple(DETECTOR_PRESETS)
 DEFAULT_DETECTOR = "graph"
 # Table 6 of the paper: one switch off at a time.
-ABLATIONS: dict[str, dict[str, bool]] = {
+ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o geometric cue": {"use_geometry": False},
     "followbus w/o gate": {"use_gate": False},
     "followbus w/o update suspension": {"suspend_updates": False},
@@ -57,6 +59,15 @@ ABLATIONS: dict[str, dict[str, bool]] = {
     "followbus w/o learned appearance": {"learned_appearance": False},
     # seed 002 §3.1 (ByteTrack's second stage): the boxes below the detector's score threshold never considered
     "followbus w/o low-score stage": {"low_score_stage": False},
+    # issue 22, one part at a time (EgoMotionParams switches go to the egomotion node, the rest to the tracker):
+    # the per-cell static-content map; the rival hypothesis and the temporal choice between the two; the
+    # reference kept across a failed fit; the prior widened by (and held against) the fit's uncertainty
+    "followbus w/o static-content map": {"static_evidence": False},
+    "followbus w/o rival hypothesis": {"temporal_consistency": False},
+    "followbus w/o reference across failed fits": {"max_reference_age_frames": 0},
+    "followbus w/o camera-motion uncertainty": {"camera_motion_uncertainty": False},
+    # issue 22: a far re-lock on δ_switch alone, as before (no δ_id / N_id confirmation)
+    "followbus w/o identity-confirmed far re-lock": {"far_relock_needs_identity": False},
 }
 # graph.yaml's detection node: boxes scoring score_threshold or more are "the detections" every method sees;
 # those in [low_score_threshold, score_threshold) only reach a method that asks for them (``uses_low_scores``):
@@ -115,9 +126,12 @@ def method_factories(methods: Sequence[str], ablations: bool = False, base: Trac
         else:
             raise ValueError(f"unknown method {m!r} (followbus, kalman, peer:bytetrack|ocsort|botsort)")
     if ablations:
+        ego_keys = {f.name for f in dataclasses.fields(EgoMotionParams)}
         for name, switches in ABLATIONS.items():
-            params = TrackerParams.from_dict({**base.to_dict(), **switches})
-            out[name] = lambda fps, p=params: GraphFollower(p, trace=trace)
+            ego = {k: v for k, v in switches.items() if k in ego_keys}
+            params = TrackerParams.from_dict({**base.to_dict(), **{k: v for k, v in switches.items()
+                                                                    if k not in ego_keys}})
+            out[name] = lambda fps, p=params, e=ego: GraphFollower(p, trace=trace, egomotion=e)
     return out
 
 

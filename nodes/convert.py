@@ -116,11 +116,17 @@ def camera_motion_to_msg(motion: CameraMotion | None, reason: str = "") -> schem
         return schemas.CameraMotion(valid=False, reason=reason)
     return schemas.CameraMotion(valid=True, matrix=np.asarray(motion.matrix, dtype=np.float64),
                                 inliers=int(motion.inliers), tracked=int(motion.tracked),
-                                from_stamp_ns=int(motion.from_t_ns))
+                                from_stamp_ns=int(motion.from_t_ns), residual_px=float(motion.residual_px),
+                                spread=float(motion.spread), rival_px=float(motion.rival_px),
+                                rival_inliers=int(motion.rival_inliers), agreement_px=float(motion.agreement_px),
+                                std_px=float(motion.std_px), static_cells=int(motion.static_cells))
 
 
 def msg_to_camera_motion(msg: schemas.CameraMotion | None) -> CameraMotion | None:
     if msg is None or not msg.valid:
         return None
     return CameraMotion(np.array(msg.matrix, dtype=np.float64), int(msg.inliers), int(msg.tracked),
-                        int(msg.from_stamp_ns), int(msg.header.stamp_ns))
+                        int(msg.from_stamp_ns), int(msg.header.stamp_ns), residual_px=float(msg.residual_px),
+                        spread=float(msg.spread), rival_px=float(msg.rival_px), rival_inliers=int(msg.rival_inliers),
+                        agreement_px=float(msg.agreement_px), std_px=float(msg.std_px),
+                        static_cells=int(msg.static_cells))

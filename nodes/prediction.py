@@ -137,7 +137,8 @@ class Prediction(Node):
     def status_extra(self) -> dict[str, Any]:
         return {"state": self.last_state, "initialised": self.predictor.initialised,
                 "filter_resets": self.filter_resets, "priors_warped": self.predictor.warped,
-                "camera_motion_mismatched": self.predictor.motion_mismatched}
+                "camera_motion_mismatched": self.predictor.motion_mismatched,
+                "camera_motion_held": self.predictor.motion_held}
 
 
 NODE = Prediction

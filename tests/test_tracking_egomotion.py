@@ -242,3 +242,95 @@ nodes:
     bad = CameraMotionMsg(valid=True, matrix=np.eye(2, 3), inliers=5, tracked=3)
     with pytest.raises(Exception, match="inliers"):
         validate(decode(bad.encode(), CameraMotionMsg))
+
+
+# --- issue 22: screen-fixed content, failed fits, the fit's uncertainty -------------------------------------
+
+
+def with_overlay(img: np.ndarray) -> np.ndarray:
+    """Screen-fixed content full of corners (a checker strip at the bottom, a block at the top left)."""
+    out = img.copy()
+    for x in range(0, W, 16):
+        for y in range(H - 48, H, 16):
+            out[y:y + 16, x:x + 16] = 255 if (x + y) // 16 % 2 else 0
+    for x in range(0, 160, 12):
+        for y in range(0, 60, 12):
+            out[y:y + 12, x:x + 12] = 255 if (x + y) // 12 % 2 else 0
+    return out
+
+
+def panning_frames(n: int, step_px: float) -> list[np.ndarray]:
+    base = textured(3)
+    return [with_overlay(warp(base, similarity(0.0, 1.0, -step_px * k, 0.0))) for k in range(n)]
+
+
+def run(frames: list[np.ndarray], params: EgoMotionParams | None = None) -> tuple[list, EgoMotionEstimator]:
+    est = EgoMotionEstimator(params)
+    return [est.step(f, None, (k + 1) * 33_000_000) for k, f in enumerate(frames)], est
+
+
+def test_screen_fixed_content_is_learnt_and_left_out() -> None:
+    motions, est = run(panning_frames(8, 10.0))
+    shifts = [None if m is None else float(m.matrix[0, 2]) for m in motions[1:]]
+    assert all(s is not None and abs(s + 10.0) < 0.6 for s in shifts[3:]), shifts
+    assert est.static_map.max() >= est.params.static_evidence_min  # the overlay's cells are known
+    assert motions[-1].static_cells > 0
+
+
+def test_a_failed_fit_keeps_the_reference_so_the_next_motion_spans_it() -> None:
+    base = textured(4)
+    blank = np.full_like(base, 128)  # a smeared frame: nothing to follow
+    frames = [base, warp(base, similarity(0, 1, 5, 0)), blank, warp(base, similarity(0, 1, 5, 40))]
+    motions, est = run(frames)
+    assert motions[2] is None and est.counts["transform"] == 2
+    m = motions[3]
+    assert m is not None and m.from_t_ns == 2 * 33_000_000  # from the last fitted frame, across the blank one
+    np.testing.assert_allclose(m.matrix[:, 2], (0.0, 40.0), atol=0.6)
+
+
+def test_a_rival_hypothesis_raises_the_published_uncertainty() -> None:
+    motions, _ = run(panning_frames(3, 10.0), EgoMotionParams(static_evidence=False))
+    m = motions[1]
+    assert m is not None and m.rival_inliers > 0 and m.rival_px > 5.0 and m.std_px > 1.0
+    clean, _ = run([textured(3), warp(textured(3), similarity(0, 1, -10, 0))])
+    assert clean[1] is not None and clean[1].std_px < 0.5 and clean[1].rival_inliers == 0
+
+
+def _prior_after(motion: CameraMotion, coasting: bool, params: TrackerParams | None = None):
+    from followbus.tracking.reid import ReidResult, TrackState
+
+    pred = Predictor(params or TrackerParams())
+    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)))
+    if coasting:
+        pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED))
+        pred.predict(33_000_000)
+    start = pred.kf.x[:2].copy()
+    prior = pred.predict(66_000_000 if coasting else 33_000_000, camera_motion=motion)
+    return prior, start
+
+
+def _motion(tx: float, std: float, from_t: int, t: int) -> CameraMotion:
+    return CameraMotion(np.array([[1.0, 0, tx], [0, 1.0, 0]]), 50, 60, from_t, t, std_px=std)
+
+
+def test_a_doubtful_motion_widens_a_coasting_prior_instead_of_dragging_it() -> None:
+    sure, start = _prior_after(_motion(30.0, 0.5, 33_000_000, 66_000_000), coasting=True)
+    doubt, _ = _prior_after(_motion(30.0, 12.0, 33_000_000, 66_000_000), coasting=True)
+    assert sure.centre[0] == pytest.approx(start[0] + 30.0, abs=1e-6)
+    assert doubt.centre[0] == pytest.approx(start[0], abs=1e-6)  # not dragged
+    assert doubt.innovation_cov[0, 0] > sure.innovation_cov[0, 0] + 30.0**2  # the gate covers both
+    off, _ = _prior_after(_motion(30.0, 12.0, 33_000_000, 66_000_000), coasting=True,
+                          params=TrackerParams(camera_motion_uncertainty=False))
+    assert off.centre[0] == pytest.approx(start[0] + 30.0, abs=1e-6)  # the ablation moves it with confidence
+
+
+def test_a_motion_spanning_a_frame_without_one_is_applied() -> None:
+    from followbus.tracking.reid import ReidResult, TrackState
+
+    pred = Predictor(TrackerParams())
+    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)))
+    pred.predict(33_000_000)  # the jerk's frame: no motion came
+    pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED))
+    prior = pred.predict(66_000_000, camera_motion=_motion(0.0, 0.5, 0, 66_000_000).__class__(
+        np.array([[1.0, 0, 0], [0, 1.0, 45.0]]), 50, 60, 0, 66_000_000))
+    assert prior.centre[1] == pytest.approx(250.0 + 45.0, abs=1e-6) and pred.motion_mismatched == 0

@@ -31,7 +31,7 @@ def _torso_mean(frame: SceneFrame) -> np.ndarray:
 
 def test_catalogue_is_complete_and_unknown_names_fail() -> None:
     assert set(SCENES) == {"corridor-occlusion", "lookalike", "wall-occlusion", "night-puddles", "sun-shadow",
-                           "ego-motion", "lost-target", "group-walk"}
+                           "ego-motion", "lost-target", "group-walk", "overlay", "bumpy"}
     assert make_scene("corridor-occlusion").n_frames == 600
     assert make_scene("wall-occlusion").n_frames == 240
     assert make_scene("wall-occlusion", fps=10).n_frames == 80
@@ -190,3 +190,28 @@ def test_group_walk_ground_truth_and_the_hidden_member() -> None:
             hidden.append(f.t_ns * 1e-9)
     assert hidden and 6.0 < min(hidden) < 7.0 and 10.5 < max(hidden) < 12.0, (min(hidden), max(hidden))
     assert 0.5 * len(hidden) / 10 < max(hidden) - min(hidden) < 1.1 * len(hidden) / 10  # one contiguous stretch
+
+
+def test_overlay_stays_put_while_the_scene_pans() -> None:
+    frames = [f for _, f in zip(range(6), make_scene("overlay").frames(), strict=False)]
+    a, b = frames[1], frames[5]
+    assert abs(b.camera_offset_px[0] - a.camera_offset_px[0]) > 40  # the scene moved
+    strip = slice(455, 480)  # the robot's body strip, drawn after the pan
+    diff = np.abs(a.bgr[strip].astype(int) - b.bgr[strip].astype(int)).mean()
+    assert diff < 4.0  # only sensor noise
+    clock = np.abs(a.bgr[:44, 40:200].astype(int) - b.bgr[:44, 40:200].astype(int)).mean()
+    assert 0.5 < clock < 40  # the digits change, their place does not
+
+
+def test_bumpy_jerk_frames_are_smeared_and_undetectable() -> None:
+    from followbus.vision.scenes import BUMPS
+
+    frames = [f for _, f in zip(range(40), make_scene("bumpy").frames(), strict=False)]
+    jerk = next(f for f in frames if f.motion_blur_px > 0)
+    assert jerk.index == round(BUMPS[0][0] * 30)
+    before = frames[jerk.index - 1]
+    shift = np.subtract(jerk.camera_offset_px, before.camera_offset_px)
+    assert 40 <= float(np.hypot(*shift)) <= 60
+    assert jerk.target_box is not None and jerk.target_visible_fraction < 0.3  # below the simulated detector's floor
+    assert all(v < 0.3 for v in jerk.distractor_visible_fractions)
+    assert frames[jerk.index + 1].motion_blur_px == 0 and frames[jerk.index + 1].target_visible_fraction > 0.9

@@ -11,6 +11,18 @@ median translation: it also covers rotation and zoom, and the consensus set repl
 outlier rejection. The transform maps frame k-1 pixels to frame k pixels; the prediction warps the
 Kalman prior by it before gating (:meth:`followbus.tracking.kalman.KalmanCV.warp`).
 
+Knowing what it does not know (issue 22). Screen-fixed content (a burned-in clock, the robot's own body or
+mount in view, dirt on the lens) is a second consensus set that does not move: RANSAC may take it for the
+scene. So each frame fits up to two hypotheses (the largest consensus set, then the largest among the rest)
+and picks the one covering more of the image (distinct grid cells), the previous frame's motion breaking a
+tie; corners that stay put while the chosen motion does not add evidence to a per-cell static map that decays
+each frame, and cells with enough evidence no longer take part in the fit (evidence over time, not one
+frame). Every motion carries its uncertainty: the inliers' residual and spread, the rival hypothesis'
+disagreement and support, the agreement with the previous frame's motion, and one 1-σ figure (``std_px``)
+that prediction turns into covariance (tracking/kalman.py). A frame whose fit fails (a jerk's smeared frame)
+does not break the chain: the last fitted frame stays the reference for up to ``max_reference_age_frames``,
+so the next motion spans both steps.
+
 Cheap by construction: grey frames halved down to about ``min_work_width_px``, at most ``max_corners`` corners per
 frame, one pyramidal LK pass (corners of frame k-1 tracked into frame k). A fit that is not trustworthy
 (a textureless or mostly-covered background, too few inliers, an implausible scale change) returns no
@@ -58,6 +70,26 @@ class EgoMotionParams:
     # most; a larger one is a fit to something else (a person filling the background, a cut).
     max_scale_change: float = 0.15
     model: str = "similarity"  # similarity (4 dof: translation, rotation, scale) | affine (6 dof)
+    # Static-content map (issue 22): a grid over the work image; a corner that moves less than static_still_px
+    # (work px) while the chosen motion moves the image centre by static_min_motion_px or more adds one to its
+    # cell, one that follows the motion takes one off; all evidence decays by static_decay per frame. Cells
+    # at static_evidence_min or above are left out of the fit (their corners are still followed, so the
+    # evidence stays current). 0.8 decay: 3 frames of evidence mask a cell, ~8 frames without it unmask it.
+    static_evidence: bool = True
+    static_grid_cols: int = 16
+    static_grid_rows: int = 12
+    static_still_px: float = 0.35
+    static_min_motion_px: float = 1.5
+    static_decay: float = 0.8
+    static_evidence_min: float = 2.0
+    # Temporal consistency: a second hypothesis fitted on the first one's outliers competes with it; the one
+    # covering more grid cells wins, unless both cover at least rival_cover_ratio of the larger and the
+    # other agrees better with the previous frame's motion.
+    temporal_consistency: bool = True
+    rival_cover_ratio: float = 0.6
+    # A failed fit keeps the last fitted frame as the reference for this many frames: the next motion then
+    # spans the failed frame too (a jerk's smeared frame), so prediction misses no step of the camera's motion.
+    max_reference_age_frames: int = 3
 
     def __post_init__(self) -> None:
         if self.min_work_width_px < 32:
@@ -70,6 +102,8 @@ class EgoMotionParams:
                 raise ValueError(f"EgoMotionParams.{name} must be > 0, got {getattr(self, name)!r}")
         if self.lk_levels < 0 or self.box_margin < 0 or not 0.0 <= self.min_inlier_fraction <= 1.0:
             raise ValueError("EgoMotionParams: lk_levels and box_margin must be >= 0, min_inlier_fraction in [0, 1]")
+        if not 0.0 <= self.static_decay < 1.0 or self.static_grid_cols < 1 or self.static_grid_rows < 1:
+            raise ValueError("EgoMotionParams: static_decay must be in [0, 1), the static grid at least 1x1")
         if self.model not in ("similarity", "affine"):
             raise ValueError(f"EgoMotionParams.model must be 'similarity' or 'affine', got {self.model!r}")
 
@@ -86,6 +120,18 @@ class CameraMotion:
     tracked: int  # corners LK followed into frame k (outside person boxes); the RANSAC input
     from_t_ns: int
     t_ns: int
+    # Uncertainty (issue 22), full-resolution px unless said otherwise.
+    residual_px: float = 0.0  # RMS distance of the inliers from the fitted motion
+    spread: float = 1.0  # fraction of the static grid's cells holding an inlier (0-1)
+    rival_px: float = 0.0  # the competing hypothesis' displacement of the image centre minus this one's
+    rival_inliers: int = 0  # its support (0: there was none)
+    agreement_px: float = -1.0  # |this displacement - the previous frame's| at the image centre; -1: no previous
+    std_px: float = 0.0  # 1-σ of the displacement this motion gives a point (fit + rival ambiguity)
+    static_cells: int = 0  # cells of the static map left out of the fit
+
+    @property
+    def doubt_px(self) -> float:
+        return self.std_px
 
     @property
     def scale(self) -> float:
@@ -117,6 +163,9 @@ def background_mask(shape: tuple[int, int], boxes: np.ndarray | None, scale: tup
     return mask
 
 
+CORNER_REGIONS = (4, 3)  # columns, rows of the corner budget's regions
+
+
 class EgoMotionEstimator:
     """Stateful per-stream estimator: call :meth:`step` on every frame in order."""
 
@@ -124,13 +173,17 @@ class EgoMotionEstimator:
         self.params = params or EgoMotionParams()
         self.counts: Counter[str] = Counter()  # "transform", "no_previous", and one key per degenerate reason
         self.last_reason = ""  # why the last step gave no transform ("" when it gave one)
+        self.reset()
+
+    def reset(self) -> None:
+        p = self.params
         self._prev_shape: tuple[int, ...] | None = None
         self._prev_t_ns = 0
         self._prev_grey: np.ndarray | None = None
         self._prev_corners: np.ndarray | None = None  # (N, 1, 2) float32, downscaled px, outside person boxes
-
-    def reset(self) -> None:
-        self._prev_shape = self._prev_grey = self._prev_corners = None
+        self._ref_age = 0  # frames the reference has been kept after failed fits
+        self._prev_shift: np.ndarray | None = None  # last fitted displacement of the work image's centre
+        self.static_map = np.zeros((p.static_grid_rows, p.static_grid_cols))  # evidence per cell
 
     def _downscale(self, frame_bgr: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
         """Grey work frame and the (sx, sy) that maps full-resolution px to it."""
@@ -142,12 +195,46 @@ class EgoMotionEstimator:
         return grey, (s, s)
 
     def _corners(self, grey: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
+        """The strongest corners outside the static cells, plus a few inside them (they keep the static
+        evidence current but must not spend the corner budget: screen-fixed text is all corners)."""
         p = self.params
-        return cv2.goodFeaturesToTrack(grey, maxCorners=p.max_corners, qualityLevel=p.corner_quality,
-                                       minDistance=p.min_corner_distance_px, mask=mask, blockSize=3)
+        static = self._static_mask(grey.shape)
+        if static is None:
+            return self._good_corners(grey, mask, p.max_corners)
+        scene = self._good_corners(grey, cv2.bitwise_and(mask, cv2.bitwise_not(static)), p.max_corners)
+        fixed = self._good_corners(grey, cv2.bitwise_and(mask, static), max(p.max_corners // 5, 3))
+        parts = [c for c in (scene, fixed) if c is not None]
+        return np.concatenate(parts) if parts else None
+
+    def _good_corners(self, grey: np.ndarray, mask: np.ndarray, n: int) -> np.ndarray | None:
+        """Up to ``n`` corners, an equal share from each of CORNER_REGIONS regions: a patch of strong corners
+        (screen-fixed text, a checkered logo) cannot take the whole budget before the map knows it is fixed."""
+        p = self.params
+        h, w = grey.shape[:2]
+        cols, rows = CORNER_REGIONS
+        share = max(-(-n // (cols * rows)), 1)
+        found = []
+        for r in range(rows):
+            for c in range(cols):
+                y0, y1, x0, x1 = r * h // rows, (r + 1) * h // rows, c * w // cols, (c + 1) * w // cols
+                pts = cv2.goodFeaturesToTrack(grey[y0:y1, x0:x1], maxCorners=share, qualityLevel=p.corner_quality,
+                                              minDistance=p.min_corner_distance_px, mask=mask[y0:y1, x0:x1],
+                                              blockSize=3)
+                if pts is not None:
+                    found.append(pts + np.array([x0, y0], np.float32))
+        return np.concatenate(found) if found else None
+
+    def _static_mask(self, shape: tuple[int, ...]) -> np.ndarray | None:
+        """uint8 mask (255) of the work image's static cells; None when there is none."""
+        p = self.params
+        cells = (self.static_map >= p.static_evidence_min).astype(np.uint8) * 255
+        if not p.static_evidence or not cells.any():
+            return None
+        return cv2.resize(cells, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, t_ns: int) -> CameraMotion | None:
-        """Motion from the previous frame given to :meth:`step` to this one; None when there is none to trust.
+        """Motion from the reference frame (the previous one, or the last fitted one after a failed fit) to
+        this one; None when there is none to trust.
 
         ``detections``: this frame's person boxes (N x 4+, full-resolution px); corners are taken
         outside them on both frames (the previous frame's corners were masked with its own boxes).
@@ -156,12 +243,18 @@ class EgoMotionEstimator:
         grey, s = self._downscale(frame_bgr)
         mask = background_mask(grey.shape[:2], detections, s, p.box_margin)
         result: CameraMotion | None = None
-        if self._prev_grey is None or self._prev_shape != frame_bgr.shape or int(t_ns) <= self._prev_t_ns:
+        fresh = self._prev_grey is None or self._prev_shape != frame_bgr.shape or int(t_ns) <= self._prev_t_ns
+        if fresh:
             # the first frame, a new resolution or a stamp that did not advance (a restarted source)
             self.counts["no_previous"] += 1
             self.last_reason = "no_previous"
+            self._prev_shift = None
         else:
             result = self._fit(grey, mask, s, t_ns)
+        if result is None and not fresh and self._ref_age < p.max_reference_age_frames:
+            self._ref_age += 1  # keep the last fitted frame: the next motion spans this one too
+            return None
+        self._ref_age = 0
         self._prev_grey, self._prev_shape, self._prev_t_ns = grey, frame_bgr.shape, int(t_ns)
         self._prev_corners = self._corners(grey, mask)
         return result
@@ -171,7 +264,8 @@ class EgoMotionEstimator:
         self.last_reason = reason
         logger.debug("no camera motion this frame: %s", reason)
 
-    def _fit(self, grey: np.ndarray, mask: np.ndarray, s: tuple[float, float], t_ns: int) -> CameraMotion | None:
+    def _track(self, grey: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The reference's corners followed into this frame by LK, kept where they land on background."""
         p = self.params
         p0 = self._prev_corners
         if p0 is None or len(p0) < p.min_inliers:
@@ -187,29 +281,150 @@ class EgoMotionEstimator:
         xi = np.clip(np.round(b[:, 0]).astype(int), 0, w - 1)
         yi = np.clip(np.round(b[:, 1]).astype(int), 0, h - 1)
         inside = (b[:, 0] >= 0) & (b[:, 0] < w) & (b[:, 1] >= 0) & (b[:, 1] < h) & (mask[yi, xi] > 0)
-        a, b = a[inside], b[inside]
-        if len(a) < p.min_inliers:
+        return a[inside], b[inside]
+
+    def _cells(self, pts: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+        """Flat static-grid cell index of each (x, y) work-image point."""
+        p = self.params
+        h, w = shape[:2]
+        cx = np.clip((pts[:, 0] * p.static_grid_cols / w).astype(int), 0, p.static_grid_cols - 1)
+        cy = np.clip((pts[:, 1] * p.static_grid_rows / h).astype(int), 0, p.static_grid_rows - 1)
+        return cy * p.static_grid_cols + cx
+
+    def _hypotheses(self, a: np.ndarray, b: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Up to two (matrix, inlier mask) fits: RANSAC's consensus, then the largest among its outliers."""
+        p = self.params
+        fit = cv2.estimateAffinePartial2D if p.model == "similarity" else cv2.estimateAffine2D
+        out: list[tuple[np.ndarray, np.ndarray]] = []
+        rest = np.ones(len(a), bool)
+        for _ in range(2 if p.temporal_consistency else 1):
+            if rest.sum() < p.min_inliers:
+                break
+            m, inl = fit(a[rest], b[rest], method=cv2.RANSAC, ransacReprojThreshold=p.ransac_reproj_px,
+                         maxIters=2000, confidence=0.99, refineIters=10)
+            if m is None or inl is None or int(inl.sum()) < p.min_inliers:
+                break
+            mask = np.zeros(len(a), bool)
+            mask[np.flatnonzero(rest)[inl.reshape(-1) == 1]] = True
+            out.append((m, mask))
+            rest &= ~mask
+        return out
+
+    def _choose(self, hyps: list[tuple[np.ndarray, np.ndarray]], a: np.ndarray,
+                shape: tuple[int, ...]) -> tuple[int, int | None]:
+        """Index of the chosen hypothesis and of its rival (None): the one covering more grid cells, unless
+        both cover rival_cover_ratio of the larger and the other agrees better with the previous motion."""
+        if len(hyps) < 2:
+            return 0, None
+        cover = [len(np.unique(self._cells(a[m], shape))) for _, m in hyps]
+        best, other = (0, 1) if cover[0] >= cover[1] else (1, 0)
+        close = cover[other] >= self.params.rival_cover_ratio * cover[best]
+        if close and self._prev_shift is not None:
+            centre = np.array([shape[1] / 2.0, shape[0] / 2.0])
+            dev = [np.linalg.norm(_shift(m, centre) - self._prev_shift) for m, _ in hyps]
+            if dev[other] < dev[best]:
+                best, other = other, best
+        return best, other
+
+    def _moving_cover(self, hyps: list[tuple[np.ndarray, np.ndarray]], a: np.ndarray,
+                      shape: tuple[int, ...]) -> int:
+        """Grid cells covered by the widest hypothesis that moves the image centre (0: none moves)."""
+        centre = np.array([shape[1] / 2.0, shape[0] / 2.0])
+        covers = [len(np.unique(self._cells(a[m], shape))) for mat, m in hyps
+                  if float(np.linalg.norm(_shift(mat, centre))) >= self.params.static_min_motion_px]
+        return max(covers, default=0)
+
+    def _update_static(self, a: np.ndarray, b: np.ndarray, moving_cover: int, shape: tuple[int, ...]) -> None:
+        """Decay the static map; then, when a hypothesis moves the image, the corners that stayed put add to
+        their cells and those that moved take off, provided the moving hypothesis covers at least
+        rival_cover_ratio as many cells as the still corners (a walker the detector missed, moving over a
+        still background, is not evidence that the background is screen-fixed)."""
+        p = self.params
+        self.static_map *= p.static_decay
+        if not p.static_evidence or not moving_cover or not len(a):
+            return
+        still = np.linalg.norm(b - a, axis=1) < p.static_still_px
+        cells = self._cells(a, shape)
+        if moving_cover < p.rival_cover_ratio * len(np.unique(cells[still])):
+            return
+        flat = self.static_map.reshape(-1)
+        np.add.at(flat, cells[still], 1.0)
+        np.add.at(flat, cells[~still], -1.0)
+        np.clip(flat, 0.0, None, out=flat)
+
+    def _fit(self, grey: np.ndarray, mask: np.ndarray, s: tuple[float, float], t_ns: int) -> CameraMotion | None:
+        p = self.params
+        tracked = self._track(grey, mask)
+        if tracked is None:
+            return None
+        a, b = tracked
+        static = self.static_map.reshape(-1)[self._cells(a, grey.shape)] >= p.static_evidence_min
+        if not p.static_evidence:
+            static[:] = False
+        fa, fb = a[~static], b[~static]
+        if len(fa) < p.min_inliers:
             self._degenerate("few_tracked")
             return None
-        fit = cv2.estimateAffinePartial2D if p.model == "similarity" else cv2.estimateAffine2D
-        m, inl = fit(a, b, method=cv2.RANSAC, ransacReprojThreshold=p.ransac_reproj_px, maxIters=2000,
-                     confidence=0.99, refineIters=10)
-        if m is None or inl is None:
-            self._degenerate("no_fit")
+        hyps = self._hypotheses(fa, fb)
+        if not hyps or len(np.flatnonzero(hyps[0][1])) < p.min_inlier_fraction * len(fa):
+            self._degenerate("few_inliers" if hyps else "no_fit")
             return None
-        n_in = int(inl.sum())
-        if n_in < p.min_inliers or n_in < p.min_inlier_fraction * len(a):
-            self._degenerate("few_inliers")
-            return None
+        best, rival = self._choose(hyps, fa, grey.shape)
+        m, inl = hyps[best]
         det = float(np.linalg.det(m[:, :2]))
         if det <= 0.0 or abs(math.sqrt(det) - 1.0) > p.max_scale_change:
             self._degenerate("implausible_scale")
             return None
-        # Back to full resolution: p_work = D p_full with D = diag(sx, sy), so M_full = D⁻¹ M D, t_full = D⁻¹ t.
-        d = np.array(s, dtype=np.float64)
-        full = np.empty((2, 3))
-        full[:, :2] = m[:, :2] * d[None, :] / d[:, None]
-        full[:, 2] = m[:, 2] / d
+        centre = np.array([grey.shape[1] / 2.0, grey.shape[0] / 2.0])
+        shift = _shift(m, centre)
+        self._update_static(a, b, self._moving_cover(hyps, fa, grey.shape), grey.shape)
+        motion = self._motion(m, fa, fb, inl, hyps[rival] if rival is not None else None, s, t_ns, grey.shape)
+        motion = _replace_static(motion, int((self.static_map >= p.static_evidence_min).sum()))
+        self._prev_shift = shift
         self.counts["transform"] += 1
         self.last_reason = ""
-        return CameraMotion(full, n_in, int(len(a)), self._prev_t_ns, int(t_ns))
+        return motion
+
+    def _motion(self, m: np.ndarray, a: np.ndarray, b: np.ndarray, inl: np.ndarray,
+                rival: tuple[np.ndarray, np.ndarray] | None, s: tuple[float, float], t_ns: int,
+                shape: tuple[int, ...]) -> CameraMotion:
+        """The chosen fit in full-resolution px with its uncertainty."""
+        d = np.array(s, dtype=np.float64)
+        full = _to_full(m, d)
+        unit = 1.0 / float(d[0])  # work px -> full px
+        n_in = int(inl.sum())
+        resid = b[inl] - (a[inl] @ m[:, :2].T + m[:, 2])
+        residual = float(np.sqrt(np.mean(np.sum(resid**2, axis=1)))) * unit
+        p = self.params
+        spread = len(np.unique(self._cells(a[inl], shape))) / float(p.static_grid_cols * p.static_grid_rows)
+        centre = np.array([shape[1] / 2.0, shape[0] / 2.0])
+        shift = _shift(m, centre)
+        rival_px, rival_n, var = 0.0, 0, residual**2 * 2.0 / max(n_in, 1)  # the fitted shift's own variance
+        if rival is not None:
+            rival_n = int(rival[1].sum())
+            rival_px = float(np.linalg.norm(_shift(rival[0], centre) - shift)) * unit
+            w = rival_n / float(rival_n + n_in)
+            var += w * (1.0 - w) * rival_px**2  # the variance of the two-hypothesis mixture's shift
+        agreement = -1.0 if self._prev_shift is None else float(np.linalg.norm(shift - self._prev_shift)) * unit
+        return CameraMotion(full, n_in, int(len(a)), self._prev_t_ns, int(t_ns), residual_px=residual,
+                            spread=spread, rival_px=rival_px, rival_inliers=rival_n, agreement_px=agreement,
+                            std_px=math.sqrt(var))
+
+
+def _shift(m: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """Displacement the 2x3 transform gives ``point``."""
+    return m[:, :2] @ point + m[:, 2] - point
+
+
+def _to_full(m: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Back to full resolution: p_work = D p_full with D = diag(sx, sy), so M_full = D⁻¹ M D, t_full = D⁻¹ t."""
+    full = np.empty((2, 3))
+    full[:, :2] = m[:, :2] * d[None, :] / d[:, None]
+    full[:, 2] = m[:, 2] / d
+    return full
+
+
+def _replace_static(motion: CameraMotion, cells: int) -> CameraMotion:
+    from dataclasses import replace
+
+    return replace(motion, static_cells=cells)

@@ -232,6 +232,12 @@ class KalmanCV:
         s = math.sqrt(abs(float(np.linalg.det(M))))
         self.size = (self.size[0] * s, self.size[1] * s)
 
+    def widen(self, cov_px2: np.ndarray) -> None:
+        """Add a 2x2 position covariance (px²): an uncertain camera motion moves the target by an unknown amount
+        (issue 22), so the prior, and with it the gate (Eq. 8's S = H P Hᵀ + R), grows."""
+        self.P[:2, :2] += np.asarray(cov_px2, dtype=np.float64)
+        self.P = 0.5 * (self.P + self.P.T)
+
     def measurement_noise(self, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> np.ndarray:
         """Eq. 7: R_k = R0 + κ‖v_ego‖² I — vibration at speed makes the image centre less reliable."""
         speed2 = float(v_ego_mps[0]) ** 2 + float(v_ego_mps[1]) ** 2
@@ -313,6 +319,9 @@ class Predictor:
         # filter's stamp (a frame the motion estimate or this filter did not see).
         self.warped = 0
         self.motion_mismatched = 0
+        self.motion_held = 0  # doubtful motions that only widened a coasting prior
+        self._motion_t_ns: int | None = None  # the stamp up to which the camera's motion has been applied
+        self._coasting = False  # no detection matched on the last applied frame
 
     @property
     def initialised(self) -> bool:
@@ -332,12 +341,8 @@ class Predictor:
             return None
         from_t_ns = self.kf.t_ns
         self.kf.predict(t_ns)
-        if camera_motion is not None and self.params.camera_motion_compensation:
-            if camera_motion.from_t_ns == from_t_ns and camera_motion.t_ns == int(t_ns):
-                self.kf.warp(camera_motion.matrix)
-                self.warped += 1
-            else:
-                self.motion_mismatched += 1
+        if self.params.camera_motion_compensation:
+            self._compensate(camera_motion, from_t_ns, int(t_ns))
         R = self.kf.measurement_noise(v_ego_mps)  # Eq. 7 with the current ego speed
         return Prior(
             t_ns=int(t_ns),
@@ -348,10 +353,41 @@ class Predictor:
             gate_chi2=self.kf.gate_chi2,
         )
 
+    def _compensate(self, motion: CameraMotion | None, from_t_ns: int | None, t_ns: int) -> None:
+        """Seed 002 §3.3's warp with issue 22's doubt. A motion that starts where the applied chain ends (the
+        filter's last stamp, or an earlier frame whose fit failed: egomotion then spans both steps) warps the
+        prior and widens it by its std²; a doubtful one (std above camera_motion_doubt_px) leaves a coasting
+        prior in place, widened by the displacement it would have applied. No motion: the prior as predicted."""
+        p = self.params
+        chained = motion is not None and motion.t_ns == t_ns and motion.from_t_ns in (from_t_ns, self._motion_t_ns)
+        if motion is not None and not chained:
+            self.motion_mismatched += 1
+        if not chained:
+            # No widening here: whether a transform came in time depends on the live timing (an optional
+            # input), and the launched graph, its replay and the in-process run must compute the same prior.
+            return
+        assert motion is not None
+        self._motion_t_ns = t_ns
+        centre = self.kf.x[:2].copy()
+        shift = motion.matrix[:, :2] @ centre + motion.matrix[:, 2] - centre
+        if not p.camera_motion_uncertainty:
+            self.kf.warp(motion.matrix)
+            self.warped += 1
+            return
+        if self._coasting and motion.std_px > p.camera_motion_doubt_px:
+            self.motion_held += 1
+            self.kf.widen(np.outer(shift, shift) + motion.std_px**2 * np.eye(2))
+            return
+        self.kf.warp(motion.matrix)
+        self.kf.widen(motion.std_px**2 * np.eye(2))
+        self.warped += 1
+
     def apply(self, reid: ReidResult, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> Posterior | None:
         """Fold frame k's re-ID result into the filter (Alg. 1 lines 11/13 and 16/17)."""
+        self._coasting = not reid.accepted and reid.init_box is None
         if reid.init_box is not None:
             self.kf.initialise(reid.init_box, reid.t_ns)
+            self._motion_t_ns = int(reid.t_ns)
             logger.info("predictor initialised at %s", tuple(round(v, 1) for v in reid.init_box))
             return self._posterior(reid.t_ns, measured=True)
         if not self.kf.initialised:

@@ -79,6 +79,12 @@ class TrackerParams:
     delta_iou: float = 0.5  # δ_iou: no sample while the target box overlaps another person more (seed 001 §IV)
     delta_id: float = 0.60  # δ_id: a contender scoring above it is the target (seed 001 §IV)
     delta_switch: float = 0.35  # δ_switch: below it a box is taken for someone else (seed 001 §III-D)
+    # Issue 22: re-locking after an occlusion onto a person far from the prior (more than
+    # relock_far_height_fraction of the target's height from its predicted centre) needs identification-level
+    # evidence: the classifier's score at δ_id or above on n_id consecutive frames (seed 001's N_id), not δ_switch.
+    far_relock_needs_identity: bool = True
+    relock_far_height_fraction: float = 0.5
+    n_id: int = 2
     # Motion blobs smaller than this (after morphology) are ignored as noise.
     min_blob_area_px: int = 64
     # OCCLUDED turns into LOST after this long without an accepted match.
@@ -105,6 +111,12 @@ class TrackerParams:
     # the egomotion node that measures it; `followbus eval --ablations` scores "followbus w/o camera-motion
     # compensation".
     camera_motion_compensation: bool = True
+    # Issue 22: the camera motion's uncertainty (egomotion's std_px) widens the prior's position covariance by
+    # std² (and so the gate); a fit more doubtful than camera_motion_doubt_px does not move a coasting prior
+    # (no detection matched on the previous frame), it widens it by the displacement it would have applied.
+    # (A frame without a transform is not widened: whether one came in time depends on live timing.)
+    camera_motion_uncertainty: bool = True
+    camera_motion_doubt_px: float = 4.0
 
     # --- ablation switches (paper Table 6) ------------------------------------------------
     use_geometry: bool = True  # False: S_geo off, ω = 1 (M_fuse = S_color)
@@ -116,7 +128,8 @@ class TrackerParams:
         positive = (
             "morph_kernel_px", "bins_h", "bins_s", "dt_ms", "gate_chi2", "gamma", "r0_px2",
             "lost_after_ms", "motion_max_changed_fraction", "identity_sample_every_frames", "identity_max_crops",
-            "ridge_lambda", "gate_scale_max", "gate_fast_height_fraction",
+            "ridge_lambda", "gate_scale_max", "gate_fast_height_fraction", "camera_motion_doubt_px",
+            "relock_far_height_fraction", "n_id",
         )
         for name in positive:
             if getattr(self, name) <= 0:

@@ -185,6 +185,7 @@ class ReIdentifier:
         self._t_last_accept_ns = 0
         self._reacquired_count = 0
         self._last_box: Box | None = None  # the last accepted box: where a re-initialisation looks first
+        self._confirming: tuple[Box, int] | None = None  # a far re-lock candidate and its δ_id confirmations
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
              template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None,
@@ -239,7 +240,7 @@ class ReIdentifier:
         best, c_t, omega = self._score(frame_bgr, candidates, prior, template_hist)
         accepted = best is not None and best.m_fuse > p.reid_threshold  # Alg. 1 line 9
         if accepted and best is not None:
-            best, accepted = self._identity_decision(frame_bgr, candidates, best)
+            best, accepted = self._identity_decision(frame_bgr, candidates, best, prior)
         # ByteTrack's second association takes only the tracks matched on the previous frame (its T_remain holds
         # tracked, not lost, tracks) and only boxes overlapping their prediction (IoU 0.5): not while OCCLUDED.
         tracked = self.state in (TrackState.TRACKING, TrackState.REACQUIRED)
@@ -251,7 +252,7 @@ class ReIdentifier:
                       if box_iou(c.box, prior.box) >= p.low_score_min_iou]
             best2, c_t2, omega2 = self._score(frame_bgr, second, prior, template_hist)
             if best2 is not None and best2.m_fuse > p.reid_threshold:
-                best2, ok = self._identity_decision(frame_bgr, second, best2)
+                best2, ok = self._identity_decision(frame_bgr, second, best2, prior)
                 if ok:
                     best, accepted, c_t, omega = best2, True, c_t2, omega2
             candidates = candidates + second
@@ -265,7 +266,7 @@ class ReIdentifier:
             best, c_t, omega = self._score(frame_bgr, candidates, prior, template_hist)
             accepted = best is not None and best.m_fuse > p.reid_threshold
             if accepted and best is not None:
-                best, accepted = self._identity_decision(frame_bgr, candidates, best)
+                best, accepted = self._identity_decision(frame_bgr, candidates, best, prior)
         self._advance_state(accepted, t_ns)
 
         result = ReidResult(t_ns=t_ns, state=self.state, accepted=accepted, omega=omega, c_t=c_t,
@@ -344,17 +345,20 @@ class ReIdentifier:
         return self._embedder.embed(frame_bgr, boxes[: self.params.identity_max_crops])
 
     def _identity_decision(self, frame_bgr: np.ndarray, candidates: list[Candidate],
-                           best: Candidate) -> tuple[Candidate, bool]:
+                           best: Candidate, prior: Prior) -> tuple[Candidate, bool]:
         """Colour + geometry chose ``best``; the classifier decides when that choice is not clear (seed 001
         §III-D): among the contenders within ``identity_margin`` of it, the one it scores highest, if that
         one clears δ_switch; on a re-lock after an occlusion, a lone contender scoring below δ_switch is taken
-        for someone else and rejected (the target stays occluded). Returns (chosen, accepted)."""
+        for someone else and rejected (the target stays occluded), and a contender far from the prior (issue 22)
+        must score δ_id on ``n_id`` consecutive frames (seed 001's Re-ID state). Returns (chosen, accepted)."""
         p = self.params
+        relock = self.state in (TrackState.OCCLUDED, TrackState.LOST)
+        if not relock:
+            self._confirming = None
         if not (p.learned_appearance and self.identity.ready):
             return best, True
         contenders = sorted((c for c in candidates if c.m_fuse > p.reid_threshold
                              and c.m_fuse >= best.m_fuse - p.identity_margin), key=lambda c: -c.m_fuse)
-        relock = self.state in (TrackState.OCCLUDED, TrackState.LOST)
         if len(contenders) < 2 and not relock:
             return best, True
         embs = self._embed(frame_bgr, [c.box for c in contenders])
@@ -366,7 +370,28 @@ class ReIdentifier:
         if scores[i] < p.delta_switch:
             # Nobody here looks like the target: on a re-lock, wait; while tracking, keep colour's choice.
             return best, not relock
+        if relock and p.far_relock_needs_identity and self._far(contenders[i].box, prior):
+            return contenders[i], self._confirmed(contenders[i].box, float(scores[i]))
         return contenders[i], True
+
+    def _far(self, box: Box, prior: Prior) -> bool:
+        """A re-lock candidate farther from the prior's centre than relock_far_height_fraction of its height."""
+        cx, cy = box_centre(box)
+        px, py = prior.centre
+        return math.hypot(cx - px, cy - py) > self.params.relock_far_height_fraction * max(prior.size[1], 1.0)
+
+    def _confirmed(self, box: Box, score: float) -> bool:
+        """Seed 001's N_id: a far re-lock needs δ_id on n_id consecutive frames, on the same person (overlapping
+        the box confirmed on the frame before)."""
+        p = self.params
+        if score < p.delta_id:
+            self._confirming = None
+            return False
+        count = 1
+        if self._confirming is not None and box_iou(self._confirming[0], box) > 0.3:
+            count = self._confirming[1] + 1
+        self._confirming = (box, count)
+        return count >= p.n_id
 
     def _learn_identity(self, frame_bgr: np.ndarray, target: Box, boxes: list[Box]) -> None:
         """Every ``identity_sample_every_frames``-th secure frame: the target's descriptor as a positive and

@@ -53,6 +53,10 @@ SCENES: dict[str, str] = {
     "lost-target": "8 s hall: target walks out of view to the right at ~3.5 s and never returns",
     "group-walk": "20 s hall: a group of 5 walks away together (no single target; follow the group, seed 004), "
     "one member is hidden behind another for ~4.5 s, a passer-by walks towards the robot beside them",
+    "overlay": "10 s street seen by a camera panning to and fro (up to ~23 px/frame) through a burned-in clock, "
+    "a logo and a strip of the robot's own body fixed in the image; a look-alike crosses behind the target",
+    "bumpy": "10 s hall from a robot on a bumpy floor: seven 54-58 px jerks of the whole image, each smearing its "
+    "frame (no detection of anyone there), settling over ~2 s; three people around the target",
 }
 DEFAULT_SCENE = "corridor-occlusion"
 
@@ -83,6 +87,7 @@ class SceneFrame:
     ego_velocity_mps: tuple[float, float]
     distractor_visible_fractions: list[float] = field(default_factory=list)
     camera_offset_px: tuple[float, float] = (0.0, 0.0)  # whole-image shift applied this frame
+    motion_blur_px: float = 0.0  # length of this frame's camera-motion smear (scene:bumpy's jerk frames)
 
     def people(self) -> list[tuple[Box | None, float]]:
         """``(box, visible_fraction)`` for the target (first) and every visible distractor;
@@ -191,6 +196,12 @@ class _Spec:
     occluders: list[_Occluder] = field(default_factory=list)
     noise_sigma: float = 2.0
     ego: bool = False  # strafing/yawing camera (ego-motion scene)
+    camera: str = "still"  # still | ego (strafe + yaw) | pan (follows the target) | bumpy (jerks)
+    overlay: bool = False  # screen-fixed content: clock, logo, the robot's own body (scene:overlay)
+
+    def __post_init__(self) -> None:
+        if self.ego:
+            self.camera = "ego"
 
 
 # ----------------------------------------------------------------------------- rendering helpers
@@ -388,6 +399,64 @@ def render_figure(
 # ----------------------------------------------------------------------------- scene catalogue
 
 
+# scene:overlay: the pan's amplitude (fraction of the image width) and period.
+PAN_AMPLITUDE_FRACTION = 0.35
+PAN_PERIOD_S = 2.0
+# scene:bumpy: bumps (t_s, dx, dy) in px at 640x480 (scaled with the height), the settling time constant, the
+# fraction of a bump exposed on its own frame, and how much of a smeared figure a detector can still use.
+BUMPS = [(1.2, 30.0, 45.0), (2.5, -10.0, -55.0), (3.7, 45.0, 30.0), (5.0, -25.0, -52.0), (6.3, 50.0, 22.0),
+         (7.6, -25.0, -50.0), (8.8, 35.0, 45.0)]
+BUMP_SETTLE_S = 2.0
+SMEAR_EXPOSURE = 0.8
+VIBRATION_PX = {"ego": (2.0, 1.2), "bumpy": (0.6, 0.6)}  # per-frame jitter σ (x, y) of a vibrating camera
+SMEAR_DETECTABLE = 0.2  # below SimulatedDetector.MIN_VISIBLE_FRACTION (0.3): the jerk frame has no detection
+
+
+def motion_smear(bgr: np.ndarray, direction: tuple[float, float], length_px: float) -> np.ndarray:
+    """Linear motion blur of the whole image along ``direction`` (unit), ``length_px`` long."""
+    n = max(3, int(round(length_px)) | 1)
+    kernel = np.zeros((n, n), np.float32)
+    c = n // 2
+    for i in range(n):
+        a = i - c
+        kernel[int(round(c + a * direction[1])), int(round(c + a * direction[0]))] = 1.0
+    return cv2.filter2D(bgr, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
+
+
+def _detectable(target_vis: float, others_vis: list[float], blur_px: float) -> tuple[float, list[float]]:
+    """Visible fractions as a detector sees them: smeared over 40-60 px, no figure keeps enough sharp pixels."""
+    if blur_px <= 0.0:
+        return target_vis, others_vis
+    return target_vis * SMEAR_DETECTABLE, [v * SMEAR_DETECTABLE for v in others_vis]
+
+
+def draw_overlay(bgr: np.ndarray, t_s: float) -> None:
+    """Screen-fixed content, in place: a burned-in clock (top left), a logo (top right) and a strip of the
+    robot's own body with hazard stripes and bolts (bottom). None of it moves with the scene."""
+    h, w = bgr.shape[:2]
+    s = h / 480.0
+    cs = int(t_s * 100)
+    clock = f"12:{(34 + cs // 6000) % 60:02d}:{(cs // 100) % 60:02d}.{cs % 100:02d}"
+    cv2.rectangle(bgr, (0, 0), (int(210 * s), int(44 * s)), (0, 0, 0), -1)
+    cv2.putText(bgr, clock, (int(8 * s), int(32 * s)), cv2.FONT_HERSHEY_SIMPLEX, 0.9 * s, (255, 255, 255),
+                max(1, int(2 * s)), cv2.LINE_AA)
+    x0, y0, cell = w - int(110 * s), int(8 * s), max(2, int(10 * s))
+    for i in range(8):
+        for j in range(3):
+            col = (40, 40, 220) if (i + j) % 2 else (250, 250, 250)
+            cv2.rectangle(bgr, (x0 + i * cell, y0 + j * cell), (x0 + (i + 1) * cell, y0 + (j + 1) * cell), col, -1)
+    cv2.putText(bgr, "FB", (x0 + int(20 * s), y0 + int(60 * s)), cv2.FONT_HERSHEY_DUPLEX, 1.0 * s,
+                (250, 250, 250), max(1, int(2 * s)), cv2.LINE_AA)
+    top = h - int(40 * s)
+    bgr[top:] = (52, 50, 48)
+    band = bgr[top + int(6 * s): top + int(20 * s)]
+    xs = (np.arange(band.shape[1])[None, :] + np.arange(band.shape[0])[:, None]) // max(1, int(14 * s))
+    band[xs % 2 == 0] = (20, 190, 230)
+    band[xs % 2 == 1] = (20, 20, 20)
+    for x in range(int(30 * s), w, int(60 * s)):
+        cv2.circle(bgr, (x, top + int(30 * s)), max(2, int(4 * s)), (170, 170, 175), -1)
+
+
 _TARGET = PersonStyle(shirt_bgr=(42, 48, 190), trousers_bgr=(78, 50, 32), height_m=1.72)
 _PASSER = PersonStyle(shirt_bgr=(70, 160, 60), trousers_bgr=(120, 170, 195), hair_bgr=(40, 60, 90), height_m=1.80)
 _LOOKALIKE = PersonStyle(shirt_bgr=(52, 52, 178), trousers_bgr=(84, 56, 38), height_m=1.75)
@@ -451,6 +520,24 @@ def _spec(name: str) -> _Spec:
         ])
     if name == "group-walk":
         return _Spec(name, 20.0, _HALL, _group_walk_actors())
+    if name == "overlay":
+        # The camera pans to and fro (Scene._pan_px): the whole scene sweeps across the image, the overlay
+        # never moves; the look-alike walks across behind the target.
+        street = replace(_HALL, kind="street", ceiling=False, half_width_m=5.0, wall_height_m=10.0, far_m=45.0,
+                         floor_bgr=(150, 158, 165), floor_alt_bgr=(120, 128, 136), wall_bgr=(150, 175, 200),
+                         top_bgr=(235, 200, 150), ambient=1.0, lights=[], tile_m=0.45)
+        return _Spec(name, 10.0, street, [
+            _Actor("target", _TARGET, [(0.0, 0.0, 4.0), (10.0, 0.0, 4.8)], sway_m=0.05),
+            _Actor("distractor", _LOOKALIKE, [(0.0, 1.6, 5.6), (10.0, -1.2, 6.0)], sway_m=0.05),
+            _Actor("distractor", _BYSTANDER, [(0.0, -2.6, 7.0), (10.0, -1.8, 7.5)], sway_m=0.04),
+        ], camera="pan", overlay=True)
+    if name == "bumpy":
+        return _Spec(name, 10.0, _HALL, [
+            _Actor("target", _TARGET, [(0.0, 0.0, 2.8), (10.0, 0.2, 4.4)], sway_m=0.06),
+            _Actor("distractor", _LOOKALIKE, [(0.0, -0.6, 3.0), (10.0, -0.55, 4.6)], sway_m=0.05),
+            _Actor("distractor", _BYSTANDER, [(0.0, 1.8, 6.5), (10.0, 1.3, 3.0)], sway_m=0.04),
+            _Actor("distractor", _PASSER, [(1.0, -3.5, 8.0), (9.0, 3.5, 8.0)], sway_m=0.03),
+        ], camera="bumpy")
     raise ValueError(f"unknown scene {name!r}; available: {', '.join(SCENES)}")
 
 
@@ -518,7 +605,10 @@ class Scene:
                          trousers_bgr=tuple(int(np.clip(c + d, 0, 255)) for c, d in zip(a.style.trousers_bgr,
                                                                                          j[3:], strict=True)))
             self._actors.append((replace(a, style=st), float(rng.uniform(0, 2 * math.pi))))
-        self._margin = (round(0.12 * self.width), round(0.06 * self.height)) if spec.ego else (0, 0)
+        margins = {"still": (0.0, 0.0), "ego": (0.12, 0.06), "pan": (PAN_AMPLITUDE_FRACTION + 0.02, 0.0),
+                   "bumpy": (0.12, 0.16)}
+        mfx, mfy = margins[spec.camera]
+        self._margin = (round(mfx * self.width), round(mfy * self.height))
         self._background: np.ndarray | None = None
         self._occluders: list[tuple[np.ndarray, float]] = []
         self._bank: tuple[list[tuple[np.ndarray, np.ndarray]], dict] | None = None
@@ -579,14 +669,31 @@ class Scene:
 
     EGO_BACKGROUND_DEPTH_M = 4.0
 
+    def _pan_px(self, t: float) -> float:
+        """scene:overlay's pan: the whole image shifts by A sin(2πt/T) px (at most 2πA/T px/s: ~16 px a frame)."""
+        return PAN_AMPLITUDE_FRACTION * self.width * math.sin(2 * math.pi * t / PAN_PERIOD_S)
+
+    def _jerk_px(self, t: float) -> tuple[float, float]:
+        """scene:bumpy's image offset: each bump jolts the image by (dx, dy) at once, settling exponentially."""
+        dx = dy = 0.0
+        for tj, jx, jy in BUMPS:
+            if t >= tj:
+                decay = math.exp(-(t - tj) / BUMP_SETTLE_S)
+                dx, dy = dx + jx * decay * self.height / 480.0, dy + jy * decay * self.height / 480.0
+        return dx, dy
+
     def _ego(self, t: float) -> tuple[float, float, float, float]:
         """(camera lateral offset m, rotation image shift x px, y px, lateral velocity m/s).
 
         The robot strafes sinusoidally (Mecanum base) and yaws slightly; rotation shifts the whole
         image, the strafe moves people by their true parallax and the background as if it were
-        a plane :attr:`EGO_BACKGROUND_DEPTH_M` away.
+        a plane :attr:`EGO_BACKGROUND_DEPTH_M` away. scene:overlay pans (yaw only); scene:bumpy jerks.
         """
-        if not self._spec.ego:
+        if self._spec.camera == "pan":
+            return 0.0, self._pan_px(t), 0.0, 0.0
+        if self._spec.camera == "bumpy":
+            return (0.0, *self._jerk_px(t), 0.0)
+        if self._spec.camera != "ego":
             return 0.0, 0.0, 0.0, 0.0
         w = 2 * math.pi / 4.0
         vy = 0.35 * math.sin(w * t)
@@ -594,6 +701,28 @@ class Scene:
         yaw_px = 0.035 * self.camera.f_px * math.sin(2 * math.pi * t / 3.1)
         pitch_px = 2.0 * math.sin(2 * math.pi * t / 0.9)
         return x_cam, yaw_px, pitch_px, vy
+
+    def _screen_effects(self, frame: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, float]:
+        """The screen-fixed overlay (scene:overlay) and a jerk's smear (scene:bumpy): the frame and the smear's
+        length (0: none)."""
+        if self._spec.overlay:
+            draw_overlay(frame, t)
+        blur_px = self._jerk_blur_px(t, dt)
+        if blur_px > 0.0:
+            frame = motion_smear(frame, self._jerk_direction(t, dt), blur_px)
+        return frame, blur_px
+
+    def _jerk_blur_px(self, t: float, dt: float) -> float:
+        """Smear length of the frame at ``t``: a bump's own frame is exposed while the image jolts."""
+        if self._spec.camera != "bumpy":
+            return 0.0
+        hit = [(jx, jy) for tj, jx, jy in BUMPS if t - dt < tj <= t]
+        return SMEAR_EXPOSURE * max((math.hypot(jx, jy) * self.height / 480.0 for jx, jy in hit), default=0.0)
+
+    def _jerk_direction(self, t: float, dt: float) -> tuple[float, float]:
+        jx, jy = next((jx, jy) for tj, jx, jy in BUMPS if t - dt < tj <= t)
+        n = math.hypot(jx, jy)
+        return jx / n, jy / n
 
     def frames(self) -> Iterator[SceneFrame]:
         """Render every frame (about 2-4 ms each at 640x480)."""
@@ -611,8 +740,8 @@ class Scene:
 
         for i in range(self.n_frames):
             t = i * dt
-            if spec.ego:
-                jit = 0.6 * jit + rng.normal(0.0, (2.0, 1.2))  # vibration: correlated jitter
+            if spec.camera in VIBRATION_PX:
+                jit = 0.6 * jit + rng.normal(0.0, VIBRATION_PX[spec.camera])  # vibration: correlated jitter
             x_cam, rot_dx, rot_dy, vy = self._ego(t)
             strafe_px = -cam.f_px * x_cam / self.EGO_BACKGROUND_DEPTH_M
             # Crop the wide background so its content moves by the whole-image shift.
@@ -678,6 +807,7 @@ class Scene:
                 cv2.copyTo(patch[y0 - by : y1 - by, x0 - bx : x1 - bx], mask[y0 - by : y1 - by, x0 - bx : x1 - bx],
                            frame[y0:y1, x0:x1])
 
+            frame, blur_px = self._screen_effects(frame, t, dt)
             # Optics and sensor: slight defocus, then fresh noise (never the same bank entry twice).
             frame = cv2.GaussianBlur(frame, (3, 3), 0.7)
             noise_idx = (noise_idx + 1 + int(rng.integers(0, len(bank) - 1))) % len(bank)
@@ -699,8 +829,9 @@ class Scene:
                 else:
                     d_boxes.append(box)
                     d_vis.append(v)
+            target_vis, d_vis = _detectable(target_vis, d_vis, blur_px)
             # Ego velocity: forward speed of a robot keeping pace with the walker, plus the strafe.
-            ego_v = (0.9, vy) if spec.ego else (0.0, 0.0)
+            ego_v = {"ego": (0.9, vy), "bumpy": (0.5, 0.0)}.get(spec.camera, (0.0, 0.0))
             yield SceneFrame(
                 index=i,
                 t_ns=round(i * 1e9 / self.fps),
@@ -711,6 +842,7 @@ class Scene:
                 ego_velocity_mps=ego_v,
                 distractor_visible_fractions=[round(v, 4) for v in d_vis],
                 camera_offset_px=shift,
+                motion_blur_px=blur_px,
             )
 
     def __iter__(self) -> Iterator[SceneFrame]:
