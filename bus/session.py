@@ -91,7 +91,7 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     return conf
 
 
-def _is_local(endpoint: str) -> bool:
+def is_local_endpoint(endpoint: str) -> bool:
     """Whether only processes on this machine can reach an endpoint (loopback IP, or a Unix socket)."""
     proto, _, address = endpoint.partition("/")
     if proto.startswith("unixsock"):
@@ -120,7 +120,7 @@ def exposure(settings: ZenohSettings) -> str | None:
     """Why other machines could write on this bus unauthenticated, or None (client, loopback only, or auth)."""
     if settings.mode == "client" or _has_auth(settings.config):
         return None
-    reachable = [ep for ep in settings.listen if not _is_local(ep)]
+    reachable = [ep for ep in settings.listen if not is_local_endpoint(ep)]
     if not reachable:
         return None
     return (f"listening on {', '.join(reachable)} without authentication: anyone who can reach it can publish "

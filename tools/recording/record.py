@@ -62,6 +62,7 @@ from ...bus.schemas import Frame, decode
 from .. import __version__
 from . import foxglove_schemas as fox
 from .mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, FinaliseResult, RecordingWriter
+from .remote import is_remote, raw_frame_keys, subscription_patterns
 
 log = logging.getLogger("followbus.record")
 
@@ -186,14 +187,17 @@ class Recorder:
     in the writer sets ``failed``; ``stop()`` then finalises what reached the disk (see the module doc).
     """
 
-    def __init__(self, options: RecordOptions, metadata: dict[str, dict[str, str]]):
+    def __init__(self, options: RecordOptions, metadata: dict[str, dict[str, str]],
+                 subscribe: list[str] | None = None):
         self.opts = options
+        # What the subscribers ask for: the patterns, or the graph's kept keys one by one (recording/remote.py).
+        self.subscribe = list(subscribe) if subscribe is not None else list(options.patterns)
         self.writer = RecordingWriter(options.output, options.compression, options.chunk_bytes)
         for name, data in metadata.items():
             self.writer.metadata(name, data)
         self.writer.flush()
         self.report = RecordReport(options.output)
-        self._key_exprs = [zenoh.KeyExpr(p) for p in options.patterns]
+        self._key_exprs = [zenoh.KeyExpr(p) for p in self.subscribe]
         self._excluded = [zenoh.KeyExpr(p) for p in options.exclude]
         self._subs: list[Any] = []
         self._raw: deque[_Item] = deque()
@@ -215,7 +219,7 @@ class Recorder:
         self._started = time.monotonic()
         for thread in self._threads:
             thread.start()
-        for i, pattern in enumerate(self.opts.patterns):
+        for i, pattern in enumerate(self.subscribe):
             # Direct: the callback runs on zenoh's receive thread (it only copies and enqueues), which
             # keeps the order samples arrived in; zenoh-python's default hands each subscriber a thread.
             # Inline: a recording keeps every frame, even across a stall of the recorder (a slow disk) that the
@@ -500,19 +504,35 @@ def print_report(report: RecordReport, out=sys.stdout) -> None:
           file=out, flush=True)
 
 
+def _link_excludes(args, settings, graph, namespace: str) -> tuple[list[str], list[str]]:
+    """--exclude, plus the raw frames when recording over a network without --raw-frames; and the lines that
+    say so at start."""
+    exclude = list(getattr(args, "exclude", None) or [])
+    notes = []
+    if is_remote(settings) and not getattr(args, "raw_frames", False):
+        raw = [k for k in raw_frame_keys(graph, namespace) if k not in exclude]
+        exclude += raw
+        notes.append(f"remote link ({', '.join(settings.connect)}): leaving out raw frames ({', '.join(raw)}; "
+                     "--raw-frames records them), the JPEG preview stays")
+    if exclude and graph is None:
+        notes.append("without the graph (--graph) excluded keys are dropped on arrival: they still cross the link")
+    return exclude, notes
+
+
 def cmd_record(args, settings, graph) -> int:
     """``followbus record``; ``graph`` is the loaded --graph (with --set applied) or None."""
-    namespace = graph.namespace if graph is not None else "fb"
+    namespace = getattr(args, "namespace", None) or (graph.namespace if graph is not None else "fb")
     patterns = list(args.topics or [f"{namespace}/**"])
     if args.status and f"{namespace}/@status/*" not in patterns:
         # '@' chunks are verbatim in Zenoh: no wildcard matches them, so status is only ever recorded on request.
         patterns.append(f"{namespace}/@status/*")
+    exclude, notes = _link_excludes(args, settings, graph, namespace)
     output = Path(args.output) if args.output else default_output(graph.name if graph is not None else "")
     options = RecordOptions(
         output=output, patterns=patterns, include_status=args.status, compression=args.compression,
         chunk_bytes=int(args.chunk_mb * 1024 * 1024), chunk_seconds=args.chunk_seconds,
         jpeg_quality=args.jpeg_quality, foxglove=not args.no_foxglove,
-        max_queue_bytes=int(args.max_queue_mb * 1024 * 1024), exclude=list(getattr(args, "exclude", None) or []),
+        max_queue_bytes=int(args.max_queue_mb * 1024 * 1024), exclude=exclude,
     )
     if options.max_queue_bytes <= 0:
         print("followbus: --max-queue-mb must be positive", file=sys.stderr)
@@ -523,8 +543,9 @@ def cmd_record(args, settings, graph) -> int:
         except zenoh.ZError as exc:
             print(f"followbus: {pattern!r} is not a key expression: {exc}", file=sys.stderr)
             return 2
+    subscribed = subscription_patterns(options.patterns, options.exclude, graph, namespace)
     try:  # before joining the bus: an unwritable output is reported at once
-        recorder = Recorder(options, build_metadata(graph, options, namespace))
+        recorder = Recorder(options, build_metadata(graph, options, namespace), subscribed)
     except OSError as exc:
         print(f"followbus: cannot write {output}: {exc}", file=sys.stderr)
         return 2
@@ -536,18 +557,19 @@ def cmd_record(args, settings, graph) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    from ...bus.session import open_session
+    from ..connect import open_client_session
 
     try:
-        session = open_session(settings)
-    except zenoh.ZError as exc:
+        session = open_client_session(settings)
+    except Exception:  # BusUnreachable: one line from the command line; no empty file left behind
         recorder.discard()
-        print(f"followbus: cannot join the bus via {', '.join(settings.connect)}: {exc}", file=sys.stderr)
-        return 2
+        raise
     recorder.start(session)
     # Declared after the subscribers: a capture node launched with --record waits for it before frame 0,
     # so a recording holds the run from its first frame (a replayed node must start where the live one did).
     token = session.liveliness().declare_token(f"{namespace}/@health/{RECORDER_NAME}")
+    for note in notes:
+        print(note, flush=True)
     print(f"recording {' '.join(patterns)} to {output} ({options.compression} chunks); Ctrl-C to stop", flush=True)
     started = time.monotonic()
     next_status = started + 10.0
