@@ -86,6 +86,13 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     else:
         conf.insert_json5("connect/timeout_ms", json.dumps(settings.connect_timeout_ms))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shm))
+    if settings.mode != "client" and not any(k.startswith("qos") for k in settings.config):
+        # What this session sends to other machines is DROP: a laptop on a slow link never blocks the robot.
+        from .netif import drop_on_remote_links
+
+        overwrite = drop_on_remote_links(list(settings.listen))
+        if overwrite:
+            conf.insert_json5("qos/network", json.dumps(overwrite))
     for key, value in settings.config.items():
         conf.insert_json5(key, json.dumps(value))
     return conf

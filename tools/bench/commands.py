@@ -106,6 +106,10 @@ def _link_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--detector", default="simulated", choices=("simulated", "hog", "yolox"),
                    help="detection backend of the robot graph (default simulated)")
     p.add_argument("--port", type=int, default=21650, help="the robot's port, inside its namespace (default 21650)")
+    p.add_argument("--unprotected", action="store_true",
+                   help="the robot's links to the laptop keep BLOCK congestion control (as before bus/netif.py): "
+                        "shows what a laptop recording raw frames did to the robot")
+    p.add_argument("--log", default="state/link.log", help="the robot graph's log (default state/link.log)")
     p.add_argument("--json", metavar="FILE", help="also write every run's figures as JSON")
 
 

@@ -19,6 +19,7 @@ per key, from the file's own ``recording_stats`` metadata.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -45,7 +46,8 @@ NAMESPACE = "link"
 
 # --- the robot's graph ---------------------------------------------------------------------------------
 
-def write_robot_graph(tmp: Path, port: int, address: str, detector: str, namespace: str = NAMESPACE) -> Path:
+def write_robot_graph(tmp: Path, port: int, address: str, detector: str, namespace: str = NAMESPACE,
+                      protect: bool = True) -> Path:
     """graph.yaml and graph.robot.yaml of the repository in ``tmp``: a private port on loopback and on
     ``address`` (the veth end the laptop reaches), the scene looping at 30 Hz, the given detector."""
     import yaml
@@ -61,6 +63,8 @@ def write_robot_graph(tmp: Path, port: int, address: str, detector: str, namespa
     robot = yaml.safe_load((REPO / "graph.robot.yaml").read_text(encoding="utf-8"))
     robot["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}", f"tcp/{address}:{port}"]
     robot["zenoh"]["config"]["transport/auth/usrpwd"]["dictionary_file"] = str(USERS_FILE)
+    if not protect:  # the robot's links to the laptop as before bus/netif.py: BLOCK messages block the router
+        robot["zenoh"]["config"]["qos/network"] = []
     path = tmp / "graph.robot.yaml"
     path.write_text(yaml.safe_dump(robot, sort_keys=False))
     return path
@@ -164,9 +168,10 @@ class CaseRun:
 class LinkBench:
     """The robot graph and its probe in namespace a, one laptop case at a time in namespace b."""
 
-    def __init__(self, pair: NetnsPair, tmp: Path, port: int, detector: str):
-        self.pair, self.tmp = pair, tmp
-        self.graph = write_robot_graph(tmp, port, pair.addresses[0], detector)
+    def __init__(self, pair: NetnsPair, tmp: Path, port: int, detector: str, protect: bool = True,
+                 log: Path | None = None):
+        self.pair, self.tmp, self.log = pair, tmp, log
+        self.graph = write_robot_graph(tmp, port, pair.addresses[0], detector, protect=protect)
         self.endpoint = f"tcp/{pair.addresses[0]}:{port}"
         self.env = dict(os.environ, FOLLOWBUS_ZENOH_PASSWORD=MONITOR_PASSWORD, PYTHONUNBUFFERED="1")
         self.robot = subprocess.Popen(pair.argv(0, [sys.executable, "-m", "followbus.tools.cli", "launch",
@@ -215,7 +220,13 @@ class LinkBench:
         return run
 
     def close(self) -> None:
-        (self.tmp.parent / "followbus-link-robot.log").write_text("".join(self.robot_lines))
+        if self.log is not None:
+            self.log.parent.mkdir(parents=True, exist_ok=True)
+            self.log.write_text("".join(self.robot_lines))
+        if self.probe is not None and self.probe.poll() is None:
+            self.probe.stdin.close()  # its loop ends
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.probe.wait(10)
         for proc in (self.probe, self.robot):
             if proc is not None and proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
@@ -238,11 +249,12 @@ def _finish(proc: subprocess.Popen, timeout_s: float = 60.0) -> str:
 # --- the command ---------------------------------------------------------------------------------------------
 
 def run_link_bench(rate_mbit: float, seconds: float, rounds: int, cases: list[str], detector: str,
-                   port: int = 21650, progress: Any = print) -> list[CaseRun]:
+                   port: int = 21650, progress: Any = print, protect: bool = True,
+                   log: Path | None = None) -> list[CaseRun]:
     """Every case ``rounds`` times, alternated; the robot graph is launched once."""
     runs = []
     with tempfile.TemporaryDirectory(prefix="followbus-link-") as tmp, NetnsPair(rate_mbit=rate_mbit) as pair:
-        bench = LinkBench(pair, Path(tmp), port, detector)
+        bench = LinkBench(pair, Path(tmp), port, detector, protect=protect, log=log)
         try:
             bench.start()
             for r in range(rounds):
@@ -298,8 +310,10 @@ def cmd_bench_link(args) -> int:
     with open("/proc/loadavg") as f:
         load = f.read().strip()
     print(f"bench link: {args.rate_mbit:g} Mbit/s each way, {args.seconds:g} s windows, {args.rounds} rounds of "
-          f"{', '.join(cases)}; detector {args.detector}; load {load}", flush=True)
-    runs = run_link_bench(args.rate_mbit, args.seconds, args.rounds, cases, args.detector, args.port)
+          f"{', '.join(cases)}; detector {args.detector}; remote links "
+          f"{'as before (BLOCK)' if args.unprotected else 'DROP (bus/netif.py)'}; load {load}", flush=True)
+    runs = run_link_bench(args.rate_mbit, args.seconds, args.rounds, cases, args.detector, args.port,
+                          protect=not args.unprotected, log=Path(args.log))
     with open("/proc/loadavg") as f:
         print(f"load at the end: {f.read().strip()}")
     print(table(runs))
