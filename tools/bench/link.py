@@ -193,7 +193,10 @@ class LinkBench:
                                       cwd=self.tmp, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         if self.probe.stdout.readline().strip() != "ready":
             raise RuntimeError("the probe did not start")
-        time.sleep(2.0)  # warm-up: first frames through the whole chain
+        # Warm-up: the robot answers frames (models loaded, the target acquired) before any window counts.
+        while not self.window(1.0)["answered"]:
+            if time.monotonic() > deadline:
+                raise RuntimeError("the robot graph never answered a frame: " + "".join(self.robot_lines[-10:]))
 
     def window(self, seconds: float) -> dict[str, Any]:
         assert self.probe is not None
