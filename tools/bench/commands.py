@@ -110,6 +110,9 @@ def _link_args(p: argparse.ArgumentParser) -> None:
                    help="the robot's links to the laptop keep BLOCK congestion control (as before bus/netif.py): "
                         "shows what a laptop recording raw frames did to the robot")
     p.add_argument("--log", default="state/link.log", help="the robot graph's log (default state/link.log)")
+    p.add_argument("--drop-wait-us", type=int, metavar="US",
+                   help="the robot's zenoh wait_before_drop and max_wait_before_drop_fragments (default zenoh's: "
+                        "1000 and 50000 us): how long its router waits on a full link before dropping")
     p.add_argument("--json", metavar="FILE", help="also write every run's figures as JSON")
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -47,7 +48,7 @@ NAMESPACE = "link"
 # --- the robot's graph ---------------------------------------------------------------------------------
 
 def write_robot_graph(tmp: Path, port: int, address: str, detector: str, namespace: str = NAMESPACE,
-                      protect: bool = True) -> Path:
+                      protect: bool = True, drop_wait_us: int | None = None) -> Path:
     """graph.yaml and graph.robot.yaml of the repository in ``tmp``: a private port on loopback and on
     ``address`` (the veth end the laptop reaches), the scene looping at 30 Hz, the given detector."""
     import yaml
@@ -63,6 +64,9 @@ def write_robot_graph(tmp: Path, port: int, address: str, detector: str, namespa
     robot = yaml.safe_load((REPO / "graph.robot.yaml").read_text(encoding="utf-8"))
     robot["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}", f"tcp/{address}:{port}"]
     robot["zenoh"]["config"]["transport/auth/usrpwd"]["dictionary_file"] = str(USERS_FILE)
+    if drop_wait_us is not None:  # how long the hub waits on a full queue before dropping (zenoh: 1 ms, 50 ms)
+        robot["zenoh"]["config"]["transport/link/tx/queue/congestion_control/drop"] = {
+            "wait_before_drop": drop_wait_us, "max_wait_before_drop_fragments": drop_wait_us}
     if not protect:  # the robot's links to the laptop as before bus/netif.py: BLOCK messages block the router
         robot["zenoh"]["config"]["qos/network"] = []
     path = tmp / "graph.robot.yaml"
@@ -169,9 +173,10 @@ class LinkBench:
     """The robot graph and its probe in namespace a, one laptop case at a time in namespace b."""
 
     def __init__(self, pair: NetnsPair, tmp: Path, port: int, detector: str, protect: bool = True,
-                 log: Path | None = None):
+                 log: Path | None = None, drop_wait_us: int | None = None):
         self.pair, self.tmp, self.log = pair, tmp, log
-        self.graph = write_robot_graph(tmp, port, pair.addresses[0], detector, protect=protect)
+        self.graph = write_robot_graph(tmp, port, pair.addresses[0], detector, protect=protect,
+                                       drop_wait_us=drop_wait_us)
         self.endpoint = f"tcp/{pair.addresses[0]}:{port}"
         self.env = dict(os.environ, FOLLOWBUS_ZENOH_PASSWORD=MONITOR_PASSWORD, PYTHONUNBUFFERED="1")
         self.robot = subprocess.Popen(pair.argv(0, [sys.executable, "-m", "followbus.tools.cli", "launch",
@@ -207,6 +212,7 @@ class LinkBench:
     def run_case(self, case: str, seconds: float) -> CaseRun:
         argv = laptop_argv(case, self.endpoint, self.graph, self.tmp, SETTLE_S + seconds + 1.0)
         laptop = None
+        cpu0 = _children_cpu_s()
         if argv is not None:
             laptop = subprocess.Popen(self.pair.argv(1, argv), cwd=self.tmp, env=self.env, stdin=subprocess.DEVNULL,
                                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -215,7 +221,9 @@ class LinkBench:
         run = CaseRun(case, robot)
         if laptop is not None:
             out = _finish(laptop)
-            run.laptop = {"exit": laptop.returncode, "first_lines": out.splitlines()[:2]}
+            # On this one machine the laptop's CPU is the robot's too (a real laptop's is not): say how much.
+            run.laptop = {"exit": laptop.returncode, "first_lines": out.splitlines()[:2],
+                          "cpu_s": round(_children_cpu_s() - cpu0, 2)}
             mcap = self.tmp / f"{case}.mcap"
             if mcap.exists():
                 run.laptop.update(recording_summary(mcap))
@@ -240,6 +248,11 @@ class LinkBench:
                     proc.wait()
 
 
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)  # waited-for children: the laptop's processes
+    return usage.ru_utime + usage.ru_stime
+
+
 def _finish(proc: subprocess.Popen, timeout_s: float = 60.0) -> str:
     try:
         out, _ = proc.communicate(timeout=timeout_s)
@@ -253,11 +266,11 @@ def _finish(proc: subprocess.Popen, timeout_s: float = 60.0) -> str:
 
 def run_link_bench(rate_mbit: float, seconds: float, rounds: int, cases: list[str], detector: str,
                    port: int = 21650, progress: Any = print, protect: bool = True,
-                   log: Path | None = None) -> list[CaseRun]:
+                   log: Path | None = None, drop_wait_us: int | None = None) -> list[CaseRun]:
     """Every case ``rounds`` times, alternated; the robot graph is launched once."""
     runs = []
     with tempfile.TemporaryDirectory(prefix="followbus-link-") as tmp, NetnsPair(rate_mbit=rate_mbit) as pair:
-        bench = LinkBench(pair, Path(tmp), port, detector, protect=protect, log=log)
+        bench = LinkBench(pair, Path(tmp), port, detector, protect=protect, log=log, drop_wait_us=drop_wait_us)
         try:
             bench.start()
             for r in range(rounds):
@@ -278,7 +291,7 @@ def _robot_line(robot: dict[str, Any]) -> str:
 def table(runs: list[CaseRun]) -> str:
     """Markdown: one row per case and round (robot figures), then per recording its keys."""
     lines = ["| case | round | capture→command p50 ms | p99 ms | frames answered | laptop received | "
-             "dropped | seq gaps |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+             "dropped | seq gaps | laptop CPU s |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     rounds: dict[str, int] = {}
     for run in runs:
         rounds[run.case] = rounds.get(run.case, 0) + 1
@@ -286,7 +299,9 @@ def table(runs: list[CaseRun]) -> str:
         p50 = f"{r['p50_ms']:.1f}" if r["p50_ms"] is not None else "-"
         p99 = f"{r['p99_ms']:.1f}" if r["p99_ms"] is not None else "-"
         rec = (f"{lap['received']} | {lap['dropped']} | {lap['seq_gaps']}" if "received" in lap else "- | - | -")
-        lines.append(f"| {run.case} | {rounds[run.case]} | {p50} | {p99} | {r['answered']}/{r['frames']} | {rec} |")
+        cpu = f"{lap['cpu_s']:.1f}" if "cpu_s" in lap else "-"
+        lines.append(f"| {run.case} | {rounds[run.case]} | {p50} | {p99} | {r['answered']}/{r['frames']} | {rec} "
+                     f"| {cpu} |")
     return "\n".join(lines)
 
 
@@ -316,7 +331,7 @@ def cmd_bench_link(args) -> int:
           f"{', '.join(cases)}; detector {args.detector}; remote links "
           f"{'as before (BLOCK)' if args.unprotected else 'DROP (bus/netif.py)'}; load {load}", flush=True)
     runs = run_link_bench(args.rate_mbit, args.seconds, args.rounds, cases, args.detector, args.port,
-                          protect=not args.unprotected, log=Path(args.log))
+                          protect=not args.unprotected, log=Path(args.log), drop_wait_us=args.drop_wait_us)
     with open("/proc/loadavg") as f:
         print(f"load at the end: {f.read().strip()}")
     print(table(runs))
