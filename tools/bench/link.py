@@ -209,7 +209,9 @@ class LinkBench:
         self.probe.stdin.flush()
         return json.loads(self.probe.stdout.readline())
 
-    def run_case(self, case: str, seconds: float) -> CaseRun:
+    def run_case(self, case: str, seconds: float, until_answered: bool = False) -> CaseRun:
+        """One window of ``seconds`` with the case's laptop; ``until_answered``: 1 s windows until the robot
+        answers a frame or ``seconds`` pass, then the laptop is stopped (a test's check, not a figure)."""
         argv = laptop_argv(case, self.endpoint, self.graph, self.tmp, SETTLE_S + seconds + 1.0)
         laptop = None
         cpu0 = _children_cpu_s()
@@ -217,9 +219,11 @@ class LinkBench:
             laptop = subprocess.Popen(self.pair.argv(1, argv), cwd=self.tmp, env=self.env, stdin=subprocess.DEVNULL,
                                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
             time.sleep(SETTLE_S)
-        robot = self.window(seconds)
+        robot = self._until_answered(seconds) if until_answered else self.window(seconds)
         run = CaseRun(case, robot)
         if laptop is not None:
+            if until_answered:
+                laptop.send_signal(signal.SIGINT)  # a recorder finalises its file and prints its report
             out = _finish(laptop)
             # On this one machine the laptop's CPU is the robot's too (a real laptop's is not): say how much.
             run.laptop = {"exit": laptop.returncode, "first_lines": out.splitlines()[:2],
@@ -229,6 +233,13 @@ class LinkBench:
                 run.laptop.update(recording_summary(mcap))
                 mcap.unlink()
         return run
+
+    def _until_answered(self, seconds: float) -> dict[str, Any]:
+        deadline = time.monotonic() + seconds
+        robot = self.window(1.0)
+        while not robot["answered"] and time.monotonic() < deadline:
+            robot = self.window(1.0)
+        return robot
 
     def close(self) -> None:
         if self.log is not None:
