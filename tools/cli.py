@@ -239,9 +239,9 @@ def cmd_launch(args) -> int:
     graph = load_graph(args.graph)
     apply_overrides(graph, args.overrides)
     only = [n.strip() for n in args.only.split(",")] if args.only else None
-    host = _host_nodes(graph, args.host)[0]
+    host, on_host = _host_nodes(graph, args.host)
     # Every node is validated; what a node would open (the capture source) only for the nodes started here.
-    _validate(graph, args.overrides, opened={n for n in _host_nodes(graph, host)[1] if not only or n in only})
+    _validate(graph, args.overrides, opened={n for n in on_host if not only or n in only})
     extra = []
     if args.record:
         extra.append((RECORDER_NAME, [sys.executable, "-m", "followbus.tools.cli", "record", "--graph", args.graph,
