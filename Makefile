@@ -14,7 +14,8 @@ $(STAMP): pyproject.toml requirements-peers.txt
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/followbus demo
+	$(VENV)/bin/followbus demo --domain auto
+	@echo "the followbus command: source $(VENV)/bin/activate (then followbus --help), or run $(VENV)/bin/followbus"
 
 test: $(STAMP)
 	$(PY) -m ruff check .

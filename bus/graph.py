@@ -25,7 +25,9 @@ are added. Each YAML node remembers its file, so an error in the base names the 
 from __future__ import annotations
 
 import io
+import math
 import re
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,10 +38,11 @@ from .session import ZenohSettings
 
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
 NAMESPACE_RE = re.compile(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
+RUN_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")  # an absolute, dotted module name
 TOP_KEYS = {"extends", "name", "namespace", "zenoh", "nodes", "max_lag_ms", "default_host"}
 DEFAULT_MAX_LAG_MS = 150.0  # a frame set further behind the newest complete one is skipped (bus.sync)
 NODE_KEYS = {"run", "inputs", "outputs", "params", "restart", "host", "sync_timeout_ms", "max_lag_ms", "nice",
-             "description"}
+             "realtime", "description"}
 INPUT_KEYS = {"from", "queue", "policy", "sync", "offset", "optional"}
 RESTART_KEYS = {"policy", "max_restarts", "backoff_ms", "max_backoff_ms"}
 POLICIES = ("drop_oldest", "block")
@@ -109,6 +112,7 @@ class NodeSpec:
     sync_timeout_ms: float = 100.0
     max_lag_ms: float | None = None  # None: the graph's; 0: never skip a lagging frame set
     nice: int | None = None  # CPU priority of the node's process (-20 highest .. 19); None: inherited
+    realtime: int | None = None  # SCHED_RR priority (1..99) where permitted, else ``nice``; None: not real-time
     line: int | None = None
     param_lines: dict[str, int] = field(default_factory=dict)
 
@@ -228,11 +232,19 @@ def _read(path: str, text: str | None, read_from: tuple[str, int | None] | None 
     if text is not None:
         return text
     try:
+        # Only a regular file: reading a FIFO waits for a writer for ever, /dev/zero never ends.
+        if not stat.S_ISREG(Path(path).stat().st_mode):
+            raise GraphError(read_from[0] if read_from else path, read_from[1] if read_from else None,
+                             f"{'extends: ' if read_from else ''}{path} is not a regular file")
         return Path(path).read_text()
     except OSError as exc:
         if read_from is not None:  # a base file: the error is the extends line's
             raise GraphError(read_from[0], read_from[1], f"extends: cannot read {path}: {exc.strerror}") from exc
         raise GraphError(path, None, f"cannot read: {exc.strerror}") from exc
+    except UnicodeDecodeError as exc:
+        where = (read_from[0], read_from[1]) if read_from else (path, None)
+        raise GraphError(*where, f"{'extends: ' if read_from else ''}{path} is not a text file ({exc.reason})") \
+            from exc
 
 
 # libyaml's parser where PyYAML was built with it: a tenth of the pure-Python one's time (evaluation builds the
@@ -430,6 +442,9 @@ def _parse_node(name: str, key_node: yaml.Node, node: yaml.Node, path: str) -> N
     if "run" not in fields:
         raise GraphError(path, _line(key_node), f"node {name!r}: missing required key 'run'")
     run = _expect(_plain(fields["run"][1], path), str, path, _line(fields["run"][1]), f"node {name!r}: run")
+    if not RUN_RE.match(run):
+        raise GraphError(path, _line(fields["run"][1]), f"node {name!r}: run must name a Python module "
+                                                        f"(e.g. followbus.nodes.detection), not {run!r}")
     spec = NodeSpec(name=name, run=run, line=_line(key_node))
 
     if "outputs" in fields:
@@ -463,26 +478,40 @@ def _parse_node(name: str, key_node: yaml.Node, node: yaml.Node, path: str) -> N
     if "host" in fields:
         spec.host = _expect(_plain(fields["host"][1], path), str, path, _line(fields["host"][1]),
                             f"node {name!r}: host")
+    _parse_node_options(spec, fields, path)
+    return spec
+
+
+def _bounded_int(node: yaml.Node, path: str, what: str, low: int, high: int, meaning: str) -> int:
+    value = _expect(_plain(node, path), int, path, _line(node), what)
+    if not low <= value <= high:
+        raise GraphError(path, _line(node), f"{what} must be in {low}..{high}{meaning}")
+    return value
+
+
+def _parse_node_options(spec: NodeSpec, fields: dict[str, tuple[yaml.Node, yaml.Node]], path: str) -> None:
+    """The node's scheduling options: sync_timeout_ms, max_lag_ms, nice, realtime."""
+    name = spec.name
     if "sync_timeout_ms" in fields:
-        value = _expect(_plain(fields["sync_timeout_ms"][1], path), (int, float), path,
-                        _line(fields["sync_timeout_ms"][1]), f"node {name!r}: sync_timeout_ms")
-        if value <= 0:
-            raise GraphError(path, _line(fields["sync_timeout_ms"][1]), f"node {name!r}: sync_timeout_ms must be > 0")
+        node = fields["sync_timeout_ms"][1]
+        value = _expect(_plain(node, path), (int, float), path, _line(node), f"node {name!r}: sync_timeout_ms")
+        if not (math.isfinite(value) and value > 0):
+            raise GraphError(path, _line(node),
+                             f"node {name!r}: sync_timeout_ms must be a finite number > 0, not {value!r}")
         spec.sync_timeout_ms = float(value)
     if "max_lag_ms" in fields:
         spec.max_lag_ms = _non_negative_ms(fields["max_lag_ms"][1], path, f"node {name!r}: max_lag_ms")
     if "nice" in fields:
-        value = _expect(_plain(fields["nice"][1], path), int, path, _line(fields["nice"][1]), f"node {name!r}: nice")
-        if not -20 <= value <= 19:
-            raise GraphError(path, _line(fields["nice"][1]), f"node {name!r}: nice must be in -20..19")
-        spec.nice = value
-    return spec
+        spec.nice = _bounded_int(fields["nice"][1], path, f"node {name!r}: nice", -20, 19, "")
+    if "realtime" in fields:
+        spec.realtime = _bounded_int(fields["realtime"][1], path, f"node {name!r}: realtime", 1, 99,
+                                     " (a SCHED_RR priority)")
 
 
 def _non_negative_ms(node: yaml.Node, path: str, what: str) -> float:
     value = _expect(_plain(node, path), (int, float), path, _line(node), what)
-    if isinstance(value, bool) or value < 0:
-        raise GraphError(path, _line(node), f"{what} must be a number >= 0 (0: unbounded)")
+    if isinstance(value, bool) or not (math.isfinite(value) and value >= 0):
+        raise GraphError(path, _line(node), f"{what} must be a finite number >= 0 (0: unbounded), not {value!r}")
     return float(value)
 
 
@@ -578,3 +607,34 @@ def _check_wiring(graph: Graph) -> None:
         if frame_inputs and all(i.optional or i.offset for i in frame_inputs):
             raise graph.error(spec.line, f"node {spec.name!r}: at least one same-frame synchronised input must be "
                                          "required (not optional, offset 0)")
+    _check_same_frame_cycles(graph)
+
+
+def _same_frame_edges(graph: Graph) -> dict[str, list[InputSpec]]:
+    """node -> its inputs that wait for the same frame from their producer (sync frame, offset 0)."""
+    return {name: [i for i in spec.inputs.values() if i.sync == "frame" and i.offset == 0]
+            for name, spec in graph.nodes.items()}
+
+
+def _check_same_frame_cycles(graph: Graph) -> None:
+    """A loop of same-frame inputs waits for itself: frame n of each node needs frame n of the next, which
+    needs this one's. A feedback input (offset: -1) takes the previous frame and breaks it."""
+    edges = _same_frame_edges(graph)
+    done: set[str] = set()
+
+    def visit(node: str, path: list[tuple[str, InputSpec]]) -> None:
+        on_path = [n for n, _ in path]
+        if node in on_path:
+            loop = path[on_path.index(node):]
+            names = " -> ".join([*(n for n, _ in loop), node])
+            raise graph.error(loop[-1][1].line,
+                              f"same-frame cycle {names} (each node waits for the next one's output of the same "
+                              "frame: a deadlock); make one of these inputs a feedback input (offset: -1)")
+        if node in done:
+            return
+        for inp in edges[node]:
+            visit(inp.source_node, [*path, (node, inp)])
+        done.add(node)
+
+    for name in graph.nodes:
+        visit(name, [])

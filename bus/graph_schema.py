@@ -176,9 +176,10 @@ def _zenoh_schema() -> dict[str, Any]:
         "connect": "endpoints to connect to",
         "multicast_scouting": "find peers by UDP multicast (off: only the endpoints above)",
         "shm": "shared memory for large payloads between processes on this machine",
-        "shm_lane": "large arrays (64 KiB and more) between followbus processes on this machine through "
-                    "followbus's own shared memory, received without a copy; used only while every "
-                    "subscriber of the key is a followbus one on this machine (false: always inline)",
+        "shm_lane": "opt-in (default false): large arrays (64 KiB and more) between followbus processes on this "
+                    "machine through sealed shared memory (memfd), received without a copy; a plain subscriber "
+                    "of the key still gets the real message; keep it off where the bus's ACL must protect "
+                    "frames (graph.robot.yaml)",
         "connect_timeout_ms": "a client keeps retrying its endpoints this long before failing",
         "config": "raw zenoh json5 settings applied last, e.g. transport/auth/usrpwd, access_control, "
                   "transport/link/tls",
@@ -257,6 +258,10 @@ def _node_schema(runs: dict[str, tuple[type, ...]]) -> dict[str, Any]:
         "nice": {"type": "integer", "minimum": -20, "maximum": 19,
                  "description": "CPU priority of the node's process (-20 highest); below 0 needs the right to "
                                 "raise priority (root or CAP_SYS_NICE), else it runs at the inherited priority"},
+        "realtime": {"type": "integer", "minimum": 1, "maximum": 99,
+                     "description": "run the node's process in the real-time class (SCHED_RR at this priority) "
+                                    "where permitted (root or CAP_SYS_NICE), else at `nice` with a warning: "
+                                    "for light, timing-critical nodes (the motor's watchdog) only"},
     }
     return {
         "type": "object", "required": ["run"], "additionalProperties": False,

@@ -34,6 +34,7 @@ LAUNCHER_STALE_S = 5.0  # a table not refreshed for this long is ignored (its la
 # A token and the launcher can disagree for a moment (a node that just died: its exit is seen before its
 # token's DELETE arrives): a token alive this long after the launcher saw its process exit is flagged.
 MISMATCH_GRACE_S = 2.0
+MAX_WATCHED_NODES = 256  # names a HealthWatcher keeps track of; tokens and statuses of more are ignored
 SPOOF_HOLD_S = 10.0  # a status from a pid the launcher never ran keeps the node flagged this long
 
 VERIFIED = "verified"  # a fresh launcher table agrees with the token (and the status pid)
@@ -130,6 +131,7 @@ class HealthWatcher:
         self.launcher_stale_ns = int(launcher_stale_s * 1e9)
         self.spoof_hold_ns = int(spoof_hold_s * 1e9)
         self.bad_tables = 0  # launcher tables that did not decode (counted and dropped)
+        self.ignored = 0  # tokens and statuses of names past MAX_WATCHED_NODES (counted and dropped)
         self._tables: dict[str, tuple[int, dict[str, LaunchedProcess]]] = {}  # launcher id -> (received, table)
         self._lock = threading.Lock()
         prefix = f"{namespace}/@health/"
@@ -142,9 +144,14 @@ class HealthWatcher:
                                                          direct_callback(self._on_launcher))
                               if self.cross_check else None)
 
-    def _node(self, name: str) -> NodeHealth:
+    def _node(self, name: str) -> NodeHealth | None:
+        """The node's entry, made on first sight; None past MAX_WATCHED_NODES names (a flood of tokens or
+        statuses under made-up names must not grow this process, nor the work of every update, without bound)."""
         health = self.nodes.get(name)
         if health is None:
+            if len(self.nodes) >= MAX_WATCHED_NODES:
+                self.ignored += 1
+                return None
             health = self.nodes[name] = NodeHealth(name)
         return health
 
@@ -152,6 +159,8 @@ class HealthWatcher:
         name = str(sample.key_expr)[len(self._prefix):]
         with self._lock:
             health = self._node(name)
+            if health is None:
+                return
             health.token_alive = sample.kind == zenoh.SampleKind.PUT
             health.token_seen = True
             changes = self._update(time.time_ns())
@@ -165,6 +174,8 @@ class HealthWatcher:
         now = time.time_ns()
         with self._lock:
             health = self._node(status.node)
+            if health is None:
+                return
             health.status = status
             health.status_ns = now
             # Any pid a launcher ever ran for this node is genuine (an old one is a status still in flight
@@ -209,6 +220,8 @@ class HealthWatcher:
         changes = []
         for name in set(self.nodes) | set(launched):
             health = self._node(name)
+            if health is None:
+                continue
             proc = launched[name][1] if name in launched else None
             if proc is not None and len(health.launcher_pids) < 1000:
                 health.launcher_pids.add(proc.pid)

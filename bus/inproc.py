@@ -449,7 +449,7 @@ class InProcessGraph:
                     host._emit_ready()  # frame sets whose deadline passed go on without what they waited for
                     host.run_timer(t)
                 if host.next_poll_ns is not None and host.next_poll_ns <= t:
-                    delay = host._guarded("poll", host.node.poll, host.clock.now_ns())
+                    delay = host.poll_once(host.clock.now_ns())
                     host.next_poll_ns = None if delay is None else t + max(0, round(delay * 1e9))
                 self._check_stopped(host)
         self.deliver()

@@ -31,6 +31,15 @@ from typing import Any, ClassVar
 import zenoh
 
 from .graph import Graph, GraphError, NodeSpec
+from .live_params import LiveParams
+from .liveness import (
+    HANDLER_FAILURE_LIMIT,
+    POLL_FAILURE_LIMIT,
+    STOPPED_WORKING_EXIT,
+    FailureBudget,
+    NodeStoppedWorking,
+    ProductionWatch,
+)
 from .pubsub import InputQueue, Publisher, RateLimitedLog, ShmPool, Subscriber
 from .schemas import Frame, Message, NodeStatus, ReplayHint
 from .session import open_session
@@ -74,7 +83,21 @@ def params_from_dict(cls: type, data: dict[str, Any]) -> Any:
     return cls(**kwargs)
 
 
+def _non_finite(value: Any) -> bool:
+    """Whether a parameter value holds NaN or ±inf anywhere (in a list or mapping too)."""
+    if isinstance(value, float):
+        return not math.isfinite(value)
+    if isinstance(value, (list, tuple)):
+        return any(_non_finite(v) for v in value)
+    if isinstance(value, dict):
+        return any(_non_finite(v) for v in value.values())
+    return False
+
+
 def _coerce(value: Any, hint: Any, key: str) -> Any:
+    # No parameter means anything with NaN or inf: a NaN gate never follows, an infinite timeout never fires.
+    if _non_finite(value):
+        raise ParamError(key, f"parameter {key!r} must be finite, not {value!r}")
     try:
         return conform(value, hint)
     except TypeMismatch as exc:
@@ -202,6 +225,12 @@ class Node:
     # of what to follow on the first frame (set from the source's first ground-truth box, see first_truth_box).
     SOURCE_PARAM: ClassVar[str | None] = None
     INIT_BOX_PARAM: ClassVar[str | None] = None
+    # The param naming a file the node keeps its state in across restarts: a replay clears it, so it neither
+    # starts from nor overwrites the live graph's state.
+    STATE_FILE_PARAM: ClassVar[str | None] = None
+    # Params `followbus param set` may change while the node runs (bus/live_params.py): only those the node's code
+    # reads afresh on every message from its params objects.
+    LIVE_PARAMS: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self, params: Any, runtime: NodeHost):
         self.params = params
@@ -254,6 +283,7 @@ class Node:
         if self.runtime.provenance is not None:
             msg.header.feedback = dict(self.runtime.provenance)
         self.runtime.publishers[output].put(msg)
+        self.runtime.production.published(time.monotonic())
 
     def note(self, key: str, value: int) -> None:
         """Record a choice this handler made that a replay must repeat (e.g. which odometry sample, by stamp,
@@ -288,7 +318,10 @@ class Node:
 def load_node_class(run: str) -> type[Node]:
     import importlib
 
-    module = importlib.import_module(run)
+    try:
+        module = importlib.import_module(run)
+    except (ValueError, TypeError) as exc:  # "" or a relative name ("..template"): not a module name
+        raise ImportError(f"{run!r} is not a module name ({exc})") from exc
     cls = getattr(module, "NODE", None)
     if not (isinstance(cls, type) and issubclass(cls, Node)):
         raise ImportError(f"module {run!r} has no NODE class deriving from followbus.bus.node.Node")
@@ -332,8 +365,20 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
     return cls, params
 
 
-def _set_priority(nice: int, log: logging.Logger) -> None:
-    """Run this process at CPU priority ``nice``: the motor's watchdog must keep its timing on a busy machine."""
+def _set_priority(nice: int | None, realtime: int | None, log: logging.Logger) -> None:
+    """Run this process in the real-time class at ``realtime`` (SCHED_RR), or else at CPU priority ``nice``: the
+    motor's watchdog must keep its timing on a busy machine. Called before the session opens, so the threads
+    Zenoh starts (which deliver the node's messages) inherit it."""
+    if realtime is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(realtime))
+            log.info("running real-time (SCHED_RR priority %d)", realtime)
+            return
+        except (OSError, AttributeError) as exc:  # needs root or CAP_SYS_NICE (and RT bandwidth in a container)
+            log.warning("could not run real-time (SCHED_RR %d: %s); falling back to %s", realtime, exc,
+                        f"nice {nice}" if nice is not None else "the inherited priority")
+    if nice is None:
+        return
     try:
         os.nice(nice - os.nice(0))
     except OSError as exc:  # raising priority needs root or CAP_SYS_NICE
@@ -365,6 +410,11 @@ class NodeHost:
         self.latest: dict[str, Message] = {}
         self.handler_errors = 0
         self.resets = 0
+        # Working, not just alive (bus/liveness.py): consecutive failures of poll and of the handlers, and
+        # when this node last published.
+        self.poll_failures = FailureBudget(POLL_FAILURE_LIMIT)
+        self.handler_failures = FailureBudget(HANDLER_FAILURE_LIMIT)
+        self.production = ProductionWatch()
         self._frame_failures = 0  # consecutive
         self.provenance: dict[str, int] | None = None  # feedback used by the set being handled
         self._warn = RateLimitedLog(self.log)
@@ -394,7 +444,8 @@ class NodeHost:
         self.next_timer_ns = self.clock.now_ns() + self.timer_ns if self.timer_ns else None
 
     def sync_counters(self) -> dict[str, Any]:
-        extra: dict[str, Any] = {"handler_errors": self.handler_errors, "resets": self.resets}
+        extra: dict[str, Any] = {"handler_errors": self.handler_errors, "resets": self.resets,
+                                 "poll_failures": self.poll_failures.streak}
         if self.sync is not None:
             extra.update(self.sync.counters())
         if self._guards:
@@ -405,13 +456,47 @@ class NodeHost:
 
     def _guarded(self, what: str, fn, *args) -> Any:
         try:
-            return fn(*args)
+            result = fn(*args)
         except Exception:
-            # A bug or an unexpected message must not take the robot down: count, log, go on.
+            # A bug or an unexpected message must not take the robot down: count, log, go on. Past
+            # HANDLER_FAILURE_LIMIT failures in a row the node stops working (check_working).
             self.handler_errors += 1
+            self.handler_failures.failed()
             if self.handler_errors <= 3 or self.handler_errors % 100 == 0:
                 self.log.exception("%s failed (%d errors so far)", what, self.handler_errors)
             return None
+        self.handler_failures.succeeded()
+        return result
+
+    def poll_once(self, now_ns: int) -> float | None:
+        """Poll the node: seconds until the next poll, None for "never again" (the source is done).
+
+        A poll that raises is retried after a backoff (0.05 s doubling to 1 s), never dropped for good: one
+        failed camera read must not silence a source while its process looks up. POLL_FAILURE_LIMIT failures
+        in a row raise NodeStoppedWorking (the process exits, the launcher restarts it)."""
+        try:
+            delay = self.node.poll(now_ns)
+        except Exception as exc:
+            self.handler_errors += 1
+            backoff_s = self.poll_failures.failed()
+            if self.poll_failures.exhausted:
+                raise NodeStoppedWorking(f"poll failed {self.poll_failures.streak} times in a row "
+                                         f"(last: {exc!r})") from exc
+            self.log.exception("poll failed (%d in a row); retrying in %.2f s", self.poll_failures.streak,
+                               backoff_s)
+            return backoff_s
+        self.poll_failures.succeeded()
+        return delay
+
+    def check_working(self, polling: bool) -> None:
+        """Raise NodeStoppedWorking when the handlers keep failing, or a source (``polling``: its poll is still
+        scheduled) that has published before has been silent for many of its own periods."""
+        if self.handler_failures.exhausted:
+            raise NodeStoppedWorking(f"{self.handler_failures.streak} handler calls failed in a row")
+        silent_s = self.production.silent_s(time.monotonic()) if polling else None
+        if silent_s is not None:
+            raise NodeStoppedWorking(f"published nothing for {silent_s:.1f} s (bound "
+                                     f"{self.production.bound_s():.1f} s: its period x {self.production.periods})")
 
     def apply_hints(self, hints: list[Message]) -> None:
         """Replay: what the live run did with some frames (ReplayHint), handed over before those frames' inputs."""
@@ -517,10 +602,10 @@ class NodeRuntime(NodeHost):
         if clock == "sim":
             raise ValueError("a node on the bus runs on wall time or stamps; simulated time is bus.inproc's")
         super().__init__(graph, name, Clock(clock))
-        if self.spec.nice is not None:
-            _set_priority(self.spec.nice, logging.getLogger(f"followbus.{name}"))
+        _set_priority(self.spec.nice, self.spec.realtime, logging.getLogger(f"followbus.{name}"))
         self._own_session = session is None
-        self.session = session or open_session(graph.zenoh)
+        launched = os.environ.get(LAUNCH_ID_ENV) is not None  # the launcher's session is the hub (session.py)
+        self.session = session or open_session(graph.zenoh.as_launched_node() if launched else graph.zenoh)
         self.started_ns = time.time_ns()
         self.subscribers: list[Subscriber] = []
         self.queues: dict[str, InputQueue] = {}
@@ -544,7 +629,7 @@ class NodeRuntime(NodeHost):
             self.queues[inp.name] = queue
             self.subscribers.append(Subscriber(
                 self.session, key, self._enqueuer(queue), schema=self.cls.INPUTS[inp.name], stats=stats,
-                logger=self.log,
+                logger=self.log, lane=graph.zenoh.shm_lane,
             ))
         self._hints: list[ReplayHint] = []
         if clock == "stamps" and self.sync is not None:
@@ -558,6 +643,8 @@ class NodeRuntime(NodeHost):
         self._status_pub = Publisher(self.session, graph.status_key(self.spec.name), self.spec.name,
                                      congestion="drop")
         self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
+        self._event_pubs: dict[str, Publisher] = {}
+        self.live_params = LiveParams(self, self._publish_event)
 
     def start(self) -> None:
         super().start()
@@ -580,10 +667,18 @@ class NodeRuntime(NodeHost):
             self._hints.append(hint)  # type: ignore[arg-type]
             self._cond.notify_all()
 
+    def _publish_event(self, key: str, msg: NodeStatus) -> None:
+        if key not in self._event_pubs:
+            self._event_pubs[key] = Publisher(self.session, key, self.spec.name)
+        self._event_pubs[key].put(msg)
+        self._status_pub.put(self.status())  # the new value in the status at once, not a second later
+
     def status(self) -> NodeStatus:
         topics = {p.key: p.stats.snapshot() for p in self.publishers.values()}
         topics.update({q.stats.key: q.stats.snapshot() for q in self.queues.values()})
         extra = self.sync_counters()
+        if self.live_params.changed:
+            extra["params_set"] = dict(self.live_params.changed)
         try:
             extra.update(self.node.status_extra())
         except Exception as exc:  # status must never take the node down
@@ -611,7 +706,6 @@ class NodeRuntime(NodeHost):
         signal.signal(signal.SIGINT, handler)
 
     def run(self) -> None:
-        node = self.node
         self.start()
         self._status_thread.start()
         self.log.info("node %s up (%s)", self.spec.name, self.spec.run)
@@ -641,8 +735,9 @@ class NodeRuntime(NodeHost):
                 now = self.clock.now_ns()
                 self.run_timer(now)
                 if next_poll_wall is not None and time.monotonic() >= next_poll_wall:
-                    delay = self._guarded("poll", node.poll, now)
+                    delay = self.poll_once(now)
                     next_poll_wall = None if delay is None else time.monotonic() + max(0.0, delay)
+                self.check_working(polling=next_poll_wall is not None)
         finally:
             self.close()
 
@@ -652,6 +747,8 @@ class NodeRuntime(NodeHost):
         if self._token is not None:
             with contextlib.suppress(Exception):
                 self._token.undeclare()
+        with contextlib.suppress(Exception):
+            self.live_params.close()
         for sub in self.subscribers:
             with contextlib.suppress(Exception):
                 sub.undeclare()
@@ -662,7 +759,14 @@ class NodeRuntime(NodeHost):
 
 
 def run_node(graph: Graph, name: str, *, clock: str = "wall") -> int:
+    """Run a node until it is stopped: 0, or STOPPED_WORKING_EXIT when it stopped working (bus/liveness.py),
+    so the launcher restarts it; its liveliness token is gone by then (close)."""
     runtime = NodeRuntime(graph, name, clock=clock)
     runtime.install_signal_handlers()
-    runtime.run()
+    try:
+        runtime.run()
+    except NodeStoppedWorking as exc:
+        runtime.log.error("node %s stopped working: %s; exiting with status %d to be restarted", name, exc,
+                          STOPPED_WORKING_EXIT)
+        return STOPPED_WORKING_EXIT
     return 0

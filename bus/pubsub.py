@@ -22,6 +22,7 @@ log = logging.getLogger(__name__)
 
 SHM_THRESHOLD_BYTES = 64 * 1024
 SHM_POOL_BYTES = 64 * 1024 * 1024
+SHM_RETRY_S = 5.0  # after a failed shared-memory allocation, large payloads go inline this long, then retry
 CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
 # Zenoh queues each priority separately on a link: a "real_time" message is not stuck behind a backlog of
 # "data" ones (frames, a flood of bad payloads), which is what a stop command needs.
@@ -70,17 +71,22 @@ class RateLimitedLog:
 
 
 class ShmPool:
-    """Lazily created shared-memory provider shared by a process's publishers."""
+    """Lazily created shared-memory provider shared by a process's publishers.
+
+    A failed allocation (no /dev/shm, /dev/shm full, pool exhausted) sends that payload over the network path
+    and is tried again :data:`SHM_RETRY_S` later, never turned off for good: /dev/shm filled by something else
+    for a while must not cost the rest of the process's life."""
 
     def __init__(self, size_bytes: int = SHM_POOL_BYTES):
         self.size_bytes = size_bytes
         self._provider: Any = None
-        self._failed = False
+        self._retry_at = 0.0  # time.monotonic() before which shared memory is not tried again
+        self.failures = 0
         self._lock = threading.Lock()
 
     def _alloc(self, n: int) -> Any | None:
-        """A buffer of n bytes (caller holds the lock); None once shared memory turned out unusable."""
-        if self._failed:
+        """A buffer of n bytes (caller holds the lock); None while shared memory is unusable."""
+        if time.monotonic() < self._retry_at:
             return None
         try:
             import zenoh.shm as zshm
@@ -88,9 +94,12 @@ class ShmPool:
             if self._provider is None:
                 self._provider = zshm.ShmProvider.default_backend(self.size_bytes)
             return self._provider.alloc(n, zshm.GarbageCollect(zshm.Defragment()))
-        except Exception as exc:  # no /dev/shm, pool exhausted, ...: fall back to plain bytes
-            log.warning("shared memory unavailable (%s); publishing large payloads over the network path", exc)
-            self._failed = True
+        except Exception as exc:  # no /dev/shm, pool exhausted, ...: fall back to plain bytes for a while
+            self.failures += 1
+            if self.failures == 1 or self.failures % 100 == 0:
+                log.warning("shared memory unavailable (%s); publishing large payloads over the network path, "
+                            "trying again in %.0f s (%d failures)", exc, SHM_RETRY_S, self.failures)
+            self._retry_at = time.monotonic() + SHM_RETRY_S
             return None
 
     def warm_up(self) -> None:
@@ -167,15 +176,21 @@ class Publisher:
         self.max_payload_bytes = max_payload_bytes
         self._seq = 0
         self._warn = RateLimitedLog(log, 5.0)
-        self._pub = session.declare_publisher(key, congestion_control=CONGESTION[congestion], express=express,
-                                              priority=PRIORITY[priority])
-        # The same-host lane (bus/shmlane.py): set up on the first message large enough for it.
+        opts = dict(congestion_control=CONGESTION[congestion], express=express, priority=PRIORITY[priority])
+        self._pub = session.declare_publisher(key, **opts)
+        # Lane subscribers (bus/shmlane.py) take this key's messages on its side key: descriptors when the lane
+        # is on and every one of them is on this host, else the message itself. Each key gets a put only while
+        # Zenoh's matching status says someone subscribes there, so a plain subscriber of the real key (no
+        # token: another program, a bridge, the recorder) always receives the real message.
+        self._side = session.declare_publisher(shmlane.side_key(key), **opts)
         self._session = session
-        self._lane: shmlane.LaneWriter | None = None
+        self._lane: shmlane.LaneWriter | None = None  # set up on the first message large enough for it
         self._lane_wanted = lane
+        self._lane_warn = RateLimitedLog(log, 30.0)
 
     def put(self, msg: Message) -> bool:
-        """Publish ``msg``; False when it was refused for its size."""
+        """Publish ``msg``; False when it was refused for its size. Never raises for the lane: any lane
+        problem sends the message inline."""
         msg.header.seq = self._seq
         msg.header.source = self.source
         msg.header.pub_ns = time.time_ns()
@@ -184,21 +199,34 @@ class Publisher:
         size = len(head) + sum(b.nbytes for b in blobs)
         if not self._fits(size):
             return False
-        body: Any = None
-        if self._lane_wanted and size - len(head) >= shmlane.LANE_THRESHOLD_BYTES:
-            lane = self._lane or self._open_lane()
-            if lane is not None and lane.ready:
-                desc = lane.write(blobs, size - len(head))
-                if desc is not None:
-                    body = shmlane.frame(desc, head)
-        if body is None and self.shm is not None and size >= SHM_THRESHOLD_BYTES:
-            # Header and arrays written straight into the shared-memory buffer: no joined frame in between.
-            body = self.shm.buffer_with_parts(head, blobs)
-        if body is None:
-            body = head if not blobs else b"".join([head, *(memoryview(b).cast("B") for b in blobs)])
-        self._pub.put(body)
+        if _matching(self._side):
+            self._side.put(self._lane_body(head, blobs, size) or self._inline_body(head, blobs, size))
+        if _matching(self._pub):
+            self._pub.put(self._inline_body(head, blobs, size))
         self.stats.record(msg.header.stamp_ns, size)
         return True
+
+    def _inline_body(self, head: bytes, blobs: list[np.ndarray], size: int) -> Any:
+        if self.shm is not None and size >= SHM_THRESHOLD_BYTES:
+            # Header and arrays written straight into the shared-memory buffer: no joined frame in between.
+            body = self.shm.buffer_with_parts(head, blobs)
+            if body is not None:
+                return body
+        return head if not blobs else b"".join([head, *(memoryview(b).cast("B") for b in blobs)])
+
+    def _lane_body(self, head: bytes, blobs: list[np.ndarray], size: int) -> bytes | None:
+        """The lane message (descriptor and head) for the side key, or None: send it inline."""
+        if not self._lane_wanted or size - len(head) < shmlane.LANE_THRESHOLD_BYTES:
+            return None
+        try:
+            lane = self._lane or self._open_lane()
+            if lane is None or not lane.ready:
+                return None
+            desc = lane.write(blobs, size - len(head))
+        except Exception as exc:  # no memfd, out of memory, ...: inline this time, try again next time
+            self._lane_warn.warning("shared-memory lane write failed on %s (%r); sending inline", self.key, exc)
+            return None
+        return None if desc is None else shmlane.frame(desc, head)
 
     def _open_lane(self) -> shmlane.LaneWriter | None:
         try:
@@ -217,10 +245,12 @@ class Publisher:
         """Publish an already encoded payload (recording playback); False when it was refused for its size."""
         if not self._fits(len(payload)):
             return False
-        body: Any = payload
-        if self.shm is not None and len(payload) >= SHM_THRESHOLD_BYTES:
-            body = self.shm.buffer_with(payload) or payload
-        self._pub.put(body)
+        for pub in (self._side, self._pub):
+            if _matching(pub):
+                body: Any = payload
+                if self.shm is not None and len(payload) >= SHM_THRESHOLD_BYTES:
+                    body = self.shm.buffer_with(payload) or payload
+                pub.put(body)
         self.stats.record(stamp_ns, len(payload))
         return True
 
@@ -234,9 +264,18 @@ class Publisher:
 
     def undeclare(self) -> None:
         self._pub.undeclare()
+        self._side.undeclare()
         if self._lane is not None:
             self._lane.close()
             self._lane = None
+
+
+def _matching(pub: Any) -> bool:
+    """Whether any subscriber (this session's included) listens to a publisher's key."""
+    try:
+        return bool(pub.matching_status.matching)
+    except Exception:  # a closing session: put anyway, as before matching was asked
+        return True
 
 
 def payload_bytes(sample: zenoh.Sample) -> bytes:
@@ -263,11 +302,12 @@ def frame_bytes(sample: zenoh.Sample) -> bytes:
 
 
 class _Tokened:
-    """A Zenoh subscriber and the lane token announcing it (bus/shmlane.py), undeclared together."""
+    """A Zenoh subscriber; a lane one (bus/shmlane.py) subscribes to the key's side key and declares the token
+    announcing it first. Undeclared together."""
 
-    def __init__(self, session: zenoh.Session, key: str, handler: Any, *, inline: bool = False):
-        self._token = shmlane.declare_token(session, key, inline=inline)  # before the subscriber: see shmlane
-        self._sub = session.declare_subscriber(key, handler)
+    def __init__(self, session: zenoh.Session, key: str, handler: Any, *, lane: bool = False):
+        self._token = shmlane.declare_token(session, key) if lane else None  # before the subscriber
+        self._sub = session.declare_subscriber(shmlane.side_key(key) if lane else key, handler)
 
     def undeclare(self) -> None:
         self._sub.undeclare()
@@ -276,12 +316,12 @@ class _Tokened:
 
 
 def declare_subscriber(session: zenoh.Session, key: str, fn: Callable[[zenoh.Sample], Any], *,
-                       inline: bool = False) -> Any:
-    """A direct-callback Zenoh subscriber for a tool that reads payloads with :func:`frame_bytes`, announced
-    as a followbus subscription of this host (so a lane publisher sends it descriptors only when it is on
-    the same machine; one elsewhere makes the publisher go inline). ``inline``: it must get every message,
-    stalls included (bus/shmlane.py ``declare_token``): the publishers of the key go inline while it is there."""
-    return _Tokened(session, key, direct_callback(fn), inline=inline)
+                       lane: bool = False) -> Any:
+    """A direct-callback Zenoh subscriber for a tool that reads payloads with :func:`frame_bytes`. A plain one
+    gets the real messages of the key (every one, however long it stalls: what the recorder needs); with
+    ``lane`` (the graph's ``zenoh: shm_lane``) it takes them on the side key, as descriptors from publishers on
+    this host (bus/shmlane.py)."""
+    return _Tokened(session, key, direct_callback(fn), lane=lane)
 
 
 class Subscriber:
@@ -290,7 +330,7 @@ class Subscriber:
 
     def __init__(self, session: zenoh.Session, key: str, on_message: Callable[[Message], None], *,
                  schema: type[Message] | None = None, stats: TopicStats | None = None,
-                 logger: logging.Logger | None = None):
+                 logger: logging.Logger | None = None, lane: bool = False):
         self.key = key
         self.schema = schema
         self.on_message = on_message
@@ -299,9 +339,10 @@ class Subscriber:
         # A direct callback runs on Zenoh's receive thread, so messages on different keys reach the node
         # in the order they arrived (the default indirect callbacks run one thread per subscriber and
         # reorder them: a lockstep replay then diverges). The work here is a decode and an enqueue.
-        # The lane token (declared first) lets a publisher on this host send large arrays through
-        # bus/shmlane.py: the decoded arrays are then read-only views of its segment.
-        self._sub = _Tokened(session, key, direct_callback(self._callback))
+        # ``lane``: take the key's messages on its side key, announced by a lane token (declared first), so a
+        # publisher on this host may send large arrays through bus/shmlane.py: the decoded arrays are then
+        # read-only views of its segment.
+        self._sub = _Tokened(session, key, direct_callback(self._callback), lane=lane)
 
     def _callback(self, sample: zenoh.Sample) -> None:
         try:

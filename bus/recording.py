@@ -19,11 +19,15 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
+import stat
 import struct
 import types
 import typing
+import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any
 
@@ -47,6 +51,42 @@ LEGACY_MESSAGE_ENCODING = "msgpack"  # what recordings said before; the bytes we
 
 class RecordingError(Exception):
     """A recording that cannot be read for the requested purpose (exit status 2)."""
+
+
+ON_CORRUPT = ("refuse", "skip")  # what play, replay do with a chunk that fails its CRC (refuse: the default)
+
+
+def _utc(ns: int) -> str:
+    return datetime.fromtimestamp(ns / 1e9, tz=timezone.utc).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
+
+
+@dataclass
+class CorruptChunk:
+    """A chunk that cannot be trusted: its CRC does not match, or it does not even decompress or parse."""
+    offset: int  # of the chunk record in the file
+    start_ns: int  # log times of its first and last message (from the summary's chunk index)
+    end_ns: int
+    reason: str
+
+    def describe(self) -> str:
+        return (f"chunk at byte {self.offset}, messages {_utc(self.start_ns)} to {_utc(self.end_ns)} UTC "
+                f"({(self.end_ns - self.start_ns) / 1e9:.2f} s): {self.reason}")
+
+
+class CorruptChunkError(RecordingError):
+    def __init__(self, path: str | Path, chunk: CorruptChunk):
+        self.chunk = chunk
+        super().__init__(f"{path}: corrupt {chunk.describe()}")
+
+
+class CorruptRecording(RecordingError):
+    """Chunks of a recording failed their check and the caller did not ask to skip them."""
+
+    def __init__(self, path: str | Path, chunks: list[CorruptChunk]):
+        self.chunks = chunks
+        more = f" (and {len(chunks) - 1} more corrupt chunks)" if len(chunks) > 1 else ""
+        super().__init__(f"{path}: corrupt {chunks[0].describe()}{more}; --on-corrupt skip reads the rest, "
+                         f"`followbus recover {path}` rewrites the good chunks")
 
 
 # --- the schema document ---------------------------------------------------------------------------
@@ -102,9 +142,23 @@ class BusMessage:
     sequence: int = 0
 
 
+MIN_RECORDING_BYTES = 45  # magic, a footer record, magic: no MCAP file is shorter
+
+
 def open_recording(path: str | Path) -> IO[bytes]:
+    """The file opened for reading; RecordingError for anything but a regular file (reading a FIFO waits for a
+    writer for ever) or one too short to be an MCAP file."""
     try:
-        return open(path, "rb")
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise RecordingError(f"{path}: not a regular file")
+        f = open(path, "rb")  # noqa: SIM115 (the caller's)
+        if st.st_size < MIN_RECORDING_BYTES:
+            with f:
+                is_mcap = f.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+            raise RecordingError(f"{path}: {st.st_size} bytes: too short to be an MCAP recording" if is_mcap
+                                 else f"{path}: not an MCAP file")
+        return f
     except OSError as exc:
         raise RecordingError(f"{path}: {exc.strerror}") from exc
 
@@ -114,7 +168,7 @@ def read_summary(path: str | Path):
     with open_recording(path) as f:
         try:
             summary = make_reader(f).get_summary()
-        except (McapError, struct.error, ValueError) as exc:
+        except (McapError, struct.error, ValueError, OSError, EOFError) as exc:
             f.seek(0)
             if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:  # not one a killed recorder left: recover cannot help
                 raise RecordingError(f"{path}: not an MCAP file") from exc
@@ -155,8 +209,49 @@ def frame_channel(path: str | Path, frame_key: str = "") -> tuple[Any, str]:
     return summary, keys[0]
 
 
-def iter_bus_messages(path: str | Path, keys: Iterable[str] | None = None) -> Iterator[BusMessage]:
-    """Bus messages in log-time order (ties: recording order), optionally only the given keys."""
+def _channel_ids(summary: Any, keys: Iterable[str] | None) -> set[int]:
+    wanted = None if keys is None else set(keys)
+    return {cid for cid, ch in summary.channels.items()
+            if is_bus_channel(ch) and (wanted is None or ch.topic in wanted)}
+
+
+def corrupt_chunks(path: str | Path, keys: Iterable[str] | None = None) -> list[CorruptChunk]:
+    """The chunks (those holding bus messages of ``keys``; None: every chunk) whose CRC does not match their
+    records, or that do not decompress: each chunk is read once, as a reader of it would."""
+    import mmap
+
+    summary = read_summary(path)
+    ids = set(summary.channels) if keys is None else _channel_ids(summary, keys)
+    bad: list[CorruptChunk] = []
+    with open_recording(path) as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+        for index in summary.chunk_indexes:
+            if keys is not None and not ids & set(index.message_index_offsets):
+                continue
+            try:
+                _chunk_messages(mapped, str(path), index, summary, set())
+            except CorruptChunkError as exc:
+                bad.append(exc.chunk)
+    return bad
+
+
+def chunks_to_skip(path: str | Path, keys: Iterable[str] | None, on_corrupt: str) -> frozenset[int]:
+    """Check the chunks a reader of ``keys`` will read: CorruptRecording when one is corrupt and ``on_corrupt``
+    is ``refuse``; with ``skip``, each is logged (named by its time range) and its offset returned."""
+    if on_corrupt not in ON_CORRUPT:
+        raise ValueError(f"on_corrupt must be one of {', '.join(ON_CORRUPT)}, not {on_corrupt!r}")
+    bad = corrupt_chunks(path, keys)
+    if bad and on_corrupt == "refuse":
+        raise CorruptRecording(path, bad)
+    for chunk in bad:
+        log.warning("%s: skipping corrupt %s", path, chunk.describe())
+    return frozenset(c.offset for c in bad)
+
+
+def iter_bus_messages(path: str | Path, keys: Iterable[str] | None = None,
+                      skip_chunks: frozenset[int] = frozenset()) -> Iterator[BusMessage]:
+    """Bus messages in log-time order (ties: recording order), optionally only the given keys. Every chunk's CRC
+    is checked as it is read: a corrupt one raises CorruptChunkError, unless its offset is in ``skip_chunks``
+    (see :func:`chunks_to_skip`, which callers run first so that nothing is used before the damage is known)."""
     summary = read_summary(path)
     wanted = None if keys is None else set(keys)
     topics = sorted({ch.topic for ch in summary.channels.values() if is_bus_channel(ch)
@@ -164,8 +259,7 @@ def iter_bus_messages(path: str | Path, keys: Iterable[str] | None = None) -> It
     if not topics:
         return
     if summary.chunk_indexes:
-        yield from _iter_chunked(path, summary, {cid for cid, ch in summary.channels.items()
-                                                 if is_bus_channel(ch) and ch.topic in topics})
+        yield from _iter_chunked(path, summary, _channel_ids(summary, topics), skip_chunks)
         return
     with open_recording(path) as f:
         for _schema, channel, msg in make_reader(f).iter_messages(topics=topics, log_time_order=True):
@@ -189,15 +283,16 @@ class ChunkFields:
     compression: str
     records_size: int
     records_at: int  # where the compressed records start, in the buffer parsed
+    crc: int = 0  # CRC-32 of the uncompressed records; 0: not computed by the writer
 
 
 def chunk_fields(buf: Any, pos: int) -> ChunkFields:
     """The fields of the Chunk record whose body (past opcode and length) starts at ``pos`` of ``buf``."""
-    start_ns, end_ns, size, _crc, name_len = _CHUNK_FIELDS.unpack_from(buf, pos)
+    start_ns, end_ns, size, crc, name_len = _CHUNK_FIELDS.unpack_from(buf, pos)
     pos += _CHUNK_FIELDS.size
     compression = bytes(buf[pos:pos + name_len]).decode()
     (records_size,) = struct.unpack_from("<Q", buf, pos + name_len)
-    return ChunkFields(start_ns, end_ns, size, compression, records_size, pos + name_len + 8)
+    return ChunkFields(start_ns, end_ns, size, compression, records_size, pos + name_len + 8, crc)
 
 
 @dataclass
@@ -252,7 +347,8 @@ def scan_data_section(f: IO[bytes], end: int) -> DataSection:
     return out
 
 
-def _iter_chunked(path: str | Path, summary: Any, channel_ids: set[int]) -> Iterator[BusMessage]:
+def _iter_chunked(path: str | Path, summary: Any, channel_ids: set[int],
+                  skip_chunks: frozenset[int] = frozenset()) -> Iterator[BusMessage]:
     """What mcap's reader does in log-time order (a heap over chunks and their messages, ties by position),
     read straight from the chunk bytes: only chunks holding a wanted channel are decompressed and only wanted
     messages are copied. Several times faster than the generic reader on a recording of raw frames, where
@@ -260,7 +356,8 @@ def _iter_chunked(path: str | Path, summary: Any, channel_ids: set[int]) -> Iter
     import heapq
     import mmap
 
-    chunks = [c for c in summary.chunk_indexes if channel_ids & set(c.message_index_offsets)]
+    chunks = [c for c in summary.chunk_indexes if channel_ids & set(c.message_index_offsets)
+              and c.chunk_start_offset not in skip_chunks]
     heap: list[tuple[int, int, int, Any]] = [(c.message_start_time, c.chunk_start_offset, -1, c) for c in chunks]
     heapq.heapify(heap)
     with open_recording(path) as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
@@ -274,34 +371,52 @@ def _iter_chunked(path: str | Path, summary: Any, channel_ids: set[int]) -> Iter
 
 
 def _chunk_messages(mapped: Any, name: str, index: Any, summary: Any, channel_ids: set[int]) -> list[BusMessage]:
-    """The wanted messages of one chunk (a list: no view of the mapped file outlives this call)."""
+    """The wanted messages of one chunk (a list: no view of the mapped file outlives this call); a corrupt chunk
+    raises CorruptChunkError, once every view is released (an exception's frames would hold them)."""
     with memoryview(mapped) as whole:
         raw = whole[index.chunk_start_offset + 1:index.chunk_start_offset + index.chunk_length]  # past the opcode
         try:
-            return list(_parse_chunk(raw, name, index, summary, channel_ids))
+            data, reason = _chunk_records(raw)
+            messages = [] if data is None else list(_parse_records(data, summary, channel_ids))
+            del data
         finally:
             raw.release()
+    if reason:
+        raise CorruptChunkError(name, CorruptChunk(index.chunk_start_offset, index.message_start_time,
+                                                   index.message_end_time, reason))
+    return messages
 
 
-def _parse_chunk(raw: memoryview, name: str, index: Any, summary: Any, channel_ids: set[int]) -> Iterator[BusMessage]:
+def _decompress(fields: ChunkFields, records: memoryview) -> memoryview:
+    if fields.compression == "lz4":
+        import lz4.frame
+
+        return memoryview(lz4.frame.decompress(records))
+    if fields.compression == "zstd":
+        import zstandard
+
+        return memoryview(zstandard.ZstdDecompressor().decompress(records, max_output_size=fields.uncompressed_size))
+    if fields.compression == "":
+        return records
+    raise ValueError(f"compression {fields.compression!r} is not supported")
+
+
+def _chunk_records(raw: memoryview) -> tuple[memoryview | None, str]:
+    """(the uncompressed records of the chunk record ``raw`` (past its opcode), "") when they pass the chunk's
+    CRC, else (None, why not)."""
     try:
         fields = chunk_fields(raw, 8)  # past the record length
-        records = raw[fields.records_at:fields.records_at + fields.records_size]
-        if fields.compression == "lz4":
-            import lz4.frame
+        data = _decompress(fields, raw[fields.records_at:fields.records_at + fields.records_size])
+    except Exception as exc:  # struct, decoding, a codec's own error on damaged bytes
+        return None, f"unreadable ({type(exc).__name__}: {exc})"
+    if len(data) != fields.uncompressed_size:
+        return None, f"{len(data)} bytes where its header says {fields.uncompressed_size}"
+    if fields.crc and zlib.crc32(data) != fields.crc:
+        return None, "CRC mismatch"
+    return data, ""
 
-            data = memoryview(lz4.frame.decompress(records))
-        elif fields.compression == "zstd":
-            import zstandard
 
-            data = memoryview(zstandard.ZstdDecompressor().decompress(
-                records, max_output_size=fields.uncompressed_size))
-        elif fields.compression == "":
-            data = records
-        else:
-            raise RecordingError(f"{name}: chunk compression {fields.compression!r} is not supported")
-    except (struct.error, RuntimeError, ValueError) as exc:
-        raise RecordingError(f"{name}: chunk at {index.chunk_start_offset} unreadable ({exc})") from exc
+def _parse_records(data: memoryview, summary: Any, channel_ids: set[int]) -> Iterator[BusMessage]:
     pos, end = 0, len(data)
     while pos + _RECORD_HEAD.size <= end:
         op, length = _RECORD_HEAD.unpack_from(data, pos)

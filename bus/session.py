@@ -12,9 +12,12 @@ listening on any other address without authentication is logged loudly (:func:`e
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
 import json
 import logging
+import math
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,9 +39,9 @@ class ZenohSettings:
     connect: list[str] = field(default_factory=lambda: [DEFAULT_ENDPOINT])
     multicast_scouting: bool = False
     shm: bool = True
-    # Large arrays between processes on this machine in followbus's own shared memory, a descriptor over
-    # Zenoh (bus/shmlane.py): used only while every subscriber of the key is a followbus one on this host.
-    shm_lane: bool = True
+    # Large arrays between followbus processes on this machine in sealed shared memory, a descriptor over Zenoh
+    # (bus/shmlane.py). Opt-in: end to end it saves nothing measurable at the shipped resolution (BENCHMARKS.md).
+    shm_lane: bool = False
     connect_timeout_ms: int = 10_000  # a client keeps retrying its endpoints this long before failing
     # Raw json5 overrides applied last, e.g. {"access_control": {...}, "transport/link/tls": {...}}.
     config: dict[str, Any] = field(default_factory=dict)
@@ -51,9 +54,33 @@ class ZenohSettings:
         if unknown:
             raise ValueError(f"unknown zenoh key(s): {', '.join(sorted(unknown))}")
         settings = cls(**data)
-        if settings.mode not in MODES:
-            raise ValueError(f"zenoh mode must be one of {MODES}, not {settings.mode!r}")
+        settings.check()
         return settings
+
+    def check(self) -> None:
+        """Raise ValueError (one line) unless a session could be opened with these settings: types, endpoints,
+        and the config Zenoh itself builds from them (unknown or mistyped ``config`` keys)."""
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, not {self.mode!r}")
+        for key in ("listen", "connect"):
+            value = getattr(self, key)
+            if not isinstance(value, list) or not all(isinstance(ep, str) for ep in value):
+                raise ValueError(f"{key} must be a list of endpoints like {DEFAULT_ENDPOINT}, not {value!r}")
+            for endpoint in value:
+                check_endpoint(endpoint, listening=key == "listen")
+        for key in ("multicast_scouting", "shm", "shm_lane"):
+            if not isinstance(getattr(self, key), bool):
+                raise ValueError(f"{key} must be true or false, not {getattr(self, key)!r}")
+        timeout = self.connect_timeout_ms
+        if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not math.isfinite(timeout) \
+                or timeout <= 0:
+            raise ValueError(f"connect_timeout_ms must be a finite number > 0, not {timeout!r}")
+        if not isinstance(self.config, dict):
+            raise ValueError(f"config must be a mapping of zenoh json5 keys, not {self.config!r}")
+        try:
+            build_config(self)
+        except zenoh.ZError as exc:
+            raise ValueError(zenoh_error_text(exc)) from None
 
     def as_client(self, connect: list[str] | None = None) -> ZenohSettings:
         """The same network, joined as a client (tools that only watch: monitor, echo, record)."""
@@ -67,6 +94,50 @@ class ZenohSettings:
             connect_timeout_ms=self.connect_timeout_ms,
             config=dict(self.config),
         )
+
+    def as_launched_node(self) -> ZenohSettings:
+        """A node the launcher started, on a router graph with access control (graph.robot.yaml): it listens
+        nowhere and connects to the launcher's session, the hub, which holds every listen endpoint and enforces
+        the access control for every link from outside. The node's own copy of the rules goes: user/password
+        authentication is one-way (the connecting side presents its password), so on the node's side the
+        hub's link carries no user name and an allow-list would refuse the hub itself."""
+        if self.mode != "router" or "access_control" not in self.config:
+            return self
+        config = {k: v for k, v in self.config.items() if k != "access_control"}
+        return dataclasses.replace(self, listen=[], connect=list(self.connect or self.listen), config=config)
+
+
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+
+
+def check_endpoint(endpoint: str, listening: bool) -> None:
+    """Raise ValueError unless an IP endpoint (``tcp/host:port``) has a valid address and port: Zenoh accepts
+    ``tcp/999.1.1.1:99999`` in a config and only fails when it opens (a listener after a long timeout)."""
+    proto, sep, address = endpoint.partition("/")
+    if not sep or not proto or not address:
+        raise ValueError(f"endpoint {endpoint!r} must look like <protocol>/<address>, e.g. {DEFAULT_ENDPOINT}")
+    if proto not in _IP_PROTOCOLS:
+        return  # unixsock-stream/..., serial/...: Zenoh's own config check below
+    host, colon, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+    if not colon or not port.isdigit() or not (0 if listening else 1) <= int(port) <= 65535:
+        raise ValueError(f"endpoint {endpoint!r}: the port must be a number in {0 if listening else 1}..65535")
+    host = host.strip("[]")
+    if re.fullmatch(r"[0-9.]+", host) or ":" in host:  # an IP address, not a host name
+        try:
+            ipaddress.ip_address(host)
+        except ValueError:
+            raise ValueError(f"endpoint {endpoint!r}: {host!r} is not an IP address") from None
+    elif not re.fullmatch(r"[A-Za-z0-9]([A-Za-z0-9\-.]*[A-Za-z0-9])?", host):
+        raise ValueError(f"endpoint {endpoint!r}: {host!r} is not a host name or an IP address")
+
+
+def zenoh_error_text(exc: Exception) -> str:
+    """Zenoh's config error without its Rust debug wrapping: ``Json5Err(Message { msg: "unknown field ..." })``
+    → ``unknown field ...``."""
+    text = str(exc)
+    match = re.search(r'msg: "((?:[^"\\]|\\.)*)"', text) or re.search(r'Str\("((?:[^"\\]|\\.)*)"\)', text)
+    detail = match.group(1).replace('\\"', '"') if match else text.split(" at /", 1)[0]
+    return f"config: {detail}"
 
 
 def build_config(settings: ZenohSettings) -> zenoh.Config:
@@ -94,7 +165,10 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
         if overwrite:
             conf.insert_json5("qos/network", json.dumps(overwrite))
     for key, value in settings.config.items():
-        conf.insert_json5(key, json.dumps(value))
+        try:
+            conf.insert_json5(key, json.dumps(value))
+        except zenoh.ZError as exc:  # name the key: Zenoh's own message may not
+            raise zenoh.ZError(f"{key}: {zenoh_error_text(exc).removeprefix('config: ')}") from None
     return conf
 
 
@@ -136,10 +210,19 @@ def exposure(settings: ZenohSettings) -> str | None:
 
 
 def open_session(settings: ZenohSettings | None = None) -> zenoh.Session:
+    """Open a Zenoh session. With shared memory on, a session Zenoh cannot give shared memory (/dev/shm full:
+    "Unable to create POSIX shm segment") opens without it, with a warning: a node that crash-loops at start
+    because something else filled /dev/shm would stop the robot for nothing."""
     settings = settings or ZenohSettings()
     warning = exposure(settings)
     if warning:
         log.warning("zenoh: %s", warning)
     log.debug("opening zenoh session: mode=%s listen=%s connect=%s", settings.mode, settings.listen,
               settings.connect)
-    return zenoh.open(build_config(settings))
+    try:
+        return zenoh.open(build_config(settings))
+    except zenoh.ZError as exc:
+        if not settings.shm or "shm" not in str(exc).lower():
+            raise
+        log.warning("zenoh: shared memory unavailable (%s); opening the session without it", exc)
+        return zenoh.open(build_config(dataclasses.replace(settings, shm=False)))

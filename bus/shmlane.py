@@ -1,51 +1,56 @@
-"""The same-host lane: large arrays in followbus's own shared memory, a small descriptor over Zenoh.
+"""The same-host lane: large arrays in followbus's own sealed shared memory, a small descriptor over Zenoh.
 
-zenoh-python 1.10 gives a received ``ZBytes``/``ZShm`` no buffer protocol, so a receiver must copy every
-payload out of Zenoh's shared memory. For large arrays between processes on the same machine this module
-carries the array bytes outside Zenoh instead, where the receiver can map them without a copy:
+Opt-in (``zenoh: shm_lane: true``; BENCHMARKS.md: it saves nothing measurable end to end at 640x480 and pays
+with large frames and several frame subscribers). zenoh-python 1.10 gives a received ``ZBytes``/``ZShm`` no
+buffer protocol, so a receiver must copy every payload out of Zenoh's shared memory; the lane carries the
+array bytes outside Zenoh instead, where a receiver on the same machine maps them without a copy:
 
-* Writer (:class:`LaneWriter`, one per :class:`~.pubsub.Publisher`): segment files
-  ``/dev/shm/followbus-<host id>-<pid>-<n>`` (tmpfs, mode 0600), each mmapped by the publisher for its
-  lifetime. A segment is rewritten only under ``flock(LOCK_EX | LOCK_NB)`` and no sooner than
-  :data:`REUSE_AFTER_S` after its last write; the writer takes the most recently written free one (its pages
-  are still cached), else creates one (up to :data:`MAX_SEGMENTS`), and with all held by readers answers
-  None (the publisher then sends the message inline, as without a lane). Every write bumps the segment's
-  generation. Segments only grow, and are unlinked when the publisher undeclares or the process exits;
-  those of a killed process are removed by the next lane publisher of this host (:func:`clean_stale_segments`).
-* Wire form (:data:`LANE_MAGIC`): ``b"FBL" | u32 N | msgpack [segment name, inode, generation, length] (N
-  bytes) | the message's frame head`` (bus/codec.py: magic, head length, msgpack map); the head's
-  out-of-band array references point into the segment's data instead of a blob area after the head.
-* Reader (:func:`open_blob_area`): the descriptor is untrusted. Only names of the followbus pattern with this
-  host's id, opened directly under /dev/shm without following links, regular files of this user, of the
-  inode named, large enough; then ``flock(LOCK_SH | LOCK_NB)``, a read-only mapping (kept between messages),
-  magic, generation and length. Decoded arrays are read-only numpy views of that mapping; the shared lock is
-  held until the last array of the message is gone, so a received array stays valid and unchanged after the
-  handler returns, as for an inline message. A segment rewritten or removed since the descriptor was sent
-  raises :class:`LaneStale` (a drop); anything else wrong, DecodeError (a decode error).
-* Who gets descriptors: every followbus subscription declares a liveliness token
-  ``@followbus/lane/<host id>/<unique id>/<key expression, hex>`` (:func:`declare_token`) before its
-  subscriber. A lane publisher follows those tokens (``LaneWriter.ready``) and writes to the lane only while
-  at least one token matches its key and every matching token carries its own host id (boot id, /dev/shm's
-  device and inode, pid namespace, user); anything else (a subscriber on another machine, in a container
-  with its own /dev/shm or pids, of another user) makes it publish inline, to everyone. A plain Zenoh
-  subscriber that declares no token cannot be seen: it gets descriptors while a followbus subscriber on the
-  same host shares the key (README, Messages); ``zenoh: shm_lane: false`` turns the lane off.
+* Writer (:class:`LaneWriter`, one per :class:`~.pubsub.Publisher`): segments are anonymous memory files
+  (``memfd_create``, named ``followbus-lane``), nothing in /dev/shm: no name another process can squat or
+  leave stale, and they die with the process. Each is sized once, mapped writable by the publisher, then
+  sealed with :data:`SEALS` (no shrink, no grow, no new writable mapping or write() by anyone, no more
+  seals): no other process can truncate it (SIGBUS in its readers) or rewrite a frame after the store, while
+  the writer's own mapping stays writable. A segment is rewritten only under ``flock(LOCK_EX | LOCK_NB)`` and
+  no sooner than :data:`REUSE_AFTER_S` after its last write; the writer takes the most recently written free
+  one (its pages are still cached), else creates one (up to :data:`MAX_SEGMENTS`; one too small for a
+  message is replaced), and with all held by readers answers None (the message goes inline). Every write
+  bumps the segment's generation.
+* Wire form (:data:`LANE_MAGIC`): ``b"FBL" | u32 N | msgpack [pid, fd, inode, generation, length] (N bytes) |
+  the message's frame head`` (bus/codec.py); the head's out-of-band array references point into the
+  segment's data instead of a blob area after the head.
+* Reader (:func:`open_blob_area`): the descriptor is untrusted (no more than the Zenoh message carrying it).
+  It opens ``/proc/<pid>/fd/<fd>`` read-only (the kernel allows that to processes that may ptrace-read the
+  publisher: same user, dumpable; a publisher that made itself non-dumpable with ``PR_SET_DUMPABLE`` 0 could
+  not be read, so followbus never does that) and accepts only a memfd of this user named ``followbus-lane``,
+  of the inode named, large enough, whose seals are exactly :data:`SEALS`; then ``flock(LOCK_SH | LOCK_NB)``,
+  a read-only mapping (kept between messages), magic, generation and length. Decoded arrays are read-only
+  numpy views of that mapping; the shared lock is held until the last array of the message is gone, so a
+  received array stays valid and unchanged after the handler returns, as for an inline message. A segment
+  rewritten since the descriptor was sent, or whose process is gone, raises :class:`LaneStale` (a drop);
+  anything else wrong, DecodeError (a decode error).
+* Who gets descriptors: lane subscribers (bus/pubsub.py) take messages on a side key, ``<key>/@lane`` (an
+  ``@`` chunk: no ``**`` subscription matches it), and declare a liveliness token
+  ``@followbus/lane/<host id>/<unique id>/<key expression, hex>`` (:func:`declare_token`) before their
+  subscriber. A publisher follows those tokens (``LaneWriter.ready``) and sends descriptors on the side key
+  only while at least one token matches its key, every matching token carries its own host id (boot id,
+  pid namespace, user) and there are no more than :data:`MAX_TRACKED_TOKENS` of them (a flood of tokens makes
+  it send inline, and costs it no memory beyond the bound); anything else (a subscriber on another machine,
+  in a container with its own pids, of another user) gets inline messages on the side key. The real key
+  always carries the real message whenever anyone subscribes to it (a plain Zenoh program, a bridge, the
+  recorder): the publisher asks Zenoh's matching status.
 
 bus/ knows nothing of tracking: this module moves bytes.
 """
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import errno
 import fcntl
 import hashlib
-import itertools
 import logging
 import mmap
 import os
-import re
 import secrets
 import stat
 import struct
@@ -62,7 +67,6 @@ from .codec import DecodeError
 
 log = logging.getLogger(__name__)
 
-SHM_DIR = "/dev/shm"
 LANE_MAGIC = b"FBL"
 _PREFIX = struct.Struct("<3sI")  # lane magic, descriptor length
 SEGMENT_MAGIC = b"FBLANE01"
@@ -79,11 +83,13 @@ MAX_SEGMENTS = 8
 MAX_LANE_BYTES = 48 * 1024 * 1024  # = pubsub.MAX_PAYLOAD_BYTES: a descriptor naming more is refused
 MAX_DESCRIPTOR_BYTES = 256
 TOKEN_PREFIX = "@followbus/lane"
-_NAME = re.compile(r"followbus-([0-9a-f]{16})-([0-9]{1,10})-([0-9]{1,10})")  # host id, pid, number
-_counter = itertools.count()
-_own_paths: set[str] = set()
-_own_lock = threading.Lock()
-_cleaned = False
+MAX_TRACKED_TOKENS = 64  # lane tokens matching one publisher's key it keeps track of; past it: inline
+MEMFD_NAME = "followbus-lane"
+_MEMFD_LINK = f"/memfd:{MEMFD_NAME} (deleted)"  # what /proc/<pid>/fd/<n> reads for one of our segments
+F_SEAL_FUTURE_WRITE = getattr(fcntl, "F_SEAL_FUTURE_WRITE", 0x0010)  # Linux 5.1; Python's fcntl may lack it
+# Exactly these, no fewer (a segment someone can shrink, grow or write is refused) and no more (F_SEAL_WRITE
+# cannot be added while the writer maps it, so a segment carrying it is not one of ours).
+SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | F_SEAL_FUTURE_WRITE | fcntl.F_SEAL_SEAL
 
 
 class LaneStale(DecodeError):
@@ -93,43 +99,37 @@ class LaneStale(DecodeError):
 # --- where we are ------------------------------------------------------------------------------------
 
 def _compute_host_id() -> str | None:
-    """Who can read our segments and see our pids: the boot id, the device and inode of /dev/shm, the pid
-    namespace and the user, hashed (a container with its own /dev/shm or pids, another user: another
-    "host", served inline). None when there is no usable /dev/shm (the lane is then off)."""
+    """Whose /proc/<pid>/fd we can open and whose pids we see: the boot id, the pid namespace and the user,
+    hashed (a container with its own pids, another user: another "host", served inline). None when this
+    kernel has no sealable memfd (the lane is then off)."""
     try:
         with open("/proc/sys/kernel/random/boot_id") as f:
             boot = f.read().strip()
-        st = os.stat(SHM_DIR)
-        if not stat.S_ISDIR(st.st_mode) or not os.access(SHM_DIR, os.W_OK):
-            return None
         pid_ns = os.readlink("/proc/self/ns/pid")
-    except OSError:
+        os.close(os.memfd_create(MEMFD_NAME, os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING))
+    except (OSError, AttributeError):
         return None
-    return hashlib.sha256(f"{boot}:{st.st_dev}:{st.st_ino}:{pid_ns}:{os.getuid()}".encode()).hexdigest()[:16]
+    return hashlib.sha256(f"{boot}:{pid_ns}:{os.getuid()}".encode()).hexdigest()[:16]
 
 
 HOST_ID = _compute_host_id()
 
 
-INLINE_HOST = "inline"  # a token's host for a subscription that wants every message inline (see declare_token)
+def side_key(key: str) -> str:
+    """Where lane subscribers of ``key`` take its messages (descriptors or inline): an ``@`` chunk, which no
+    ``**`` matches, so a plain subscriber of the real key or of ``ns/**`` never sees a descriptor."""
+    return f"{key}/@lane"
 
 
-def token_key(key_expr: str, *, inline: bool = False) -> str:
-    """A fresh liveliness token key announcing a followbus subscription of ``key_expr`` on this host (or one
-    that wants inline messages: no host's id, so publishers of the key go inline while it is there)."""
-    host = INLINE_HOST if inline else (HOST_ID or "nolane")
-    return f"{TOKEN_PREFIX}/{host}/{secrets.token_hex(8)}/{key_expr.encode().hex()}"
+def token_key(key_expr: str) -> str:
+    """A fresh liveliness token key announcing a lane subscription of ``key_expr`` on this host."""
+    return f"{TOKEN_PREFIX}/{HOST_ID or 'nolane'}/{secrets.token_hex(8)}/{key_expr.encode().hex()}"
 
 
-def declare_token(session: Any, key_expr: str, *, inline: bool = False) -> Any:
-    """Declare this subscription's lane token (before its subscriber); None if Zenoh refused it.
-
-    ``inline``: the subscription must get every message, however long it stalls (the recorder). A segment is
-    rewritten one frame period after its last write, so a reader that stalls longer finds the frames it
-    missed gone (counted as drops): a live consumer wants the newest frame anyway, a recording wants them
-    all. Such a token makes the publishers of the key send inline, to everyone, while it is declared."""
+def declare_token(session: Any, key_expr: str) -> Any:
+    """Declare this lane subscription's token (before its subscriber); None if Zenoh refused it."""
     try:
-        return session.liveliness().declare_token(token_key(key_expr, inline=inline))
+        return session.liveliness().declare_token(token_key(key_expr))
     except Exception as exc:  # a closed session: the subscriber fails on its own right after
         log.debug("lane token for %s not declared: %r", key_expr, exc)
         return None
@@ -148,105 +148,38 @@ def _parse_token(key: str) -> tuple[str, str] | None:
 
 # --- the writer --------------------------------------------------------------------------------------
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def clean_stale_segments() -> int:
-    """Remove the segments of followbus processes that are gone (a crashed publisher leaves its segments).
-    A reader still mapping one keeps its mapping (unlinking only removes the name)."""
-    removed = 0
-    try:
-        names = os.listdir(SHM_DIR)
-    except OSError:
-        return 0
-    me = os.getuid()
-    for name in names:
-        m = _NAME.fullmatch(name)
-        # Only segments named with our host id: their pids are in our pid namespace.
-        if m is None or m.group(1) != HOST_ID or _pid_alive(int(m.group(2))):
-            continue
-        path = os.path.join(SHM_DIR, name)
-        try:
-            if os.lstat(path).st_uid != me:
-                continue
-            os.unlink(path)
-            removed += 1
-        except OSError:
-            continue
-    if removed:
-        log.info("removed %d shared-memory lane segment(s) of ended processes", removed)
-    return removed
-
-
-def _unlink_own() -> None:
-    with _own_lock:
-        paths = list(_own_paths)
-        _own_paths.clear()
-    for path in paths:
-        with contextlib.suppress(OSError):
-            os.unlink(path)
-
-
-atexit.register(_unlink_own)
-
-
 class _Segment:
-    def __init__(self) -> None:
-        self.name = f"followbus-{HOST_ID}-{os.getpid()}-{next(_counter)}"
-        self.path = os.path.join(SHM_DIR, self.name)
-        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
-        with _own_lock:
-            _own_paths.add(self.path)
+    """A sealed memfd of a fixed capacity, mapped writable by its publisher (see the module doc)."""
+
+    def __init__(self, capacity: int) -> None:
+        capacity = -(-capacity // 65536) * 65536
+        self.fd = os.memfd_create(MEMFD_NAME, os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
+        try:
+            os.ftruncate(self.fd, DATA_OFFSET + capacity)
+            self.mm = mmap.mmap(self.fd, DATA_OFFSET + capacity, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+            fcntl.fcntl(self.fd, fcntl.F_ADD_SEALS, SEALS)
+        except BaseException:
+            os.close(self.fd)
+            raise
         self.ino = os.fstat(self.fd).st_ino
-        self.capacity = 0
-        self.mm: mmap.mmap | None = None
-        self.view: np.ndarray | None = None
+        self.capacity = capacity
+        self.view: np.ndarray | None = np.frombuffer(self.mm, np.uint8)
         self.generation = secrets.randbits(48)
         self.written = 0.0  # time.monotonic() of the last write
 
-    def reserve(self, nbytes: int) -> None:
-        """Room for nbytes of data. Segments only grow: a reader's mapping of the old size stays valid."""
-        if nbytes <= self.capacity:
-            return
-        capacity = max(nbytes, 2 * self.capacity)
-        capacity = -(-capacity // 65536) * 65536
-        os.ftruncate(self.fd, DATA_OFFSET + capacity)
-        self.view = None
-        if self.mm is not None:
-            self.mm.close()
-        self.mm = mmap.mmap(self.fd, DATA_OFFSET + capacity, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
-        self.view = np.frombuffer(self.mm, np.uint8)
-        self.capacity = capacity
-
     def close(self) -> None:
         self.view = None
-        if self.mm is not None:
+        with contextlib.suppress(BufferError):
             self.mm.close()
-            self.mm = None
         os.close(self.fd)
-        with contextlib.suppress(OSError):
-            os.unlink(self.path)
-        with _own_lock:
-            _own_paths.discard(self.path)
 
 
 class LaneWriter:
     """One publisher's ring of segments and its view of who subscribes to its key (see the module doc)."""
 
     def __init__(self, session: Any, key: str):
-        global _cleaned
         if HOST_ID is None:
-            raise OSError("no usable /dev/shm")
-        if not _cleaned:
-            _cleaned = True
-            clean_stale_segments()
+            raise OSError("no sealable memfd on this kernel")
         import zenoh
 
         self.key = key
@@ -254,7 +187,8 @@ class LaneWriter:
         self._segments: list[_Segment] = []  # most recently written first
         self._lock = threading.Lock()
         self._tokens: dict[str, bool] = {}  # token key -> whether it is a subscriber of our key on this host
-        self.ready = False  # every known subscriber of the key is a followbus one on this host
+        self.ready = False  # every known subscriber of the key is a lane one on this host
+        self.overflowed = False  # more than MAX_TRACKED_TOKENS tokens matched our key: inline for good
         self.fallbacks = 0  # messages sent inline because every segment was held by readers
         self._live = session.liveliness().declare_subscriber(
             f"{TOKEN_PREFIX}/**", zenoh.handlers.Callback(self._on_token, indirect=False), history=True)
@@ -277,20 +211,21 @@ class LaneWriter:
         with self._lock:
             if sample.kind == zenoh.SampleKind.DELETE:
                 self._tokens.pop(key, None)
-            else:
+            elif len(self._tokens) < MAX_TRACKED_TOKENS:
                 self._tokens[key] = host == HOST_ID
-            self.ready = bool(self._tokens) and all(self._tokens.values())
+            else:  # a flood of tokens (or a very wide fan-out): stop tracking, stay inline
+                self.overflowed = True
+            self.ready = bool(self._tokens) and all(self._tokens.values()) and not self.overflowed
 
     def write(self, blobs: list[np.ndarray], nbytes: int) -> bytes | None:
         """Write the arrays one after the other into a free segment; the descriptor (msgpack), or None when
         every segment is held by readers and the ring is at its bound."""
         with self._lock:
-            seg = self._acquire()
+            seg = self._acquire(nbytes)
             if seg is None:
                 self.fallbacks += 1
                 return None
             try:
-                seg.reserve(nbytes)
                 view = seg.view
                 assert view is not None
                 end = DATA_OFFSET
@@ -300,24 +235,34 @@ class LaneWriter:
                     end += n
                 seg.generation += 1
                 _SEG_HEADER.pack_into(seg.mm, 0, SEGMENT_MAGIC, seg.generation, nbytes)  # type: ignore[arg-type]
-                return msgpack.packb([seg.name, seg.ino, seg.generation, nbytes])
+                return msgpack.packb([os.getpid(), seg.fd, seg.ino, seg.generation, nbytes])
             finally:
                 fcntl.flock(seg.fd, fcntl.LOCK_UN)
 
-    def _acquire(self) -> _Segment | None:
-        """A segment no reader holds, locked exclusively (caller holds self._lock), moved to the front."""
+    def _acquire(self, nbytes: int) -> _Segment | None:
+        """A segment of at least nbytes no reader holds, locked exclusively (caller holds self._lock), moved to
+        the front. A sealed segment cannot grow: one too small is replaced by a larger one (readers still
+        mapping the old one keep their own mapping of it)."""
         now = time.monotonic()
         seg = self._lock_first(s for s in self._segments if now - s.written >= REUSE_AFTER_S)
         if seg is None and len(self._segments) < MAX_SEGMENTS:
-            seg = _Segment()
-            fcntl.flock(seg.fd, fcntl.LOCK_EX)
-            self._segments.append(seg)
+            seg = self._new_segment(nbytes)
         if seg is None:
             seg = self._lock_first(reversed(self._segments))  # all young: the oldest free one
+        if seg is not None and seg.capacity < nbytes:
+            self._segments.remove(seg)
+            seg.close()
+            seg = self._new_segment(max(nbytes, 2 * seg.capacity))
         if seg is not None:
             seg.written = now
             self._segments.remove(seg)
             self._segments.insert(0, seg)
+        return seg
+
+    def _new_segment(self, nbytes: int) -> _Segment:
+        seg = _Segment(nbytes)
+        fcntl.flock(seg.fd, fcntl.LOCK_EX)
+        self._segments.append(seg)
         return seg
 
     @staticmethod
@@ -424,26 +369,38 @@ _last_sweep = 0.0
 CACHE_IDLE_S = 2.0  # a segment no message has named this long is unmapped (its publisher may be gone)
 
 
-def _open_segment(name: str, ino: int, size: int) -> _Mapped:
-    path = os.path.join(SHM_DIR, name)
+def _open_segment(pid: int, fd: int, ino: int, size: int) -> _Mapped:
+    """Open another process's segment through /proc and check it is one of ours, sealed, as the descriptor says."""
+    path = f"/proc/{pid}/fd/{fd}"
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+        link = os.readlink(path)
+        rfd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
-        raise LaneStale(f"lane segment {name} is gone") from None
+        raise LaneStale(f"lane segment {pid}/{fd} is gone") from None
     except OSError as exc:
-        raise DecodeError(f"lane segment {name}: {os.strerror(exc.errno or errno.EIO)}") from None
+        raise DecodeError(f"lane segment {pid}/{fd}: {os.strerror(exc.errno or errno.EIO)}") from None
     try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode) or st.st_uid != os.getuid():
-            raise DecodeError(f"lane segment {name}: not a regular file of this user")
-        if st.st_ino != ino:
-            raise LaneStale(f"lane segment {name} was replaced")
-        if st.st_size < size:
-            raise DecodeError(f"lane segment {name}: {st.st_size} bytes, descriptor names {size}")
-        return _Mapped(name, fd, ino, st.st_size)
+        _check_segment(rfd, link, f"{pid}/{fd}", ino, size)
+        return _Mapped(f"{pid}/{fd}", rfd, ino, os.fstat(rfd).st_size)
     except BaseException:
-        os.close(fd)
+        os.close(rfd)
         raise
+
+
+def _check_segment(fd: int, link: str, name: str, ino: int, size: int) -> None:
+    st = os.fstat(fd)
+    if link != _MEMFD_LINK or not stat.S_ISREG(st.st_mode) or st.st_uid != os.getuid():
+        raise DecodeError(f"lane segment {name}: not a followbus memfd of this user")
+    if st.st_ino != ino:
+        raise LaneStale(f"lane segment {name} was replaced")
+    try:
+        seals = fcntl.fcntl(fd, fcntl.F_GET_SEALS)
+    except OSError:
+        seals = -1
+    if seals != SEALS:
+        raise DecodeError(f"lane segment {name}: seals {seals:#x}, not {SEALS:#x} (it could be truncated or rewritten)")
+    if st.st_size < size:
+        raise DecodeError(f"lane segment {name}: {st.st_size} bytes, descriptor names {size}")
 
 
 def _sweep(now: float) -> None:
@@ -473,16 +430,12 @@ def open_blob_area(desc: Any) -> memoryview:
     A segment stays mapped between messages (no open, mmap and page-table set-up per message) while
     descriptors name it with the same inode and size; a cached mapping whose generation does not match is
     dropped and the name opened afresh once (its file may have been replaced under the same name)."""
-    if not (isinstance(desc, list) and len(desc) == 4):
-        raise DecodeError("lane descriptor: expected [name, inode, generation, length]")
-    name, ino, generation, length = desc
-    m = _NAME.fullmatch(name) if isinstance(name, str) else None
-    if m is None:
-        raise DecodeError("lane descriptor: not a followbus segment name")
-    if m.group(1) != HOST_ID:
-        raise DecodeError("lane descriptor: a segment of another host")
-    if not all(type(v) is int and v >= 0 for v in (ino, generation, length)) or length > MAX_LANE_BYTES:
-        raise DecodeError("lane descriptor: bad inode, generation or length")
+    if not (isinstance(desc, list) and len(desc) == 5):
+        raise DecodeError("lane descriptor: expected [pid, fd, inode, generation, length]")
+    pid, fd, ino, generation, length = desc
+    if not all(type(v) is int and v >= 0 for v in desc) or length > MAX_LANE_BYTES or pid == 0:
+        raise DecodeError("lane descriptor: bad pid, fd, inode, generation or length")
+    name = f"{pid}/{fd}"
     size = DATA_OFFSET + length
     now = time.monotonic()
     while True:
@@ -496,7 +449,7 @@ def open_blob_area(desc: Any) -> memoryview:
                 mapped = None
             fresh = mapped is None
             if mapped is None:
-                mapped = _cache[name] = _open_segment(name, ino, size)
+                mapped = _cache[name] = _open_segment(pid, fd, ino, size)
             mapped.used = now
             if mapped.refs == 0:  # else another message of ours holds it: no writer can have it
                 try:

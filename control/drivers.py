@@ -7,14 +7,17 @@ theta CCW, body-frame velocities).
 Serial line protocol (ASCII, one message per ``\\n``-terminated line, fields separated by a single
 space, decimal point ``.``):
 
-* host → MCU ``M <fl> <fr> <rl> <rr>\\n`` — wheel speed set-points in rad/s, 3 decimals
-  (e.g. ``M 1.250 -1.250 1.250 -1.250``).
+* host → MCU ``M <fl> <fr> <rl> <rr> <hold_ms>\\n`` — wheel speed set-points in rad/s, 3 decimals, and
+  how long the MCU may hold them: an integer number of milliseconds after which, with no newer ``M``
+  line, it stops all wheels by itself (e.g. ``M 1.250 -1.250 1.250 -1.250 180``).
 * host → MCU ``S\\n`` — stop all wheels now (sent on :meth:`SerialDriver.close`).
 * MCU → host ``O <x_m> <y_m> <theta_rad> <vx_mps> <vy_mps> <wz_radps>\\n`` — optional odometry.
   Other lines from the MCU (debug text) are ignored. Trailing ``\\r`` is tolerated.
 
-The MCU is expected to run its own watchdog (stop if no ``M`` line for a few hundred ms) so a dead
-host cannot leave the robot driving.
+``hold_ms`` is the stop guarantee that does not depend on this host being scheduled: the motor node arms
+it on every command with the time left until its 200 ms stop promise for the track the command answers
+expires, so a host process that is frozen, starved of CPU or killed leaves the wheels turning at most that
+long. An MCU must honour it (0: stop now); it is the guarantee under overload.
 """
 
 from __future__ import annotations
@@ -159,12 +162,21 @@ class SimDriver:
 STOP_LINE = b"S\n"
 
 
-def format_command(wheel_radps: Sequence[float] | np.ndarray) -> bytes:
-    """``M <fl> <fr> <rl> <rr>\\n`` with 3 decimals; rejects non-finite speeds (never send NaN)."""
+MAX_HOLD_MS = 1000  # the longest an MCU may be told to hold a set-point
+
+
+def format_command(wheel_radps: Sequence[float] | np.ndarray, hold_ms: float) -> bytes:
+    """``M <fl> <fr> <rl> <rr> <hold_ms>\\n`` with 3 decimals; rejects non-finite speeds (never send NaN).
+
+    ``hold_ms`` is rounded down and clamped to 0..MAX_HOLD_MS: the MCU stops by itself that long after this
+    line unless a newer one arrives."""
     w = _as_wheels(wheel_radps)
+    if not math.isfinite(hold_ms):
+        raise ValueError(f"hold_ms must be finite, got {hold_ms!r}")
+    hold = min(MAX_HOLD_MS, max(0, math.floor(hold_ms)))
     # round() + 0.0 turns -0.0004 into 0.000 rather than "-0.000".
     fields = " ".join(f"{round(float(v), 3) + 0.0:.3f}" for v in w)
-    return f"M {fields}\n".encode("ascii")
+    return f"M {fields} {hold}\n".encode("ascii")
 
 
 def format_stop() -> bytes:
@@ -257,9 +269,9 @@ class SerialDriver:
                 raise TimeoutError(f"serial write to {self.port} timed out")
             select.select([], [self._fd], [], remaining)
 
-    def write_command(self, wheel_radps: Sequence[float] | np.ndarray) -> None:
-        """Send wheel speed set-points ``(fl, fr, rl, rr)`` rad/s."""
-        self._write(format_command(wheel_radps))
+    def write_command(self, wheel_radps: Sequence[float] | np.ndarray, hold_ms: float) -> None:
+        """Send wheel speed set-points ``(fl, fr, rl, rr)`` rad/s, which the MCU holds at most ``hold_ms``."""
+        self._write(format_command(wheel_radps, hold_ms))
 
     def stop(self) -> None:
         self._write(STOP_LINE)

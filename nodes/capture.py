@@ -4,7 +4,9 @@ remote viewers, and ground truth when the source has it.
 Sources (``source`` param): ``camera:<index>``, a video file, an image folder (optionally in the
 ../shared/data layouts, with ground truth), ``scene:<name>`` (built-in synthetic scenes with exact
 ground truth), or an MCAP recording (``*.mcap``: its raw frames, and its ground truth when recorded,
-re-published with their original spacing). ``pace: realtime`` paces to the source rate;
+re-published with their original spacing), or a ROS 2 image topic (``ros2:/camera/image_raw``:
+sensor_msgs/Image; a ``.../compressed`` topic: CompressedImage; over rmw_zenoh's format, nodes/ros2.py).
+``pace: realtime`` paces to the source rate;
 ``pace: fast`` publishes as fast as the consumers allow: at most ``max_in_flight`` frames ahead of
 the ``ack`` input (wire it to the last node of the chain, e.g. prediction/track).
 """
@@ -33,6 +35,7 @@ class CaptureParams:
     height_px: int = 480
     groundtruth: str = ""  # image folders: explicit ground-truth file
     mcap_frame_key: str = ""  # MCAP sources: the recorded frame key (default: the one ending in /frame)
+    ros2_domain_id: int = 0  # ROS 2 sources: ROS_DOMAIN_ID
     pace: str = "realtime"  # realtime | fast
     max_in_flight: int = 2  # pace: fast
     loop: bool = False
@@ -56,6 +59,13 @@ class Capture(Node):
         params = super().parse_params(raw)
         if params.pace not in ("realtime", "fast"):
             raise ParamError("pace", f"pace must be 'realtime' or 'fast', not {params.pace!r}")
+        for key, low in (("width_px", 16), ("height_px", 16), ("preview_width_px", 16), ("max_in_flight", 1),
+                         ("jpeg_quality", 1), ("fps", 0), ("max_frames", 0), ("wait_for_consumers_s", 0),
+                         ("start_delay_s", 0)):
+            if getattr(params, key) < low:
+                raise ParamError(key, f"{key} must be >= {low}, not {getattr(params, key)!r}")
+        if params.jpeg_quality > 100:
+            raise ParamError("jpeg_quality", f"jpeg_quality must be in 1..100, not {params.jpeg_quality!r}")
         return params
 
     @classmethod
@@ -65,6 +75,10 @@ class Capture(Node):
         try:
             if _is_mcap(params.source):
                 mcap_frame_channel(params.source, params.mcap_frame_key)
+            elif _is_ros2(params.source):
+                from .ros2 import ros2_image_topic  # here: other sources never load the ROS 2 types
+
+                ros2_image_topic(params.source)
             else:
                 check_source(params.source, groundtruth=params.groundtruth)
         except SourceError as exc:
@@ -110,6 +124,12 @@ class Capture(Node):
         p = self.params
         if _is_mcap(p.source):
             return McapFrameSource(p.source, p.mcap_frame_key)
+        if _is_ros2(p.source):
+            from .ros2 import Ros2ImageSource
+
+            if self.runtime.session is None:
+                raise SourceError("a ROS 2 source needs the bus (it cannot run in-process)")
+            return Ros2ImageSource(self.runtime.session, p.source, domain_id=p.ros2_domain_id)
         kw: dict[str, Any] = {}
         if p.source.startswith("scene:"):
             kw = {"seed": p.seed, "width": p.width_px, "height": p.height_px}
@@ -138,6 +158,8 @@ class Capture(Node):
             return 0.002  # consumers are behind: wait for the ack of an earlier frame
         try:
             item = next(self.frames)
+            if item is None:  # a live source (ROS 2) with no new image yet
+                return 0.0
         except StopIteration:
             if p.loop:
                 # A source that can run again does so (a scene keeps its rendered assets: re-opening one
@@ -216,13 +238,23 @@ def _is_mcap(source: str) -> bool:
     return source.strip().lower().endswith(".mcap")
 
 
+def _is_ros2(source: str) -> bool:
+    return source.strip().startswith("ros2:")
+
+
 def mcap_frame_channel(path: str, frame_key: str = "") -> tuple[Any, str]:
     """(summary, frame key) of a recording to read frames from (bus/recording.py, the one reader of
     recordings); SourceError when the file is missing, unreadable or has no frames."""
-    from ..bus.recording import RecordingError, frame_channel  # here: a camera-fed capture never loads mcap
+    from ..bus.recording import (  # here: a camera-fed capture never loads mcap
+        RecordingError,
+        chunks_to_skip,
+        frame_channel,
+    )
 
     try:
-        return frame_channel(path, frame_key)
+        summary, key = frame_channel(path, frame_key)
+        chunks_to_skip(path, None, "refuse")  # a corrupt chunk: `followbus recover` makes a file without it
+        return summary, key
     except RecordingError as exc:
         reason = str(exc).removeprefix(f"{path}: ")
         raise SourceError(f"MCAP source {path!r}: {reason}") from exc

@@ -72,6 +72,9 @@ class Detection(Node):
         params = super().parse_params(raw)
         if params.backend not in BACKENDS:
             raise ParamError("backend", f"backend must be one of {', '.join(BACKENDS)}, not {params.backend!r}")
+        if params.input_size < 32 or params.input_size % 32:
+            raise ParamError("input_size", "input_size must be a positive multiple of 32 (the detector's largest "
+                                           f"stride), e.g. 416 or 640, not {params.input_size!r}")
         if not params.sim_delay_ms >= 0:
             raise ParamError("sim_delay_ms", f"sim_delay_ms must be >= 0, not {params.sim_delay_ms!r}")
         if not 0.0 <= params.low_score_threshold <= params.score_threshold:

@@ -25,11 +25,17 @@ class TickerParams:
     count: int = 0  # 0 = forever
     fail_after_s: float = 0.0  # fault injection: exit with status 3 after this long (checks restart policies)
     wait_for_consumers_s: float = 15.0  # before the first tick, wait this long at most for the consumers
+    # Fault injection (checks that a node that stops working is seen and restarted, bus/liveness.py), by tick
+    # number, -1 = never: poll raises once at that tick; raises at every poll from it; stops publishing from it.
+    raise_once_at: int = -1
+    raise_from: int = -1
+    silent_from: int = -1
 
 
 class Ticker(Node):
     OUTPUTS = {"tick": Tick}
     Params = TickerParams
+    LIVE_PARAMS = frozenset({"rate_hz"})  # read on every tick (followbus param set)
 
     def setup(self) -> None:
         self.value = 0
@@ -46,6 +52,9 @@ class Ticker(Node):
         wait = self.barrier.wait_s()
         if wait > 0:
             return wait
+        self._inject_faults()
+        if 0 <= self.params.silent_from <= self.value:
+            return 1.0 / self.params.rate_hz
         msg = Tick(value=self.value, payload=self.payload)
         msg.header.stamp_ns = time.time_ns()
         msg.header.frame_seq = self.value
@@ -53,6 +62,13 @@ class Ticker(Node):
         self.value += 1
         return 1.0 / self.params.rate_hz
 
+    def _inject_faults(self) -> None:
+        p = self.params
+        if self.value == p.raise_once_at and not getattr(self, "_raised", False):
+            self._raised = True
+            raise OSError(f"fault injection: poll fails once at tick {self.value}")
+        if 0 <= p.raise_from <= self.value:
+            raise OSError(f"fault injection: poll fails from tick {p.raise_from}")
 
     def teardown(self) -> None:
         self.barrier.close()

@@ -8,7 +8,9 @@ so no message can disable it. A LOST (or uninitialised) target is an immediate z
 capture is older than ``max_track_age_ms`` does not count as valid: the robot never acts on a stale view
 of the world. Drivers: ``sim`` integrates the robot pose and publishes odometry (which feeds
 prediction's ego-motion-aware noise, Eq. 7 of seed 000); ``serial`` writes the documented line protocol
-of control/drivers.py to ``port``.
+of control/drivers.py to ``port``, and arms the MCU's own stop on every command (``hold_ms``): the MCU stops
+by itself ``mcu_stop_ms`` after the track a command answers was received, so the 200 ms promise holds even
+when this process is not scheduled (a machine overloaded, the process frozen or killed).
 
 Each command carries the stamp and frame_seq of the track it answers, so end-to-end latency from
 frame capture to motor command is ``command.pub_ns - command.stamp_ns``.
@@ -34,10 +36,15 @@ class MotorParams:
     port: str = ""  # serial device, e.g. /dev/ttyUSB0
     baud: int = 115200
     max_track_age_ms: float = 500.0  # live: older tracks (capture -> here) are not acted on; 0: no limit
+    # serial: the MCU stops by itself this long after the track a command answers was received (each command's
+    # hold_ms, control/drivers.py): the stop that holds when this process is not scheduled. At most 200 ms
+    # minus the serial line's time (a 40-byte line at 115200 baud: 3.5 ms).
+    mcu_stop_ms: float = 190.0
 
 
 class Motor(Node):
     INPUTS = {"track": Track}
+    LIVE_PARAMS = frozenset({"max_track_age_ms"})  # read on every track (followbus param set)
     REQUIRED_INPUTS = frozenset({"track"})
     OUTPUTS = {"command": MotorCommand, "odometry": Odometry}
     EXPRESS = frozenset({"command"})
@@ -62,6 +69,9 @@ class Motor(Node):
             raise ParamError("driver", f"driver must be 'sim' or 'serial', not {motor.driver!r}")
         if motor.driver == "serial" and not motor.port:
             raise ParamError("driver", "driver 'serial' needs a port")
+        if not 0 < motor.mcu_stop_ms <= 200:
+            raise ParamError("mcu_stop_ms", f"mcu_stop_ms must be in (0, 200] (the stop promise), "
+                                            f"not {motor.mcu_stop_ms!r}")
         return motor, follow
 
     def setup(self) -> None:
@@ -88,7 +98,7 @@ class Motor(Node):
         if not fresh:
             return
         cmd = self.controller.on_track(msg.header.stamp_ns, msg.state, msg.box, received_ns=received_ns)
-        self._command(cmd, like=msg)
+        self._command(cmd, like=msg, received_ns=received_ns)
 
     def _receive(self, msg: Message) -> tuple[bool, int | None]:
         """(act on it?, receive time). Controller time is the message stamp (replay-deterministic); the watchdog
@@ -114,10 +124,10 @@ class Motor(Node):
             if sample is not None:
                 self._odometry(sample)
 
-    def _command(self, cmd: FollowCommand, like: Message | None) -> None:
+    def _command(self, cmd: FollowCommand, like: Message | None, received_ns: int | None = None) -> None:
         self.wheels = np.asarray(cmd.wheel_radps, dtype=np.float64)  # the sim integrates them on its tick
         if self.serial is not None:
-            self.serial.write_command(self.wheels)
+            self.serial.write_command(self.wheels, self._hold_ms(received_ns))
         out = MotorCommand(vx_mps=cmd.vx_mps, vy_mps=cmd.vy_mps, wz_radps=cmd.wz_radps, wheel_radps=self.wheels,
                            range_m=cmd.range_m, bearing_rad=cmd.bearing_rad, reason=cmd.reason)
         if like is None:
@@ -126,6 +136,14 @@ class Motor(Node):
         self.last_cmd = cmd
         self.last_command_ns = self.now_ns()
         self.commands += 1
+
+    def _hold_ms(self, received_ns: int | None) -> float:
+        """How long the MCU may hold a command answering a track received at ``received_ns`` (None: a stop, or
+        a replay): what is left of ``mcu_stop_ms`` since then."""
+        bound = self.motor_params.mcu_stop_ms
+        if received_ns is None:
+            return bound
+        return bound - (self.monotonic_ns() - received_ns) / 1e6
 
     def _odometry(self, sample) -> None:
         if sample.t_ns <= self.last_odom_ns:
@@ -165,7 +183,7 @@ class GroupMotor(Motor):
         state = "LOST" if not msg.valid else "OCCLUDED" if msg.lost else "TRACKING"
         cmd = self.controller.on_position(msg.header.stamp_ns, state, msg.centre_robot_m if msg.valid else None,
                                           received_ns=received_ns)
-        self._command(cmd, like=msg)
+        self._command(cmd, like=msg, received_ns=received_ns)
 
 
 NODE = Motor

@@ -42,6 +42,9 @@ class Reid(Node):
     REQUIRED_INPUTS = frozenset({"frame", "detections", "prior"})
     OUTPUTS = {"measurement": Measurement}
     INIT_BOX_PARAM = "init_box"  # followbus demo sets it from the source's first ground-truth box
+    # Read from the shared TrackerParams on every decision (tracking/reid.py), so `followbus param set` takes effect
+    # on the next frame.
+    LIVE_PARAMS = frozenset({"reid_threshold"})
 
     @classmethod
     def params_classes(cls) -> tuple[type, ...]:

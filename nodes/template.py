@@ -6,7 +6,9 @@ tracked securely and 0 under occlusion (Eq. 9-10). Publishes M and η_k every fr
 within the same launch (a crash, the launcher's restart policy), so re-ID does not have to learn the target
 again. A file saved by another launch is not restored unless it is at most ``restore_other_launch_max_age_s``
 old (default 0: never): a new launch may follow another person, and a stale template would make re-ID refuse
-the target it was just told to follow, while the first secure frames re-learn M anyway.
+the target it was just told to follow, while the first secure frames re-learn M anyway. ``{namespace}`` in
+``state_file`` is the graph's namespace (graph.yaml: ``state/{namespace}/template.npz``): two graphs launched
+from one directory keep their own template.
 """
 
 from __future__ import annotations
@@ -29,17 +31,23 @@ from .convert import msg_to_reid
 
 @dataclass
 class TemplateParams:
-    state_file: str = ""  # e.g. state/template.npz; empty: do not persist
+    state_file: str = ""  # e.g. state/{namespace}/template.npz ({namespace}: the graph's); empty: do not persist
     save_every_s: float = 5.0
     # A template saved by another launch (not this launch's earlier process) is restored only if at most this
     # old; 0: never (a new launch learns its target afresh).
     restore_other_launch_max_age_s: float = 0.0
 
 
+def state_path(state_file: str, namespace: str) -> Path | None:
+    """Where the template is kept: ``state_file`` with ``{namespace}`` replaced (None: not persisted)."""
+    return Path(state_file.replace("{namespace}", namespace)) if state_file else None
+
+
 class TemplateNode(Node):
     INPUTS = {"frame": Frame, "measurement": Measurement}
     REQUIRED_INPUTS = frozenset({"frame", "measurement"})
     OUTPUTS = {"template": Template}
+    STATE_FILE_PARAM = "state_file"
 
     @classmethod
     def params_classes(cls) -> tuple[type, ...]:
@@ -76,7 +84,7 @@ class TemplateNode(Node):
                 self.log.warning("could not restore template from %s (%s); starting without one", path, exc)
 
     def _state_path(self) -> Path | None:
-        return Path(self.node_params.state_file) if self.node_params.state_file else None
+        return state_path(self.node_params.state_file, self.runtime.graph.namespace)
 
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         frame, meas = inputs["frame"], inputs["measurement"]

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -14,6 +17,11 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
+
+# The run records of the graphs tests launch (tools/runs/claims.py) stay out of the user's ~/.local/state.
+if "FOLLOWBUS_RUNS" not in os.environ:
+    os.environ["FOLLOWBUS_RUNS"] = tempfile.mkdtemp(prefix="followbus-test-runs-")
+    atexit.register(shutil.rmtree, os.environ["FOLLOWBUS_RUNS"], True)
 
 
 def free_port() -> int:

@@ -22,10 +22,13 @@ from followbus.tools.bench.chaos import (
     ChaosOptions,
     ChaosRunner,
     CommandObs,
+    FaultResult,
     Limits,
     TrackObs,
     TruthObs,
     first_follow_ns,
+    format_headline,
+    headline,
     resolve_faults,
     tracking_coverage,
     watchdog_report,
@@ -85,6 +88,9 @@ def test_watchdog_report_wants_a_stop_within_the_bound_of_the_last_track():
     # After a LOST track the motor has already stopped: a pause then needs no watchdog.
     lost = [*tracks[:-1], _track((last - T0) / MS, "LOST")]
     assert not watchdog_report(lost, commands, T0, T0 + 3000 * MS, 130, 200).violations
+    # While the motor process itself is dead (kill-motor) no stop can reach the bus: the MCU's hold_ms covers it.
+    down = (last - 50 * MS, last + 2000 * MS)
+    assert not watchdog_report(tracks, commands, T0, T0 + 3000 * MS, 130, 200, motor_down=down).violations
 
 
 def test_recovery_ignores_commands_answering_injected_tracks():
@@ -125,7 +131,7 @@ def test_fault_lists():
     everything = resolve_faults("all", record=True, detector="simulated")
     assert everything[-1].name == "kill-recorder" and len(everything) == len(FAULTS)
     assert [f.name for f in resolve_faults("capture-restart,burners-2", record=False, detector="simulated")] == [
-        "kill-capture", "burners"]
+        "kill-capture", "load"]
     with pytest.raises(ValueError, match="needs --record"):
         resolve_faults("kill-recorder", record=False, detector="simulated")
     with pytest.raises(ValueError, match="unknown fault 'kill-everything'"):
@@ -143,6 +149,29 @@ def test_cli_usage_errors_and_help():
     helptext = run_followbus("bench", "chaos", "--help", timeout=60).stdout
     for name in FAULTS:
         assert name in helptext
+
+
+def test_the_headline_states_load_survival_and_the_bounds():
+    """Issue 25: a figure without its load says nothing; the bench prints what a re-run on a quiet machine
+    compares: load, survival, unsafe commands, worst stop, following p99, frames answered."""
+    def result(name: str, **kw) -> FaultResult:
+        base = dict(fault=name, description="", survived=True, checks={}, failures=[], unsafe_commands=0,
+                    commands=100, watchdog_ms=None, watchdog_bound_ms=200.0, back_s=None, recovery_s=0.5,
+                    recovery_bound_s=2.0, hidden_s=0.0, held=1.0, load1=6.5)
+        return FaultResult(**{**base, **kw})
+
+    results = [result("kill-reid", watchdog_ms=161.0), result("load", latency_p99_ms=212.0, processed=0.62),
+               result("flood", survived=False, unsafe_commands=1)]
+    head = headline(results, [5.0, 7.0, 9.0], ChaosOptions(burners=4))
+    assert head["detector"] == "yolox416" and head["burners"] == 4
+    assert (head["survived"], head["runs"], head["unsafe_commands"]) == (2, 3, 1)
+    assert (head["stop_max_ms"], head["following_p99_ms"], head["frames_answered_min"]) == (161.0, 212.0, 0.62)
+    assert head["load1_mean"] == pytest.approx(7.0) and head["load1_max"] == 9.0
+    text = format_headline(head, launches=2, elapsed_s=300)
+    for needle in ("4 background burners", "7.0 mean, 9.0 max", "/proc/loadavg", "survived: 2 of 3",
+                   "unsafe commands: 1 of 300", "stop latency max: 161 ms", "following p99: 212 ms",
+                   "frames answered: 62 %"):
+        assert needle in text, (needle, text)
 
 
 def test_simulated_detector_delay_is_a_pure_delay():
@@ -170,8 +199,8 @@ def test_simulated_detector_delay_is_a_pure_delay():
 def runner(tmp_path_factory):
     # One launched graph for the whole module; the runner relaunches it only after a fault it did not survive.
     workdir = tmp_path_factory.mktemp("chaos")
-    options = ChaosOptions(port=free_port(), workdir=workdir, log_file=workdir / "nodes.log", hold_s=2.0,
-                           malformed_per_key=400, warmup_s=6.0)
+    options = ChaosOptions(detector="simulated", port=free_port(), workdir=workdir, log_file=workdir / "nodes.log",
+                           hold_s=2.0, malformed_per_key=400, warmup_s=6.0)
     with ChaosRunner(options) as r:
         yield r
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from followbus.control.drivers import (
+    MAX_HOLD_MS,
     SerialDriver,
     SimDriver,
     format_command,
@@ -319,18 +320,24 @@ def test_sim_first_order_lag() -> None:
 
 
 def test_serial_format_parse_round_trip() -> None:
-    assert format_command([1, -1, 0.12345, -0.0004]) == b"M 1.000 -1.000 0.123 0.000\n"
+    assert format_command([1, -1, 0.12345, -0.0004], 190) == b"M 1.000 -1.000 0.123 0.000 190\n"
+    # The MCU's own stop: rounded down, never negative, never beyond MAX_HOLD_MS, never NaN.
+    assert format_command([0, 0, 0, 0], 12.9).endswith(b" 12\n")
+    assert format_command([0, 0, 0, 0], -5).endswith(b" 0\n")
+    assert format_command([0, 0, 0, 0], 1e9).endswith(f" {MAX_HOLD_MS}\n".encode())
     assert format_stop() == b"S\n"
     with pytest.raises(ValueError):
-        format_command([float("nan"), 0, 0, 0])
+        format_command([float("nan"), 0, 0, 0], 100)
     with pytest.raises(ValueError):
-        format_command([0, 0, 0])
+        format_command([0, 0, 0], 100)
+    with pytest.raises(ValueError):
+        format_command([0, 0, 0, 0], float("nan"))
     line = b"O 1.500 -0.250 0.785 0.400 0.000 -0.100\r\n"
     odo = parse_odometry_line(line, 42)
     assert (odo.t_ns, odo.x_m, odo.y_m, odo.theta_rad, odo.vx_mps, odo.vy_mps, odo.wz_radps) == (
         42, 1.5, -0.25, 0.785, 0.4, 0.0, -0.1)
     wheels = (3.25, -1.5, 0.001, 12.0)
-    parsed = [float(v) for v in format_command(wheels).decode().split()[1:]]
+    parsed = [float(v) for v in format_command(wheels, 100).decode().split()[1:5]]
     assert parsed == list(wheels)
     for bad in ("M 1 2 3 4", "O 1 2 3", "O 1 2 3 4 5 x", "O 1 2 3 4 5 nan"):
         with pytest.raises(ValueError):
@@ -356,8 +363,8 @@ def test_serial_driver_over_pty() -> None:
         assert attrs[4] == termios.B115200 and attrs[5] == termios.B115200
         assert not attrs[3] & termios.ICANON and not attrs[1] & termios.OPOST
 
-        driver.write_command([1.0, -2.0, 0.5, 0.0])
-        assert _read_line(master) == b"M 1.000 -2.000 0.500 0.000\n"
+        driver.write_command([1.0, -2.0, 0.5, 0.0], 150)
+        assert _read_line(master) == b"M 1.000 -2.000 0.500 0.000 150\n"
 
         assert driver.read_odometry(0.05) is None
         os.write(master, b"hello from mcu\nO 1 2 ")  # debug line and a partial odometry line
@@ -372,7 +379,7 @@ def test_serial_driver_over_pty() -> None:
         assert _read_line(master) == b"S\n"
         driver.close()  # idempotent
         with pytest.raises(OSError):
-            driver.write_command([0, 0, 0, 0])
+            driver.write_command([0, 0, 0, 0], 0)
     finally:
         os.close(master)
         os.close(slave)
@@ -381,3 +388,37 @@ def test_serial_driver_over_pty() -> None:
 def test_serial_driver_rejects_unknown_baud() -> None:
     with pytest.raises(ValueError, match="baud"):
         SerialDriver("/dev/null", baud=12345)
+
+
+def test_motor_arms_the_mcu_stop_on_every_serial_command() -> None:
+    """Issue 25: the 200 ms stop must not depend on the motor process being scheduled. Every M line carries
+    how long the MCU may hold it (what is left of mcu_stop_ms since the track it answers was received)."""
+    from followbus.bus.graph import apply_overrides, load_graph
+    from followbus.bus.inproc import InProcessGraph
+    from followbus.bus.schemas import Track
+
+    from .conftest import REPO
+
+    master, slave = os.openpty()
+    try:
+        graph = load_graph(REPO / "graph.yaml")
+        apply_overrides(graph, ["motor.driver=serial", f"motor.port={os.ttyname(slave)}", "motor.mcu_stop_ms=180"])
+        with InProcessGraph(graph, nodes=["motor"]) as g:
+            t0 = g.now_ns
+            for k in range(3):
+                g.run_until(t0 + k * 33_000_000)
+                box = np.array([280.0, 120.0, 80.0, 240.0])
+                track = Track(state="TRACKING", box=box, filtered_box=box)
+                track.header.frame_seq, track.header.stamp_ns = k, g.now_ns
+                g.inject("prediction/track", track)
+                g.deliver()
+            g.run_until(t0 + 500_000_000)  # the watchdog's stop
+            lines = [_read_line(master) for _ in range(4)]
+    finally:
+        os.close(master)
+        os.close(slave)
+    fields = [line.split() for line in lines]
+    assert all(f[0] == b"M" and len(f) == 6 for f in fields), lines
+    holds = [int(f[5]) for f in fields]
+    assert all(0 <= h <= 180 for h in holds), holds
+    assert holds[0] >= 150  # delivered at once in-process: nearly the whole bound is left

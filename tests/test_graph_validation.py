@@ -90,3 +90,92 @@ def test_robot_graph_runs_the_same_nodes_as_graph_yaml():
              for g, graph in (("dev", dev), ("robot", robot))}
     assert nodes["robot"] == nodes["dev"]
     assert robot.zenoh.mode == "router" and dev.zenoh.mode == "peer"
+
+
+# --------------------------------------------------------------------------- graphs that cannot run (issue 25)
+
+GRAPH_YAML = (REPO / "graph.yaml").read_text()
+# (what, (old, new) replacements in graph.yaml, text expected in the one line)
+CANNOT_RUN = [
+    ("NaN gate", [("      gate_chi2: 9.488\n      camera", "      gate_chi2: .nan\n      camera")],
+     "'gate_chi2' must be finite"),
+    ("infinite param in a list", [("      tau_v: 220\n", "      tau_v: [1, .inf]\n")], "must be finite"),
+    ("NaN sync timeout", [("    sync_timeout_ms: 300                   #", "    sync_timeout_ms: .nan  #")],
+     "sync_timeout_ms must be a finite number > 0"),
+    ("infinite sync timeout", [("    sync_timeout_ms: 300                   #", "    sync_timeout_ms: .inf  #")],
+     "sync_timeout_ms must be a finite number > 0"),
+    ("NaN lag bound", [("nodes:\n", "max_lag_ms: .nan\nnodes:\n")], "max_lag_ms must be a finite number"),
+    ("same-frame cycle", [("template: {from: template/template, queue: 32, offset: -1, optional: true}",
+                           "template: {from: template/template, queue: 32, optional: true}")],
+     "same-frame cycle reid -> template -> reid"),
+    ("zero input size", [("      input_size: 416\n", "      input_size: 0\n")],
+     "input_size must be a positive multiple of 32"),
+    ("capture of width 0", [('      pace: realtime ', '      width_px: 0\n      pace: realtime ')],
+     "width_px must be >= 16"),
+    ("unknown zenoh config key", [("zenoh:\n", "zenoh:\n  config: {transport/auth/usrpwdd: {user: a}}\n")],
+     "zenoh: config: transport/auth/usrpwdd: unknown key"),
+    ("mistyped zenoh config value", [("zenoh:\n", "zenoh:\n  config: {transport/link/tls/enable_mtls: 'yes'}\n")],
+     "expected a boolean"),
+    ("impossible endpoint", [("listen: [tcp/127.0.0.1:7447]", "listen: [tcp/999.1.1.1:99999]")],
+     "endpoint 'tcp/999.1.1.1:99999'"),
+    ("bad IP address", [("connect: [tcp/127.0.0.1:7447]", "connect: [tcp/999.1.1.1:7447]")],
+     "'999.1.1.1' is not an IP"),
+    ("empty run", [("    run: followbus.nodes.motor\n", '    run: ""\n')], "run must name a Python module"),
+    ("relative run", [("    run: followbus.nodes.motor\n", "    run: ..template\n")],
+     "run must name a Python module"),
+]
+
+
+@pytest.mark.parametrize("what,edits,message", CANNOT_RUN, ids=[c[0] for c in CANNOT_RUN])
+def test_check_refuses_a_graph_that_cannot_run(tmp_path, capsys, what, edits, message):
+    from followbus.tools.cli import main
+
+    text = GRAPH_YAML
+    for old, new in edits:
+        assert old in text, (what, old)
+        text = text.replace(old, new, 1)
+    path = tmp_path / "graph.yaml"
+    path.write_text(text)
+    assert main(["check", str(path)]) == 2, what
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert message in err and str(path) in err, err
+
+
+def test_check_refuses_a_set_override_that_is_not_finite(capsys):
+    from followbus.tools.cli import main
+
+    assert main(["check", str(REPO / "graph.yaml"), "--set", "prediction.gate_chi2=.nan"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("followbus: --set prediction.gate_chi2=.nan:") and "must be finite" in err
+
+
+@pytest.mark.parametrize("target", ["fifo", "/dev/zero", "directory"])
+@pytest.mark.parametrize("command", ["check", "launch"])
+def test_extends_only_a_regular_file(tmp_path, target, command):
+    """A FIFO waits for a writer for ever and /dev/zero never ends: both hung `check` (issue 25)."""
+    import os
+
+    if target == "fifo":
+        base = tmp_path / "base.yaml"
+        os.mkfifo(base)
+    elif target == "directory":
+        base = tmp_path / "base.d"
+        base.mkdir()
+    else:
+        base = target
+    path = tmp_path / "g.yaml"
+    path.write_text(f"extends: {base}\nnamespace: r2x\n")
+    result = run_followbus(command, str(path), *(["--duration", "1"] if command == "launch" else []), timeout=30)
+    assert result.returncode == 2, result.stderr
+    err = result.stderr.strip()
+    assert len(err.splitlines()) == 1 and f"{path}:1: extends:" in err and "not a regular file" in err, err
+
+
+def test_graph_file_itself_must_be_a_regular_file(tmp_path):
+    import os
+
+    fifo = tmp_path / "graph.yaml"
+    os.mkfifo(fifo)
+    result = run_followbus("check", str(fifo), timeout=30)
+    assert result.returncode == 2 and "not a regular file" in result.stderr, result.stderr

@@ -535,3 +535,42 @@ def test_first_preview_request_waits_for_the_first_preview():
     finally:
         server.shutdown()
         server.server_close()
+
+
+def _dashboard_snapshot(age_s: float) -> dict:
+    now = time.time_ns()
+    nodes = [{"name": n, "alive": False, "since_ns": now - 5_000_000_000, "restarts": 0, "pid": 12345,
+              "uptime_s": 30.0, "handler_errors": 0, "trust": "verified", "trust_reason": "",
+              "topics": {f"fb/{n}/out{i}": {"direction": "out", "rate_hz": 30.0} for i in range(3)}}
+             for n in ("capture", "detection", "egomotion", "prediction", "reid", "template", "motor")]
+    return {"connected": True, "endpoints": ["tcp/127.0.0.1:7447"], "namespace": "fb", "now_ns": now, "nodes": nodes,
+            "decode_errors": 0, "centre_error_px": 3.2, "eta": 0.0123,
+            "target": {"state": "TRACKING", "box": [123.4, 200.1, 80.2, 190.7], "frame_seq": 1234,
+                       "velocity": [5.0, -2.0]},
+            "command": {"vx_mps": 0.8, "vy_mps": 0.0, "wz_radps": -0.12, "reason": "tracking", "latency_ms": 45.2},
+            "ages": {"track": age_s, "template": age_s, "command": age_s}, "stale_after_s": 2.0}
+
+
+@pytest.mark.parametrize("age_s", [0.3, 12.0], ids=["fresh", "stale"])
+def test_the_dashboard_fits_80x24_with_the_target_and_motor_aged(age_s):
+    """Issue 23: on 80x24 the target and motor lines were cut off (and a taller dashboard cannot redraw in place);
+    after the graph stopped they still read TRACKING / +0.80 m/s as if live."""
+    from rich.console import Console
+
+    from followbus.tools.live.monitor import render
+
+    console = Console(width=80, height=24, record=True, force_terminal=True)
+    console.print(render(_dashboard_snapshot(age_s), 24, 80))
+    styled = console.export_text(styles=True, clear=False)
+    lines = [line.rstrip() for line in console.export_text().splitlines()]
+    assert len(lines) <= 24 and max(map(len, lines)) <= 80
+    start = next(i for i, line in enumerate(lines) if line.startswith("target"))
+    target = " ".join(lines[start:start + 2])  # the last column wraps on a narrow terminal
+    motor = " ".join(lines[-2:])
+    assert "TRACKING" in target and "vx +0.80" in motor
+    assert any(line.endswith("more (followbus topics)") for line in lines)
+    if age_s > 2:
+        assert "STALE 12 s" in target and motor.rstrip().endswith("STALE 12 s")
+        assert "\x1b[2;9" in styled  # dim and struck through on a terminal
+    else:
+        assert "STALE" not in "\n".join(lines) and "0.3 s" in target and motor.endswith("0.3 s")

@@ -534,3 +534,19 @@ def test_a_slow_detector_costs_no_feedback_wait():
     assert [m.header.frame_seq for m in measurements] == list(range(0, 30, 3))
     assert [t.header.frame_seq for t in templates] == list(range(0, 30, 3))
     assert reid["sync_timeouts"] == 0 and reid["sync_feedback_fallbacks"] == 0, reid
+
+
+def test_two_graphs_launched_from_one_directory_keep_their_own_template_file(tmp_path, monkeypatch):
+    """Issue 25: graph.yaml's state_file was state/template.npz for every graph: a second graph (another
+    namespace) launched from the same directory restored and overwrote the first one's template."""
+    from pathlib import Path
+
+    monkeypatch.chdir(tmp_path)
+    paths = []
+    for namespace in ("r2a", "r2b"):
+        graph = load_graph(REPO / "graph.yaml")
+        graph.namespace = namespace
+        with InProcessGraph(graph, nodes=["template"]) as g:
+            g.start()  # the node's setup
+            paths.append(g.node("template")._state_path())
+    assert paths == [Path("state/r2a/template.npz"), Path("state/r2b/template.npz")]

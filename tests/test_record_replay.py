@@ -266,7 +266,8 @@ def test_sigkilled_recorder_file_is_recovered(graph_file, port, tmp_path):
     ticks = sorted(decode(m.data, Tick).value for _c, m in topics.get("t/ticker/tick", []))
     assert len(ticks) > 0, result.stdout
     assert ticks == list(range(ticks[0], ticks[0] + len(ticks)))  # complete chunks: no hole in the middle
-    assert all(decode(m.data).header.stamp_ns == m.log_time for msgs in topics.values() for _c, m in msgs)
+    assert all(decode(m.data).header.stamp_ns == m.log_time for msgs in topics.values() for c, m in msgs
+               if c.message_encoding == "x-followbus-frame/1")  # the bus channels (views: tests/test_record_views.py)
     assert read_metadata(fixed)["followbus"]["namespace"] == "t"
     assert f"recovered {sum(len(v) for v in topics.values())} messages" in result.stdout
 
@@ -310,7 +311,8 @@ def test_foxglove_channels_match_the_official_schemas(recorded: Recorded, mcap_c
     code, summary = run_checker(mcap_checker, recorded.path)
     assert code == 0 and not summary["errors"], summary["errors"]
     channels = summary["channels"]
-    assert channels["t/capture/frame/image"]["schema"] == "foxglove.CompressedImage"
+    # frames are ROS 2 sensor_msgs/CompressedImage (decoded in tests/test_record_views.py)
+    assert channels["t/capture/frame/image"]["schema"] == "sensor_msgs/msg/CompressedImage"
     assert channels["t/capture/frame/image"]["count"] == VIEW_FRAMES
     for key in ("t/detection/detections", "t/prediction/prior", "t/prediction/track"):
         assert channels[f"{key}/annotations"]["schema"] == "foxglove.ImageAnnotations", key

@@ -97,3 +97,19 @@ def test_feed_hands_each_hint_over_before_its_frame(tmp_path):
     assert told[3] == (False, {"measurement": 1}) and told[5] == (False, {"measurement": 4})
     assert feed.hints_reproduced == 2  # the skip of 2, and 4 joining 1 instead of 3
     assert feed.outputs_expected == 5
+
+
+def test_a_replay_keeps_off_the_live_graphs_state_file(tmp_path):
+    """graph.yaml's template persists its state in state/template.npz: a replay of it neither starts from that file
+    nor overwrites it (issue 23), unless --param names a state file."""
+    path = tmp_path / "t.mcap"
+    writer = RecordingWriter(path)
+    writer.metadata("graph", {"yaml": (REPO / "graph.yaml").read_text()})
+    writer.metadata("followbus", {"namespace": "fb"})
+    meas = writer.bus_channel("fb/reid/measurement", "Measurement")
+    writer.write(meas, T0, _stamped(Measurement(state="TRACKING"), 0).encode())
+    writer.finish()
+    assert "state/template.npz" in (REPO / "graph.yaml").read_text()
+    assert ReplayPlan(path, ReplayOptions(nodes=["template"])).params["template"]["state_file"] == ""
+    given = ReplayPlan(path, ReplayOptions(nodes=["template"], params={"state_file": "mine.npz"}))
+    assert given.params["template"]["state_file"] == "mine.npz"

@@ -79,10 +79,11 @@ def test_monitor_identity_cannot_spoof_health_or_write_on_robot_graph(tmp_path, 
         # Nor anything else: puts and deletes (status, the launcher's table, health, data keys), queryables.
         received: list[tuple[str, bytes]] = []
         subs = [robot.declare_subscriber(key, lambda s: received.append((str(s.key_expr), s.payload.to_bytes())))
-                for key in ("t/**", "t/@status/*", "t/@launcher/*", "t/@health/*")]
+                for key in ("t/**", "t/@status/*", "t/@launcher/*", "t/@health/*", "t/@replay/*", "@followbus/**")]
         queryables = [session.declare_queryable(f"t/@status/{name}", lambda q: q.reply(q.key_expr, b"reply"))
                       for session, name in ((monitor, "motor"), (operator, "probe"))]
-        for key in ("t/@status/motor", "t/@launcher/fake", "t/@health/motor", "t/motor/command"):
+        for key in ("t/@status/motor", "t/@launcher/fake", "t/@health/motor", "t/motor/command", "t/@replay/motor",
+                    "@followbus/lane/x"):
             # The operator's put gets through (retried until the subscription has reached the hub), the
             # monitor's put and delete on the same key do not.
             def control_arrived(k: str = key) -> bool:
@@ -106,6 +107,65 @@ def test_monitor_identity_cannot_spoof_health_or_write_on_robot_graph(tmp_path, 
             q.undeclare()
         for sub in subs:
             sub.undeclare()
+        watcher.close()
+    finally:
+        for session in sessions:
+            session.close()
+        launch.stop()
+
+
+def _rss_kb(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+def test_a_token_flood_from_the_monitor_changes_nothing_on_the_robot(tmp_path, port):
+    """10,000 lane tokens declared by `monitor` cut motor commands from 30 to 12/s and added ~620 MB of RSS
+    (`@followbus/lane/**` was open to it). Now the monitor may declare no token at all: 2,000 of them (lane and
+    health) never reach the robot, and its nodes' rate and memory stay as they were."""
+    from .test_monitor import DIAG_NODES
+
+    launch = Launch(robot_graph(tmp_path, port, DIAG_NODES))
+    sessions: list[zenoh.Session] = []
+    try:
+        launch.wait_ready()
+        robot = open_session(client(port, "robot", "robot-secret"))
+        monitor = open_session(client(port, "monitor", "monitor-secret"))
+        sessions += [robot, monitor]
+        watcher = HealthWatcher(robot, "t")
+
+        def sink_value() -> int:
+            st = watcher.snapshot().get("sink")
+            return st.status.extra.get("last_value", -1) if st and st.status else -1
+
+        assert wait_until(lambda: sink_value() > 0 and all(
+            (n := watcher.snapshot().get(name)) is not None and n.status is not None
+            for name in ("ticker", "relay", "sink")), 20)
+        pids = {name: watcher.snapshot()[name].status.pid for name in ("ticker", "relay", "sink")}
+        rss0 = {name: _rss_kb(pid) for name, pid in pids.items()}
+        v0, t0 = sink_value(), time.monotonic()
+        time.sleep(2.0)
+        rate0 = (sink_value() - v0) / (time.monotonic() - t0)
+        lane = f"@followbus/lane/{'0' * 16}"
+        deadline = time.monotonic() + 20
+        tokens = []
+        for i in range(2000):
+            key = f"{lane}/{i:016x}/{b't/**'.hex()}" if i % 2 else f"t/@health/flood{i}"
+            tokens.append(monitor.liveliness().declare_token(key))
+            assert time.monotonic() < deadline, "declaring the tokens took too long"
+        time.sleep(2.0)
+        v1, t1 = sink_value(), time.monotonic()
+        time.sleep(2.0)
+        rate1 = (sink_value() - v1) / (time.monotonic() - t1)
+        seen = _tokens(robot, "@followbus/**") | {k for k in _tokens(robot, "t/@health/*") if "flood" in k}
+        assert not seen, f"{len(seen)} of the monitor's tokens reached the robot"
+        assert rate1 >= 0.8 * rate0, (rate0, rate1)
+        grown = {name: _rss_kb(pid) - rss0[name] for name, pid in pids.items()}
+        assert all(kb < 8_000 for kb in grown.values()), grown
+        for token in tokens:
+            token.undeclare()
         watcher.close()
     finally:
         for session in sessions:
@@ -303,3 +363,22 @@ def test_robot_graph_over_tls_needs_the_ca(tmp_path, port):
         assert "Traceback" not in out
     finally:
         launch.stop()
+
+
+def test_a_health_watcher_tracks_a_bounded_number_of_names(port, monkeypatch):
+    """On an open bus anyone may declare tokens under `<ns>/@health/`: a watcher (the monitor, a source's start-up
+    barrier) keeps at most MAX_WATCHED_NODES names and counts the rest."""
+    from followbus.bus import health
+
+    monkeypatch.setattr(health, "MAX_WATCHED_NODES", 20)
+    session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    try:
+        watcher = HealthWatcher(session, "flood", watch_status=False)
+        tokens = [session.liveliness().declare_token(f"flood/@health/n{i}") for i in range(100)]
+        assert wait_until(lambda: watcher.ignored >= 80, 10), watcher.ignored
+        assert len(watcher.nodes) == 20
+        for token in tokens:
+            token.undeclare()
+        watcher.close()
+    finally:
+        session.close()

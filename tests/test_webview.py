@@ -250,6 +250,10 @@ def test_page_says_unreachable_then_waiting_then_source_ended(tmp_path):
         # Before the first state the page holds placeholders, not half-filled sentences; then the graph's width.
         page = _request(web_port, "/")[2].decode()
         assert element_text(page, "srcw")[1] == "source width not known yet"
+        # The graph's drawing (bus/graph_drawing.py), under the health table.
+        status, headers, svg = _request(web_port, "/graph.svg")
+        assert status == 200 and headers["content-type"] == "image/svg+xml" and svg.count(b'class="node"') == 2
+        assert 'src="graph.svg"' in page
         assert element_text(page, "state")[1].startswith("no state yet")
 
         # Capture is up and waits for detection: the page waits for the first frame, visibly.

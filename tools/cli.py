@@ -11,15 +11,17 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any
 
 from . import __version__
 from .bench.commands import COMMANDS as BENCH_COMMANDS
-from .command import Command, Lazy, add_commands, describe, graph_arg, load_graph, settings
+from .command import Command, Lazy, add_commands, describe, graph_arg, identity_args, load_graph, settings
 from .live.commands import COMMANDS as LIVE_COMMANDS
 from .recording.commands import COMMANDS as RECORDING_COMMANDS
+from .runs.commands import COMMANDS as RUNS_COMMANDS
 
 EXIT_BAD_INPUT = 2
 
@@ -29,6 +31,11 @@ examples:
   followbus launch graph.yaml             run the graph (one process per node)
   followbus launch graph.yaml --only capture,detection --duration 10
   followbus node detection                run one node of ./graph.yaml in this terminal
+  followbus demo --domain auto            in the first domain where no graph runs (FOLLOWBUS_DOMAIN=N: that one)
+  followbus up graph.yaml                 in the background, a log file per node; then: ps, logs, down
+  followbus logs followbus-demo reid -f   one node's log of a graph started with up
+  followbus param set reid.reid_threshold 0.8   change a live-tunable parameter of a running node
+  followbus graph graph.yaml --svg -o g.svg     draw the nodes and keys (or --dot)
   followbus topics                        keys seen on the bus with their rates
   followbus echo fb/prediction/track      print decoded messages
   followbus hz fb/capture/frame           rate and latency of one key
@@ -42,7 +49,8 @@ examples:
   followbus models                        where the ONNX models are found; checks their SHA-256
 
 Every command that talks to the bus reads the zenoh settings of --graph (default ./graph.yaml);
---connect tcp/HOST:7447 joins another machine's graph as a client instead.
+--connect tcp/HOST:7447 joins another machine's graph as a client instead. $FOLLOWBUS_DOMAIN=N (as launch
+--domain N) moves every command and node to the graph's port + N and namespace <namespace>-dN.
 """
 
 
@@ -68,6 +76,8 @@ def _launch_args(p: argparse.ArgumentParser) -> None:
                    help="seconds between SIGTERM and SIGKILL at shutdown (default 5)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter (YAML value), e.g. --set capture.source=camera:0; repeatable")
+    identity_args(p, auto=True)
+    p.add_argument("--log-dir", metavar="DIR", help="also write each node's output to DIR/NODE.log (`followbus up`)")
 
 
 def _demo_args(p: argparse.ArgumentParser) -> None:
@@ -86,6 +96,7 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
                    help="where this run's node logs go (default: a new state/demo-YYYYmmdd-HHMMSS.log per run)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter, e.g. --set detection.backend=hog; repeatable")
+    identity_args(p, auto=True)
 
 
 def _node_args(p: argparse.ArgumentParser) -> None:
@@ -186,10 +197,16 @@ def cmd_schema(args) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import run_demo
+    from .demo import default_graph_path, run_demo
+    from .runs.claims import claim_from_args
 
+    args.graph = default_graph_path(args.graph)
+    held = claim_from_args(args, "demo")
     graph, overrides = demo_graph(args.graph, args.scene, args.overrides)
-    return run_demo(graph, args.duration, Path(args.log) if args.log else None, overrides)
+    try:
+        return run_demo(graph, args.duration, Path(args.log) if args.log else None, overrides)
+    finally:
+        held.close()
 
 
 def demo_graph(path: str, scene: str | None, given_overrides: list[str]) -> tuple[Any, list[str]]:
@@ -235,7 +252,9 @@ def cmd_launch(args) -> int:
     from ..bus.graph import apply_overrides
     from ..bus.node import RECORDER_NAME
     from .launch import Launcher, install_stop_signals
+    from .runs.claims import claim_from_args
 
+    held = claim_from_args(args, "up" if args.log_dir else "launch", args.log_dir or "")
     graph = load_graph(args.graph)
     apply_overrides(graph, args.overrides)
     only = [n.strip() for n in args.only.split(",")] if args.only else None
@@ -249,19 +268,43 @@ def cmd_launch(args) -> int:
     try:
         launcher = Launcher(graph, only=only, host=host, startup_timeout_s=args.startup_timeout,
                             grace_s=args.grace, extra_children=extra, overrides=args.overrides,
-                            watch_outputs=args.duration is not None)
+                            watch_outputs=args.duration is not None,
+                            log_dir=Path(args.log_dir) if args.log_dir else None, quiet=bool(args.log_dir))
     except ValueError as exc:
         print(f"followbus: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    _warn_unfed(graph, [c.name for c in launcher.children if c.spec.run != "<tool>"], bool(only or args.host))
     install_stop_signals(launcher)
     logging.getLogger("followbus.launch").setLevel(logging.INFO)
-    status = launcher.run(args.duration)
+    try:
+        status = launcher.run(args.duration)
+    finally:
+        held.close()
     problems = launcher.problems() if args.duration is not None else []
     if problems:
         # A scripted run (CI, a smoke test) must not pass with a node that crash-looped or stayed silent.
         print(f"followbus launch: {'; '.join(problems)}", file=sys.stderr, flush=True)
         return status or 1
     return status
+
+
+def _warn_unfed(graph, started: list[str], partial: bool) -> None:
+    """launch --only/--host: say at once which inputs of the started nodes nothing started here produces, and which
+    consumers outside it a source waits for before its first message (bus/node.py DownstreamBarrier)."""
+    if not partial:
+        return
+    unfed = [f"{name}.{inp.name} ({inp.source_node}/{inp.source_output})" for name in started
+             for inp in graph.nodes[name].inputs.values() if inp.source_node not in started]
+    if unfed:
+        print(f"followbus launch: no producer launched for {', '.join(unfed)}: they wait for a node started "
+              "elsewhere (or a replay)", file=sys.stderr, flush=True)
+    for source in (n for n in started if not graph.nodes[n].inputs):
+        waits = sorted(c for c, spec in graph.nodes.items() if c not in started
+                       and any(i.source_node == source for i in spec.inputs.values()))
+        if waits:
+            print(f"followbus launch: {source} waits for {', '.join(waits)} (not launched here) up to its "
+                  f"wait_for_consumers_s before its first message (--set {source}.wait_for_consumers_s=0: at once)",
+                  file=sys.stderr, flush=True)
 
 
 def _validate(graph, overrides: list[str] | None = None, *, opened: set[str] | None = None,
@@ -303,6 +346,7 @@ COMMANDS: tuple[Command, ...] = (
             cmd_check),
     Command("schema", "print the JSON Schema of graph.yaml (editors validate and complete with it)", _schema_args,
             cmd_schema),
+    *RUNS_COMMANDS,
     *LIVE_COMMANDS,
     *BENCH_COMMANDS,
     *RECORDING_COMMANDS,
@@ -339,12 +383,14 @@ def main(argv: list[str] | None = None) -> int:
     from ..bus.graph import GraphError
     from ..vision.models import ModelError
     from .connect import BusUnreachable, explain_connect_failure, is_connect_failure
-    from .errors import UsageError
+    from .errors import INTERRUPTED, UsageError
 
+    _note_interrupts()
     # A user's mistake (or a graph that is not running) is one line on stderr and exit status 2; a failure
     # found while running (a node crashed, nothing arrived, a replay differs) is reported by the command: 1.
     try:
-        return args.run(args)
+        status = args.run(args)
+        return 130 if INTERRUPTED.is_set() else status
     except BrokenPipeError:
         # The reader went away (`followbus info F | head`): stop quietly, as any Unix tool does. Standard output
         # is pointed at /dev/null so the interpreter's final flush does not fail a second time.
@@ -364,6 +410,19 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         return 130
+
+
+def _note_interrupts() -> None:
+    """Ctrl-C raises KeyboardInterrupt as ever, and is remembered: a command that catches it to stop cleanly
+    still exits 130 (the shell's convention, README). A SIGINT ignored by the caller (a background job) stays so."""
+    from .errors import INTERRUPTED
+
+    def on_sigint(_signum, _frame) -> None:
+        INTERRUPTED.set()
+        raise KeyboardInterrupt
+
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, on_sigint)
 
 
 if __name__ == "__main__":

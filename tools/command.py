@@ -102,9 +102,11 @@ def connect_args(p: argparse.ArgumentParser, timeout: bool = True) -> None:
 # --- what commands that join the bus need --------------------------------------------------------------
 
 def load_graph(path: str) -> Any:
+    """The graph file with this process's identity applied ($FOLLOWBUS_DOMAIN, ..., tools/identity.py)."""
     from ..bus.graph import load_graph as load
+    from .identity import apply_identity
 
-    return load(path)
+    return apply_identity(load(path))
 
 
 def settings(args: argparse.Namespace) -> Any:
@@ -119,4 +121,26 @@ def namespace(args: argparse.Namespace) -> str:
         return args.namespace
     if Path(getattr(args, "graph", "graph.yaml")).exists():
         return load_graph(args.graph).namespace
-    return "fb"
+    from .identity import apply_identity
+
+    return apply_identity(_DefaultGraph()).namespace
+
+
+class _DefaultGraph:
+    """What a tool assumes with no graph file: namespace fb on the default endpoint (then the identity)."""
+
+    def __init__(self) -> None:
+        from ..bus.session import ZenohSettings
+
+        self.namespace = "fb"
+        self.zenoh = ZenohSettings()
+
+
+def identity_args(p: argparse.ArgumentParser, auto: bool = False) -> None:
+    """A launched graph's identity on the bus (tools/identity.py): refused when that namespace already runs there."""
+    p.add_argument("--domain", metavar="N" + ("|auto" if auto else ""),
+                   help="run in domain N: the graph's port + N and namespace <namespace>-dN, apart from every other "
+                        "domain (default: $FOLLOWBUS_DOMAIN, else 0: the graph as written)"
+                        + ("; auto: the first domain where no graph runs" if auto else ""))
+    p.add_argument("--namespace", help="bus namespace (default: the graph's, or $FOLLOWBUS_NAMESPACE)")
+    p.add_argument("--port", help="the well-known port peers meet on (default: the graph's, or $FOLLOWBUS_PORT)")

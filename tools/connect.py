@@ -6,6 +6,9 @@ zenoh-python 1.10 raises the same ``zenoh.ZError: Unable to connect to any of [.
 nothing listens on the endpoint or the router refused our credentials (it closes the link in answer to
 the handshake, and retries go on until ``connect/timeout_ms``). A plain TCP connection to the endpoint
 tells the two apart: accepted means something listens there, so the zenoh handshake itself was refused.
+A TLS handshake of our own (Python's ssl, with the CA the session would use) then tells a TLS failure (no CA,
+a CA that did not sign the robot's certificate, ``tcp/`` to a TLS port, ``tls/`` to a plain one) from a refused
+password.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import logging
 import os
 import secrets
 import socket
+import ssl
 import sys
 import time
 from pathlib import Path
@@ -72,6 +76,68 @@ def endpoint_listening(endpoint: str, timeout_s: float = PROBE_TIMEOUT_S) -> boo
         return False
 
 
+def tls_ca(config: dict[str, Any]) -> str | None:
+    """The CA certificate file a session verifies a tls/ endpoint with (``transport/link/tls/root_ca_certificate``)."""
+    value = config.get("transport/link/tls/root_ca_certificate")
+    if value is None:
+        value = (config.get("transport/link/tls") or {}).get("root_ca_certificate")
+    return str(value) if value else None
+
+
+def _tls_handshake(host: str, port: int, context: ssl.SSLContext) -> None:
+    with socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S * 4) as raw, \
+            context.wrap_socket(raw, server_hostname=host):
+        pass
+
+
+def _speaks_tls(host: str, port: int) -> bool:
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.check_hostname, context.verify_mode = False, ssl.CERT_NONE  # only: is it TLS at all?
+    try:
+        _tls_handshake(host, port, context)
+        return True
+    except ssl.SSLError as exc:
+        return "CERTIFICATE_REQUIRED" in str(exc).upper()  # TLS, wanting a client certificate
+    except OSError:
+        return False
+
+
+def tls_problem(endpoint: str, config: dict[str, Any]) -> str | None:
+    """Why a session would fail the TLS handshake with a listening ``endpoint`` (None: no TLS problem found)."""
+    target = _host_port(endpoint)
+    if target is None:
+        return None
+    host, port = target
+    if endpoint.startswith("tcp/"):
+        if _speaks_tls(host, port):
+            return (f"{endpoint} is a TLS port: connect with tls/{endpoint.partition('/')[2]} and the robot's CA "
+                    "certificate (--ca FILE)")
+        return None
+    if not endpoint.startswith("tls/"):
+        return None
+    if not _speaks_tls(host, port):
+        return f"TLS handshake with {endpoint} failed: it does not speak TLS (a tcp/ endpoint?)"
+    ca = tls_ca(config)
+    if ca is None:
+        return f"TLS handshake with {endpoint} failed: no CA certificate to verify the robot's (pass --ca FILE)"
+    try:
+        context = ssl.create_default_context(cafile=ca)
+    except (OSError, ssl.SSLError) as exc:
+        return f"TLS: cannot use the CA certificate {ca}: {getattr(exc, 'strerror', None) or exc}"
+    try:
+        _tls_handshake(host, port, context)
+    except ssl.SSLCertVerificationError as exc:
+        return (f"TLS handshake with {endpoint} failed: {exc.verify_message} (is the robot's certificate signed "
+                f"by {ca}, and for {host}?)")
+    except ssl.SSLError as exc:
+        if "CERTIFICATE_REQUIRED" in str(exc).upper():
+            return f"TLS handshake with {endpoint} failed: the robot requires a client certificate (mutual TLS)"
+        return f"TLS handshake with {endpoint} failed: {exc.reason or exc}"
+    except OSError:
+        return None
+    return None
+
+
 def explain_connect_failure(settings: ZenohSettings) -> str:
     """One line: nobody listens (no graph running), or the graph refused us (authentication, TLS)."""
     endpoints = list(settings.connect) or list(settings.listen)
@@ -83,12 +149,15 @@ def explain_connect_failure(settings: ZenohSettings) -> str:
             return f"could not connect to {where} within {settings.connect_timeout_ms / 1000:g} s"
         return (f"no graph is running on {where}: start one with `followbus launch` or `followbus router` "
                 "(or join another with --connect tcp/HOST:PORT)")
+    tls = tls_problem(listening[0], settings.config)
+    if tls:
+        return tls
     user = auth_user(settings.config)
     if user:
         return f"authentication failed for user {user} on {listening[0]} (wrong or missing password)"
     if listening[0].startswith("tls/"):
-        return (f"{listening[0]} refused the connection: check the CA certificate (--ca), and whether the graph "
-                "requires a user (--user, --password)")
+        return (f"{listening[0]} refused the connection after the TLS handshake: the graph requires a user "
+                "(--user, --password)")
     return (f"{listening[0]} refused the connection: the graph requires authentication "
             "(--user and --password, or $FOLLOWBUS_ZENOH_PASSWORD)")
 
@@ -151,13 +220,14 @@ def client_settings(graph_path: str | None, connect: list[str] | None = None, us
     identity from --user/--password ($FOLLOWBUS_ZENOH_USER / $FOLLOWBUS_ZENOH_PASSWORD; a terminal asks),
     else, without --connect, the graph's own; ``ca`` for a tls/ endpoint. ``viewer`` (monitor, foxglove):
     no shared memory and a short connect timeout, since they reconnect by themselves."""
+    from .command import _DefaultGraph, load_graph  # the graph with this process's identity (tools/identity.py)
     from .errors import UsageError
+    from .identity import apply_identity
 
-    base = ZenohSettings()
     if graph_path and Path(graph_path).exists():
-        from ..bus.graph import load_graph
-
         base = load_graph(graph_path).zenoh
+    else:
+        base = apply_identity(_DefaultGraph()).zenoh
     user = user or os.environ.get(USER_ENV) or None
     if password is not None and not user:
         raise UsageError("--password needs --user (the zenoh user name it belongs to)")

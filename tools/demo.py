@@ -103,6 +103,21 @@ class DemoWatcher:
 
 
 DEMO_LOG_DIR = Path("state")
+CHECKOUT = Path(__file__).resolve().parents[1]  # the repository (followbus is installed editable from it)
+
+
+def default_graph_path(given: str) -> str:
+    """The demo's graph: ``given`` when it exists; run from another directory, the checkout's graph.yaml (said in
+    one line); else a UsageError saying what to do."""
+    from .errors import UsageError
+
+    if Path(given).exists() or given != "graph.yaml":
+        return given  # a missing --graph FILE is the graph loader's one line
+    shipped = CHECKOUT / "graph.yaml"
+    if shipped.exists():
+        print(f"no graph.yaml in {Path.cwd()}: running the checkout's {shipped}", flush=True)
+        return str(shipped)
+    raise UsageError("no graph.yaml here: run `followbus demo` in the followbus checkout, or give --graph FILE")
 ERROR_LINES_SHOWN = 3
 
 

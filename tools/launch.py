@@ -27,11 +27,13 @@ from ..bus.health import (
     process_table,
 )
 from ..bus.hosts import nodes_on
+from ..bus.liveness import STOPPED_WORKING_EXIT
 from ..bus.node import LAUNCH_ID_ENV, LAUNCHED_NODES_ENV
 from ..bus.pubsub import Publisher, direct_callback
 from ..bus.session import open_session
 
 log = logging.getLogger("followbus.launch")
+TOOL_GRACE_S = 30.0  # a tool beside the graph (the recorder) gets this long to stop after SIGTERM
 
 PR_SET_PDEATHSIG = 1
 # A node that fails again after being restarted this recently is crash-looping: its restarts are not helping.
@@ -77,8 +79,10 @@ class Launcher:
     def __init__(self, graph: Graph, *, only: list[str] | None = None, host: str | None = None,
                  startup_timeout_s: float = 30.0, grace_s: float = 5.0, extra_env: dict[str, str] | None = None,
                  extra_children: list[tuple[str, list[str]]] | None = None, quiet: bool = False,
-                 overrides: list[str] | None = None, log_file: Path | None = None, watch_outputs: bool = False):
+                 overrides: list[str] | None = None, log_file: Path | None = None, watch_outputs: bool = False,
+                 log_dir: Path | None = None):
         self.graph = graph
+        self.log_dir = log_dir  # a log file per node (<log_dir>/<node>.log) besides the prefixed lines
         # Subscribe to every node's outputs until its first message: problems() names the silent ones.
         self.watch_outputs = watch_outputs
         self.interrupted = False  # stopped by Ctrl-C/SIGTERM rather than by its duration
@@ -132,7 +136,11 @@ class Launcher:
     def _pump(self, child: Child, stream) -> None:
         width = max(len(c.name) for c in self.children)
         prefix = f"[{child.name:<{width}}] "
+        own = open(self.log_dir / f"{child.name}.log", "ab") if self.log_dir else None  # noqa: SIM115
         for raw in iter(stream.readline, b""):
+            if own is not None:
+                own.write(raw)
+                own.flush()
             line = raw.decode(errors="replace").rstrip()
             if ERROR_LINE_RE.search(line.strip()):
                 child.last_error = line.strip()
@@ -140,6 +148,8 @@ class Launcher:
                 child.last_line = line.strip()
             self._print(prefix + line)
         stream.close()
+        if own is not None:
+            own.close()
 
     def _start(self, child: Child) -> None:
         child.proc = subprocess.Popen(
@@ -220,17 +230,9 @@ class Launcher:
 
     def problems(self) -> list[str]:
         """What went wrong in the run that just ended, one phrase per node: a node that failed for good or
-        crash-looped (with the last error it printed), and, for a run that lasted its duration with
-        ``watch_outputs``, a node that never published any of its outputs."""
-        out = []
-        for child in self.children:
-            last_t, last_code = child.failures[-1] if child.failures else (0.0, child.exit_code)
-            recent = [t for t, _ in child.failures if t >= last_t - CRASH_LOOP_WINDOW_S]
-            if child.failed or len(recent) >= CRASH_LOOP_EXITS:
-                what = "failed for good" if child.failed else "crash-looped"
-                said = child.last_error or child.last_line
-                why = f": {said[:160]}" if said else ""
-                out.append(f"{child.name} {what} (exited {len(child.failures)} times, last status {last_code}){why}")
+        crash-looped (with the last error it printed), one that stopped working and was restarted, and, for a
+        run that lasted its duration with ``watch_outputs``, a node that never published any of its outputs."""
+        out = [phrase for phrase in map(_failure, self.children) if phrase]
         if self.watch_outputs and not self.interrupted:
             silent = [c.name for c in self.children if c.spec.run != "<tool>" and c.spec.outputs and not c.published]
             if silent:
@@ -311,12 +313,14 @@ class Launcher:
         for child in running:
             with contextlib.suppress(ProcessLookupError):
                 child.proc.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + self.grace_s
+        stopped_at = time.monotonic()
         for child in running:
+            # The recorder drains its queue to disk and finalises the file: killed, it leaves one to `recover`.
+            grace_s = self.grace_s if child.spec.run != "<tool>" else max(self.grace_s, TOOL_GRACE_S)
             try:
-                child.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+                child.proc.wait(timeout=max(0.0, stopped_at + grace_s - time.monotonic()))
             except subprocess.TimeoutExpired:
-                log.warning("%s did not stop within %.1f s; killing it", child.name, self.grace_s)
+                log.warning("%s did not stop within %.1f s; killing it", child.name, grace_s)
                 child.proc.kill()
                 child.proc.wait()
         for child in self.children:
@@ -336,8 +340,27 @@ class Launcher:
         return status
 
 
+def _failure(child: Child) -> str | None:
+    """One phrase for a child that failed for good, crash-looped or stopped working (bus/liveness.py); else None."""
+    said = child.last_error or child.last_line
+    why = f": {said[:160]}" if said else ""
+    last_t, last_code = child.failures[-1] if child.failures else (0.0, child.exit_code)
+    recent = [t for t, _ in child.failures if t >= last_t - CRASH_LOOP_WINDOW_S]
+    if child.failed or len(recent) >= CRASH_LOOP_EXITS:
+        what = "failed for good" if child.failed else "crash-looped"
+        return f"{child.name} {what} (exited {len(child.failures)} times, last status {last_code}){why}"
+    if any(code == STOPPED_WORKING_EXIT for _, code in child.failures):
+        # Restarted, and maybe working again, but a scripted run must not pass as if nothing happened.
+        return f"{child.name} stopped working and was restarted ({child.restarts} restarts){why}"
+    return None
+
+
 def install_stop_signals(launcher: Launcher) -> None:
+    from .errors import INTERRUPTED
+
     def handler(signum, _frame):
+        if signum == signal.SIGINT:
+            INTERRUPTED.set()
         log.info("received %s: stopping the graph", signal.Signals(signum).name)
         launcher.request_stop()
 

@@ -1,9 +1,10 @@
 """``followbus bench chaos``: the tracking graph under faults. Does the loop always recover?
 
 The harness launches the tracking graph of graph.yaml (private loopback port and namespace; the demo
-scene, looping, real time at 30 Hz; the ``simulated`` detector by default) and tries one fault at a
-time: SIGKILL of each node (the launcher restarts it), SIGSTOP of prediction for 2 s, CPU burners, a
-slow detector, and messages injected on the real bus from the harness's own Zenoh session (a track
+scene, looping, real time at 30 Hz; the real YOLOX-nano detector by default), optionally under a background
+load of ``--burners N`` processes spinning a CPU each for the whole run, and tries one fault at a time: SIGKILL
+of each node (the launcher restarts it), SIGSTOP of prediction for 2 s, a stretch of following under the
+load, a slow (simulated) detector, and messages injected on the real bus from the harness's own Zenoh session (a track
 stamped an hour ahead, a far-future frame_seq, a NaN measurement, malformed payloads, a flood of
 frames). An observer on the same bus records every track, motor command and ground-truth message
 with its receive time, and after each fault the harness checks:
@@ -21,6 +22,9 @@ with its receive time, and after each fault the harness checks:
 * fault-specific checks: the node really restarted, malformed messages were counted in
   ``decode_errors`` with no restart, p99 capture→command latency and the fraction of captured frames
   that produced a command under load.
+
+Every figure comes with the machine's load: the 1-minute load average is sampled through the run and
+printed with the summary (and each fault's result), since a bound that holds on a quiet machine may not.
 
 If the loop did not recover, the next fault starts on a freshly launched graph, so one lock-up does
 not spoil the others. Pure harness: nothing here changes the graph's code paths.
@@ -189,13 +193,15 @@ class WatchdogReport:
 
 
 def watchdog_report(tracks: Sequence[TrackObs], commands: Sequence[CommandObs], t0_ns: int, t1_ns: int,
-                    timeout_ms: float, bound_ms: float) -> WatchdogReport:
+                    timeout_ms: float, bound_ms: float, motor_down: tuple[int, int] | None = None) -> WatchdogReport:
     """Stop latency for every pause in the track stream inside [t0, t1] that follows a moving state.
 
     A pause longer than ``timeout_ms`` gets its stop latency measured when a zero command came in it;
     a pause longer than ``bound_ms`` without a zero command within ``bound_ms`` is a violation. Times are
     the publishers' ``pub_ns`` (prediction's, the motor's; same machine clock), so the harness's own
-    scheduling does not enter the figure; the window [t0, t1] is on receive times.
+    scheduling does not enter the figure; the window [t0, t1] is on receive times. ``motor_down``: the motor
+    process's own death (kill to back up, pub_ns clock): a pause that starts then, or within the bound before,
+    cannot be answered by a stop on the bus; the MCU's own stop covers it (each command's hold_ms, README).
     """
     report = WatchdogReport()
     seq = sorted((t for t in tracks if t0_ns <= t.recv_ns <= t1_ns), key=lambda t: t.pub_ns)
@@ -205,6 +211,8 @@ def watchdog_report(tracks: Sequence[TrackObs], commands: Sequence[CommandObs], 
         nxt = seq[i + 1].pub_ns if i + 1 < len(seq) else end
         gap_ms = (nxt - last.pub_ns) / MS
         if gap_ms <= timeout_ms or last.state not in MOVING_STATES:
+            continue
+        if motor_down is not None and motor_down[0] - bound_ms * MS <= last.pub_ns <= motor_down[1]:
             continue
         stop = next((z for z in zeros if last.pub_ns < z <= nxt), None)
         if stop is not None:
@@ -465,10 +473,10 @@ class ChaosGraph:
 
 @dataclass
 class ChaosOptions:
-    detector: str = "simulated"  # simulated | yolox416
+    detector: str = "yolox416"  # yolox416 | simulated
     scene: str = "corridor-occlusion"
-    burners: int = 2
-    load_s: float = 10.0  # burners and detector delay: how long the load lasts
+    burners: int = 0  # processes spinning a CPU each for the whole run (background load)
+    load_s: float = 10.0  # the load fault and the detector delay: how long the measured stretch lasts
     recovery_bound_s: float = 2.0  # fault over (node back / injection done) -> following again
     hold_s: float = 3.0  # then: tracking most of this long
     hold_fraction: float = 0.5
@@ -485,6 +493,7 @@ class ChaosOptions:
     restart_timeout_s: float = 30.0
     record: bool = False
     port: int = 0
+    namespace: str = ""  # default chaos<port>
     workdir: Path | None = None
     log_file: Path | None = None
 
@@ -501,6 +510,7 @@ class Injection:
     load_window: tuple[int, int] | None = None
     injected_stamps: set[int] = field(default_factory=set)
     expect_pause: bool = False  # the fault stops the track stream (noted when no watchdog stop was seen)
+    motor_down: tuple[int, int] | None = None  # the motor process itself was dead (kill -> back up)
     check_load_processed: bool = False
     after: Callable[[], None] | None = None  # checks that need the status messages after the fault
 
@@ -534,6 +544,7 @@ class FaultResult:
     latency_p50_ms: float | None = None
     latency_p99_ms: float | None = None
     processed: float | None = None
+    load1: float | None = None  # 1-minute load average when the fault's judgement ended
     relaunched: bool = False
     notes: list[str] = field(default_factory=list)
 
@@ -584,25 +595,29 @@ def _stop_prediction(run: ChaosRunner) -> Injection:
     return Injection(start, time.time_ns(), expect_pause=True, notes=["prediction SIGSTOPped for 2 s"])
 
 
-def _burners(run: ChaosRunner) -> Injection:
+def start_burners(n: int) -> list[subprocess.Popen]:
+    """``n`` processes spinning a CPU each (at the default priority), dying with this one."""
     from ..launch import _die_with_parent
 
-    n = run.options.burners
-    procs = []
+    return [subprocess.Popen([sys.executable, "-c", "while 1: pass"], preexec_fn=_die_with_parent,
+                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL) for _ in range(n)]
+
+
+def stop_burners(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        p.kill()
+    for p in procs:
+        p.wait()
+
+
+def _load(run: ChaosRunner) -> Injection:
+    # The run's background burners (--burners) are the load; this stretch measures following under it.
     start = time.time_ns()
-    try:
-        for _ in range(n):
-            procs.append(subprocess.Popen([sys.executable, "-c", "while 1: pass"], preexec_fn=_die_with_parent,
-                                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL))
-        time.sleep(run.options.load_s)
-    finally:
-        for p in procs:
-            p.kill()
-        for p in procs:
-            p.wait()
+    time.sleep(run.options.load_s)
     end = time.time_ns()
-    return Injection(start, end, load_window=(start + NS, end), check_load_processed=True,
-                     notes=[f"{n} CPU burners for {run.options.load_s:.0f} s on {os.cpu_count()} cores"])
+    return Injection(start, end, load_window=(start, end), check_load_processed=True,
+                     notes=[f"{run.options.burners} background CPU burners on {os.cpu_count()} cores, "
+                            f"load average {os.getloadavg()[0]:.1f}, {run.options.load_s:.0f} s measured"])
 
 
 def _detector_delay(run: ChaosRunner) -> Injection:
@@ -783,7 +798,8 @@ def _faults() -> dict[str, Fault]:
         *(Fault(f"kill-{n}", f"SIGKILL {n}; the launcher restarts it", _kill(n))
           for n in ("detection", "prediction", "reid", "template", "motor")),
         Fault("stop-prediction-2s", "SIGSTOP prediction for 2 s, then SIGCONT", _stop_prediction),
-        Fault("burners", "processes burning a CPU each (--burners, default 2) for --load-seconds", _burners),
+        Fault("load", "--load-seconds of following under the run's load (--burners background CPU burners): "
+                      "p99 capture->command and frames answered", _load),
         Fault("detector-delay-80ms", "the simulated detector takes 80 ms per frame (sim_delay_ms: 80)",
               _detector_delay, variant="delay80", simulated_only=True),
         Fault("future-stamp-track", "a TRACKING track stamped one hour ahead on prediction/track, then SIGKILL "
@@ -805,7 +821,7 @@ def _faults() -> dict[str, Fault]:
 
 
 FAULTS: dict[str, Fault] = _faults()
-ALIASES = {"capture-restart": "kill-capture", "burners-2": "burners"}
+ALIASES = {"capture-restart": "kill-capture", "burners": "load", "burners-2": "load"}
 CI_FAULTS = ("future-stamp-track", "future-seq-frame", "future-seq-detections", "nan-measurement", "kill-capture",
              "kill-reid", "malformed", "flood")
 
@@ -847,7 +863,7 @@ class ChaosRunner:
         self.options = options
         self.progress = progress or (lambda _line: None)
         self.port = options.port or _free_port()
-        self.namespace = f"chaos{self.port}"
+        self.namespace = options.namespace or f"chaos{self.port}"
         self._tmp: tempfile.TemporaryDirectory | None = None
         self.workdir = options.workdir
         self.graph: ChaosGraph | None = None
@@ -861,6 +877,9 @@ class ChaosRunner:
         self._publishers: dict[tuple[str, str, str, bool], Publisher] = {}
         self._last_survived = True
         self.launches = 0
+        self._burners: list[subprocess.Popen] = []
+        self.load_samples: list[float] = []  # 1-minute load average, once a second through the run
+        self._sampling = threading.Event()
 
     # -- lifecycle
     def __enter__(self) -> ChaosRunner:
@@ -876,6 +895,8 @@ class ChaosRunner:
             self.session = open_session(graph.zenoh)  # the harness holds the port: it outlives every node
             self.health = HealthWatcher(self.session, self.namespace)
             self.observer = Observer(self.session, graph, self.limits)
+            self._burners = start_burners(self.options.burners)
+            threading.Thread(target=self._sample_load, name="chaos-load", daemon=True).start()
         except BaseException:
             self.close()
             raise
@@ -884,7 +905,14 @@ class ChaosRunner:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def _sample_load(self) -> None:
+        while not self._sampling.wait(1.0):
+            self.load_samples.append(os.getloadavg()[0])
+
     def close(self) -> None:
+        self._sampling.set()
+        stop_burners(self._burners)
+        self._burners = []
         if self.stopped_pid is not None:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(self.stopped_pid, signal.SIGCONT)
@@ -1021,7 +1049,8 @@ class ChaosRunner:
         ok = _wait(back, self.options.restart_timeout_s)
         h = self.health.snapshot()[node]
         end = h.since_ns if ok else time.time_ns()
-        inj = Injection(start, end, back_s=(end - start) / NS if ok else None, expect_pause=node != "motor")
+        inj = Injection(start, end, back_s=(end - start) / NS if ok else None, expect_pause=node != "motor",
+                        motor_down=(start, end) if node == "motor" else None)
         _check(inj.checks, "restarted", ok,
                f"{node} back after {(end - start) / NS:.1f} s (pid {pid} -> {self.graph.pid(node)})" if ok
                else f"{node} not back within {self.options.restart_timeout_s:.0f} s")
@@ -1082,7 +1111,7 @@ class ChaosRunner:
                + (f" (first: {unsafe[0][1]})" if unsafe else "")
                + (f", {undecodable} undecodable" if undecodable else ""))
         wd = watchdog_report(tracks, commands, inj.start_ns - NS, t_end - 300 * MS,
-                             self.limits.watchdog_timeout_ms, self.watchdog_bound_ms)
+                             self.limits.watchdog_timeout_ms, self.watchdog_bound_ms, inj.motor_down)
         _check(checks, "watchdog", not wd.violations,
                "; ".join(wd.violations[:3]) + (f" (+{len(wd.violations) - 3} more)" if len(wd.violations) > 3 else "")
                if wd.violations else (f"worst stop {wd.worst_ms:.0f} ms" if wd.stops_ms else
@@ -1123,7 +1152,7 @@ class ChaosRunner:
             commands=len(commands), watchdog_ms=wd.worst_ms, watchdog_bound_ms=self.watchdog_bound_ms,
             back_s=inj.back_s, recovery_s=recovery_s, recovery_bound_s=opts.recovery_bound_s, hidden_s=hidden_s,
             held=held, latency_p50_ms=figures.get("p50_ms"), latency_p99_ms=figures.get("p99_ms"),
-            processed=figures.get("processed"), relaunched=relaunched,
+            processed=figures.get("processed"), load1=os.getloadavg()[0], relaunched=relaunched,
             notes=inj.notes + [f"{name}: {detail}" for name, (passed, detail) in checks.items() if passed],
         )
 
@@ -1141,26 +1170,25 @@ def _fmt(value: float | None, spec: str, none: str = "—") -> str:
     return none if value is None else format(value, spec)
 
 
+def _worst(results: Sequence[FaultResult], attr: str, pick: Callable[[list[Any]], Any] = max) -> Any:
+    """``pick`` (max, min, median) of a figure over the results that have it; None when none has."""
+    values = [getattr(r, attr) for r in results if getattr(r, attr) is not None]
+    return pick(values) if values else None
+
+
 def summarise(results: Sequence[FaultResult]) -> list[dict[str, Any]]:
     """One row per fault over repeats: tried, survived, worst figures."""
     rows: list[dict[str, Any]] = []
     for name in dict.fromkeys(r.fault for r in results):
         rs = [r for r in results if r.fault == name]
-        rec = [r.recovery_s for r in rs if r.recovery_s is not None]
-        wd = [r.watchdog_ms for r in rs if r.watchdog_ms is not None]
-        back = [r.back_s for r in rs if r.back_s is not None]
-        held = [r.held for r in rs if r.held is not None]
-        p99 = [r.latency_p99_ms for r in rs if r.latency_p99_ms is not None]
-        p50 = [r.latency_p50_ms for r in rs if r.latency_p50_ms is not None]
-        proc = [r.processed for r in rs if r.processed is not None]
         rows.append({
             "fault": name, "tried": len(rs), "survived": sum(r.survived for r in rs),
-            "unsafe": sum(r.unsafe_commands for r in rs), "watchdog_worst_ms": max(wd) if wd else None,
-            "back_max_s": max(back) if back else None,
-            "recovery_median_s": statistics.median(rec) if rec else None, "recovery_max_s": max(rec) if rec else None,
-            "not_resumed": sum(r.recovery_s is None for r in rs), "held_min": min(held) if held else None,
-            "p50_ms": max(p50) if p50 else None, "p99_ms": max(p99) if p99 else None,
-            "processed_min": min(proc) if proc else None,
+            "unsafe": sum(r.unsafe_commands for r in rs), "watchdog_worst_ms": _worst(rs, "watchdog_ms"),
+            "back_max_s": _worst(rs, "back_s"), "recovery_median_s": _worst(rs, "recovery_s", statistics.median),
+            "recovery_max_s": _worst(rs, "recovery_s"), "not_resumed": sum(r.recovery_s is None for r in rs),
+            "held_min": _worst(rs, "held", min), "p50_ms": _worst(rs, "latency_p50_ms"),
+            "p99_ms": _worst(rs, "latency_p99_ms"), "processed_min": _worst(rs, "processed", min),
+            "load1_max": _worst(rs, "load1"),
             "failures": sorted({f.split(":", 1)[0] for r in rs for f in r.failures}),
         })
     return rows
@@ -1168,8 +1196,9 @@ def summarise(results: Sequence[FaultResult]) -> list[dict[str, Any]]:
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     lines = ["| fault | survived / tried | unsafe cmds | watchdog stop ms (worst) | node back s | "
-             "recovery s (median / max) | tracking held (min) | p50 / p99 ms | processed | failed checks |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "recovery s (median / max) | tracking held (min) | p50 / p99 ms | processed | load (max) | "
+             "failed checks |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         rec = (f"{_fmt(r['recovery_median_s'], '.2f')} / {_fmt(r['recovery_max_s'], '.2f')}"
                + (f" ({r['not_resumed']} never)" if r["not_resumed"] else ""))
@@ -1179,7 +1208,8 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
                      f"{_fmt(None if r['held_min'] is None else 100 * r['held_min'], '.0f')}"
                      f"{'' if r['held_min'] is None else ' %'} | {lat} | "
                      f"{_fmt(None if r['processed_min'] is None else 100 * r['processed_min'], '.0f')}"
-                     f"{'' if r['processed_min'] is None else ' %'} | {', '.join(r['failures']) or '—'} |")
+                     f"{'' if r['processed_min'] is None else ' %'} | {_fmt(r['load1_max'], '.1f')} | "
+                     f"{', '.join(r['failures']) or '—'} |")
     return "\n".join(lines)
 
 
@@ -1208,6 +1238,7 @@ def run_bench_chaos(args: Any) -> int:
     options = ChaosOptions(detector=args.detector, scene=args.scene, burners=args.burners, load_s=args.load_seconds,
                            recovery_bound_s=args.recovery_bound, hold_s=args.hold,
                            malformed_per_key=args.malformed_per_key, record=args.record, port=args.port,
+                           namespace=args.namespace,
                            log_file=Path(args.log))
     total = len(faults) * args.repeat
     results: list[FaultResult] = []
@@ -1235,6 +1266,7 @@ def run_bench_chaos(args: Any) -> int:
                              f"unsafe {result.unsafe_commands})"
                              + "".join(f"\n    {f}" for f in result.failures))
             launches = runner.launches
+            load_samples = list(runner.load_samples)
     except ChaosError as exc:
         print(f"bench chaos: {exc}", file=sys.stderr)
         return 1
@@ -1244,15 +1276,45 @@ def run_bench_chaos(args: Any) -> int:
     rows = summarise(results)
     print()
     print(format_table(rows))
-    survived = sum(r.survived for r in results)
-    print(f"\n{survived} of {len(results)} fault runs survived; {sum(r.unsafe_commands for r in results)} unsafe "
-          f"commands; {launches} launch{'es' if launches != 1 else ''} of the graph; "
-          f"{time.monotonic() - started:.0f} s; "
-          f"watchdog bound {results[0].watchdog_bound_ms:.0f} ms, recovery bound {options.recovery_bound_s:.1f} s"
-          if results else "no faults run")
+    head = headline(results, load_samples, options)
+    print()
+    print(format_headline(head, launches, time.monotonic() - started) if results else "no faults run")
     if args.json:
         Path(args.json).write_text(json.dumps({
             "options": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(options).items()},
-            "cpu_count": os.cpu_count(), "load_average": os.getloadavg(),
+            "cpu_count": os.cpu_count(), "load_average": os.getloadavg(), "headline": head,
+            "load_samples": load_samples,
             "summary": rows, "runs": [dataclasses.asdict(r) for r in results]}, indent=1, ensure_ascii=False))
-    return 0 if results and survived == len(results) else 1
+    return 0 if results and head["survived"] == len(results) else 1
+
+
+def headline(results: Sequence[FaultResult], load_samples: Sequence[float], options: ChaosOptions) -> dict[str, Any]:
+    """The figures a reader compares across runs and machines: load, survival, unsafe commands, the worst stop,
+    following latency and frames answered under load (the load fault's)."""
+    return {
+        "detector": options.detector, "burners": options.burners, "cpu_count": os.cpu_count(),
+        "load1_mean": statistics.fmean(load_samples) if load_samples else None,
+        "load1_max": max(load_samples) if load_samples else None,
+        "loadavg_end": Path("/proc/loadavg").read_text().strip() if Path("/proc/loadavg").exists() else None,
+        "runs": len(results), "survived": sum(r.survived for r in results),
+        "unsafe_commands": sum(r.unsafe_commands for r in results),
+        "commands": sum(r.commands for r in results),
+        "stop_max_ms": _worst(results, "watchdog_ms"), "stop_bound_ms": options.watchdog_bound_ms,
+        "following_p99_ms": _worst(results, "latency_p99_ms"), "p99_bound_ms": options.load_p99_ms,
+        "frames_answered_min": _worst(results, "processed", min),
+    }
+
+
+def format_headline(head: dict[str, Any], launches: int, elapsed_s: float) -> str:
+    answered = head["frames_answered_min"]
+    return "\n".join([
+        f"load: {head['burners']} background burners on {head['cpu_count']} cores; 1-min load average "
+        f"{_fmt(head['load1_mean'], '.1f')} mean, {_fmt(head['load1_max'], '.1f')} max; "
+        f"/proc/loadavg at the end: {head['loadavg_end']}",
+        f"survived: {head['survived']} of {head['runs']} fault runs ({head['detector']} detector); "
+        f"unsafe commands: {head['unsafe_commands']} of {head['commands']}",
+        f"stop latency max: {_fmt(head['stop_max_ms'], '.0f')} ms (bound {head['stop_bound_ms']:.0f}); "
+        f"following p99: {_fmt(head['following_p99_ms'], '.0f')} ms (bound {head['p99_bound_ms']:.0f}); "
+        f"frames answered: {_fmt(None if answered is None else 100 * answered, '.0f')} %",
+        f"{launches} launch{'es' if launches != 1 else ''} of the graph; {elapsed_s:.0f} s",
+    ])

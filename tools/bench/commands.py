@@ -36,26 +36,56 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--detector", default="yolox", choices=("yolox", "yolox640", "hog", "simulated"),
                    help="detection backend (default yolox = YOLOX-nano@416; falls back to hog without the model)")
     p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
+    p.add_argument("--resolution", default="640x480", metavar="WxH", type=_resolution,
+                   help="the scene's frame size (default 640x480; e.g. 1280x720, 1920x1080)")
+    p.add_argument("--lane", choices=("on", "off"), default="off",
+                   help="the same-host shared-memory lane (zenoh: shm_lane; default off, as graph.yaml)")
     p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
 
 
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1280x720, not {text!r}") from None
+    if not (32 <= w <= 7680 and 32 <= h <= 4320):
+        raise argparse.ArgumentTypeError(f"{text}: width 32-7680 and height 32-4320 pixels")
+    return w, h
+
+
+def _record_views_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "Feed a recording's bus messages through the recorder's convert and write work, in one process, "
+             "with the views as they were (base64 JPEG JSON, annotations) and as they are (ROS 2 CDR, JSON of "
+             "every message, annotations, the .ros2.mcap companion); per frame, rounds alternated.",
+             "example: followbus launch graph.yaml --duration 20 --record run.mcap --set detection.backend=simulated\n"
+             "         followbus bench record-views run.mcap --rounds 3", raw=True)
+    p.add_argument("file", help="a recording (followbus record / launch --record)")
+    p.add_argument("--rounds", type=int, default=3, help="rounds of before, now (default 3)")
+    p.add_argument("--frame-output", default="frame", metavar="NAME",
+                   help="frames are counted on the keys <node>/NAME (default frame)")
+
+
 def _chaos_args(p: argparse.ArgumentParser) -> None:
     describe(p,
-             "Launch graph.yaml on a private loopback port (scene looping at 30 Hz, simulated detector)\n"
-             "and try one fault at a time. After each fault it requires:\n"
+             "Launch graph.yaml on a private loopback port (scene looping at 30 Hz, the real YOLOX-nano\n"
+             "detector), optionally under --burners background CPU burners for the whole run, and try one\n"
+             "fault at a time. After each fault it requires:\n"
              "  - 0 unsafe motor commands (a non-finite field, a speed beyond the motor's limits);\n"
              "  - a zero command <= 200 ms after the last track whenever tracks stop;\n"
              "  - the robot following again (TRACKING) within --recovery-bound of the fault's end (node\n"
              "    back up, or injection over; time the scene itself hides the target is added), then\n"
              "    tracking most of the next --hold seconds;\n"
-             "  - under load: p99 capture->command <= 250 ms, and >= 50 % of frames answered (burners).\n"
+             "  - under load: p99 capture->command <= 250 ms, and >= 50 % of frames answered (load).\n"
+             "It prints the load (1-min load average through the run, /proc/loadavg at the end) with the\n"
+             "figures: survival, unsafe commands, worst stop, following p99, frames answered.\n"
              "A fault the loop does not survive is followed by a fresh launch of the graph.\n\n"
              "faults (--faults, comma-separated; 'all' is the default, 'ci' the tests' subset):\n"
              "  kill-capture (capture-restart), kill-detection, kill-prediction, kill-reid, kill-template,\n"
              "  kill-motor          SIGKILL the node; the launcher restarts it\n"
              "  stop-prediction-2s  SIGSTOP prediction for 2 s\n"
-             "  burners             --burners processes spinning a CPU for --load-seconds\n"
+             "  load                --load-seconds of following under the run's load (--burners)\n"
              "  detector-delay-80ms detection takes 80 ms a frame (simulated sim_delay_ms; own launch)\n"
              "  future-stamp-track  a TRACKING track stamped +1 h, then SIGKILL prediction\n"
              "  future-seq-frame, future-seq-detections\n"
@@ -67,16 +97,18 @@ def _chaos_args(p: argparse.ArgumentParser) -> None:
              "Exit status 0 when every fault was survived, 1 otherwise.",
              "examples:\n  followbus bench chaos                                   every fault, the table\n"
              "  followbus bench chaos --faults kill-reid,nan-measurement --repeat 3\n"
-             "  followbus bench chaos --faults burners --burners 2 --load-seconds 20 --json chaos.json\n"
+             "  followbus bench chaos --faults load --burners 4 --load-seconds 20 --json chaos.json\n"
              "  followbus bench chaos --record --faults kill-recorder",
              raw=True)
     p.add_argument("--faults", metavar="NAME,...", help="faults to try, in order (default: all)")
-    p.add_argument("--detector", default="simulated", choices=("simulated", "yolox416"),
-                   help="detection backend (default simulated: deterministic, needs no model)")
+    p.add_argument("--detector", default="yolox416", choices=("yolox416", "simulated"),
+                   help="detection backend (default yolox416: the real detector, models/yolox_nano_416.onnx; "
+                        "simulated: deterministic and light, adds detector-delay-80ms)")
     p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
-    p.add_argument("--burners", type=int, default=2, metavar="N", help="CPU burners of the burners fault (default 2)")
+    p.add_argument("--burners", type=int, default=0, metavar="N",
+                   help="processes spinning a CPU each for the whole run: every fault under that load (default 0)")
     p.add_argument("--load-seconds", type=float, default=10.0, metavar="S",
-                   help="how long burners and the detector delay last (default 10)")
+                   help="how long the load fault and the detector delay are measured (default 10)")
     p.add_argument("--repeat", type=int, default=1, metavar="N", help="run the fault list N times (default 1)")
     p.add_argument("--record", action="store_true", help="run a recorder with the graph (adds kill-recorder)")
     p.add_argument("--recovery-bound", type=float, default=2.0, metavar="S",
@@ -86,6 +118,7 @@ def _chaos_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--malformed-per-key", type=int, default=10_000, metavar="N",
                    help="malformed payloads per input key (default 10000)")
     p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
+    p.add_argument("--namespace", default="", help="the graph's namespace (default chaos<port>)")
     p.add_argument("--log", default="state/chaos.log", help="where node logs go (default state/chaos.log)")
     p.add_argument("--json", metavar="FILE", help="also write every run's checks and figures as JSON")
 
@@ -166,6 +199,8 @@ COMMANDS = (
                 _link_args, Lazy("bench.link", "cmd_bench_link")),
         Command("chaos", "fault injection: does the live loop always recover? (RELIABILITY.md)", _chaos_args,
                 Lazy("bench.chaos", "run_bench_chaos")),
+        Command("record-views", "what the recorder's views cost per frame (convert and write), before and now",
+                _record_views_args, Lazy("bench.record_views", "run_bench_record_views")),
     )),
     Command("eval", "score followers on sequences (paper metrics, baselines, ablations, plots)", _eval_args,
             Lazy("bench.eval", "cmd_eval")),

@@ -37,7 +37,8 @@ def _cpu_ticks(pid: int) -> int | None:
         return None
 
 
-def _graph_text(scene: str, port: int, namespace: str, detector: str, sim_delay_ms: float = 0.0) -> str:
+def _graph_text(scene: str, port: int, namespace: str, detector: str, sim_delay_ms: float = 0.0,
+                resolution: tuple[int, int] | None = None, lane: bool | None = None) -> str:
     """graph.yaml of the repository on a private port and namespace, the scene looping in real time (also the
     graph `followbus bench chaos` launches)."""
     import yaml
@@ -47,6 +48,10 @@ def _graph_text(scene: str, port: int, namespace: str, detector: str, sim_delay_
     g["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     g["zenoh"]["connect"] = [f"tcp/127.0.0.1:{port}"]
     g["nodes"]["capture"]["params"].update(source=f"scene:{scene}", pace="realtime", fps=30.0, loop=True)
+    if resolution is not None:
+        g["nodes"]["capture"]["params"].update(width_px=resolution[0], height_px=resolution[1])
+    if lane is not None:
+        g["zenoh"]["shm_lane"] = lane
     det = g["nodes"]["detection"]["params"]
     if detector.startswith("yolox"):
         det.update(backend="yolox", input_size=640 if detector == "yolox640" else 416)
@@ -82,7 +87,8 @@ def run_bench_pipeline(args) -> int:
     recording = threading.Event()
     with tempfile.TemporaryDirectory(prefix="followbus-bench-") as tmp:
         path = Path(tmp) / "graph.yaml"
-        path.write_text(_graph_text(args.scene, port, ns, detector))
+        path.write_text(_graph_text(args.scene, port, ns, detector, resolution=args.resolution,
+                                    lane=args.lane == "on"))
         graph = load_graph(path)
         session = open_session(graph.zenoh)
         subs = []
@@ -107,7 +113,10 @@ def run_bench_pipeline(args) -> int:
                    ("prediction", "prior"): Prior, ("reid", "measurement"): Measurement,
                    ("prediction", "track"): Track, ("motor", "command"): MotorCommand}
         for st in STAGES:
-            subs.append(declare_subscriber(session, graph.key(*st), header_cb(st, schemas[st])))
+            # Frames on the lane's side key when the lane is on: a subscriber of the real key would make capture
+            # send every frame inline as well (bus/shmlane.py) and the figures would not be the lane's.
+            subs.append(declare_subscriber(session, graph.key(*st), header_cb(st, schemas[st]),
+                                           lane=graph.zenoh.shm_lane))
 
         def on_status(sample) -> None:
             try:
@@ -159,12 +168,17 @@ def run_bench_pipeline(args) -> int:
     result["tracks"] = sum(1 for k in frames if k in tracks)
     result["dropped_frames"] = len(frames) - result["tracks"]
     result["cpu_percent"] = {n: round(v, 1) for n, v in sorted(cpu.items())}
-    print(f"bench pipeline: {detector} on scene:{args.scene}, 30 Hz, {wall:.1f} s")
+    # CPU of every node together per captured frame (ms of one core): what the lane can save shows here.
+    result["cpu_ms_per_frame"] = round(sum(cpu.values()) / 100 * wall / max(1, len(frames)) * 1e3, 2)
+    result["resolution"], result["lane"] = "x".join(map(str, args.resolution)), args.lane
+    print(f"bench pipeline: {detector} on scene:{args.scene} {result['resolution']}, lane {args.lane}, 30 Hz, "
+          f"{wall:.1f} s")
     print("| edge | n | p50 ms | p99 ms |\n|---|---:|---:|---:|")
     for name, v in result["edges_ms"].items():
         print(f"| {name} | {v['n']} | {v['p50']:.2f} | {v['p99']:.2f} |")
     print(f"frames published {len(frames)}, tracks {result['tracks']}, dropped {result['dropped_frames']}")
     print("CPU per node (% of one core): " + ", ".join(f"{n} {v:.1f}" for n, v in result["cpu_percent"].items()))
+    print(f"CPU of all nodes per frame: {result['cpu_ms_per_frame']:.2f} ms")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1, ensure_ascii=False))
     return 0

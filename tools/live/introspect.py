@@ -19,6 +19,7 @@ from ...bus.pubsub import declare_subscriber, frame_bytes, payload_bytes
 from ...bus.schemas import decode, to_plain
 from ...bus.session import ZenohSettings, open_session
 from ..connect import open_client_session
+from .silence import warn_if_silent
 
 
 def wait_for(seconds: float | None, done: threading.Event | None = None) -> None:
@@ -84,9 +85,11 @@ def cmd_echo(args, settings: ZenohSettings, namespace: str) -> int:
 
     session = open_client_session(settings)
     sub = declare_subscriber(session, args.key, on_sample)
+    silence = warn_if_silent(session, args.key, namespace, args.graph, lambda: seen[0] > 0, args.timeout)
     first = _wait_first(lambda: seen[0] > 0, args.timeout, args.seconds, done)
     if first:
         wait_for(None if args.seconds is None else max(0.0, args.seconds - first), done)
+    silence.cancel()
     sub.undeclare()
     session.close()
     limits = [t for t in (args.timeout, args.seconds) if t is not None]
@@ -132,8 +135,10 @@ def cmd_hz(args, settings: ZenohSettings, namespace: str) -> int:
 
     session = open_client_session(settings)
     sub = declare_subscriber(session, args.key, on_sample)
+    silence = warn_if_silent(session, args.key, namespace, args.graph, lambda: bool(arrivals), args.timeout)
     start = time.monotonic()
     if args.timeout is not None and not _wait_first(lambda: bool(arrivals), args.timeout, args.seconds):
+        silence.cancel()
         sub.undeclare()
         session.close()
         _no_message(args.key, args.timeout)
@@ -148,10 +153,10 @@ def cmd_hz(args, settings: ZenohSettings, namespace: str) -> int:
             lat_text = (f"latency p50 {np.percentile(lat, 50):.1f} ms p99 {np.percentile(lat, 99):.1f} ms"
                         if lat.size else "latency n/a")
             print(f"{args.key}: {rate:.1f} Hz ({len(arrivals)} msgs), {lat_text}", flush=True)
-    except KeyboardInterrupt:
-        pass
-    sub.undeclare()
-    session.close()
+    finally:
+        silence.cancel()
+        sub.undeclare()
+        session.close()
     return 0 if arrivals else 1
 
 

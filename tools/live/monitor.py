@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import sys
 import threading
 import time
 from collections import deque
@@ -54,6 +55,7 @@ log = logging.getLogger("followbus.monitor")
 HISTORY_S = 60.0
 NAMESPACES_AFTER_S = 2.0  # connected this long without a node of our namespace: look for other namespaces
 NAMESPACES_EVERY_S = 5.0
+VALUE_STALE_S = 2.0  # a target, eta or command older than this is shown struck through and labelled stale
 REOPEN_AFTER_S = 5.0  # unreachable this long: close the session and open a fresh one
 # Which output carries what, and the node that publishes it in graph.yaml (overridden from --graph).
 WATCHED = {"track": ("prediction", Track), "prior": ("prediction", Prior), "measurement": ("reid", Measurement),
@@ -86,6 +88,7 @@ class GraphInfo:
     preview_key: str = ""
     source_width: int = DEFAULT_SOURCE_WIDTH
     camera: CameraGeometry | None = None  # the groundplane node's camera: group shapes drawn into the video
+    graph_svg: str = ""  # the graph's drawing (bus/graph_drawing.py), shown by the web view
 
     @classmethod
     def load(cls, graph_path: str | None, namespace: str | None = None) -> GraphInfo:
@@ -93,11 +96,13 @@ class GraphInfo:
         owners = {out: node for out, (node, _) in WATCHED.items()}
         preview_owner = PREVIEW[0]
         if graph_path and Path(graph_path).exists():
-            from ...bus.graph import load_graph
+            from ...bus.graph_drawing import to_svg
+            from ..command import load_graph
 
             graph = load_graph(graph_path)
             info.namespace = graph.namespace
             info.nodes = list(graph.nodes)
+            info.graph_svg = to_svg(graph)
             for name, spec in graph.nodes.items():
                 outputs = list(spec.outputs)
                 for out in owners:
@@ -226,6 +231,7 @@ class BusMonitor:
         self.stop_event = threading.Event()
         self.nodes: dict[str, NodeView] = {n: NodeView(n) for n in info.nodes}
         self.latest: dict[str, Message] = {}
+        self.received_ns: dict[str, int] = {}  # when each latest message arrived: its age on screen
         self.received: dict[str, int] = {}
         self.decode_errors = 0
         self.preview: Frame | None = None
@@ -380,6 +386,7 @@ class BusMonitor:
         now = time.time()
         with self.lock:
             self.latest[name] = msg
+            self.received_ns[name] = time.time_ns()
             self.received[name] = self.received.get(name, 0) + 1
             if isinstance(msg, Template) and msg.initialised:
                 self.history["eta"].append((now, float(msg.eta)))
@@ -475,6 +482,8 @@ class BusMonitor:
                 "source_width": (self.preview.source_width if self.preview is not None and self.preview.source_width
                                  else self.info.source_width),
                 "history": {k: [[round(t, 3), round(v, 4)] for t, v in series] for k, series in self.history.items()},
+                "ages": {k: round((now_ns - t) / 1e9, 2) for k, t in self.received_ns.items()},
+                "stale_after_s": VALUE_STALE_S,
             }
             if isinstance(track, Track):
                 out["target"] = {"state": track.state, "box": _box(track.box), "filtered_box": _box(track.filtered_box),
@@ -557,8 +566,9 @@ def _group_line(group: dict[str, Any]) -> str:
             f"{group['speed_mps']:.2f} m/s  step {group['step_ms']:.1f} ms  frame {group['frame_seq']}")
 
 
-def render(snap: dict[str, Any]) -> Group:
-    """The dashboard: a status line, node health, per-topic statistics, the target and the motor command."""
+def render(snap: dict[str, Any], height: int | None = None, width: int | None = None) -> Group:
+    """The dashboard: a status line, the target and the motor command (each with its age), node health, per-topic
+    statistics (cut to ``height`` lines, when given)."""
     if snap["connected"]:
         link = Text("connected", "green")
     else:
@@ -576,16 +586,7 @@ def render(snap: dict[str, Any]) -> Group:
         topics += [[f"{key} @{n['name']}", t.get("direction", "?"), _num(t.get("rate_hz")),
                     _num(t.get("latency_p50_ms")), _num(t.get("latency_p99_ms")), _count(t.get("drops", 0), "yellow"),
                     _count(t.get("decode_errors", 0), "red")] for key, t in sorted(n["topics"].items())]
-    target, cmd = snap.get("target"), snap.get("command")
-    state = [
-        ["target", Text.assemble((target["state"], TARGET_STYLE.get(target["state"], "")),
-                                 f"  box {target['box']}  v {target['velocity']} px/s  frame {target['frame_seq']}"
-                                 f"  centre err {_num(snap.get('centre_error_px'))} px")
-         if target else "(no track yet)"],
-        ["eta_k", _num(snap.get("eta"), ".4f")],
-        ["motor", f"vx {cmd['vx_mps']:+.2f} m/s  vy {cmd['vy_mps']:+.2f} m/s  wz {cmd['wz_radps']:+.2f} rad/s  "
-                  f"[{cmd['reason']}]  capture->command {_num(cmd['latency_ms'])} ms" if cmd else "(no command yet)"],
-    ]
+    state = _state_rows(snap)
     group = snap.get("group")
     if group:  # group following (graph.group.yaml)
         state.insert(0, ["group", _group_line(group)])
@@ -593,9 +594,41 @@ def render(snap: dict[str, Any]) -> Group:
         state.append(["monitor", Text(f"{snap['decode_errors']} decode errors", "red")])
     if snap.get("namespaces_hint"):
         state.append(["monitor", Text(snap["namespaces_hint"], "yellow")])
+    # As many topics as the terminal has lines for, so that the target and motor lines stay on screen (80x24).
+    if height is not None:
+        room = height - (len(head.wrap(Console(width=width or 80), width or 80)) + 2 * len(state) + len(nodes) + 6)
+        if len(topics) > max(room, 1):
+            more = len(topics) - max(room - 1, 0)
+            topics = topics[:max(room - 1, 0)] + [[f"... {more} more (followbus topics)", "", "", "", "", "", ""]]
     return Group(head, "", _table(["node", "state", "for s", "restarts", "pid", "uptime s", "errs", "check"], nodes),
                  "", _table(["topic (as seen by node)", "dir", "rate Hz", "p50 ms", "p99 ms", "drops", "dec err"],
                             topics), "", _table(["", ""], state))
+
+
+def _aged(label: str, value: Any, age: float | None, stale_s: float) -> list[Any]:
+    """A state row whose value carries its age; past ``stale_s`` struck through, dimmed and labelled stale."""
+    if age is None:
+        return [label, value]
+    text = value.copy() if isinstance(value, Text) else Text(str(value))
+    if age > stale_s:
+        text.stylize("dim strike")
+        return [label, Text.assemble(text, (f"  STALE {age:.0f} s", "bold yellow"))]
+    return [label, Text.assemble(text, (f"  {age:.1f} s", "dim"))]
+
+
+def _state_rows(snap: dict[str, Any]) -> list[list[Any]]:
+    target, cmd = snap.get("target"), snap.get("command")
+    ages, stale_s = snap.get("ages", {}), snap.get("stale_after_s", VALUE_STALE_S)
+    target_text = "(no track yet)" if not target else Text.assemble(
+        (target["state"], TARGET_STYLE.get(target["state"], "")),
+        f"  box {target['box']}  v {target['velocity']} px/s  frame {target['frame_seq']}"
+        f"  centre err {_num(snap.get('centre_error_px'))} px")
+    motor_text = (f"vx {cmd['vx_mps']:+.2f} m/s  vy {cmd['vy_mps']:+.2f} m/s  wz {cmd['wz_radps']:+.2f} rad/s  "
+                  f"[{cmd['reason']}]  capture->command {_num(cmd['latency_ms'])} ms" if cmd else "(no command yet)")
+    return [_aged("target", target_text, ages.get("track") if target else None, stale_s),
+            _aged("eta_k", _num(snap.get("eta"), ".4f"), ages.get("template") if snap.get("eta") is not None
+                  else None, stale_s),
+            _aged("motor", motor_text, ages.get("command") if cmd else None, stale_s)]
 
 
 def show(console: Console, snap: dict[str, Any]) -> None:
@@ -642,17 +675,21 @@ def run_monitor(args: Any) -> int:
             return 0 if snap["connected"] and _all_up(snap, info.nodes) else 1
         deadline = None if args.seconds is None else time.monotonic() + args.seconds
         if console.is_terminal:
-            with Live(render(monitor.snapshot()), console=console, auto_refresh=False) as live:
+            # Cut to the terminal's height: taller than the screen, Live cannot redraw in place (lines pile up).
+            with Live(console=console, auto_refresh=False, vertical_overflow="crop") as live:
                 while deadline is None or time.monotonic() < deadline:
-                    live.update(render(monitor.snapshot()), refresh=True)
+                    live.update(render(monitor.snapshot(), console.size.height, console.size.width), refresh=True)
                     time.sleep(0.5)
         else:
             while deadline is None or time.monotonic() < deadline:
                 console.file.write(SEPARATOR + "\n")
                 show(console, monitor.snapshot())
                 time.sleep(0.5)
-    except KeyboardInterrupt:
-        pass
     finally:
         monitor.close()
+    if not monitor.ever_connected:  # a timed run that never saw the graph: not a success
+        from ..connect import explain_connect_failure
+
+        print(f"followbus: {explain_connect_failure(settings)}", file=sys.stderr)
+        return 2
     return 0

@@ -246,6 +246,10 @@ def make_handler(monitor: BusMonitor, gate: PreviewGate, token: str | None = Non
                     self._send(200, json.dumps(self._state(), default=str).encode(), "application/json")
                 elif url.path == "/preview.jpg":
                     self._preview(query)
+                elif url.path == "/graph.svg":
+                    svg = monitor.info.graph_svg
+                    self._send(200 if svg else 404, (svg or "no graph file given\n").encode(),
+                               "image/svg+xml" if svg else "text/plain")
                 elif url.path == "/healthz":
                     self._send(200, b"ok\n", "text/plain")
                 else:
@@ -367,7 +371,9 @@ h1{font-size:16px;margin:0} #link.bad{color:#e55}
 #screen[data-state=server]{color:#e55} #screen[data-state=ended],#screen[data-state=waiting],
 #screen[data-state=stalled]{color:#fc6}
 #state{font:13px monospace;white-space:pre;margin:0 0 8px}
-.plot{display:block;width:100%;height:72px;margin-bottom:4px}
+#state .stale{color:#777;text-decoration:line-through} #state .stalelabel{color:#fc6;font-weight:bold}
+#state .age{color:#777} #graphbox img{max-width:100%;background:#eee}
+.plot{display:block;width:100%;height:84px;margin-bottom:4px}
 table{border-collapse:collapse;font-size:12px;width:100%}
 td,th{border-bottom:1px solid #333;padding:2px 6px;text-align:right;vertical-align:top}
 th{color:#aaa;font-weight:normal} td.l,th.l{text-align:left} tr.first td{border-top:1px solid #555}
@@ -402,6 +408,8 @@ td.topic{white-space:nowrap}
    <th title="inputs: messages dropped by the queue policy">drops</th><th>decode errors</th></tr></thead>
    <tbody><tr><td class="l na" colspan="8">no node status yet</td></tr></tbody></table>
   <div id="monitor_errors" class="legend"></div>
+  <details id="graphbox"><summary>graph: nodes and keys</summary><img id="graph" alt="the graph's drawing"
+   src="graph.svg"></details>
  </section>
 </main>
 <script>
@@ -562,6 +570,19 @@ async function pollPreview() {
   }
 }
 
+function timeAxis(g, w, h) {
+  // Seconds before now along the bottom: a tick every 15 s, "now" at the right end of the curve.
+  g.strokeStyle = "#444"; g.fillStyle = "#888"; g.font = "10px monospace";
+  g.beginPath(); g.moveTo(0, h - 12); g.lineTo(w, h - 12); g.stroke();
+  for (const ago of [60, 45, 30, 15, 0]) {
+    const x = (60 - ago) / 60 * w;
+    g.beginPath(); g.moveTo(x, h - 12); g.lineTo(x, h - 9); g.stroke();
+    const text = ago ? `-${ago} s` : "now";
+    g.fillText(text, Math.min(Math.max(x - text.length * 3, 0), w - text.length * 6), h - 1);
+  }
+  g.fillStyle = "#aaa"; g.font = "11px monospace";
+}
+
 function plot(id, series, label, unit) {
   const c = document.getElementById(id), now = Date.now() / 1000;
   if (c.width !== c.clientWidth || c.height !== c.clientHeight) { c.width = c.clientWidth; c.height = c.clientHeight; }
@@ -571,15 +592,16 @@ function plot(id, series, label, unit) {
   const last = pts.length ? pts[pts.length - 1][1] : null;
   g.fillStyle = "#aaa"; g.font = "11px monospace";
   g.fillText(`${label}: ${last === null ? "-" : last.toPrecision(3)} ${unit} (last 60 s)`, 4, 12);
+  timeAxis(g, c.width - 64, c.height);
   if (pts.length < 2) return;
   let lo = Math.min(...pts.map(p => p[1])), hi = Math.max(...pts.map(p => p[1]));
   if (hi - lo < 1e-9) { hi += 1e-3; lo -= 1e-3; }
   // The curve keeps clear of the right margin, where the scale is written.
   const w = c.width - 64;
-  g.fillText(hi.toPrecision(3), w + 6, 12); g.fillText(lo.toPrecision(3), w + 6, c.height - 3);
+  g.fillText(hi.toPrecision(3), w + 6, 12); g.fillText(lo.toPrecision(3), w + 6, c.height - 14);
   g.strokeStyle = "#6cf"; g.beginPath();
   pts.forEach((p, i) => { const x = (p[0] - (now - 60)) / 60 * w;
-    const y = c.height - 4 - (p[1] - lo) / (hi - lo) * (c.height - 20);
+    const y = c.height - 16 - (p[1] - lo) / (hi - lo) * (c.height - 32);
     if (i) g.lineTo(x, y); else g.moveTo(x, y); });
   g.stroke();
 }
@@ -619,24 +641,30 @@ function render() {
   setScreen(s.screen.code, s.screen.text);
   const srcw = sourceWidth(s.preview);
   document.getElementById("srcw").textContent = srcw ? `source width ${srcw} px` : "source width not known yet";
-  const t = s.target, c = s.command, g = s.group;
+  const t = s.target, c = s.command, g = s.group, ages = s.ages || {}, staleS = s.stale_after_s || 2;
+  // Every value carries its age; past stale_after_s it is struck through and labelled stale (never shown as live).
+  const aged = (text, age) => typeof age !== "number" ? esc(text)
+    : age > staleS ? `<span class="stale">${esc(text)}</span> <span class="stalelabel">STALE ${age.toFixed(0)} s</span>`
+    : `${esc(text)} <span class="age">${age.toFixed(1)} s</span>`;
   document.getElementById("groundbox").hidden = !g;  // the person graph has no group: no panel
   if (g) { document.getElementById("gsigma").textContent = g.sigma; drawGround(g); }
   const lines = [
-    ...(!g ? [] : !g.valid ? [`group (none yet) frame ${g.frame_seq}`] : [
+    ...(!g ? [] : (!g.valid ? [`group (none yet) frame ${g.frame_seq}`] : [
       `group ${g.lost ? "LOST " : ""}frame ${g.frame_seq}: ${g.members} members, ${g.others} left out, ` +
         `${(g.ellipses || []).length} ellipses`,
       `  centre ${fmt(g.centre_robot_m[0], 2)} m ahead ${fmt(g.centre_robot_m[1], 2)} m left, ` +
-        `${fmt(g.speed_mps, 2)} m/s, tracker ${fmt(g.step_ms, 1)} ms/frame`]),
-    t ? `target ${t.state} frame ${t.frame_seq} box [${t.box ? t.box.map(v => v.toFixed(0)).join(", ") : "-"}]`
-      : "target (no track yet)",
-    `velocity ${t ? t.velocity.join(", ") : "-"} px/s  centre error ${fmt(s.centre_error_px, 1)} px`,
-    `eta_k ${fmt(s.eta, 4)}  m_fuse ${s.measurement ? fmt(s.measurement.m_fuse, 3) : "-"}`,
-    c ? `motor vx ${fmt(c.vx_mps, 2)} m/s wz ${fmt(c.wz_radps, 2)} rad/s [${c.reason}]` +
+        `${fmt(g.speed_mps, 2)} m/s, tracker ${fmt(g.step_ms, 1)} ms/frame`]).map(line => esc(line))),
+    aged(t ? `target ${t.state} frame ${t.frame_seq} box [${t.box ? t.box.map(v => v.toFixed(0)).join(", ") : "-"}]`
+      : "target (no track yet)", t && ages.track),
+    aged(`velocity ${t ? t.velocity.join(", ") : "-"} px/s  centre error ${fmt(s.centre_error_px, 1)} px`,
+      t && ages.track),
+    aged(`eta_k ${fmt(s.eta, 4)}  m_fuse ${s.measurement ? fmt(s.measurement.m_fuse, 3) : "-"}`,
+      s.eta !== null && s.eta !== undefined && ages.template),
+    aged(c ? `motor vx ${fmt(c.vx_mps, 2)} m/s wz ${fmt(c.wz_radps, 2)} rad/s [${c.reason}]` +
         ` latency ${fmt(c.latency_ms, 1)} ms`
-      : "motor (no command yet)",
+      : "motor (no command yet)", c && ages.command),
   ];
-  document.getElementById("state").textContent = lines.join("\\n");
+  document.getElementById("state").innerHTML = lines.join("\\n");
   healthTable(s.health);
   document.getElementById("monitor_errors").textContent =
     s.decode_errors ? `monitor decode errors: ${s.decode_errors}` : "";

@@ -13,14 +13,19 @@ from ..command import Command, Lazy, connect_args, describe, load_graph, setting
 def _record_args(p: argparse.ArgumentParser) -> None:
     describe(p,
              "Join the bus as a client and store every message losslessly (its exact frame bytes, one channel per "
-             "key) in an MCAP file, plus Foxglove views: frames as foxglove.CompressedImage, detections, the "
-             "Kalman gate and the target as foxglove.ImageAnnotations. Ctrl-C/SIGTERM finalise the file; a "
+             "key) in an MCAP file, plus views every MCAP reader decodes without followbus: frames as "
+             "sensor_msgs/CompressedImage, the command as geometry_msgs/Twist, odometry as nav_msgs/Odometry, "
+             "detections as vision_msgs/Detection2DArray (ROS 2 CDR: Foxglove, rosbags, ros2 bag), every message "
+             "as JSON with a JSON Schema (<key>/json), detections, the Kalman gate and the target as "
+             "foxglove.ImageAnnotations. --split-size/--split-duration start a new file (<name>_0.mcap, "
+             "<name>_1.mcap, ...) as rosbag2 does. Ctrl-C/SIGTERM finalise the file; a "
              "killed recorder leaves one that `followbus recover` repairs. A write error (full disk) ends it at "
              "once: the file is finalised at its last complete chunk, one line says what was lost, exit "
              "status 1. Ends with received/written/dropped counts and the messages lost upstream "
              "(header.seq gaps).",
              "examples:\n  followbus record -o recordings/run1.mcap --duration 60\n"
-             "  followbus record --topics 'fb/capture/**' 'fb/prediction/**' --status",
+             "  followbus record --topics 'fb/capture/**' 'fb/prediction/**' --status\n"
+             "  followbus record -o recordings/day.mcap --split-size 1000    # day_0.mcap, day_1.mcap, ... of 1 GB",
              raw=True)
     p.add_argument("-o", "--output", metavar="FILE", help="output file (default recordings/<graph>-<time>.mcap)")
     p.add_argument("--topics", nargs="+", metavar="PATTERN", help="key expressions to record (default <ns>/**)")
@@ -40,8 +45,19 @@ def _record_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk-seconds", type=float, default=1.0, metavar="S",
                    help="close and flush a chunk at least this often: all a SIGKILL can lose (default 1)")
     p.add_argument("--jpeg-quality", type=int, default=80, metavar="Q",
-                   help="JPEG quality of the Foxglove copies of bgr8 frames (default 80)")
-    p.add_argument("--no-foxglove", action="store_true", help="store the bus messages only")
+                   help="JPEG quality of the image views of bgr8 frames (default 80)")
+    p.add_argument("--no-foxglove", "--no-views", action="store_true", dest="no_foxglove",
+                   help="store the bus messages only (no ROS 2 / JSON / Foxglove views)")
+    p.add_argument("--raw-images", action="store_true",
+                   help="view bgr8 frames as sensor_msgs/Image (lossless; as many bytes again as the frames) "
+                        "instead of JPEG sensor_msgs/CompressedImage")
+    p.add_argument("--no-ros2-file", action="store_true",
+                   help="no <name>.ros2.mcap beside the recording (its ROS 2 channels again, in a file of profile "
+                        "ros2 that rosbags and `ros2 bag` open; the main file's other encodings stop them)")
+    p.add_argument("--split-size", type=float, metavar="MB",
+                   help="start a new file when this one reaches MB megabytes (<name>_0.mcap, <name>_1.mcap, ...)")
+    p.add_argument("--split-duration", type=float, metavar="S",
+                   help="start a new file every S seconds of recording")
     p.add_argument("--max-queue-mb", type=float, default=256.0, metavar="MB",
                    help="memory the writer queue may hold before the recorder drops, counted per key (default 256)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
@@ -65,6 +81,7 @@ def _play_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loop", action="store_true", help="start again at the end")
     p.add_argument("--start-paused", action="store_true", help="wait for space (or s) before the first message")
     p.add_argument("--status", action="store_true", help="also publish recorded @status messages")
+    _on_corrupt_arg(p)
     connect_args(p)
 
 
@@ -98,7 +115,16 @@ def _replay_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
                    help="--isolated: seconds to wait for the node to come up (default 60)")
     p.add_argument("--max-frames", type=int, default=0, metavar="N", help="only the first N frames")
+    _on_corrupt_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _on_corrupt_arg(p: argparse.ArgumentParser) -> None:
+    from ...bus.recording import ON_CORRUPT
+
+    p.add_argument("--on-corrupt", choices=ON_CORRUPT, default="refuse",
+                   help="a chunk failing its CRC (checked before anything is used): refuse (the default: exit 2 "
+                        "naming the chunk and its time range) or skip it with a warning")
 
 
 def _info_args(p: argparse.ArgumentParser) -> None:

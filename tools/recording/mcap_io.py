@@ -10,8 +10,10 @@ Layout of a recording:
   (bus/recording.py). ``sequence`` = header.seq,
   log_time = publish_time = header.stamp_ns (receive time only when the stamp is 0). Recordings made
   before carry ``msgpack`` on the same bytes, read as an alias.
-- Foxglove channels: ``<key>/image`` (foxglove.CompressedImage) for every Frame key and
-  ``<key>/annotations`` (foxglove.ImageAnnotations) for Detections / Prior / Track keys, JSON encoded.
+- view channels beside them, so every message decodes without followbus (tools/recording/views.py):
+  ``<key>/image`` (sensor_msgs/msg/CompressedImage or Image), ``<key>/twist``, ``<key>/odometry``,
+  ``<key>/detections2d`` (ROS 2 CDR, ``ros2msg`` schemas), ``<key>/json`` (JSON + JSON Schema) and
+  ``<key>/annotations`` (foxglove.ImageAnnotations); channel metadata ``bus_key`` names their source.
 - metadata records ``followbus`` (version, git commit, host, start time, ...), ``graph`` (graph.yaml
   text), ``params`` (each node's effective params as JSON) and, when the recorder stopped cleanly,
   ``recording_stats``.
@@ -56,6 +58,8 @@ from ...bus.recording import (
     BUS_SCHEMA_PREFIX,
     RecordingError,
     Salvage,
+    corrupt_chunks,
+    open_recording,
     read_metadata,
     read_summary,
     salvage_records,
@@ -65,7 +69,8 @@ from ...bus.recording import (
 from .. import __version__
 from . import foxglove_schemas as fox
 
-PROFILE = ""  # no ROS profile: our own channels plus Foxglove's JSON ones
+PROFILE = ""  # no ROS profile: ROS 2 CDR channels beside our own and JSON ones
+ROS2_PROFILE = "ros2"  # the companion file of ROS 2 channels only (rosbags and rosbag2 require the profile)
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 # Uncompressed by default: lz4 shrinks raw frames by 1-3 % and every read decompresses whole chunks; zstd level 3,
 # the mcap writer's, saturates its thread at 720p 30 Hz. Figures and command: tools/recording/record.py docstring.
@@ -74,6 +79,14 @@ DEFAULT_CHUNK_BYTES = 4 * 1024 * 1024
 
 
 # --- writing ---------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _FoxgloveSchema:
+    name: str
+    encoding: str
+    data: bytes
+    message_encoding: str
+
 
 class RecordingWriter:
     """An mcap Writer that registers schemas and channels on first use and flushes whole chunks.
@@ -84,7 +97,7 @@ class RecordingWriter:
     """
 
     def __init__(self, path: str | Path, compression: str = DEFAULT_COMPRESSION,
-                 chunk_bytes: int = DEFAULT_CHUNK_BYTES):
+                 chunk_bytes: int = DEFAULT_CHUNK_BYTES, profile: str = PROFILE):
         if compression not in COMPRESSIONS:
             raise ValueError(f"compression must be one of {', '.join(COMPRESSIONS)}")
         self.path = Path(path)
@@ -107,7 +120,7 @@ class RecordingWriter:
         self.durable_monotonic = time.monotonic()  # when it last was
         self.messages = 0
         self.compression = compression
-        self._writer.start(profile=PROFILE, library=f"followbus/{__version__}")
+        self._writer.start(profile=profile, library=f"followbus/{__version__}")
         self._durable()
 
     def _durable(self) -> None:
@@ -145,13 +158,24 @@ class RecordingWriter:
             self._bus_topics[cid] = key
         return self._channels[ident]
 
-    def foxglove_channel(self, topic: str, schema_name: str, source_key: str) -> int:
-        ident = (topic, fox.MESSAGE_ENCODING, schema_name)
+    def view_channel(self, topic: str, schema: Any, source_key: str) -> int:
+        """The channel of a view of a bus key (tools/recording/views.py): ``schema`` has name, encoding, data
+        and the message_encoding of its messages."""
+        ident = (topic, schema.message_encoding, schema.name)
         if ident not in self._channels:
-            schema_id = self.schema(schema_name, fox.SCHEMA_ENCODING, fox.schema_bytes(schema_name))
-            self._channels[ident] = self._register_channel(topic, fox.MESSAGE_ENCODING, schema_id,
+            schema_id = self.schema(schema.name, schema.encoding, schema.data)
+            self._channels[ident] = self._register_channel(topic, schema.message_encoding, schema_id,
                                                            {"bus_key": source_key})
         return self._channels[ident]
+
+    def foxglove_channel(self, topic: str, schema_name: str, source_key: str) -> int:
+        schema = _FoxgloveSchema(schema_name, fox.SCHEMA_ENCODING, fox.schema_bytes(schema_name), fox.MESSAGE_ENCODING)
+        return self.view_channel(topic, schema, source_key)
+
+    @property
+    def size_bytes(self) -> int:
+        """What the file will hold once the chunk in progress is written (for --split-size)."""
+        return self.durable_offset + self._pending_bytes
 
     def write(self, channel_id: int, log_time: int, data: bytes, publish_time: int | None = None,
               sequence: int = 0) -> None:
@@ -306,6 +330,9 @@ class RecoverResult:
 
 def recover(in_path: str | Path, out_path: str | Path, compression: str | None = None) -> RecoverResult:
     """Rewrite every complete chunk (and metadata) of a possibly truncated MCAP file into a valid one."""
+    with open_recording(in_path) as f:  # a regular file, long enough, and an MCAP one: else nothing is written
+        if f.read(8) != MCAP0_MAGIC:
+            raise RecordingError(f"{in_path}: not an MCAP file")
     result = RecoverResult()
     found = Salvage()
     schemas: dict[int, Schema] = {}
@@ -403,6 +430,14 @@ def cmd_info(args) -> int:
             print(f"write error: {rec['write_error']} (the recording ends at its last complete chunk)")
     else:
         print("recorder:    no recording_stats (the recorder did not stop cleanly)")
+    bad = corrupt_chunks(path)
+    print(f"integrity:   {len(summary.chunk_indexes) - len(bad)} of {len(summary.chunk_indexes)} chunks pass their "
+          "CRC" + "".join(f"\n  corrupt:   {c.describe()}" for c in bad))
+    _print_channels(summary, stats, duration)
+    return 1 if bad else 0
+
+
+def _print_channels(summary: Any, stats: Any, duration: float) -> None:
     counts = stats.channel_message_counts if stats else {}
     rows = []
     for ch in summary.channels.values():
@@ -415,7 +450,6 @@ def cmd_info(args) -> int:
     print(f"\n{'topic':<{width}}  {'schema':<26} {'encoding':<{enc_width}} {'count':>7} {'rate Hz':>8}")
     for topic, schema_name, enc, n, rate in sorted(rows):
         print(f"{topic:<{width}}  {schema_name:<26} {enc:<{enc_width}} {n:>7} {rate:>8.1f}")
-    return 0
 
 
 def cmd_recover(args) -> int:
@@ -424,13 +458,14 @@ def cmd_recover(args) -> int:
     if dst.resolve() == src.resolve():
         print("followbus: recover writes a new file; choose another -o", file=sys.stderr)
         return 2
+    existed = dst.exists()
     try:
         result = recover(src, dst, args.compression)
-    except RecordingError as exc:
-        print(f"followbus: {exc}", file=sys.stderr)
-        return 2
-    except McapError as exc:
-        print(f"followbus: {src}: not an MCAP file ({exc})", file=sys.stderr)
+    except (RecordingError, McapError) as exc:
+        if not existed:  # nothing half-written left behind
+            dst.unlink(missing_ok=True)
+        print(f"followbus: {exc}" if isinstance(exc, RecordingError) else f"followbus: {src}: not an MCAP file ({exc})",
+              file=sys.stderr)
         return 2
     state = "the file was complete" if result.complete else f"stopped at the cut ({result.stopped_by or 'EOF'})"
     print(f"recovered {result.messages} messages from {result.chunks} complete chunks and {result.metadata} "

@@ -19,7 +19,7 @@ from pathlib import Path
 import zenoh
 
 from ...bus.pubsub import Publisher, ShmPool
-from ...bus.recording import RecordingError, bus_channels, iter_bus_messages
+from ...bus.recording import RecordingError, bus_channels, chunks_to_skip, iter_bus_messages
 from .record import is_status_key
 
 log = logging.getLogger("followbus.play")
@@ -89,6 +89,8 @@ class Keyboard:
 
 
 class Player:
+    skip_chunks: frozenset[int] = frozenset()  # corrupt chunks the user chose to skip (--on-corrupt skip)
+
     def __init__(self, session: zenoh.Session, path: Path, keys: list[str], remaps: list[tuple[str, str]], *,
                  rate: float | None, loop: bool, paused: bool, shm: bool, keyboard: Keyboard | None = None):
         self.path = path
@@ -144,7 +146,7 @@ class Player:
         while not self.stop_event.is_set():
             anchor_wall: float | None = None
             anchor_log = 0
-            for msg in iter_bus_messages(self.path, self.keys):
+            for msg in iter_bus_messages(self.path, self.keys, self.skip_chunks):
                 if anchor_wall is None:
                     anchor_wall, anchor_log = time.monotonic(), msg.log_time
                 target = None if self.rate is None else anchor_wall + (msg.log_time - anchor_log) / 1e9 / self.rate
@@ -182,6 +184,8 @@ def cmd_play(args, settings) -> int:
     try:
         remaps = parse_remaps(args.remap or [])
         keys = select_keys(list(bus_channels(path)), args.topics, args.status)
+        # Before anything is published: a corrupt chunk is refused (or skipped, named) now, not half-way.
+        skip = chunks_to_skip(path, keys, args.on_corrupt)
     except (RecordingError, ValueError) as exc:
         print(f"followbus: {exc}", file=sys.stderr)
         return 2
@@ -201,8 +205,13 @@ def cmd_play(args, settings) -> int:
     keyboard = Keyboard() if sys.stdin.isatty() else None
     player = Player(session, path, keys, remaps, rate=rate, loop=args.loop, paused=args.start_paused,
                     shm=settings.shm, keyboard=keyboard)
+    player.skip_chunks = skip
 
-    def on_signal(_signum, _frame):
+    def on_signal(signum, _frame):
+        if signum == signal.SIGINT:
+            from ..errors import INTERRUPTED
+
+            INTERRUPTED.set()  # exit 130, once the player has stopped cleanly
         player.stop_event.set()
 
     signal.signal(signal.SIGINT, on_signal)

@@ -1,5 +1,11 @@
 """``followbus record``: store every bus message, losslessly, in an MCAP file that opens in Foxglove.
 
+Beside each bus channel (the exact bytes, for replay) go views every MCAP reader decodes without followbus
+(tools/recording/views.py): ROS 2 CDR for frames, the command, odometry and detections, JSON with a JSON Schema
+for every message. The ROS 2 views go again into ``<name>.ros2.mcap`` (MCAP profile ``ros2``, CDR only), the file
+rosbags and ``ros2 bag`` open (they refuse a file with other encodings). ``--split-size`` / ``--split-duration``
+start a new file (``<name>_0.mcap``, ``<name>_1.mcap``, ... as rosbag2 names them), each complete on its own.
+
 A plain Zenoh subscriber on ``<namespace>/**`` (or the given key expressions). Zenoh's callback
 only copies the payload into a queue; two threads do everything else (``convert``: header parsing
 and the Foxglove views; ``write``: MCAP records, chunk compression, disk), so a slow disk never stalls
@@ -51,18 +57,17 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
 import zenoh
 
+from ...bus import ros2
 from ...bus.codec import DecodeError, Header, peek
 from ...bus.node import RECORDER_NAME
 from ...bus.pubsub import RateLimitedLog, declare_subscriber, frame_bytes
-from ...bus.schemas import Frame, decode
+from ...bus.schemas import decode
 from .. import __version__
-from . import foxglove_schemas as fox
-from .mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, FinaliseResult, RecordingWriter
+from .mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, ROS2_PROFILE, FinaliseResult, RecordingWriter
 from .remote import is_remote, raw_frame_keys, subscription_patterns
+from .views import ROS2_SCHEMA_ENCODING, View, message_views
 
 log = logging.getLogger("followbus.record")
 
@@ -81,7 +86,11 @@ class RecordOptions:
     chunk_bytes: int = DEFAULT_CHUNK_BYTES
     chunk_seconds: float = 1.0
     jpeg_quality: int = 80
-    foxglove: bool = True
+    foxglove: bool = True  # the views beside the bus channels (tools/recording/views.py)
+    raw_images: bool = False  # bgr8 frames viewed as sensor_msgs/Image (lossless) instead of JPEG
+    split_bytes: int = 0  # start a new file past this size (0: never)
+    split_seconds: float = 0.0  # ... or past this long (0: never)
+    ros2_file: bool = True  # the ROS 2 views also in <name>.ros2.mcap (profile ros2: rosbags, ros2 bag)
     max_queue_bytes: int = int(DEFAULT_MAX_QUEUE_MB * 1024 * 1024)
     exclude: list[str] = field(default_factory=list)  # key expressions left out
 
@@ -98,7 +107,9 @@ class KeyStats:
 
 @dataclass
 class RecordReport:
-    path: Path
+    path: Path  # the file being written (the last one when the recording was split)
+    files: list[Path] = field(default_factory=list)  # every file of the recording, in order
+    ros2_files: list[Path] = field(default_factory=list)  # their ROS 2 companions (<name>.ros2.mcap)
     duration_s: float = 0.0
     keys: dict[str, KeyStats] = field(default_factory=dict)
     foxglove_messages: int = 0
@@ -172,11 +183,11 @@ class _Item:
     type_name: str | None = None
     header: Header | None = None
     log_time: int = 0
-    views: list[tuple[str, str, bytes]] = field(default_factory=list)  # Foxglove (topic, schema, payload)
+    views: list[View] = field(default_factory=list)  # the decodable copies beside the bus bytes
 
     @property
     def view_bytes(self) -> int:
-        return sum(len(v[2]) for v in self.views)
+        return sum(len(v.payload) for v in self.views)
 
 
 class Recorder:
@@ -190,13 +201,16 @@ class Recorder:
     def __init__(self, options: RecordOptions, metadata: dict[str, dict[str, str]],
                  subscribe: list[str] | None = None):
         self.opts = options
+        self._metadata = metadata
+        self._split = bool(options.split_bytes or options.split_seconds)
+        self.report = RecordReport(options.output)
+        self._closed_counts: dict[str, int] = {}  # bus messages per key in the files already finished
+        self.ros2_writer: RecordingWriter | None = None
+        self.writer = self._open_writer()
+        if options.foxglove:
+            ros2.typestore()  # built now, not by the first frame's conversion while the graph starts
         # What the subscribers ask for: the patterns, or the graph's kept keys one by one (recording/remote.py).
         self.subscribe = list(subscribe) if subscribe is not None else list(options.patterns)
-        self.writer = RecordingWriter(options.output, options.compression, options.chunk_bytes)
-        for name, data in metadata.items():
-            self.writer.metadata(name, data)
-        self.writer.flush()
-        self.report = RecordReport(options.output)
         self._key_exprs = [zenoh.KeyExpr(p) for p in self.subscribe]
         self._excluded = [zenoh.KeyExpr(p) for p in options.exclude]
         self._subs: list[Any] = []
@@ -214,17 +228,63 @@ class Recorder:
                          threading.Thread(target=self._write_loop, name="record-write", daemon=True)]
         self._started = 0.0
 
+    # --- files ------------------------------------------------------------------------------------
+    def _open_writer(self) -> RecordingWriter:
+        """The next file: ``output`` itself, or ``<stem>_<i><suffix>`` when splitting (rosbag2's naming)."""
+        index = len(self.report.files)
+        out = self.opts.output
+        path = out.with_name(f"{out.stem}_{index}{out.suffix}") if self._split else out
+        writer = RecordingWriter(path, self.opts.compression, self.opts.chunk_bytes)
+        for name, data in self._metadata.items():
+            writer.metadata(name, data)
+        if self._split:
+            writer.metadata("split", {"index": str(index), "first_file": self.opts.output.stem + "_0" + out.suffix})
+        writer.flush()
+        self.report.files.append(path)
+        self.report.path = path
+        self._file_started = time.monotonic()
+        if self.opts.ros2_file and self.opts.foxglove:
+            self.ros2_writer = RecordingWriter(ros2_path(path), self.opts.compression, self.opts.chunk_bytes,
+                                               profile=ROS2_PROFILE)
+            self.report.ros2_files.append(ros2_path(path))
+        return writer
+
+    def _finish_ros2(self, metadata: dict[str, str] | None = None) -> None:
+        if self.ros2_writer is not None:
+            if metadata:
+                self.ros2_writer.metadata("recording_stats", metadata)
+            self.ros2_writer.finish()
+            self.ros2_writer = None
+
+    def _split_due(self) -> bool:
+        o = self.opts
+        return ((o.split_bytes > 0 and self.writer.size_bytes >= o.split_bytes)
+                or (o.split_seconds > 0 and time.monotonic() - self._file_started >= o.split_seconds))
+
+    def _next_file(self) -> None:
+        """Finish this file (summary, index, its own recording_stats so far) and go on in a new one."""
+        self.writer.metadata("recording_stats", self.report.as_metadata())
+        self.writer.finish()
+        self._finish_ros2(self.report.as_metadata())
+        for key, n in self.writer.durable_counts.items():
+            self._closed_counts[key] = self._closed_counts.get(key, 0) + n
+        self.writer = self._open_writer()
+
     # --- zenoh side (must stay cheap) -------------------------------------------------------------
-    def start(self, session: zenoh.Session) -> None:
+    def start_threads(self) -> None:
+        """The convert and write threads, without a bus (start() subscribes too; tests feed _enqueue)."""
         self._started = time.monotonic()
         for thread in self._threads:
             thread.start()
+
+    def start(self, session: zenoh.Session) -> None:
+        self.start_threads()
         for i, pattern in enumerate(self.subscribe):
             # Direct: the callback runs on zenoh's receive thread (it only copies and enqueues), which
             # keeps the order samples arrived in; zenoh-python's default hands each subscriber a thread.
-            # Inline: a recording keeps every frame, even across a stall of the recorder (a slow disk) that the
-            # same-host lane would turn into lost frames (bus/shmlane.py); the graph goes inline while recording.
-            self._subs.append(declare_subscriber(session, pattern, self._callback_for(i), inline=True))
+            # On the real keys, not the lane's side keys (bus/shmlane.py): publishers send the recorder the
+            # messages themselves, so a stall of the recorder (a slow disk) loses no frame to a rewritten segment.
+            self._subs.append(declare_subscriber(session, pattern, self._callback_for(i)))
 
     def _callback_for(self, index: int):
         def callback(sample: zenoh.Sample) -> None:
@@ -298,31 +358,14 @@ class Recorder:
             pass
         stamp = item.header.stamp_ns if item.header else 0
         item.log_time = stamp if stamp > 0 else item.recv_ns  # the bus stamp; receive time only without one
-        if self.opts.foxglove and item.type_name in ("Frame", *fox.ANNOTATORS):
+        if self.opts.foxglove and item.type_name is not None:
             try:
-                self._foxglove_views(item)
-            except Exception as exc:  # a view that cannot be drawn must not cost the bus message
+                msg = decode(item.data)
+                item.views = message_views(item.key, msg, msg.header.stamp_ns or item.log_time,
+                                           self.opts.jpeg_quality, self.opts.raw_images)
+            except Exception as exc:  # a view that cannot be made must not cost the bus message
                 self.report.foxglove_errors += 1
-                self._warn.warning("no Foxglove view of %s: %r", item.key, exc)
-
-    def _foxglove_views(self, item: _Item) -> None:
-        msg = decode(item.data)
-        if isinstance(msg, Frame):
-            jpeg = self._jpeg(msg)
-            if jpeg is not None:
-                item.views.append((f"{item.key}/image", fox.COMPRESSED_IMAGE,
-                                   fox.compressed_image(msg.header.stamp_ns or item.log_time, item.key, jpeg)))
-        elif item.type_name is not None:
-            item.views.append((f"{item.key}/annotations", fox.IMAGE_ANNOTATIONS,
-                               fox.ANNOTATORS[item.type_name](msg)))
-
-    def _jpeg(self, frame: Frame) -> bytes | None:
-        if frame.encoding == "jpeg":
-            return np.asarray(frame.data, np.uint8).tobytes()
-        if frame.encoding == "bgr8" and frame.data.size:
-            ok, buf = cv2.imencode(".jpg", frame.data, [cv2.IMWRITE_JPEG_QUALITY, self.opts.jpeg_quality])
-            return buf.tobytes() if ok else None
-        return None
+                self._warn.warning("no view of %s: %r", item.key, exc)
 
     # --- write thread -----------------------------------------------------------------------------
     def _write_loop(self) -> None:
@@ -342,7 +385,7 @@ class Recorder:
                 if item is not None:
                     self._write(item)
                 if time.monotonic() - last_flush >= self.opts.chunk_seconds:
-                    self.writer.flush()  # a closed chunk survives a SIGKILL
+                    self._flush()  # a closed chunk survives a SIGKILL
                     last_flush = time.monotonic()
             except Exception as exc:
                 # ENOSPC, EIO, EFBIG, ... and anything else: the mcap writer's state is unknown from here
@@ -366,7 +409,14 @@ class Recorder:
             self.failed.set()
             self._cond.notify_all()
 
+    def _flush(self) -> None:
+        self.writer.flush()
+        if self.ros2_writer is not None:
+            self.ros2_writer.flush()
+
     def _write(self, item: _Item) -> None:
+        if self._split and self._split_due():
+            self._next_file()
         header = item.header
         if item.type_name is None:
             self.report.undecodable += 1
@@ -377,9 +427,12 @@ class Recorder:
         stats.type_name = item.type_name or "?"
         if header is not None:
             self._track_seq(stats, item.key, header.source, seq)
-        for topic, schema, payload in item.views:
-            self.writer.write(self.writer.foxglove_channel(topic, schema, item.key), item.log_time, payload,
-                              sequence=seq)
+        for view in item.views:
+            self.writer.write(self.writer.view_channel(view.topic, view.schema, item.key), item.log_time,
+                              view.payload, sequence=seq)
+            if self.ros2_writer is not None and view.schema.encoding == ROS2_SCHEMA_ENCODING:
+                self.ros2_writer.write(self.ros2_writer.view_channel(view.topic, view.schema, item.key),
+                                       item.log_time, view.payload, sequence=seq)
             self.report.foxglove_messages += 1
 
     def _track_seq(self, stats: KeyStats, key: str, source: str, seq: int) -> None:
@@ -395,6 +448,8 @@ class Recorder:
     def discard(self) -> None:
         """Remove the file of a recorder that never started (no bus to record)."""
         self.writer.discard()
+        if self.ros2_writer is not None:
+            self.ros2_writer.discard()
 
     def queued_bytes(self) -> int:
         with self._cond:
@@ -416,27 +471,36 @@ class Recorder:
             try:
                 self.writer.metadata("recording_stats", self.report.as_metadata())
                 self.writer.finish()
+                self._finish_ros2(self.report.as_metadata())
             except Exception as exc:  # the disk filled up at the very end
                 self._failure = exc
         if self._failure is not None:
             self._finalise_after_failure(self._failure)
-        self.report.file_bytes = self.opts.output.stat().st_size
+        self.report.file_bytes = sum(path.stat().st_size for path in self.report.files if path.exists())
         return self.report
 
     def _finalise_after_failure(self, exc: BaseException) -> None:
         report = self.report
         report.write_error = _error_text(exc)
         with contextlib.suppress(OSError):
-            report.failed_at_bytes = self.opts.output.stat().st_size
+            report.failed_at_bytes = report.path.stat().st_size
         report.recorded_s = max(0.0, self.writer.durable_monotonic - self._started)
         for key, stats in report.keys.items():
-            stats.written = self.writer.durable_counts.get(key, 0)
+            stats.written = self._closed_counts.get(key, 0) + self.writer.durable_counts.get(key, 0)
         try:
+            if self.ros2_writer is not None:  # its complete chunks: the views of what the main file holds, or more
+                with contextlib.suppress(Exception):
+                    self.ros2_writer.finish_after_failure()
             result: FinaliseResult = self.writer.finish_after_failure([("recording_stats", report.as_metadata())])
             log.debug("finalised after the write error: %s", result)
             report.foxglove_messages = result.messages - report.written
         except Exception as fin_exc:
             report.finalise_error = _error_text(fin_exc)
+
+
+def ros2_path(path: Path) -> Path:
+    """The companion file of a recording's ROS 2 channels: ``run.mcap`` -> ``run.ros2.mcap``."""
+    return path.with_name(f"{path.stem}.ros2{path.suffix}")
 
 
 # --- metadata --------------------------------------------------------------------------------------
@@ -488,6 +552,12 @@ def default_output(graph_name: str) -> Path:
     return Path("recordings") / f"{graph_name or 'followbus'}-{stamp}.mcap"
 
 
+def _files_text(report: RecordReport) -> str:
+    if len(report.files) <= 1:
+        return str(report.path)
+    return f"{len(report.files)} files {report.files[0]} .. {report.files[-1].name}"
+
+
 def print_report(report: RecordReport, out=sys.stdout) -> None:
     rows = sorted(report.keys.items())
     width = max([len(k) for k, _ in rows] + [3])
@@ -498,10 +568,40 @@ def print_report(report: RecordReport, out=sys.stdout) -> None:
     busy = 100 * report.writer_busy_s / report.duration_s if report.duration_s else 0.0
     conv = 100 * report.convert_busy_s / report.duration_s if report.duration_s else 0.0
     print(f"recorded {report.written} of {report.received} messages received in {report.duration_s:.1f} s to "
-          f"{report.path} ({report.file_bytes / 1e6:.1f} MB, {report.foxglove_messages} Foxglove messages); "
+          f"{_files_text(report)} ({report.file_bytes / 1e6:.1f} MB, {report.foxglove_messages} view messages); "
           f"dropped by the recorder: {report.dropped}; lost on the way (header.seq gaps): {report.seq_gaps}; "
           f"threads busy: convert {conv:.0f}%, write {busy:.0f}%; queue max {report.max_queue_bytes / 1e6:.1f} MB",
           file=out, flush=True)
+    if report.ros2_files:
+        print(f"ROS 2 channels also in {report.ros2_files[0]}" + (f" .. {report.ros2_files[-1].name}"
+              if len(report.ros2_files) > 1 else "") + " (rosbags, `ros2 bag`)", file=out, flush=True)
+
+
+def record_options(args, namespace: str, graph_name: str) -> RecordOptions | str:
+    """The options of ``followbus record`` from its arguments, or the one line that says what is wrong."""
+    patterns = list(args.topics or [f"{namespace}/**"])
+    if args.status and f"{namespace}/@status/*" not in patterns:
+        # '@' chunks are verbatim in Zenoh: no wildcard matches them, so status is only ever recorded on request.
+        patterns.append(f"{namespace}/@status/*")
+    options = RecordOptions(
+        output=Path(args.output) if args.output else default_output(graph_name), patterns=patterns,
+        include_status=args.status, compression=args.compression,
+        chunk_bytes=int(args.chunk_mb * 1024 * 1024), chunk_seconds=args.chunk_seconds,
+        jpeg_quality=args.jpeg_quality, foxglove=not args.no_foxglove, raw_images=args.raw_images,
+        split_bytes=int((args.split_size or 0) * 1e6), split_seconds=args.split_duration or 0.0,
+        ros2_file=not args.no_ros2_file,
+        max_queue_bytes=int(args.max_queue_mb * 1024 * 1024), exclude=list(getattr(args, "exclude", None) or []),
+    )
+    if options.max_queue_bytes <= 0:
+        return "--max-queue-mb must be positive"
+    if options.split_bytes < 0 or options.split_seconds < 0:
+        return "--split-size and --split-duration must be positive"
+    for pattern in [*options.patterns, *options.exclude]:
+        try:
+            zenoh.KeyExpr(pattern)
+        except zenoh.ZError as exc:
+            return f"{pattern!r} is not a key expression: {exc}"
+    return options
 
 
 def _link_excludes(args, settings, graph, namespace: str) -> tuple[list[str], list[str]]:
@@ -522,27 +622,12 @@ def _link_excludes(args, settings, graph, namespace: str) -> tuple[list[str], li
 def cmd_record(args, settings, graph) -> int:
     """``followbus record``; ``graph`` is the loaded --graph (with --set applied) or None."""
     namespace = getattr(args, "namespace", None) or (graph.namespace if graph is not None else "fb")
-    patterns = list(args.topics or [f"{namespace}/**"])
-    if args.status and f"{namespace}/@status/*" not in patterns:
-        # '@' chunks are verbatim in Zenoh: no wildcard matches them, so status is only ever recorded on request.
-        patterns.append(f"{namespace}/@status/*")
-    exclude, notes = _link_excludes(args, settings, graph, namespace)
-    output = Path(args.output) if args.output else default_output(graph.name if graph is not None else "")
-    options = RecordOptions(
-        output=output, patterns=patterns, include_status=args.status, compression=args.compression,
-        chunk_bytes=int(args.chunk_mb * 1024 * 1024), chunk_seconds=args.chunk_seconds,
-        jpeg_quality=args.jpeg_quality, foxglove=not args.no_foxglove,
-        max_queue_bytes=int(args.max_queue_mb * 1024 * 1024), exclude=exclude,
-    )
-    if options.max_queue_bytes <= 0:
-        print("followbus: --max-queue-mb must be positive", file=sys.stderr)
+    options = record_options(args, namespace, graph.name if graph is not None else "")
+    if isinstance(options, str):
+        print(f"followbus: {options}", file=sys.stderr)
         return 2
-    for pattern in [*options.patterns, *options.exclude]:
-        try:
-            zenoh.KeyExpr(pattern)
-        except zenoh.ZError as exc:
-            print(f"followbus: {pattern!r} is not a key expression: {exc}", file=sys.stderr)
-            return 2
+    options.exclude, notes = _link_excludes(args, settings, graph, namespace)
+    output, patterns = options.output, options.patterns
     subscribed = subscription_patterns(options.patterns, options.exclude, graph, namespace)
     try:  # before joining the bus: an unwritable output is reported at once
         recorder = Recorder(options, build_metadata(graph, options, namespace), subscribed)
@@ -570,7 +655,10 @@ def cmd_record(args, settings, graph) -> int:
     token = session.liveliness().declare_token(f"{namespace}/@health/{RECORDER_NAME}")
     for note in notes:
         print(note, flush=True)
-    print(f"recording {' '.join(patterns)} to {output} ({options.compression} chunks); Ctrl-C to stop", flush=True)
+    split = " (then _1, _2, ... as it splits)" if options.split_bytes or options.split_seconds else ""
+    print(f"recording {' '.join(patterns)} to {recorder.report.path}{split} ({options.compression} chunks); "
+          "Ctrl-C to stop",
+          flush=True)
     started = time.monotonic()
     next_status = started + 10.0
     try:

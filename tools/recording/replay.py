@@ -43,7 +43,14 @@ from ...bus.codec import HEADER_KEY, DecodeError, _split
 from ...bus.graph import GraphError, load_graph
 from ...bus.inproc import InProcessError, InProcessGraph
 from ...bus.node import load_node_class
-from ...bus.recording import RecordingError, bus_channels, is_bus_channel, read_metadata, read_summary
+from ...bus.recording import (
+    RecordingError,
+    bus_channels,
+    chunks_to_skip,
+    is_bus_channel,
+    read_metadata,
+    read_summary,
+)
 from ...bus.schemas import Message, ReplayHint, decode
 from .replay_feed import Feed, _header, recording_first_frame
 
@@ -211,6 +218,7 @@ class ReplayOptions:
     startup_timeout_s: float = 60.0
     max_frames: int = 0
     progress: bool = True
+    on_corrupt: str = "refuse"  # a chunk failing its CRC: refuse, or skip (bus.recording.ON_CORRUPT)
 
 
 @dataclass
@@ -254,6 +262,18 @@ class ReplayReport:
         return not verify or not (self.mismatch_count or self.missing or self.extra or not self.outputs_compared)
 
 
+def _forget_state_file(name: str, spec: Any, params: dict[str, Any], given: dict[str, Any]) -> None:
+    """A replayed node keeps no state file (unless --param names one): the live graph's state/template.npz is
+    neither read at its start nor overwritten by a replay."""
+    try:
+        key = load_node_class(spec.run).STATE_FILE_PARAM
+    except ImportError:
+        return
+    if key and params.get(key) and key not in given:
+        log.info("%s: %s=%s not used by the replay (the live graph's state)", name, key, params[key])
+        params[key] = ""
+
+
 class ReplayPlan:
     """What is replayed: the graph as recorded (params applied), the nodes, and which recorded keys are
     their inputs (produced outside them) and their outputs."""
@@ -280,6 +300,7 @@ class ReplayPlan:
         for name in self.nodes:
             spec = self.graph.nodes[name]
             params = json.loads(recorded_params[name]) if name in recorded_params else dict(spec.params)
+            _forget_state_file(name, spec, params, overrides.get(name, {}))
             params.update(overrides.get(name, {}))
             spec.params = params  # what the runtime builds the node with
             self.params[name] = params
@@ -309,6 +330,8 @@ class ReplayPlan:
                 log.warning("the recording has no messages on %s", key)
         if not any(key in recorded for key in self.inputs):
             raise RecordingError(f"{path}: none of the inputs were recorded ({', '.join(self.inputs)})")
+        # Before the node sees anything: a corrupt chunk would make --verify blame the node for the damage.
+        self.skip_chunks = chunks_to_skip(path, set(self.inputs) | set(self.outputs), options.on_corrupt)
         # Nodes whose live decisions are replayed: those with feedback inputs (bus.sync).
         self.feedback_inputs = {name: [i.name for i in self.graph.nodes[name].inputs.values()
                                        if i.sync == "frame" and i.offset] for name in self.nodes}
@@ -413,7 +436,7 @@ class Replayer:
                 target = IsolatedTarget(self._inproc, self.report, self.opts, Path(tmp))
             try:
                 target.start()
-                self.report.recording_first_frame = recording_first_frame(self.path)
+                self.report.recording_first_frame = recording_first_frame(self.path, self.plan.skip_chunks)
                 self._feed(target)
             except (RuntimeError, InProcessError) as exc:
                 self.report.error = str(exc)
@@ -593,7 +616,8 @@ def cmd_replay(args) -> int:
             nodes=[n.strip() for n in args.node.split(",") if n.strip()], graph_path=args.graph,
             params=parse_param_overrides(args.param or []), verify=args.verify, isolated=args.isolated,
             tolerance=Tolerance(args.rtol, args.atol), frame_timeout_s=args.timeout,
-            startup_timeout_s=args.startup_timeout, max_frames=args.max_frames or 0, progress=not args.no_progress)
+            startup_timeout_s=args.startup_timeout, max_frames=args.max_frames or 0, progress=not args.no_progress,
+            on_corrupt=args.on_corrupt)
         if not options.nodes:
             raise ValueError("--node: name a node (or several, comma-separated)")
         replayer = Replayer(Path(args.file), options)

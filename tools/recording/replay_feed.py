@@ -42,11 +42,11 @@ def _header(data: bytes) -> tuple[int, int]:
     return (head.header.frame_seq, head.header.stamp_ns) if head is not None else (-1, 0)
 
 
-def recording_first_frame(path: Path, look_at: int = 200) -> int | None:
+def recording_first_frame(path: Path, skip_chunks: frozenset[int] = frozenset(), look_at: int = 200) -> int | None:
     """The lowest frame_seq among the recording's first messages (log time = capture stamp, so the run's
     first recorded frame is among them); None when none carries a frame."""
     seqs = []
-    for k, msg in enumerate(iter_bus_messages(path)):
+    for k, msg in enumerate(iter_bus_messages(path, skip_chunks=skip_chunks)):
         if k >= look_at:
             break
         frame_seq = _header(msg.data)[0]
@@ -230,7 +230,8 @@ class Feed:
     def groups(self) -> Iterator[tuple[list[tuple[str, ReplayHint]], int, list[Input]]]:
         """(hints to hand over first, frame_seq, the group's input messages: no-frame ones first)."""
         keys = set(self.plan.inputs) | set(self.plan.outputs)
-        stream = causal_order(self._read(prefetch(iter_bus_messages(self.plan.path, keys), PREFETCH)))
+        messages = iter_bus_messages(self.plan.path, keys, self.plan.skip_chunks)
+        stream = causal_order(self._read(prefetch(messages, PREFETCH)))
         ready: deque[tuple[int, list[Input], int]] = deque()  # (frame_seq, messages, bytes)
         held = 0
         group: list[Input] = []

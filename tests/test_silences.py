@@ -1,0 +1,78 @@
+"""Every silence of issue 23 says its line, with its exit status: echo/hz on a key nothing publishes, launch --only
+with inputs nothing launched produces, a monitor that never reached a graph, Ctrl-C (130)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import time
+
+import pytest
+
+from followbus.tools.live.silence import explain_silence
+
+from .conftest import REPO, followbus_argv, run_followbus, wait_until
+from .test_cli_errors import one_error_line, router  # noqa: F401 (a fixture)
+
+KEYS = {"fb/prediction/track": "prediction", "fb/capture/frame": "capture"}
+
+
+def test_a_misspelt_key_names_its_close_matches():
+    line = explain_silence("fb/prediction/trak", "fb", KEYS, {"prediction", "capture"})
+    assert line == "no node publishes fb/prediction/trak; did you mean fb/prediction/track?"
+
+
+def test_a_key_without_the_namespace_names_the_full_key():
+    line = explain_silence("prediction/track", "fb", KEYS, {"prediction"})
+    assert line.startswith("no node publishes prediction/track; did you mean fb/prediction/track")
+
+
+def test_a_key_whose_node_is_down_or_silent_says_which():
+    assert explain_silence("fb/prediction/track", "fb", KEYS, {"capture"}) == (
+        "nothing on fb/prediction/track yet: node prediction, which publishes it, is not running")
+    assert "node prediction is up but has not published it" in explain_silence("fb/prediction/track", "fb", KEYS,
+                                                                                 {"prediction"})
+
+
+@pytest.mark.slow
+def test_echo_and_hz_on_a_bus_without_a_graph_say_so_after_a_second(router):  # noqa: F811
+    for cmd in ("echo", "hz"):
+        result = run_followbus(cmd, "t/ticker/tick", "--connect", router, "--seconds", "2.5", timeout=30)
+        assert result.returncode == 1, result.stderr
+        assert result.stderr.strip().splitlines()[0] == (
+            "followbus: nothing on t/ticker/tick: no graph is running in namespace fb (no node is alive)")
+
+
+@pytest.mark.slow
+def test_launch_only_names_the_inputs_nothing_launched_produces(graph_file):
+    graph = graph_file("  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n"
+                       "  sink:\n    run: followbus.nodes.diagnostics_sink\n    inputs: {tick: ticker/tick}\n",
+                       namespace="o1only")
+    result = run_followbus("launch", str(graph), "--only", "sink", "--duration", "1", timeout=60)
+    assert result.stderr.splitlines()[0] == ("followbus launch: no producer launched for sink.tick (ticker/tick): "
+                                             "they wait for a node started elsewhere (or a replay)")
+
+
+def test_monitor_that_never_reached_a_graph_fails_in_one_line(tmp_path, port):
+    result = run_followbus("monitor", "--connect", f"tcp/127.0.0.1:{port}", "--seconds", "1", timeout=30)
+    assert one_error_line(result).startswith(f"followbus: no graph is running on tcp/127.0.0.1:{port}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("argv", [["echo", "t/x"], ["launch"]], ids=["echo", "launch"])
+def test_ctrl_c_exits_130(argv, graph_file, port):
+    graph = graph_file("  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n", namespace="o1int")
+    full = [*argv, "--connect", f"tcp/127.0.0.1:{port}"] if argv[0] == "echo" else [*argv, str(graph)]
+    proc = subprocess.Popen(followbus_argv(*full), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, stdin=subprocess.DEVNULL)
+    try:
+        if argv[0] == "launch":
+            assert wait_until(lambda: run_followbus("ps").stdout.count("o1int") == 1, 30)
+        else:
+            time.sleep(2.0)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(20) == 130, proc.stdout.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -1,0 +1,246 @@
+"""Which graphs run on this machine, and a launch that refuses to join a live graph of its own namespace.
+
+Every ``launch``/``demo``/``up`` holds an exclusive ``flock`` on ``<runs>/claims/<port>-<namespace>.lock`` for its
+whole life, with its run record (name, graph file, namespace, endpoint, pid, start, nodes, log directory) written
+in it. The kernel drops the lock when the process ends however it ends, so a record is live exactly while its
+lock is held: no stale file, no reused pid can fool ``ps`` or the refusal. A graph started elsewhere (another
+machine, an older followbus) is seen on the bus instead: liveliness tokens under ``<namespace>/@health/``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import re
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..errors import UsageError
+from ..identity import AUTO, MAX_DOMAIN, endpoint, parse_domain, well_known_port
+
+RUNS_ENV = "FOLLOWBUS_RUNS"
+CLAIM_RETRY_S = 0.5  # a `ps` holds a shared lock for a moment: a launch retries this long before it concludes
+BUS_PROBE_S = 0.6
+
+
+def runs_root() -> Path:
+    """Where run records and detached runs' logs live: $FOLLOWBUS_RUNS, else ~/.local/state/followbus/runs."""
+    given = os.environ.get(RUNS_ENV)
+    if given:
+        return Path(given)
+    state = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(state) / "followbus" / "runs"
+
+
+@dataclass
+class RunRecord:
+    name: str
+    graph: str
+    namespace: str
+    endpoint: str
+    pid: int
+    started: float
+    nodes: list[str] = field(default_factory=list)
+    command: str = "launch"
+    log_dir: str = ""
+    domain: int = 0
+
+    def uptime_s(self) -> float:
+        return max(0.0, time.time() - self.started)
+
+
+def _claim_path(port: int | None, namespace: str) -> Path:
+    safe = re.sub(r"[^A-Za-z0-9_.-]", "_", namespace)
+    return runs_root() / "claims" / f"{port or 0}-{safe}.lock"
+
+
+def _read_record(path: Path) -> RunRecord | None:
+    try:
+        return RunRecord(**json.loads(path.read_text() or "{}"))
+    except (OSError, ValueError, TypeError):
+        return None
+
+
+def _held(path: Path) -> bool:
+    """Whether a live process holds the claim (a shared lock cannot be had beside an exclusive one)."""
+    try:
+        with open(path) as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return True
+            return False
+    except OSError:
+        return False
+
+
+def live_runs() -> list[RunRecord]:
+    """Every graph running on this machine under this runs directory, oldest first."""
+    out = []
+    for path in sorted((runs_root() / "claims").glob("*.lock")):
+        if _held(path) and (record := _read_record(path)) is not None:
+            out.append(record)
+    return sorted(out, key=lambda r: r.started)
+
+
+class Claim:
+    """This process's hold on (port, namespace); released at close or when the process ends."""
+
+    def __init__(self, path: Path, handle: Any, record: RunRecord):
+        self.path, self.handle, self.record = path, handle, record
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.handle.close()
+
+
+def _try_lock(path: Path) -> Any | None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle = open(path, "a+")  # noqa: SIM115 (held for the life of the run)
+    deadline = time.monotonic() + CLAIM_RETRY_S
+    while True:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return handle
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                handle.close()
+                return None
+            time.sleep(0.05)
+
+
+def _bus_holder(graph: Any) -> str | None:
+    """A graph of this namespace alive on the graph's bus (seen by its liveliness tokens), described; None: none."""
+    from ..connect import endpoint_listening
+
+    if not any(endpoint_listening(ep) for ep in graph.zenoh.connect):
+        return None
+    import zenoh
+
+    from ...bus.session import open_session
+
+    settings = graph.zenoh.as_client()
+    settings.connect_timeout_ms = 2000
+    try:
+        session = open_session(settings)
+    except zenoh.ZError:
+        return None  # something else listens there (or refuses us): launching will say so itself
+    try:
+        replies = session.liveliness().get(f"{graph.namespace}/@health/*", timeout=BUS_PROBE_S)
+        nodes = sorted({str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None})
+    finally:
+        session.close()
+    if not nodes:
+        return None
+    return f"nodes {', '.join(nodes)} (started outside this machine's run records)"
+
+
+def holder(graph: Any) -> str | None:
+    """Who already runs a graph of ``graph``'s namespace on its endpoint, in words; None: nobody."""
+    path = _claim_path(well_known_port(graph.zenoh), graph.namespace)
+    if path.exists() and _held(path):
+        record = _read_record(path)
+        if record is not None:
+            return (f"graph {record.name!r} (pid {record.pid}, started by `followbus {record.command}`; "
+                    f"`followbus down {record.pid}` stops it)")
+        return "another followbus launch"
+    return _bus_holder(graph)
+
+
+def refusal(graph: Any, who: str) -> str:
+    return (f"{who} is already running on {endpoint(graph)} with namespace {graph.namespace}: start this one in "
+            "another domain (--domain N, FOLLOWBUS_DOMAIN=N, or --domain auto for the first free one)")
+
+
+def claim(graph: Any, command: str, log_dir: str = "", domain: int = 0) -> Claim:
+    """Hold the graph's (port, namespace) for this process, or raise UsageError naming who holds it."""
+    path = _claim_path(well_known_port(graph.zenoh), graph.namespace)
+    handle = _try_lock(path)
+    if handle is None:
+        raise UsageError(refusal(graph, holder(graph) or "another followbus launch"))
+    who = _bus_holder(graph)
+    if who is not None:
+        handle.close()
+        raise UsageError(refusal(graph, who))
+    record = RunRecord(name=graph.name, graph=str(Path(graph.path).resolve()), namespace=graph.namespace,
+                       endpoint=endpoint(graph), pid=os.getpid(), started=time.time(), nodes=list(graph.nodes),
+                       command=command, log_dir=log_dir, domain=domain)
+    handle.seek(0)
+    handle.truncate()
+    handle.write(json.dumps(asdict(record)))
+    handle.flush()
+    return Claim(path, handle, record)
+
+
+def _load_at(path: str, domain: int) -> Any:
+    from ..command import load_graph
+    from ..identity import DOMAIN_ENV
+
+    saved = os.environ.get(DOMAIN_ENV)
+    os.environ[DOMAIN_ENV] = str(domain)
+    try:
+        return load_graph(path)
+    finally:
+        if saved is None:
+            del os.environ[DOMAIN_ENV]
+        else:
+            os.environ[DOMAIN_ENV] = saved
+
+
+def _first_domain() -> int:
+    return parse_domain(os.environ.get("FOLLOWBUS_DOMAIN"), "$FOLLOWBUS_DOMAIN") or 0
+
+
+def free_domain(path: str) -> tuple[int, str]:
+    """The first domain from $FOLLOWBUS_DOMAIN (or 0) where nobody runs this graph, and the line saying why it is
+    not the first ("" when it is)."""
+    first = _first_domain()
+    for domain in range(first, MAX_DOMAIN + 1):
+        if holder(_load_at(path, domain)) is None:
+            return domain, _moved(path, first, domain)
+    raise UsageError(f"every domain {first}..{MAX_DOMAIN} has a graph running (`followbus ps` lists them)")
+
+
+def _moved(path: str, first: int, domain: int) -> str:
+    if domain == first:
+        return ""
+    taken, graph = _load_at(path, first), _load_at(path, domain)
+    return (f"domain {first} ({endpoint(taken)}, namespace {taken.namespace}) is taken; running in domain {domain}: "
+            f"{endpoint(graph)}, namespace {graph.namespace} (watch it with FOLLOWBUS_DOMAIN={domain} "
+            "followbus monitor)")
+
+
+def claim_for_launch(path: str, domain_text: str | None, command: str, log_dir: str = "") -> Claim:
+    """Choose the graph's domain (``auto``: the first free one, said in one line), make it this process's
+    identity (its nodes inherit it) and claim it; UsageError when a graph of the same namespace runs there."""
+    from ..identity import set_identity
+
+    if domain_text != AUTO:
+        domain = parse_domain(domain_text)
+        set_identity(domain=domain)
+        return claim(_load_at(path, domain if domain is not None else _first_domain()), command, log_dir,
+                     domain or 0)
+    first = _first_domain()
+    for domain in range(first, MAX_DOMAIN + 1):
+        try:
+            held = claim(_load_at(path, domain), command, log_dir, domain)
+        except UsageError:
+            continue
+        set_identity(domain=domain)
+        note = _moved(path, first, domain)
+        if note:
+            print(note, flush=True)
+        return held
+    raise UsageError(f"every domain {first}..{MAX_DOMAIN} has a graph running (`followbus ps` lists them)")
+
+
+def claim_from_args(args: Any, command: str, log_dir: str = "") -> Claim:
+    """launch/demo/up: the identity options (--domain, --namespace, --port) made this process's, then claimed."""
+    from ..identity import parse_port, set_identity
+
+    set_identity(namespace=getattr(args, "namespace", None), port=parse_port(getattr(args, "port", None)))
+    return claim_for_launch(args.graph, getattr(args, "domain", None), command, log_dir)

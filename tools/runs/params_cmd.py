@@ -1,0 +1,56 @@
+"""``followbus param get|set NODE.PARAM [VALUE]``: a running node's parameters (bus/live_params.py answers)."""
+
+from __future__ import annotations
+
+import json
+
+import yaml
+
+from ..errors import UsageError
+
+ANSWER_TIMEOUT_S = 3.0
+
+
+def _split(target: str) -> tuple[str, str]:
+    node, dot, param = target.partition(".")
+    if not dot or not node or not param:
+        raise UsageError(f"{target!r}: name a node's parameter as NODE.PARAM, e.g. reid.reid_threshold")
+    return node, param
+
+
+def _ask(args, payload: bytes | None) -> dict:
+    from ...bus.live_params import param_key
+    from ..command import namespace, settings
+    from ..connect import open_client_session
+
+    node, param = _split(args.target)
+    ns = namespace(args)
+    session = open_client_session(settings(args))
+    try:
+        replies = list(session.get(param_key(ns, node, param), payload=payload, timeout=ANSWER_TIMEOUT_S))
+    finally:
+        session.close()
+    answers = [json.loads(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
+    if not answers:
+        raise UsageError(f"node {node!r} is not running in namespace {ns} (no answer in {ANSWER_TIMEOUT_S:g} s; "
+                         "`followbus nodes` lists the nodes up)")
+    if not answers[0].get("ok"):
+        raise UsageError(answers[0].get("error", "refused"))
+    return answers[0]
+
+
+def cmd_param_get(args) -> int:
+    answer = _ask(args, None)
+    live = "" if answer.get("live") else "  (not live-tunable: set at launch)"
+    print(f"{args.target} = {json.dumps(answer['value'])}{live}")
+    return 0
+
+
+def cmd_param_set(args) -> int:
+    try:
+        value = yaml.safe_load(args.value)  # as --set reads a value: 0.8, true, [1, 2], text
+    except yaml.YAMLError as exc:
+        raise UsageError(f"{args.value!r} is not a YAML value: {exc}") from None
+    answer = _ask(args, json.dumps(value).encode())
+    print(f"{args.target}: {json.dumps(answer['before'])} -> {json.dumps(answer['value'])}")
+    return 0
