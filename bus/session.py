@@ -165,6 +165,10 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
         if overwrite:
             conf.insert_json5("qos/network", json.dumps(overwrite))
     for key, value in settings.config.items():
+        if settings.mode == "client" and key.startswith("access_control"):
+            # The router it joins enforces the graph's rules; a client's own allow-list would judge the router's
+            # link, which presents no user name, and refuse everything (a compute host joining the robot graph).
+            continue
         try:
             conf.insert_json5(key, json.dumps(value))
         except zenoh.ZError as exc:  # name the key: Zenoh's own message may not

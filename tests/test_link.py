@@ -37,7 +37,8 @@ def _laptop_tools(bench: LinkBench) -> dict[str, tuple[int, str]]:
     """echo, hz, topics and nodes from the laptop's namespace (its own /dev/shm) as `monitor`, side by side."""
     join = ["--connect", bench.endpoint, "--user", "monitor", "--namespace", "link"]
     commands = {"echo": ["echo", "link/prediction/track", "-n", "2", "--timeout", "20"],
-                "hz": ["hz", "link/capture/preview", "--seconds", "3"], "topics": ["topics"], "nodes": ["nodes"]}
+                "hz": ["hz", "link/capture/preview", "--seconds", "3"], "topics": ["topics", "--seconds", "3"],
+                "nodes": ["nodes"]}
     procs = {name: subprocess.Popen(bench.pair.argv(1, followbus_argv(*argv, *join)), env=bench.env,
                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                     stdin=subprocess.DEVNULL)
@@ -58,8 +59,8 @@ def test_laptop_recording_over_2mbit_never_stops_the_robot(tmp_path):
         finally:
             bench.close()
     assert all(status == 0 for status, _ in tools.values()), tools
-    assert tools["echo"][1].count("link/prediction/track: ") == 2 and "link/capture/preview:" in tools["hz"][1]
-    assert "link/motor/command" in tools["topics"][1] and "motor" in tools["nodes"][1]
+    assert [line.startswith("link/prediction/track: ") for line in tools["echo"][1].splitlines()].count(True) == 2 and "link/capture/preview:" in tools["hz"][1]
+    assert "link/capture/ground_truth" in tools["topics"][1] and "motor" in tools["nodes"][1]
     # The robot (answering frames before: LinkBench.start) goes on answering while the laptop asks for ~27 MB/s
     # over 0.25 MB/s; with BLOCK on the laptop's link it answered none for 20 s windows, and stayed stalled after the
     # laptop left (BENCHMARKS.md). On a machine this loaded the robot alone has silent seconds: hence "within 20 s".

@@ -7,6 +7,7 @@ Skipped, with the reason, where ip netns is not permitted."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import threading
@@ -45,8 +46,10 @@ class Side:
 
     def __init__(self, pair: NetnsPair, index: int, graph: Path, host: str, *extra: str):
         argv = pair.argv(index, followbus_argv("launch", str(graph), "--host", host, "--grace", "1", *extra))
+        # Each "machine" its own run records (tools/runs/claims.py), as two computers have.
+        env = dict(os.environ, FOLLOWBUS_RUNS=str(graph.parent / f"runs-{host}"))
         self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     stdin=subprocess.DEVNULL, cwd=graph.parent)
+                                     stdin=subprocess.DEVNULL, cwd=graph.parent, env=env)
         self.lines: list[str] = []
         threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")), daemon=True).start()
 

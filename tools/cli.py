@@ -254,6 +254,10 @@ def cmd_launch(args) -> int:
     from .launch import Launcher, install_stop_signals
     from .runs.claims import claim_from_args
 
+    if args.host:  # which host's nodes this launch runs: the claim only minds those (runs/claims.py)
+        from ..bus.hosts import HOST_ENV
+
+        os.environ[HOST_ENV] = args.host
     held = claim_from_args(args, "up" if args.log_dir else "launch", args.log_dir or "")
     graph = load_graph(args.graph)
     apply_overrides(graph, args.overrides)
