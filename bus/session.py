@@ -78,7 +78,7 @@ class ZenohSettings:
         if not isinstance(self.config, dict):
             raise ValueError(f"config must be a mapping of zenoh json5 keys, not {self.config!r}")
         try:
-            build_config(self)
+            build_config(self, remote_links=False)  # checked on any machine: its interfaces are not the robot's
         except zenoh.ZError as exc:
             raise ValueError(zenoh_error_text(exc)) from None
 
@@ -140,7 +140,7 @@ def zenoh_error_text(exc: Exception) -> str:
     return f"config: {detail}"
 
 
-def build_config(settings: ZenohSettings) -> zenoh.Config:
+def build_config(settings: ZenohSettings, remote_links: bool = True) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(settings.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
@@ -157,7 +157,7 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     else:
         conf.insert_json5("connect/timeout_ms", json.dumps(settings.connect_timeout_ms))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shm))
-    if settings.mode != "client" and not any(k.startswith("qos") for k in settings.config):
+    if remote_links and settings.mode != "client" and not any(k.startswith("qos") for k in settings.config):
         # What this session sends to other machines is DROP: a laptop on a slow link never blocks the robot.
         from .netif import drop_on_remote_links
 
