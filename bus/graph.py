@@ -39,7 +39,7 @@ from .session import ZenohSettings
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
 NAMESPACE_RE = re.compile(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
 RUN_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")  # an absolute, dotted module name
-TOP_KEYS = {"extends", "name", "namespace", "zenoh", "nodes", "max_lag_ms"}
+TOP_KEYS = {"extends", "name", "namespace", "zenoh", "nodes", "max_lag_ms", "default_host"}
 DEFAULT_MAX_LAG_MS = 150.0  # a frame set further behind the newest complete one is skipped (bus.sync)
 NODE_KEYS = {"run", "inputs", "outputs", "params", "restart", "host", "sync_timeout_ms", "max_lag_ms", "nice",
              "realtime", "description"}
@@ -126,6 +126,13 @@ class Graph:
     path: str = "<memory>"
     text: str = ""  # self-contained YAML (an extending file's is the resolved document): recordings keep it
     max_lag_ms: float = DEFAULT_MAX_LAG_MS
+    # The host of every node that names none (bus/hosts.py): a graph spread over machines runs each node on one.
+    default_host: str | None = None
+
+    def host_of(self, node: str) -> str | None:
+        """The machine that runs ``node``: its ``host:``, else the graph's ``default_host`` (None: any machine
+        that launches the graph; only in a graph that names no host)."""
+        return self.nodes[node].host or self.default_host
 
     def lag_bound_ms(self, node: str) -> float | None:
         """The frame-set lag bound of a node (None: unbounded)."""
@@ -398,10 +405,29 @@ def load_graph(path: str | Path, text: str | None = None) -> Graph:
     max_lag_ms = DEFAULT_MAX_LAG_MS
     if "max_lag_ms" in seen:
         max_lag_ms = _non_negative_ms(seen["max_lag_ms"], path, "max_lag_ms")
+    default_host = None
+    if "default_host" in seen:
+        default_host = _expect(_plain(seen["default_host"], path), str, path, _line(seen["default_host"]),
+                               "default_host")
     graph = Graph(name=name, namespace=namespace, zenoh=zenoh_settings, nodes=nodes, path=path, text=text,
-                  max_lag_ms=max_lag_ms)
+                  max_lag_ms=max_lag_ms, default_host=default_host)
+    _check_hosts(graph)
     _check_wiring(graph)
     return graph
+
+
+def _check_hosts(graph: Graph) -> None:
+    """A node that names no host runs on ``default_host``: a graph that names hosts for some nodes needs one,
+    or `launch --host` on each machine would not know where those nodes go (and used to start them twice)."""
+    if graph.default_host is not None:
+        return
+    named = [spec for spec in graph.nodes.values() if spec.host]
+    unnamed = [name for name, spec in graph.nodes.items() if not spec.host]
+    if named and unnamed:
+        first = named[0]
+        raise GraphError(graph.path, first.line,
+                         f"node {first.name!r} runs on host {first.host!r} but {', '.join(unnamed)} name no host: "
+                         "add `default_host: NAME` (the machine that runs every node without a host:)")
 
 
 def _parse_node(name: str, key_node: yaml.Node, node: yaml.Node, path: str) -> NodeSpec:

@@ -248,7 +248,8 @@ def _node_schema(runs: dict[str, tuple[type, ...]]) -> dict[str, Any]:
                     "description": "published on <namespace>/<node>/<output>"},
         "params": {"type": ["object", "null"], "description": "the node's parameters (see its module)"},
         "restart": {"$ref": "#/definitions/restart"},
-        "host": {"type": "string", "description": "the machine whose `followbus launch --host NAME` starts it"},
+        "host": {"type": "string", "description": "the machine whose `followbus launch --host NAME` starts it "
+                                                  "(default: the graph's default_host)"},
         "sync_timeout_ms": {"type": "number", "exclusiveMinimum": 0, "default": _default(NodeSpec, "sync_timeout_ms"),
                             "description": "how long a frame set waits for its optional inputs"},
         "max_lag_ms": {"type": "number", "minimum": 0,
@@ -315,6 +316,9 @@ def graph_schema(runs: dict[str, tuple[type, ...]]) -> dict[str, Any]:
                                       "skipped (0: unbounded); per node too"},
         "nodes": {"type": "object", "propertyNames": {"pattern": NAME_RE.pattern},
                   "description": "node name -> node (one OS process each)"},
+        "default_host": {"type": "string", "minLength": 1,
+                         "description": "the machine that runs every node without host: (required when some "
+                                        "nodes name a host and others do not)"},
     }
     node = _node_schema(runs)
     inp = _input_schema()

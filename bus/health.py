@@ -289,3 +289,24 @@ class HealthWatcher:
             if sub is not None:
                 with contextlib.suppress(Exception):
                     sub.undeclare()
+
+
+def live_namespaces(session: zenoh.Session, timeout_s: float = 1.0) -> dict[str, list[str]]:
+    """Every namespace with a node's liveliness token, and its nodes: what a tool watching an empty namespace
+    can suggest instead (``**/@health/*``: the ``@health`` chunk is matched verbatim, ``**`` the namespace)."""
+    found: dict[str, set[str]] = {}
+    with contextlib.suppress(Exception):  # a refused or closed session: nothing to suggest
+        for reply in session.liveliness().get("**/@health/*", timeout=timeout_s):
+            with contextlib.suppress(Exception):
+                namespace, _, node = str(reply.ok.key_expr).rpartition("/@health/")
+                found.setdefault(namespace, set()).add(node)
+    return {ns: sorted(nodes) for ns, nodes in sorted(found.items())}
+
+
+def namespaces_hint(namespace: str, found: dict[str, list[str]]) -> str:
+    """One line for a namespace without nodes: which namespaces do have some (and how to pick one)."""
+    others = {ns: nodes for ns, nodes in found.items() if ns != namespace}
+    if not others:
+        return f"no node under {namespace}/@health, and none in any other namespace"
+    listed = "; ".join(f"{ns} ({', '.join(nodes)})" for ns, nodes in others.items())
+    return f"no node under {namespace}/@health; nodes are alive in: {listed} (pick one with --namespace)"

@@ -78,7 +78,7 @@ class ZenohSettings:
         if not isinstance(self.config, dict):
             raise ValueError(f"config must be a mapping of zenoh json5 keys, not {self.config!r}")
         try:
-            build_config(self)
+            build_config(self, remote_links=False)  # checked on any machine: its interfaces are not the robot's
         except zenoh.ZError as exc:
             raise ValueError(zenoh_error_text(exc)) from None
 
@@ -140,7 +140,7 @@ def zenoh_error_text(exc: Exception) -> str:
     return f"config: {detail}"
 
 
-def build_config(settings: ZenohSettings) -> zenoh.Config:
+def build_config(settings: ZenohSettings, remote_links: bool = True) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(settings.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
@@ -157,7 +157,18 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     else:
         conf.insert_json5("connect/timeout_ms", json.dumps(settings.connect_timeout_ms))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shm))
+    if remote_links and settings.mode != "client" and not any(k.startswith("qos") for k in settings.config):
+        # What this session sends to other machines is DROP: a laptop on a slow link never blocks the robot.
+        from .netif import drop_on_remote_links
+
+        overwrite = drop_on_remote_links(list(settings.listen))
+        if overwrite:
+            conf.insert_json5("qos/network", json.dumps(overwrite))
     for key, value in settings.config.items():
+        if settings.mode == "client" and key.startswith("access_control"):
+            # The router it joins enforces the graph's rules; a client's own allow-list would judge the router's
+            # link, which presents no user name, and refuse everything (a compute host joining the robot graph).
+            continue
         try:
             conf.insert_json5(key, json.dumps(value))
         except zenoh.ZError as exc:  # name the key: Zenoh's own message may not
@@ -165,7 +176,7 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     return conf
 
 
-def _is_local(endpoint: str) -> bool:
+def is_local_endpoint(endpoint: str) -> bool:
     """Whether only processes on this machine can reach an endpoint (loopback IP, or a Unix socket)."""
     proto, _, address = endpoint.partition("/")
     if proto.startswith("unixsock"):
@@ -194,7 +205,7 @@ def exposure(settings: ZenohSettings) -> str | None:
     """Why other machines could write on this bus unauthenticated, or None (client, loopback only, or auth)."""
     if settings.mode == "client" or _has_auth(settings.config):
         return None
-    reachable = [ep for ep in settings.listen if not _is_local(ep)]
+    reachable = [ep for ep in settings.listen if not is_local_endpoint(ep)]
     if not reachable:
         return None
     return (f"listening on {', '.join(reachable)} without authentication: anyone who can reach it can publish "

@@ -64,7 +64,9 @@ def _launch_args(p: argparse.ArgumentParser) -> None:
              raw=True)
     p.add_argument("graph", nargs="?", default="graph.yaml", help="graph file (default: ./graph.yaml)")
     p.add_argument("--only", help="comma-separated node names to launch (default: all)")
-    p.add_argument("--host", help="launch only nodes whose host: is this name (or unset)")
+    p.add_argument("--host", help="the machine this is: launch the nodes whose host: is this name, and those "
+                                  "without one when it is the graph's default_host (default $FOLLOWBUS_HOST, else "
+                                  "the hostname; needed only by a graph spread over several hosts)")
     p.add_argument("--duration", type=float, metavar="S",
                    help="stop S seconds after every node is up (start-up does not count)")
     p.add_argument("--record", metavar="FILE", help="also record the bus to this MCAP file")
@@ -116,6 +118,8 @@ def _check_args(p: argparse.ArgumentParser) -> None:
              "camera device exists), without starting anything. Exit status 2 on an error.",
              "example: followbus check graph.yaml --set capture.source=recordings/run1.mcap")
     p.add_argument("graph", nargs="?", default="graph.yaml")
+    p.add_argument("--host", help="check only what this host runs (the capture source it opens); the graph's hosts "
+                                  "and their nodes are listed either way")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="check with this parameter override (as given to launch); repeatable")
 
@@ -140,12 +144,29 @@ def _models_args(p: argparse.ArgumentParser) -> None:
 
 def cmd_check(args: argparse.Namespace) -> int:
     from ..bus.graph import apply_overrides
+    from ..bus.hosts import describe_plan
 
     graph = load_graph(args.graph)
     apply_overrides(graph, args.overrides)
-    _validate(graph, args.overrides)
+    host, nodes = _host_nodes(graph, args.host) if args.host else (None, list(graph.nodes))
+    _validate(graph, args.overrides, opened=set(nodes))
     print(f"{args.graph}: ok ({len(graph.nodes)} nodes)")
+    plan = describe_plan(graph, host)
+    if graph.default_host or len(plan) > 1 or host:
+        print("hosts (`followbus launch --host HOST` starts these nodes):", *plan, sep="\n")
     return 0
+
+
+def _host_nodes(graph, given: str | None) -> tuple[str | None, list[str]]:
+    """The host this launch stands for and its nodes (bus/hosts.py); a host the graph does not use is one line."""
+    from ..bus.hosts import HostError, nodes_on, this_host
+    from .errors import UsageError
+
+    try:
+        host = this_host(graph, given)
+        return host, nodes_on(graph, host)
+    except HostError as exc:
+        raise UsageError(str(exc)) from exc
 
 
 def cmd_node(args: argparse.Namespace) -> int:
@@ -233,19 +254,23 @@ def cmd_launch(args) -> int:
     from .launch import Launcher, install_stop_signals
     from .runs.claims import claim_from_args
 
+    if args.host:  # which host's nodes this launch runs: the claim only minds those (runs/claims.py)
+        from ..bus.hosts import HOST_ENV
+
+        os.environ[HOST_ENV] = args.host
     held = claim_from_args(args, "up" if args.log_dir else "launch", args.log_dir or "")
     graph = load_graph(args.graph)
     apply_overrides(graph, args.overrides)
     only = [n.strip() for n in args.only.split(",")] if args.only else None
+    host, on_host = _host_nodes(graph, args.host)
     # Every node is validated; what a node would open (the capture source) only for the nodes started here.
-    _validate(graph, args.overrides, opened={n for n, spec in graph.nodes.items() if (not only or n in only)
-                                             and (args.host is None or spec.host in (None, args.host))})
+    _validate(graph, args.overrides, opened={n for n in on_host if not only or n in only})
     extra = []
     if args.record:
         extra.append((RECORDER_NAME, [sys.executable, "-m", "followbus.tools.cli", "record", "--graph", args.graph,
                                    "-o", args.record, *(f"--set={o}" for o in args.overrides)]))
     try:
-        launcher = Launcher(graph, only=only, host=args.host, startup_timeout_s=args.startup_timeout,
+        launcher = Launcher(graph, only=only, host=host, startup_timeout_s=args.startup_timeout,
                             grace_s=args.grace, extra_children=extra, overrides=args.overrides,
                             watch_outputs=args.duration is not None,
                             log_dir=Path(args.log_dir) if args.log_dir else None, quiet=bool(args.log_dir))

@@ -82,6 +82,8 @@ def graph_arg(p: argparse.ArgumentParser) -> None:
 
 
 def connect_args(p: argparse.ArgumentParser, timeout: bool = True) -> None:
+    """Where and as whom a command joins the bus: the same options for every command that does (topics, echo,
+    hz, nodes, record, play, monitor, foxglove), read by :func:`settings` (tools/connect.py client_settings)."""
     graph_arg(p)
     p.add_argument("--connect", metavar="ENDPOINT", action="append",
                    help="join as a client via this endpoint (e.g. tcp/192.0.2.10:7447) instead of the graph's "
@@ -90,12 +92,9 @@ def connect_args(p: argparse.ArgumentParser, timeout: bool = True) -> None:
         p.add_argument("--connect-timeout", type=float, metavar="S",
                        help="give up joining the graph after S seconds (default: the graph's connect_timeout_ms, "
                             "10 s; monitor: 3 s)")
-
-
-def viewer_args(p: argparse.ArgumentParser) -> None:
-    """How a read-only viewer (monitor, foxglove) authenticates and which namespace it watches."""
-    p.add_argument("--user", help="zenoh user name (transport/auth/usrpwd), e.g. monitor")
-    p.add_argument("--password", help="zenoh password (default: $FOLLOWBUS_ZENOH_PASSWORD)")
+    p.add_argument("--user", help="zenoh user name (transport/auth/usrpwd), e.g. monitor (default: "
+                                  "$FOLLOWBUS_ZENOH_USER; without either and without --connect, the graph's own)")
+    p.add_argument("--password", help="zenoh password (default: $FOLLOWBUS_ZENOH_PASSWORD; asked on a terminal)")
     p.add_argument("--ca", metavar="FILE", help="CA certificate for a tls/ endpoint")
     p.add_argument("--namespace", help="bus namespace (default: the graph's, else fb)")
 
@@ -111,23 +110,15 @@ def load_graph(path: str) -> Any:
 
 
 def settings(args: argparse.Namespace) -> Any:
-    """Zenoh settings for tools: --connect wins, else the graph's, joined as a client of its endpoint."""
-    from ..bus.session import ZenohSettings
+    """Zenoh client settings of a bus command (--connect, --user, --password, --ca, --connect-timeout)."""
+    from .connect import settings_from_args
 
-    if getattr(args, "connect", None):
-        out = ZenohSettings(mode="client", listen=[], connect=args.connect)
-    elif Path(args.graph).exists():
-        out = load_graph(args.graph).zenoh.as_client()
-    else:
-        from .identity import apply_identity
-
-        out = apply_identity(_DefaultGraph()).zenoh.as_client()
-    if getattr(args, "connect_timeout", None) is not None:
-        out.connect_timeout_ms = max(1, round(args.connect_timeout * 1000))
-    return out
+    return settings_from_args(args)
 
 
 def namespace(args: argparse.Namespace) -> str:
+    if getattr(args, "namespace", None):
+        return args.namespace
     if Path(getattr(args, "graph", "graph.yaml")).exists():
         return load_graph(args.graph).namespace
     from .identity import apply_identity

@@ -1,4 +1,6 @@
-"""Joining a running graph from a tool (topics, echo, hz, nodes, monitor, ...), with one line when it fails.
+"""Joining a running graph from a tool (topics, echo, hz, nodes, record, play, monitor, foxglove): one way to
+build the client's settings and identity for every command (:func:`client_settings`), and one line when joining
+fails.
 
 zenoh-python 1.10 raises the same ``zenoh.ZError: Unable to connect to any of [...]. Timeout!`` whether
 nothing listens on the endpoint or the router refused our credentials (it closes the link in answer to
@@ -13,8 +15,13 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
+import secrets
 import socket
 import ssl
+import sys
+import time
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -24,6 +31,10 @@ from ..bus.session import ZenohSettings, open_session
 log = logging.getLogger(__name__)
 
 PROBE_TIMEOUT_S = 0.5
+PASSWORD_ENV = "FOLLOWBUS_ZENOH_PASSWORD"
+USER_ENV = "FOLLOWBUS_ZENOH_USER"
+VIEWER_CONNECT_TIMEOUT_MS = 3000  # monitor, foxglove: they retry by themselves, so fail fast on a refusal
+PUBLISH_PROBE_S = 3.0  # how long `play` waits for its probe message to come back through the router
 TCP_BASED = ("tcp", "tls", "ws")  # link protocols whose endpoint a TCP connection can probe
 
 
@@ -173,3 +184,101 @@ def open_client_session(settings: ZenohSettings) -> zenoh.Session:
             raise
         log.debug("zenoh: %s", exc)
         raise BusUnreachable(explain_connect_failure(settings)) from exc
+
+
+# --- the client's settings and identity ----------------------------------------------------------------
+
+def _ask_password(user: str) -> str:
+    """--user without a password: ask on a terminal; a script gets one line instead of a refused session."""
+    from .errors import UsageError
+
+    if not sys.stdin.isatty():
+        raise UsageError(f"--user {user} needs a password: pass --password or set ${PASSWORD_ENV} "
+                         "(or run in a terminal to be asked)")
+    import getpass
+
+    return getpass.getpass(f"zenoh password for {user}: ")
+
+
+def _client_config(base: dict[str, Any], user: str | None, password: str | None, ca: str | None,
+                   keep_identity: bool) -> dict[str, Any]:
+    """The graph's zenoh config as a client uses it: never its access control (the router enforces that), its
+    identity only when no other one is given (a tool on the robot itself), its link settings (TLS) always."""
+    drop = ("access_control",) if keep_identity else ("access_control", "transport/auth")
+    config = {k: v for k, v in base.items() if not k.startswith(drop)}
+    if user:
+        config["transport/auth/usrpwd"] = {"user": user, "password": password or ""}
+    if ca:
+        config["transport/link/tls/root_ca_certificate"] = ca
+    return config
+
+
+def client_settings(graph_path: str | None, connect: list[str] | None = None, user: str | None = None,
+                    password: str | None = None, ca: str | None = None, *, viewer: bool = False,
+                    connect_timeout_s: float | None = None) -> ZenohSettings:
+    """How a tool joins a graph as a Zenoh client: ``connect`` (--connect) wins, else the graph's endpoints;
+    identity from --user/--password ($FOLLOWBUS_ZENOH_USER / $FOLLOWBUS_ZENOH_PASSWORD; a terminal asks),
+    else, without --connect, the graph's own; ``ca`` for a tls/ endpoint. ``viewer`` (monitor, foxglove):
+    no shared memory and a short connect timeout, since they reconnect by themselves."""
+    from .command import _DefaultGraph, load_graph  # the graph with this process's identity (tools/identity.py)
+    from .errors import UsageError
+    from .identity import apply_identity
+
+    if graph_path and Path(graph_path).exists():
+        base = load_graph(graph_path).zenoh
+    else:
+        base = apply_identity(_DefaultGraph()).zenoh
+    user = user or os.environ.get(USER_ENV) or None
+    if password is not None and not user:
+        raise UsageError("--password needs --user (the zenoh user name it belongs to)")
+    if user and password is None:
+        password = os.environ.get(PASSWORD_ENV)
+        if password is None:
+            password = _ask_password(user)
+    out = base.as_client(list(connect) if connect else None)
+    out.config = _client_config(base.config, user, password, ca, keep_identity=not connect and not user)
+    if viewer:
+        out.shm = False
+        out.connect_timeout_ms = VIEWER_CONNECT_TIMEOUT_MS
+    if connect_timeout_s is not None:
+        out.connect_timeout_ms = max(1, round(connect_timeout_s * 1000))
+    return out
+
+
+def settings_from_args(args: Any, viewer: bool = False) -> ZenohSettings:
+    """:func:`client_settings` from the options every bus command takes (tools/command.py connect_args)."""
+    return client_settings(getattr(args, "graph", None), getattr(args, "connect", None),
+                           getattr(args, "user", None), getattr(args, "password", None), getattr(args, "ca", None),
+                           viewer=viewer, connect_timeout_s=getattr(args, "connect_timeout", None))
+
+
+# --- may we publish? ------------------------------------------------------------------------------------
+
+class PublishRefused(Exception):
+    """The router drops what this session publishes (access control): the message is the one line to print."""
+
+
+def check_can_publish(session: zenoh.Session, settings: ZenohSettings, timeout_s: float = PUBLISH_PROBE_S) -> None:
+    """Raise :class:`PublishRefused` when the graph does not forward this session's messages.
+
+    Zenoh's access control drops a denied put silently, so a read-only identity's `play` would publish into the
+    void. A second session with the same identity subscribes to a probe key outside every namespace
+    (``followbus/probe/<random>``, matched by a read-only rule's ``**``) and this one puts on it until the
+    router hands it back or ``timeout_s`` passes. Nothing but the probe's subscriber listens to that key."""
+    key = f"followbus/probe/{secrets.token_hex(6)}"
+    arrived: list[bool] = []
+    watcher = open_session(settings)
+    try:
+        sub = watcher.declare_subscriber(key, lambda _sample: arrived.append(True))
+        deadline = time.monotonic() + timeout_s
+        while not arrived and time.monotonic() < deadline:
+            session.put(key, b"probe")
+            time.sleep(0.1)
+        sub.undeclare()
+    finally:
+        watcher.close()
+    if not arrived:
+        user = auth_user(settings.config)
+        who = f"user {user}" if user else "this session"
+        raise PublishRefused(f"{', '.join(settings.connect)} does not accept messages from {who} (access control: a "
+                             "read-only identity; publishing needs one allowed to, e.g. --user operator)")

@@ -26,6 +26,7 @@ from ..bus.health import (
     launcher_key,
     process_table,
 )
+from ..bus.hosts import nodes_on
 from ..bus.liveness import STOPPED_WORKING_EXIT
 from ..bus.node import LAUNCH_ID_ENV, LAUNCHED_NODES_ENV
 from ..bus.pubsub import Publisher, direct_callback
@@ -95,13 +96,8 @@ class Launcher:
         self.ready_event = threading.Event()
         self._out_lock = threading.Lock()
         self.env = dict(os.environ, **(extra_env or {}), PYTHONUNBUFFERED="1")
-        selected = []
-        for name, spec in graph.nodes.items():
-            if only and name not in only:
-                continue
-            if host is not None and spec.host not in (None, host):
-                continue
-            selected.append(spec)
+        on_host = set(nodes_on(graph, host))  # each node on exactly one host (bus/hosts.py)
+        selected = [spec for name, spec in graph.nodes.items() if name in on_host and (not only or name in only)]
         if only:
             unknown = set(only) - set(graph.nodes)
             if unknown:

@@ -141,6 +141,32 @@ def _chaos_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", metavar="FILE", help="also write every run's checks and figures as JSON")
 
 
+def _link_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "The robot graph (graph.robot.yaml) in one network namespace, a laptop in another with its own\n"
+             "/dev/shm, a veth pair shaped with htb to --rate-mbit each way. Per case, alternated round by round:\n"
+             "the robot's capture->command p50/p99 and frames answered (a probe on the robot), and what the\n"
+             "laptop's recording holds (received, dropped, seq gaps per key). Cases: none (no laptop),\n"
+             "monitor (monitor --web), record-all (record --raw-frames), record (the remote default: raw frames\n"
+             "left out). Needs root (ip netns, tc); exit status 2 without.",
+             "example: followbus bench link --rate-mbit 2 --seconds 20 --rounds 3", raw=True)
+    p.add_argument("--rate-mbit", type=float, default=2.0, metavar="R", help="link rate each way (default 2)")
+    p.add_argument("--seconds", type=float, default=20.0, metavar="S", help="measured seconds per case (default 20)")
+    p.add_argument("--rounds", type=int, default=3, help="rounds of every case, alternated (default 3)")
+    p.add_argument("--cases", metavar="LIST", help="comma-separated, of none,monitor,record-all,record (default all)")
+    p.add_argument("--detector", default="simulated", choices=("simulated", "hog", "yolox"),
+                   help="detection backend of the robot graph (default simulated)")
+    p.add_argument("--port", type=int, default=21650, help="the robot's port, inside its namespace (default 21650)")
+    p.add_argument("--unprotected", action="store_true",
+                   help="the robot's links to the laptop keep BLOCK congestion control (as before bus/netif.py): "
+                        "shows what a laptop recording raw frames did to the robot")
+    p.add_argument("--log", default="state/link.log", help="the robot graph's log (default state/link.log)")
+    p.add_argument("--drop-wait-us", type=int, metavar="US",
+                   help="the robot's zenoh wait_before_drop and max_wait_before_drop_fragments (default zenoh's: "
+                        "1000 and 50000 us): how long its router waits on a full link before dropping")
+    p.add_argument("--json", metavar="FILE", help="also write every run's figures as JSON")
+
+
 def _eval_args(p: argparse.ArgumentParser) -> None:
     describe(p,
              "Run followbus, the Kalman baseline, ablations and peer trackers in-process "
@@ -201,6 +227,8 @@ COMMANDS = (
                 Lazy("bench.pipeline", "run_bench_pipeline")),
         Command("detector", "CPU and wall ms per inference of each detector, side by side", _detector_args,
                 Lazy("bench.detector", "run_bench_detector")),
+        Command("link", "a laptop on a slow link: the robot's latency, and what the laptop's recording lost",
+                _link_args, Lazy("bench.link", "cmd_bench_link")),
         Command("chaos", "fault injection: does the live loop always recover? (RELIABILITY.md)", _chaos_args,
                 Lazy("bench.chaos", "run_bench_chaos")),
         Command("record-views", "what the recorder's views cost per frame (convert and write), before and now",

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..command import Command, Lazy, connect_args, describe, namespace, settings, viewer_args
+from ..command import Command, Lazy, connect_args, describe, namespace, settings
 
 
 def _router_args(p: argparse.ArgumentParser) -> None:
@@ -55,7 +55,6 @@ def _foxglove_args(p: argparse.ArgumentParser) -> None:
              "foxglove.ImageAnnotations, motor command and node status as JSON. Read-only.",
              "example: followbus foxglove --connect tcp/192.0.2.10:7447 --user monitor --port 8765")
     connect_args(p, timeout=False)
-    viewer_args(p)
     p.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765)")
     p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--seconds", type=float, help="stop after S seconds")
@@ -68,7 +67,6 @@ def _monitor_args(p: argparse.ArgumentParser) -> None:
              "stream, plots and the health table. Reconnects by itself.",
              "example: followbus monitor --connect tcp/192.0.2.10:7447 --user monitor --web 8080")
     connect_args(p)
-    viewer_args(p)
     p.add_argument("--once", action="store_true", help="print one snapshot once every node is up (or --seconds) "
                                                        "and exit: 0 when all are up")
     p.add_argument("--seconds", type=float, help="stop after S seconds (--once: wait at most S, default 5)")

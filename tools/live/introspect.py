@@ -14,7 +14,7 @@ import numpy as np
 import zenoh
 
 from ...bus.codec import DecodeError
-from ...bus.health import HealthWatcher
+from ...bus.health import HealthWatcher, live_namespaces, namespaces_hint
 from ...bus.pubsub import declare_subscriber, frame_bytes, payload_bytes
 from ...bus.schemas import decode, to_plain
 from ...bus.session import ZenohSettings, open_session
@@ -166,9 +166,10 @@ def cmd_nodes(args, settings: ZenohSettings, namespace: str) -> int:
     wait_for(args.seconds)
     snapshot = watcher.snapshot()
     watcher.close()
+    found = live_namespaces(session) if not snapshot else {}
     session.close()
     if not snapshot:
-        print(f"no nodes under {namespace}/@health")
+        print(namespaces_hint(namespace, found))
         return 1
     print(f"{'node':<14} {'state':<6} {'pid':>7} {'uptime s':>9} {'handler errs':>12}  check")
     for name in sorted(snapshot):

@@ -14,7 +14,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import os
 import sys
 import threading
 import time
@@ -32,7 +31,7 @@ from rich.table import Table
 from rich.text import Text
 
 from ...bus.codec import DecodeError
-from ...bus.health import HealthWatcher
+from ...bus.health import HealthWatcher, live_namespaces, namespaces_hint
 from ...bus.pubsub import declare_subscriber, frame_bytes
 from ...bus.schemas import (
     Frame,
@@ -48,12 +47,14 @@ from ...bus.schemas import (
     Track,
     decode,
 )
-from ...bus.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
+from ...bus.session import ZenohSettings, open_session
 from ...tracking.groundplane import CameraGeometry, floor_to_image, rotation, to_robot_frame
 
 log = logging.getLogger("followbus.monitor")
 
 HISTORY_S = 60.0
+NAMESPACES_AFTER_S = 2.0  # connected this long without a node of our namespace: look for other namespaces
+NAMESPACES_EVERY_S = 5.0
 VALUE_STALE_S = 2.0  # a target, eta or command older than this is shown struck through and labelled stale
 REOPEN_AFTER_S = 5.0  # unreachable this long: close the session and open a fresh one
 # Which output carries what, and the node that publishes it in graph.yaml (overridden from --graph).
@@ -69,45 +70,12 @@ GROUP_SIGMA = 2.0  # the web view draws each group ellipse at 2 standard deviati
 SEPARATOR = "=" * 72  # between snapshots when stdout is not a terminal
 
 
-def _client_config(base: dict[str, Any], user: str | None, password: str | None, ca: str | None) -> dict[str, Any]:
-    # The robot's identity and ACL must not leak into the laptop's session: keep only link settings (TLS).
-    config = {k: v for k, v in base.items() if not k.startswith(("access_control", "transport/auth"))}
-    if user:
-        config["transport/auth/usrpwd"] = {"user": user, "password": password or ""}
-    if ca:
-        config["transport/link/tls/root_ca_certificate"] = ca
-    return config
-
-
-def _ask_password(user: str) -> str:
-    """--user without a password: ask on a terminal; a script gets one line instead of a refused session."""
-    from ..errors import UsageError
-
-    if not sys.stdin.isatty():
-        raise UsageError(f"--user {user} needs a password: pass --password or set $FOLLOWBUS_ZENOH_PASSWORD "
-                         "(or run in a terminal to be asked)")
-    import getpass
-
-    return getpass.getpass(f"zenoh password for {user}: ")
-
-
 def monitor_settings(graph_path: str | None, connect: list[str] | None, user: str | None = None,
                      password: str | None = None, ca: str | None = None) -> ZenohSettings:
-    """Client settings for the laptop: --connect wins, else the graph's listen endpoints."""
-    base: dict[str, Any] = {}
-    endpoints = list(connect or [])
-    if graph_path and Path(graph_path).exists():
-        from ..command import load_graph
+    """Client settings for a viewer on the laptop (tools/connect.py client_settings, the one builder)."""
+    from ..connect import client_settings
 
-        graph = load_graph(graph_path)
-        base = dict(graph.zenoh.config)
-        if not endpoints:
-            endpoints = list(graph.zenoh.listen or graph.zenoh.connect)
-    password = password if password is not None else os.environ.get("FOLLOWBUS_ZENOH_PASSWORD")
-    if user and password is None:
-        password = _ask_password(user)
-    return ZenohSettings(mode="client", listen=[], connect=endpoints or [DEFAULT_ENDPOINT], multicast_scouting=False,
-                         shm=False, connect_timeout_ms=3000, config=_client_config(base, user, password, ca))
+    return client_settings(graph_path, connect, user, password, ca, viewer=True)
 
 
 @dataclass
@@ -275,6 +243,8 @@ class BusMonitor:
         self.unreachable_since_ns = time.time_ns()
         self.sessions_opened = 0
         self.last_error = ""
+        self.namespaces_hint = ""  # no node of ours: the namespaces that have some (_look_elsewhere)
+        self._next_namespace_look = time.monotonic() + NAMESPACES_AFTER_S
         self._tracks: dict[int, Track] = {}
         self._truth: dict[int, GroundTruth] = {}
         self._poses: dict[int, tuple[float, float, float]] = {}  # frame_seq -> robot pose of that frame's points
@@ -362,6 +332,7 @@ class BusMonitor:
             self._set_connected(reachable)
             if reachable:
                 lost_at = None
+                self._look_elsewhere()
             else:
                 lost_at = lost_at or time.monotonic()
                 # Zenoh clients reconnect by themselves; reopening is the fallback if that never happens.
@@ -370,6 +341,23 @@ class BusMonitor:
                     self._close_session()
                     continue
             self.stop_event.wait(0.25)
+
+    def _look_elsewhere(self) -> None:
+        """No node alive in our namespace a while after connecting: find the namespaces that have some (every
+        NAMESPACES_EVERY_S, on this session thread; the hint goes away once a node of ours shows up)."""
+        with self.lock:
+            ours = any(n.alive for n in self.nodes.values())
+        now = time.monotonic()
+        if ours:
+            self.namespaces_hint = ""
+            return
+        if now < self._next_namespace_look or self._session is None:
+            return
+        self._next_namespace_look = now + NAMESPACES_EVERY_S
+        found = live_namespaces(self._session)
+        with self.lock:
+            ours = any(n.alive for n in self.nodes.values())
+            self.namespaces_hint = "" if ours else namespaces_hint(self.info.namespace, found)
 
     # -- callbacks (zenoh threads: copy and return) ------------------------------------------------
     def _on_health(self, name: str, alive: bool) -> None:
@@ -488,7 +476,8 @@ class BusMonitor:
                 "now_ns": now_ns, "connected": self.connected, "ever_connected": self.ever_connected,
                 "unreachable_since_ns": None if self.connected else self.unreachable_since_ns,
                 "endpoints": list(self.settings.connect), "namespace": self.info.namespace,
-                "last_error": self.last_error, "sessions_opened": self.sessions_opened,
+                "last_error": self.last_error, "namespaces_hint": self.namespaces_hint,
+                "sessions_opened": self.sessions_opened,
                 "decode_errors": self.decode_errors, "received": dict(self.received), "nodes": nodes,
                 "source_width": (self.preview.source_width if self.preview is not None and self.preview.source_width
                                  else self.info.source_width),
@@ -603,6 +592,8 @@ def render(snap: dict[str, Any], height: int | None = None, width: int | None = 
         state.insert(0, ["group", _group_line(group)])
     if snap["decode_errors"]:
         state.append(["monitor", Text(f"{snap['decode_errors']} decode errors", "red")])
+    if snap.get("namespaces_hint"):
+        state.append(["monitor", Text(snap["namespaces_hint"], "yellow")])
     # As many topics as the terminal has lines for, so that the target and motor lines stay on screen (80x24).
     if height is not None:
         room = height - (len(head.wrap(Console(width=width or 80), width or 80)) + 2 * len(state) + len(nodes) + 6)

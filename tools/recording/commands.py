@@ -32,6 +32,10 @@ def _record_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--exclude", action="append", metavar="PATTERN",
                    help="leave out keys matching this key expression, e.g. 'fb/capture/frame' (raw frames; the "
                         "JPEG preview stays); repeatable")
+    p.add_argument("--raw-frames", action="store_true",
+                   help="over a network (an endpoint beyond loopback) record the raw frames too; by default a "
+                        "remote recording leaves every <node>/frame out (a Wi-Fi link cannot carry them) and "
+                        "keeps the JPEG preview")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--status", action="store_true", help="also record the @status keys (node statistics)")
     p.add_argument("--compression", choices=("lz4", "zstd", "none"), default="none",

@@ -161,6 +161,24 @@ class Player:
         return self.published
 
 
+def _join(settings) -> zenoh.Session | None:
+    """A session whose messages the graph accepts, or None after one line saying why not (access control).
+    A graph that cannot be joined at all raises BusUnreachable (one line, exit 2, from the command line)."""
+    from ..connect import PublishRefused, auth_user, check_can_publish, open_client_session
+
+    session = open_client_session(settings)
+    try:
+        check_can_publish(session, settings)
+    except PublishRefused as exc:
+        session.close()
+        print(f"followbus: play refused: {exc}", file=sys.stderr)
+        return None
+    user = auth_user(settings.config)
+    print(f"joined {', '.join(settings.connect)}{f' as {user}' if user else ''}: the graph accepts our messages",
+          flush=True)
+    return session
+
+
 def cmd_play(args, settings) -> int:
     path = Path(args.file)
     try:
@@ -181,17 +199,10 @@ def cmd_play(args, settings) -> int:
     if args.start_paused and not sys.stdin.isatty():
         print("followbus: --start-paused needs a terminal (space resumes)", file=sys.stderr)
         return 2
-    from ...bus.session import open_session
-
-    keyboard = Keyboard() if sys.stdin.isatty() else None
-    try:
-        session = open_session(settings)
-    except zenoh.ZError as exc:
-        from ..connect import explain_connect_failure, is_connect_failure
-
-        said = explain_connect_failure(settings) if is_connect_failure(exc) else f"cannot join the bus: {exc}"
-        print(f"followbus: {said}", file=sys.stderr)
+    session = _join(settings)
+    if session is None:
         return 2
+    keyboard = Keyboard() if sys.stdin.isatty() else None
     player = Player(session, path, keys, remaps, rate=rate, loop=args.loop, paused=args.start_paused,
                     shm=settings.shm, keyboard=keyboard)
     player.skip_chunks = skip

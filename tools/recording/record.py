@@ -66,6 +66,7 @@ from ...bus.pubsub import RateLimitedLog, declare_subscriber, frame_bytes
 from ...bus.schemas import decode
 from .. import __version__
 from .mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, ROS2_PROFILE, FinaliseResult, RecordingWriter
+from .remote import is_remote, raw_frame_keys, subscription_patterns
 from .views import ROS2_SCHEMA_ENCODING, View, message_views
 
 log = logging.getLogger("followbus.record")
@@ -197,7 +198,8 @@ class Recorder:
     in the writer sets ``failed``; ``stop()`` then finalises what reached the disk (see the module doc).
     """
 
-    def __init__(self, options: RecordOptions, metadata: dict[str, dict[str, str]]):
+    def __init__(self, options: RecordOptions, metadata: dict[str, dict[str, str]],
+                 subscribe: list[str] | None = None):
         self.opts = options
         self._metadata = metadata
         self._split = bool(options.split_bytes or options.split_seconds)
@@ -207,7 +209,9 @@ class Recorder:
         self.writer = self._open_writer()
         if options.foxglove:
             ros2.typestore()  # built now, not by the first frame's conversion while the graph starts
-        self._key_exprs = [zenoh.KeyExpr(p) for p in options.patterns]
+        # What the subscribers ask for: the patterns, or the graph's kept keys one by one (recording/remote.py).
+        self.subscribe = list(subscribe) if subscribe is not None else list(options.patterns)
+        self._key_exprs = [zenoh.KeyExpr(p) for p in self.subscribe]
         self._excluded = [zenoh.KeyExpr(p) for p in options.exclude]
         self._subs: list[Any] = []
         self._raw: deque[_Item] = deque()
@@ -275,7 +279,7 @@ class Recorder:
 
     def start(self, session: zenoh.Session) -> None:
         self.start_threads()
-        for i, pattern in enumerate(self.opts.patterns):
+        for i, pattern in enumerate(self.subscribe):
             # Direct: the callback runs on zenoh's receive thread (it only copies and enqueues), which
             # keeps the order samples arrived in; zenoh-python's default hands each subscriber a thread.
             # On the real keys, not the lane's side keys (bus/shmlane.py): publishers send the recorder the
@@ -600,16 +604,33 @@ def record_options(args, namespace: str, graph_name: str) -> RecordOptions | str
     return options
 
 
+def _link_excludes(args, settings, graph, namespace: str) -> tuple[list[str], list[str]]:
+    """--exclude, plus the raw frames when recording over a network without --raw-frames; and the lines that
+    say so at start."""
+    exclude = list(getattr(args, "exclude", None) or [])
+    notes = []
+    if is_remote(settings) and not getattr(args, "raw_frames", False):
+        raw = [k for k in raw_frame_keys(graph, namespace) if k not in exclude]
+        exclude += raw
+        notes.append(f"remote link ({', '.join(settings.connect)}): leaving out raw frames ({', '.join(raw)}; "
+                     "--raw-frames records them), the JPEG preview stays")
+    if exclude and graph is None:
+        notes.append("without the graph (--graph) excluded keys are dropped on arrival: they still cross the link")
+    return exclude, notes
+
+
 def cmd_record(args, settings, graph) -> int:
     """``followbus record``; ``graph`` is the loaded --graph (with --set applied) or None."""
-    namespace = graph.namespace if graph is not None else "fb"
+    namespace = getattr(args, "namespace", None) or (graph.namespace if graph is not None else "fb")
     options = record_options(args, namespace, graph.name if graph is not None else "")
     if isinstance(options, str):
         print(f"followbus: {options}", file=sys.stderr)
         return 2
+    options.exclude, notes = _link_excludes(args, settings, graph, namespace)
     output, patterns = options.output, options.patterns
+    subscribed = subscription_patterns(options.patterns, options.exclude, graph, namespace)
     try:  # before joining the bus: an unwritable output is reported at once
-        recorder = Recorder(options, build_metadata(graph, options, namespace))
+        recorder = Recorder(options, build_metadata(graph, options, namespace), subscribed)
     except OSError as exc:
         print(f"followbus: cannot write {output}: {exc}", file=sys.stderr)
         return 2
@@ -621,18 +642,19 @@ def cmd_record(args, settings, graph) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    from ...bus.session import open_session
+    from ..connect import open_client_session
 
     try:
-        session = open_session(settings)
-    except zenoh.ZError as exc:
+        session = open_client_session(settings)
+    except Exception:  # BusUnreachable: one line from the command line; no empty file left behind
         recorder.discard()
-        print(f"followbus: cannot join the bus via {', '.join(settings.connect)}: {exc}", file=sys.stderr)
-        return 2
+        raise
     recorder.start(session)
     # Declared after the subscribers: a capture node launched with --record waits for it before frame 0,
     # so a recording holds the run from its first frame (a replayed node must start where the live one did).
     token = session.liveliness().declare_token(f"{namespace}/@health/{RECORDER_NAME}")
+    for note in notes:
+        print(note, flush=True)
     split = " (then _1, _2, ... as it splits)" if options.split_bytes or options.split_seconds else ""
     print(f"recording {' '.join(patterns)} to {recorder.report.path}{split} ({options.compression} chunks); "
           "Ctrl-C to stop",

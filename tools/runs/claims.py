@@ -134,9 +134,22 @@ def _bus_holder(graph: Any) -> str | None:
         nodes = sorted({str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None})
     finally:
         session.close()
+    nodes = _this_hosts(graph, nodes)
     if not nodes:
         return None
     return f"nodes {', '.join(nodes)} (started outside this machine's run records)"
+
+
+def _this_hosts(graph: Any, alive: list[str]) -> list[str]:
+    """Of the nodes alive on the bus, those this launch would start: on a graph spread over hosts (bus/hosts.py)
+    the other hosts' nodes are expected there (a compute host joins a running robot), its own would run twice."""
+    from ...bus.hosts import HOST_ENV, host_plan
+
+    plan = host_plan(graph)
+    if len(plan) <= 1:
+        return alive
+    mine = set(plan.get(os.environ.get(HOST_ENV, ""), []))
+    return [name for name in alive if name in mine]
 
 
 def holder(graph: Any) -> str | None:

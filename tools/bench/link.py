@@ -1,0 +1,357 @@
+"""``followbus bench link``: does a laptop on a slow link slow the robot, and what does its recording hold?
+
+The robot graph (graph.robot.yaml: router mode, user/password, access control; simulated detector by default,
+the scene looping at 30 Hz) runs in one network namespace, the laptop in another with its own /dev/shm,
+joined by a veth pair shaped to ``--rate-mbit`` each way (htb; tools/bench/netns.py). A probe on the robot
+(its own namespace, over loopback, as the robot's identity) measures, per window, the capture→command latency
+of every motor command (``pub_ns - stamp_ns``) and the frames answered (captured frames, counted by their
+ground-truth message, that got a motor command). Cases, alternated round by round so that the load of a
+shared machine falls on all of them alike:
+
+- ``none``: no laptop;
+- ``monitor``: ``followbus monitor --web`` as ``monitor`` (it subscribes to the JPEG preview too);
+- ``record-all``: ``followbus record --raw-frames`` (every key, raw frames included: far beyond the link);
+- ``record``: ``followbus record`` with the remote default (raw frames left out, the preview kept).
+
+For each recording: messages received, dropped by the recorder, and lost on the way (``header.seq`` gaps)
+per key, from the file's own ``recording_stats`` metadata.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import resource
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .netns import NetnsPair, netns_unavailable
+
+REPO = Path(__file__).resolve().parents[2]
+CASES = ("none", "monitor", "record-all", "record")
+USERS_FILE = REPO / "docs" / "zenoh-users.example.txt"  # robot, monitor, operator with their example passwords
+MONITOR_PASSWORD = "change-me-monitor"
+SETTLE_S = 3.0  # the laptop joins and its subscriptions reach the robot before a window opens
+NAMESPACE = "link"
+
+
+# --- the robot's graph ---------------------------------------------------------------------------------
+
+def write_robot_graph(tmp: Path, port: int, address: str, detector: str, namespace: str = NAMESPACE,
+                      protect: bool = True, drop_wait_us: int | None = None) -> Path:
+    """graph.yaml and graph.robot.yaml of the repository in ``tmp``: a private port on loopback and on
+    ``address`` (the veth end the laptop reaches), the scene looping at 30 Hz, the given detector."""
+    import yaml
+
+    base = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))
+    base["namespace"] = namespace
+    base["zenoh"]["listen"] = base["zenoh"]["connect"] = [f"tcp/127.0.0.1:{port}"]
+    base["nodes"]["capture"]["params"].update(source="scene:corridor-occlusion", pace="realtime", fps=30.0,
+                                              loop=True)
+    base["nodes"]["detection"]["params"]["backend"] = detector
+    base["nodes"]["template"]["params"]["state_file"] = ""
+    (tmp / "graph.yaml").write_text(yaml.safe_dump(base, sort_keys=False))
+    robot = yaml.safe_load((REPO / "graph.robot.yaml").read_text(encoding="utf-8"))
+    robot["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}", f"tcp/{address}:{port}"]
+    robot["zenoh"]["config"]["transport/auth/usrpwd"]["dictionary_file"] = str(USERS_FILE)
+    if drop_wait_us is not None:  # how long the hub waits on a full queue before dropping (zenoh: 1 ms, 50 ms)
+        robot["zenoh"]["config"]["transport/link/tx/queue/congestion_control/drop"] = {
+            "wait_before_drop": drop_wait_us, "max_wait_before_drop_fragments": drop_wait_us}
+    if not protect:  # the robot's links to the laptop as before bus/netif.py: BLOCK messages block the router
+        robot["zenoh"]["config"]["qos/network"] = []
+    path = tmp / "graph.robot.yaml"
+    path.write_text(yaml.safe_dump(robot, sort_keys=False))
+    return path
+
+
+# --- the probe on the robot (a process in the robot's namespace) ---------------------------------------------
+
+class Probe:
+    """Motor commands and captured frames of one window (run in the robot's namespace: see probe_main)."""
+
+    def __init__(self, graph_path: str):
+        from ...bus.graph import load_graph
+        from ...bus.pubsub import declare_subscriber
+        from ..connect import client_settings, open_client_session
+
+        graph = load_graph(graph_path)
+        self.session = open_client_session(client_settings(graph_path))
+        self.lock = threading.Lock()
+        self.open = False
+        self.latencies_ms: dict[int, float] = {}  # frame_seq -> capture->command of the command answering it
+        self.frames: set[int] = set()
+        self.subs = [declare_subscriber(self.session, graph.key("motor", "command"), self._on_command),
+                     declare_subscriber(self.session, graph.key("capture", "ground_truth"), self._on_frame)]
+
+    def _header(self, sample: Any):
+        from ...bus.pubsub import frame_bytes
+        from ...bus.schemas import decode
+
+        try:
+            return decode(frame_bytes(sample)).header
+        except Exception:  # not a figure
+            return None
+
+    def _on_command(self, sample: Any) -> None:
+        h = self._header(sample)
+        with self.lock:
+            if self.open and h is not None and h.stamp_ns > 0:
+                self.latencies_ms.setdefault(h.frame_seq, (h.pub_ns - h.stamp_ns) / 1e6)
+
+    def _on_frame(self, sample: Any) -> None:
+        h = self._header(sample)
+        with self.lock:
+            if self.open and h is not None:
+                self.frames.add(h.frame_seq)
+
+    def window(self, seconds: float) -> dict[str, Any]:
+        with self.lock:
+            self.latencies_ms, self.frames, self.open = {}, set(), True
+        time.sleep(seconds)
+        with self.lock:
+            self.open = False
+            # Only commands that answer a captured frame: the watchdog's stops (stamped when sent) are not a trip.
+            lat = np.asarray([ms for seq, ms in self.latencies_ms.items() if seq in self.frames])
+            return {"commands": len(self.latencies_ms), "frames": len(self.frames), "answered": int(lat.size),
+                    "p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
+                    "p99_ms": float(np.percentile(lat, 99)) if lat.size else None}
+
+
+def probe_main(graph_path: str) -> int:
+    """Read ``<seconds>`` lines on stdin, answer each with one JSON line (a window's figures)."""
+    probe = Probe(graph_path)
+    print("ready", flush=True)
+    for line in sys.stdin:
+        print(json.dumps(probe.window(float(line))), flush=True)
+    probe.session.close()
+    return 0
+
+
+# --- the laptop ----------------------------------------------------------------------------------------------
+
+def laptop_argv(case: str, endpoint: str, graph: Path, tmp: Path, seconds: float) -> list[str] | None:
+    """The laptop's command of a case (None: no laptop)."""
+    cli = [sys.executable, "-m", "followbus.tools.cli"]
+    join = ["--connect", endpoint, "--user", "monitor", "--graph", str(graph)]
+    if case == "monitor":
+        return [*cli, "monitor", *join, "--web", "18080", "--seconds", f"{seconds:g}"]
+    if case in ("record", "record-all"):
+        extra = ["--raw-frames"] if case == "record-all" else []
+        return [*cli, "record", *join, *extra, "-o", str(tmp / f"{case}.mcap"), "--duration", f"{seconds:g}"]
+    return None
+
+
+def recording_summary(path: Path) -> dict[str, Any]:
+    """What a laptop's recording holds, from its own recording_stats: per key received, dropped, seq gaps."""
+    from ...bus.recording import read_metadata
+
+    stats = read_metadata(path).get("recording_stats", {})
+    keys = json.loads(stats.get("keys", "{}"))
+    return {"received": int(stats.get("received", 0)), "dropped": int(stats.get("dropped", 0)),
+            "seq_gaps": int(stats.get("seq_gaps", 0)),
+            "keys": {k: {f: v[f] for f in ("received", "dropped", "seq_gaps")} for k, v in keys.items()}}
+
+
+@dataclass
+class CaseRun:
+    case: str
+    robot: dict[str, Any]
+    laptop: dict[str, Any] = field(default_factory=dict)
+
+
+class LinkBench:
+    """The robot graph and its probe in namespace a, one laptop case at a time in namespace b."""
+
+    def __init__(self, pair: NetnsPair, tmp: Path, port: int, detector: str, protect: bool = True,
+                 log: Path | None = None, drop_wait_us: int | None = None):
+        self.pair, self.tmp, self.log = pair, tmp, log
+        self.graph = write_robot_graph(tmp, port, pair.addresses[0], detector, protect=protect,
+                                       drop_wait_us=drop_wait_us)
+        self.endpoint = f"tcp/{pair.addresses[0]}:{port}"
+        self.env = dict(os.environ, FOLLOWBUS_ZENOH_PASSWORD=MONITOR_PASSWORD, PYTHONUNBUFFERED="1")
+        self.robot = subprocess.Popen(pair.argv(0, [sys.executable, "-m", "followbus.tools.cli", "launch",
+                                                    str(self.graph), "--startup-timeout", "90"]),
+                                      cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.robot_lines: list[str] = []
+        threading.Thread(target=lambda: self.robot_lines.extend(iter(self.robot.stdout.readline, "")),
+                         daemon=True).start()
+        self.probe: subprocess.Popen | None = None
+
+    def start(self, timeout_s: float = 120.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not any("ready:" in line for line in self.robot_lines):
+            if time.monotonic() > deadline or self.robot.poll() is not None:
+                raise RuntimeError("the robot graph did not come up: " + "".join(self.robot_lines[-10:]))
+            time.sleep(0.2)
+        self.probe = subprocess.Popen(self.pair.argv(0, [sys.executable, "-m", "followbus.tools.bench.link",
+                                                         "probe", str(self.graph)]),
+                                      cwd=self.tmp, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        if self.probe.stdout.readline().strip() != "ready":
+            raise RuntimeError("the probe did not start")
+        # Warm-up: the robot answers frames (models loaded, the target acquired) before any window counts.
+        while not self.window(1.0)["answered"]:
+            if time.monotonic() > deadline:
+                raise RuntimeError("the robot graph never answered a frame: " + "".join(self.robot_lines[-10:]))
+
+    def window(self, seconds: float) -> dict[str, Any]:
+        assert self.probe is not None
+        self.probe.stdin.write(f"{seconds}\n")
+        self.probe.stdin.flush()
+        return json.loads(self.probe.stdout.readline())
+
+    def run_case(self, case: str, seconds: float, until_answered: bool = False) -> CaseRun:
+        """One window of ``seconds`` with the case's laptop; ``until_answered``: 1 s windows until the robot
+        answers a frame or ``seconds`` pass, then the laptop is stopped (a test's check, not a figure)."""
+        argv = laptop_argv(case, self.endpoint, self.graph, self.tmp, SETTLE_S + seconds + 1.0)
+        laptop = None
+        cpu0 = _children_cpu_s()
+        if argv is not None:
+            laptop = subprocess.Popen(self.pair.argv(1, argv), cwd=self.tmp, env=self.env, stdin=subprocess.DEVNULL,
+                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            time.sleep(SETTLE_S)
+        robot = self._until_answered(seconds) if until_answered else self.window(seconds)
+        run = CaseRun(case, robot)
+        if laptop is not None:
+            if until_answered:
+                laptop.send_signal(signal.SIGINT)  # a recorder finalises its file and prints its report
+            out = _finish(laptop)
+            # On this one machine the laptop's CPU is the robot's too (a real laptop's is not): say how much.
+            run.laptop = {"exit": laptop.returncode, "first_lines": out.splitlines()[:2],
+                          "cpu_s": round(_children_cpu_s() - cpu0, 2)}
+            mcap = self.tmp / f"{case}.mcap"
+            if mcap.exists():
+                run.laptop.update(recording_summary(mcap))
+                mcap.unlink()
+        return run
+
+    def _until_answered(self, seconds: float) -> dict[str, Any]:
+        deadline = time.monotonic() + seconds
+        robot = self.window(1.0)
+        while not robot["answered"] and time.monotonic() < deadline:
+            robot = self.window(1.0)
+        return robot
+
+    def close(self) -> None:
+        if self.log is not None:
+            self.log.parent.mkdir(parents=True, exist_ok=True)
+            self.log.write_text("".join(self.robot_lines))
+        if self.probe is not None and self.probe.poll() is None:
+            self.probe.stdin.close()  # its loop ends
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.probe.wait(10)
+        for proc in (self.probe, self.robot):
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+
+
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)  # waited-for children: the laptop's processes
+    return usage.ru_utime + usage.ru_stime
+
+
+def _finish(proc: subprocess.Popen, timeout_s: float = 60.0) -> str:
+    try:
+        out, _ = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    return out or ""
+
+
+# --- the command ---------------------------------------------------------------------------------------------
+
+def run_link_bench(rate_mbit: float, seconds: float, rounds: int, cases: list[str], detector: str,
+                   port: int = 21650, progress: Any = print, protect: bool = True,
+                   log: Path | None = None, drop_wait_us: int | None = None) -> list[CaseRun]:
+    """Every case ``rounds`` times, alternated; the robot graph is launched once."""
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="followbus-link-") as tmp, NetnsPair(rate_mbit=rate_mbit) as pair:
+        bench = LinkBench(pair, Path(tmp), port, detector, protect=protect, log=log, drop_wait_us=drop_wait_us)
+        try:
+            bench.start()
+            for r in range(rounds):
+                for case in cases:
+                    runs.append(bench.run_case(case, seconds))
+                    progress(f"round {r + 1}/{rounds} {case}: {_robot_line(runs[-1].robot)}")
+        finally:
+            bench.close()
+    return runs
+
+
+def _robot_line(robot: dict[str, Any]) -> str:
+    p50, p99 = robot["p50_ms"], robot["p99_ms"]
+    figures = f"p50 {p50:.1f} ms p99 {p99:.1f} ms" if p50 is not None else "no command"
+    return f"{figures}, answered {robot['answered']}/{robot['frames']} frames"
+
+
+def table(runs: list[CaseRun]) -> str:
+    """Markdown: one row per case and round (robot figures), then per recording its keys."""
+    lines = ["| case | round | capture→command p50 ms | p99 ms | frames answered | laptop received | "
+             "dropped | seq gaps | laptop CPU s |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    rounds: dict[str, int] = {}
+    for run in runs:
+        rounds[run.case] = rounds.get(run.case, 0) + 1
+        r, lap = run.robot, run.laptop
+        p50 = f"{r['p50_ms']:.1f}" if r["p50_ms"] is not None else "-"
+        p99 = f"{r['p99_ms']:.1f}" if r["p99_ms"] is not None else "-"
+        rec = (f"{lap['received']} | {lap['dropped']} | {lap['seq_gaps']}" if "received" in lap else "- | - | -")
+        cpu = f"{lap['cpu_s']:.1f}" if "cpu_s" in lap else "-"
+        lines.append(f"| {run.case} | {rounds[run.case]} | {p50} | {p99} | {r['answered']}/{r['frames']} | {rec} "
+                     f"| {cpu} |")
+    return "\n".join(lines)
+
+
+def key_table(runs: list[CaseRun]) -> str:
+    """The last recording of each recording case, per key."""
+    last = {run.case: run for run in runs if "keys" in run.laptop}
+    lines = ["| recording | key | received | dropped | seq gaps (lost on the way) |", "|---|---|---:|---:|---:|"]
+    for case, run in last.items():
+        for key, s in sorted(run.laptop["keys"].items()):
+            lines.append(f"| {case} | {key} | {s['received']} | {s['dropped']} | {s['seq_gaps']} |")
+    return "\n".join(lines)
+
+
+def cmd_bench_link(args) -> int:
+    reason = netns_unavailable()
+    if reason:
+        print(f"followbus: bench link needs two network namespaces: {reason}", file=sys.stderr)
+        return 2
+    cases = [c.strip() for c in args.cases.split(",")] if args.cases else list(CASES)
+    unknown = [c for c in cases if c not in CASES]
+    if unknown:
+        print(f"followbus: --cases: unknown {', '.join(unknown)} (of {', '.join(CASES)})", file=sys.stderr)
+        return 2
+    with open("/proc/loadavg") as f:
+        load = f.read().strip()
+    print(f"bench link: {args.rate_mbit:g} Mbit/s each way, {args.seconds:g} s windows, {args.rounds} rounds of "
+          f"{', '.join(cases)}; detector {args.detector}; remote links "
+          f"{'as before (BLOCK)' if args.unprotected else 'DROP (bus/netif.py)'}; load {load}", flush=True)
+    runs = run_link_bench(args.rate_mbit, args.seconds, args.rounds, cases, args.detector, args.port,
+                          protect=not args.unprotected, log=Path(args.log), drop_wait_us=args.drop_wait_us)
+    with open("/proc/loadavg") as f:
+        print(f"load at the end: {f.read().strip()}")
+    print(table(runs))
+    print()
+    print(key_table(runs))
+    if args.json:
+        Path(args.json).write_text(json.dumps([vars(r) for r in runs], indent=1))
+    return 0
+
+
+if __name__ == "__main__" and len(sys.argv) == 3 and sys.argv[1] == "probe":
+    sys.exit(probe_main(sys.argv[2]))
