@@ -458,7 +458,7 @@ def test_every_command_has_a_help_and_a_handler():
         assert done.value.code == 0
         required = {"node": ["n"], "echo": ["k"], "hz": ["k"], "play": ["f"], "replay": ["f", "--node", "n"],
                     "info": ["f"], "recover": ["f"], "logs": ["n"], "get": ["n.p"],
-                    "set": ["n.p", "1"]}.get(words[-1], [])
+                    "set": ["n.p", "1"], "record-views": ["f"]}.get(words[-1], [])
         assert parser.parse_args([*words, *required]).run is command.run, words
         if isinstance(command.run, Lazy):  # a handler imported when it runs: it must be there
             assert callable(command.run.resolve()), words
