@@ -287,17 +287,29 @@ def test_source_lines_keep_their_file_through_copies():
 # --- graph.robot.yaml --------------------------------------------------------------------------------------
 
 # What graph.robot.yaml adds to graph.yaml, frozen (an intended change to the robot's bus updates this too).
+_ROBOT_KEYS = ["**", "**/@health/**", "**/@status/**", "**/@launcher/**", "**/@replay/**", "**/@lane/**",
+               "@followbus/**", "@/**"]
+# An allow-list (issue 25): robot and operator may do everything, monitor only subscribe, ask liveliness and receive.
 ROBOT_CONFIG = {
     "transport/auth/usrpwd": {"user": "robot", "password": "change-me-robot",
                               "dictionary_file": "docs/zenoh-users.example.txt"},
     "access_control": {
         "enabled": True,
-        "default_permission": "allow",
-        "rules": [{"id": "read-only", "permission": "deny", "flows": ["ingress"],
-                   "messages": ["put", "delete", "query", "reply", "declare_queryable", "liveliness_token"],
-                   "key_exprs": ["**", "**/@health/**", "**/@status/**", "**/@launcher/**", "@/**"]}],
-        "subjects": [{"id": "monitor", "usernames": ["monitor"]}],
-        "policies": [{"rules": ["read-only"], "subjects": ["monitor"]}],
+        "default_permission": "deny",
+        "rules": [
+            {"id": "full", "permission": "allow", "flows": ["ingress", "egress"],
+             "messages": ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                          "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
+             "key_exprs": _ROBOT_KEYS},
+            {"id": "read-only-receive", "permission": "allow", "flows": ["egress"],
+             "messages": ["put", "delete", "reply", "liveliness_token"], "key_exprs": _ROBOT_KEYS},
+            {"id": "read-only-ask", "permission": "allow", "flows": ["ingress"],
+             "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+             "key_exprs": ["**", "**/@health/**", "**/@status/**", "**/@launcher/**"]},
+        ],
+        "subjects": [{"id": "robot", "usernames": ["robot", "operator"]}, {"id": "monitor", "usernames": ["monitor"]}],
+        "policies": [{"rules": ["full"], "subjects": ["robot"]},
+                     {"rules": ["read-only-receive", "read-only-ask"], "subjects": ["monitor"]}],
     },
 }
 # The last commit with graph.robot.yaml as a hand-synced copy of graph.yaml.
@@ -331,7 +343,11 @@ def test_robot_graph_resolves_to_the_copy_it_replaced(tmp_path):
     write(tmp_path, "new/graph.yaml", files["graph.yaml"])
     new = write(tmp_path, "new/graph.robot.yaml", robot_text())
     assert "extends" not in files["graph.robot.yaml"]
-    assert meaning(load_graph(new)) == meaning(load_graph(old))
+    new_meaning, old_meaning = meaning(load_graph(new)), meaning(load_graph(old))
+    # Since the copy, the access control became an allow-list (issue 25): the rest is the copy, field by field.
+    assert new_meaning["zenoh"]["config"].pop("access_control")["default_permission"] == "deny"
+    assert old_meaning["zenoh"]["config"].pop("access_control")["default_permission"] == "allow"
+    assert new_meaning == old_meaning
 
 
 @pytest.mark.parametrize("data, valid", [
