@@ -68,6 +68,9 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o camera-motion uncertainty": {"camera_motion_uncertainty": False},
     # issue 22: a far re-lock on δ_switch alone, as before (no δ_id / N_id confirmation)
     "followbus w/o identity-confirmed far re-lock": {"far_relock_needs_identity": False},
+    # issue 22: after a crossing, colour's choice (a lone detection unscored) even when the classifier, which just told
+    # the people apart, scores every contender below δ_switch
+    "followbus w/o identity veto after a crossing": {"identity_veto_after_crowd_frames": 0},
 }
 # graph.yaml's detection node: boxes scoring score_threshold or more are "the detections" every method sees;
 # those in [low_score_threshold, score_threshold) only reach a method that asks for them (``uses_low_scores``):

@@ -85,6 +85,14 @@ class TrackerParams:
     far_relock_needs_identity: bool = True
     relock_far_height_fraction: float = 0.5
     n_id: int = 2
+    # While TRACKING, colour + geometry's choice stands when the classifier scores every contender below δ_switch,
+    # and a lone contender is not even scored. Both fail in a crossing or a group: the target hides behind another
+    # person of the same colours, the detector drops or merges it, and the lone (or best) detection in the gate is
+    # the other person. So for identity_veto_after_crowd_frames frames after another detection shared the gate,
+    # provided the classifier then told the people apart (scored the chosen one δ_id or more), contenders that all
+    # score below δ_switch are rejected, a lone one included: the target goes OCCLUDED instead of the track (and
+    # the classifier's training samples) moving onto the other person. 0: off.
+    identity_veto_after_crowd_frames: int = 30
     # Motion blobs smaller than this (after morphology) are ignored as noise.
     min_blob_area_px: int = 64
     # OCCLUDED turns into LOST after this long without an accepted match.
@@ -137,7 +145,7 @@ class TrackerParams:
         non_negative = (
             "diff_threshold", "eta_base", "lambda_specular", "accel_std_px_s2", "kappa_px2_per_mps2",
             "init_velocity_std_px_s", "geo_scale", "ambiguity_margin", "min_blob_area_px",
-            "reacquired_hold_frames", "identity_margin",
+            "reacquired_hold_frames", "identity_margin", "identity_veto_after_crowd_frames",
         )
         for name in non_negative:
             if getattr(self, name) < 0:

@@ -186,6 +186,8 @@ class ReIdentifier:
         self._reacquired_count = 0
         self._last_box: Box | None = None  # the last accepted box: where a re-initialisation looks first
         self._confirming: tuple[Box, int] | None = None  # a far re-lock candidate and its δ_id confirmations
+        self._frames_since_crowd: int | None = None  # frames since another detection shared the gate (None: never)
+        self._crowd_told_apart = False  # in that crowd, the classifier scored its choice among several δ_id or more
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
              template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None,
@@ -237,6 +239,7 @@ class ReIdentifier:
         prior = self._scaled_gate(prior)
         # Stage 1: the detections (score >= the detector's threshold) in the gate.
         candidates = self._gate_candidates(boxes, prior, "detection")
+        self._note_crowd(len(candidates))
         best, c_t, omega = self._score(frame_bgr, candidates, prior, template_hist)
         accepted = best is not None and best.m_fuse > p.reid_threshold  # Alg. 1 line 9
         if accepted and best is not None:
@@ -359,7 +362,8 @@ class ReIdentifier:
             return best, True
         contenders = sorted((c for c in candidates if c.m_fuse > p.reid_threshold
                              and c.m_fuse >= best.m_fuse - p.identity_margin), key=lambda c: -c.m_fuse)
-        if len(contenders) < 2 and not relock:
+        lone_check = len(contenders) < 2 and not relock
+        if lone_check and not self._crowded_recently():  # a lone contender is scored only just after a crowd
             return best, True
         embs = self._embed(frame_bgr, [c.box for c in contenders])
         if embs is None or not len(embs):
@@ -367,12 +371,32 @@ class ReIdentifier:
         scores = self.identity.score(embs)
         self.identity_decisions += 1
         i = int(np.argmax(scores))
+        if not relock and not lone_check and scores[i] >= p.delta_id:
+            self._crowd_told_apart = True
         if scores[i] < p.delta_switch:
-            # Nobody here looks like the target: on a re-lock, wait; while tracking, keep colour's choice.
-            return best, not relock
+            # Nobody here looks like the target: on a re-lock, wait; while tracking, keep colour's choice, unless
+            # the classifier just told these people apart (a crossing: the target is hidden behind them): wait.
+            return best, not (relock or self._crowded_recently())
         if relock and p.far_relock_needs_identity and self._far(contenders[i].box, prior):
             return contenders[i], self._confirmed(contenders[i].box, float(scores[i]))
         return contenders[i], True
+
+    def _note_crowd(self, gated_detections: int) -> None:
+        """Count the frames since another detection shared the gate with the target; a crowd over forgets whether
+        the classifier told its people apart."""
+        if gated_detections >= 2:
+            self._frames_since_crowd = 0
+        elif self._frames_since_crowd is not None:
+            self._frames_since_crowd += 1
+            if self._frames_since_crowd > self.params.identity_veto_after_crowd_frames:
+                self._frames_since_crowd, self._crowd_told_apart = None, False
+
+    def _crowded_recently(self) -> bool:
+        """Another detection shared the gate within identity_veto_after_crowd_frames frames and the classifier told
+        them apart then: only a classifier that separates these people may veto colour's choice (early on, or
+        between look-alikes it has not learnt, it scores everyone alike, the target too)."""
+        return (self.params.identity_veto_after_crowd_frames > 0 and self._frames_since_crowd is not None
+                and self._crowd_told_apart)
 
     def _far(self, box: Box, prior: Prior) -> bool:
         """A re-lock candidate farther from the prior's centre than relock_far_height_fraction of its height."""
@@ -449,6 +473,7 @@ class ReIdentifier:
         if source == "init":  # a new target: what the classifier learnt was someone else
             self.identity.reset()
             self._secure_frames = 0
+            self._frames_since_crowd, self._crowd_told_apart = None, False
         self.state = TrackState.TRACKING
         self._t_last_accept_ns = t_ns
         self._reacquired_count = 0
