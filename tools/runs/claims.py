@@ -1,10 +1,14 @@
-"""Which graphs run on this machine, and a launch that refuses to join a live graph of its own namespace.
+"""Which graphs run on this machine, and a launch that refuses to start a node that already runs.
 
-Every ``launch``/``demo``/``up`` holds an exclusive ``flock`` on ``<runs>/claims/<port>-<namespace>.lock`` for its
-whole life, with its run record (name, graph file, namespace, endpoint, pid, start, nodes, log directory) written
-in it. The kernel drops the lock when the process ends however it ends, so a record is live exactly while its
-lock is held: no stale file, no reused pid can fool ``ps`` or the refusal. A graph started elsewhere (another
-machine, an older followbus) is seen on the bus instead: liveliness tokens under ``<namespace>/@health/``.
+Every ``launch``/``demo``/``up`` holds an exclusive ``flock`` on ``<runs>/claims/<port>-<namespace>-<pid>.lock``
+for its whole life, with its run record (name, graph file, namespace, endpoint, pid, start, the nodes it starts,
+log directory) written in it. The kernel drops the lock when the process ends however it ends, so a record is
+live exactly while its lock is held: no stale file, no reused pid can fool ``ps`` or the refusal. A launch is
+refused when a node it would start already runs in its namespace on its endpoint (two captures feeding one set of
+nodes, two motors answering one track stream); ``launch --only relay`` beside a running ``--only ticker`` of the
+same graph is a legitimate split and is allowed. Claims of one (port, namespace) are made one at a time under
+``<port>-<namespace>.guard``, so two launches started together cannot both pass. A graph started elsewhere
+(another machine, an older followbus) is seen on the bus instead: liveliness tokens under ``<namespace>/@health/``.
 """
 
 from __future__ import annotations
@@ -53,9 +57,16 @@ class RunRecord:
         return max(0.0, time.time() - self.started)
 
 
-def _claim_path(port: int | None, namespace: str) -> Path:
-    safe = re.sub(r"[^A-Za-z0-9_.-]", "_", namespace)
-    return runs_root() / "claims" / f"{port or 0}-{safe}.lock"
+def _claim_stem(port: int | None, namespace: str) -> str:
+    return f"{port or 0}-{re.sub(r'[^A-Za-z0-9_.-]', '_', namespace)}"
+
+
+def _claim_path(port: int | None, namespace: str, pid: int) -> Path:
+    return runs_root() / "claims" / f"{_claim_stem(port, namespace)}-{pid}.lock"
+
+
+def _guard_path(port: int | None, namespace: str) -> Path:
+    return runs_root() / "claims" / f"{_claim_stem(port, namespace)}.guard"
 
 
 def _read_record(path: Path) -> RunRecord | None:
@@ -113,8 +124,8 @@ def _try_lock(path: Path) -> Any | None:
             time.sleep(0.05)
 
 
-def _bus_holder(graph: Any) -> str | None:
-    """A graph of this namespace alive on the graph's bus (seen by its liveliness tokens), described; None: none."""
+def _bus_holder(graph: Any, starting: set[str]) -> str | None:
+    """Nodes of ``starting`` alive on the graph's bus (seen by their liveliness tokens), described; None: none."""
     from ..connect import endpoint_listening
 
     if not any(endpoint_listening(ep) for ep in graph.zenoh.connect):
@@ -131,37 +142,52 @@ def _bus_holder(graph: Any) -> str | None:
         return None  # something else listens there (or refuses us): launching will say so itself
     try:
         replies = session.liveliness().get(f"{graph.namespace}/@health/*", timeout=BUS_PROBE_S)
-        nodes = sorted({str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None})
+        alive = {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None}
     finally:
         session.close()
-    nodes = _this_hosts(graph, nodes)
+    nodes = sorted(alive & starting)
     if not nodes:
         return None
     return f"nodes {', '.join(nodes)} (started outside this machine's run records)"
 
 
-def _this_hosts(graph: Any, alive: list[str]) -> list[str]:
-    """Of the nodes alive on the bus, those this launch would start: on a graph spread over hosts (bus/hosts.py)
-    the other hosts' nodes are expected there (a compute host joins a running robot), its own would run twice."""
+def launched_nodes(graph: Any, only: list[str] | None = None) -> set[str]:
+    """The nodes a launch of ``graph`` starts here: on a graph spread over hosts (bus/hosts.py) only this host's
+    (the other hosts' are expected on the bus: a compute host joins a running robot), and of those ``--only``'s."""
     from ...bus.hosts import HOST_ENV, host_plan
 
     plan = host_plan(graph)
-    if len(plan) <= 1:
-        return alive
-    mine = set(plan.get(os.environ.get(HOST_ENV, ""), []))
-    return [name for name in alive if name in mine]
+    names = set(graph.nodes) if len(plan) <= 1 else set(plan.get(os.environ.get(HOST_ENV, ""), []))
+    return names & set(only) if only else names
 
 
-def holder(graph: Any) -> str | None:
-    """Who already runs a graph of ``graph``'s namespace on its endpoint, in words; None: nobody."""
-    path = _claim_path(well_known_port(graph.zenoh), graph.namespace)
-    if path.exists() and _held(path):
-        record = _read_record(path)
-        if record is not None:
+def _live_claims(graph: Any) -> list[tuple[Path, RunRecord]]:
+    stem = _claim_stem(well_known_port(graph.zenoh), graph.namespace)
+    out = []
+    for path in (runs_root() / "claims").glob(f"{stem}-*.lock"):
+        if _held(path) and (record := _read_record(path)) is not None:
+            out.append((path, record))
+    return out
+
+
+def _remove_dead_claims(graph: Any) -> None:
+    """Claims of ended launches (their lock is free) go; called under the guard, so no claim is half made."""
+    stem = _claim_stem(well_known_port(graph.zenoh), graph.namespace)
+    for path in (runs_root() / "claims").glob(f"{stem}-*.lock"):
+        if not _held(path):
+            with contextlib.suppress(OSError):
+                path.unlink()
+
+
+def holder(graph: Any, starting: set[str] | None = None) -> str | None:
+    """Who already runs one of ``starting`` (default: every node of ``graph``) in ``graph``'s namespace on its
+    endpoint, in words; None: nobody."""
+    starting = set(graph.nodes) if starting is None else starting
+    for _path, record in _live_claims(graph):
+        if starting & set(record.nodes):
             return (f"graph {record.name!r} (pid {record.pid}, started by `followbus {record.command}`; "
                     f"`followbus down {record.pid}` stops it)")
-        return "another followbus launch"
-    return _bus_holder(graph)
+    return _bus_holder(graph, starting)
 
 
 def refusal(graph: Any, who: str) -> str:
@@ -169,24 +195,33 @@ def refusal(graph: Any, who: str) -> str:
             "another domain (--domain N, FOLLOWBUS_DOMAIN=N, or --domain auto for the first free one)")
 
 
-def claim(graph: Any, command: str, log_dir: str = "", domain: int = 0) -> Claim:
-    """Hold the graph's (port, namespace) for this process, or raise UsageError naming who holds it."""
-    path = _claim_path(well_known_port(graph.zenoh), graph.namespace)
-    handle = _try_lock(path)
-    if handle is None:
-        raise UsageError(refusal(graph, holder(graph) or "another followbus launch"))
-    who = _bus_holder(graph)
-    if who is not None:
-        handle.close()
-        raise UsageError(refusal(graph, who))
-    record = RunRecord(name=graph.name, graph=str(Path(graph.path).resolve()), namespace=graph.namespace,
-                       endpoint=endpoint(graph), pid=os.getpid(), started=time.time(), nodes=list(graph.nodes),
-                       command=command, log_dir=log_dir, domain=domain)
-    handle.seek(0)
-    handle.truncate()
-    handle.write(json.dumps(asdict(record)))
-    handle.flush()
-    return Claim(path, handle, record)
+def claim(graph: Any, command: str, log_dir: str = "", domain: int = 0, only: list[str] | None = None) -> Claim:
+    """Hold the graph's (port, namespace) for the nodes this process starts, or raise UsageError naming who runs
+    one of them already."""
+    port = well_known_port(graph.zenoh)
+    guard = _try_lock(_guard_path(port, graph.namespace))
+    if guard is None:
+        raise UsageError(refusal(graph, "another followbus launch (starting now)"))
+    try:
+        _remove_dead_claims(graph)
+        starting = launched_nodes(graph, only)
+        who = holder(graph, starting)
+        if who is not None:
+            raise UsageError(refusal(graph, who))
+        path = _claim_path(port, graph.namespace, os.getpid())
+        handle = _try_lock(path)
+        if handle is None:  # this very process claimed it already
+            raise UsageError(refusal(graph, "this process"))
+        record = RunRecord(name=graph.name, graph=str(Path(graph.path).resolve()), namespace=graph.namespace,
+                           endpoint=endpoint(graph), pid=os.getpid(), started=time.time(),
+                           nodes=sorted(starting), command=command, log_dir=log_dir, domain=domain)
+        handle.seek(0)
+        handle.truncate()
+        handle.write(json.dumps(asdict(record)))
+        handle.flush()
+        return Claim(path, handle, record)
+    finally:
+        guard.close()
 
 
 def _load_at(path: str, domain: int) -> Any:
@@ -227,7 +262,8 @@ def _moved(path: str, first: int, domain: int) -> str:
             "followbus monitor)")
 
 
-def claim_for_launch(path: str, domain_text: str | None, command: str, log_dir: str = "") -> Claim:
+def claim_for_launch(path: str, domain_text: str | None, command: str, log_dir: str = "",
+                     only: list[str] | None = None) -> Claim:
     """Choose the graph's domain (``auto``: the first free one, said in one line), make it this process's
     identity (its nodes inherit it) and claim it; UsageError when a graph of the same namespace runs there."""
     from ..identity import set_identity
@@ -236,11 +272,11 @@ def claim_for_launch(path: str, domain_text: str | None, command: str, log_dir: 
         domain = parse_domain(domain_text)
         set_identity(domain=domain)
         return claim(_load_at(path, domain if domain is not None else _first_domain()), command, log_dir,
-                     domain or 0)
+                     domain or 0, only)
     first = _first_domain()
     for domain in range(first, MAX_DOMAIN + 1):
         try:
-            held = claim(_load_at(path, domain), command, log_dir, domain)
+            held = claim(_load_at(path, domain), command, log_dir, domain, only)
         except UsageError:
             continue
         set_identity(domain=domain)
@@ -256,4 +292,6 @@ def claim_from_args(args: Any, command: str, log_dir: str = "") -> Claim:
     from ..identity import parse_port, set_identity
 
     set_identity(namespace=getattr(args, "namespace", None), port=parse_port(getattr(args, "port", None)))
-    return claim_for_launch(args.graph, getattr(args, "domain", None), command, log_dir)
+    only_text = getattr(args, "only", None)
+    only = [n.strip() for n in only_text.split(",")] if only_text else None
+    return claim_for_launch(args.graph, getattr(args, "domain", None), command, log_dir, only)
