@@ -100,7 +100,7 @@ def test_feed_hands_each_hint_over_before_its_frame(tmp_path):
 
 
 def test_a_replay_keeps_off_the_live_graphs_state_file(tmp_path):
-    """graph.yaml's template persists its state in state/template.npz: a replay of it neither starts from that file
+    """graph.yaml's template persists its state in state/{namespace}/template.npz: a replay of it neither starts from that file
     nor overwrites it (issue 23), unless --param names a state file."""
     path = tmp_path / "t.mcap"
     writer = RecordingWriter(path)
@@ -109,7 +109,7 @@ def test_a_replay_keeps_off_the_live_graphs_state_file(tmp_path):
     meas = writer.bus_channel("fb/reid/measurement", "Measurement")
     writer.write(meas, T0, _stamped(Measurement(state="TRACKING"), 0).encode())
     writer.finish()
-    assert "state/template.npz" in (REPO / "graph.yaml").read_text()
+    assert "state/{namespace}/template.npz" in (REPO / "graph.yaml").read_text()
     assert ReplayPlan(path, ReplayOptions(nodes=["template"])).params["template"]["state_file"] == ""
     given = ReplayPlan(path, ReplayOptions(nodes=["template"], params={"state_file": "mine.npz"}))
     assert given.params["template"]["state_file"] == "mine.npz"

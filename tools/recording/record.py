@@ -614,7 +614,7 @@ def _link_excludes(args, settings, graph, namespace: str) -> tuple[list[str], li
         exclude += raw
         notes.append(f"remote link ({', '.join(settings.connect)}): leaving out raw frames ({', '.join(raw)}; "
                      "--raw-frames records them), the JPEG preview stays")
-    if exclude and graph is None:
+    if exclude and graph is None and is_remote(settings):
         notes.append("without the graph (--graph) excluded keys are dropped on arrival: they still cross the link")
     return exclude, notes
 
@@ -628,7 +628,10 @@ def cmd_record(args, settings, graph) -> int:
         return 2
     options.exclude, notes = _link_excludes(args, settings, graph, namespace)
     output, patterns = options.output, options.patterns
-    subscribed = subscription_patterns(options.patterns, options.exclude, graph, namespace)
+    # Over a network an excluded key must not cross the link: the graph's kept keys one by one. On this machine
+    # the patterns themselves, so a key no node of the graph declares (a tool's, a test's) is recorded too.
+    subscribed = (subscription_patterns(options.patterns, options.exclude, graph, namespace)
+                  if is_remote(settings) else list(options.patterns))
     try:  # before joining the bus: an unwritable output is reported at once
         recorder = Recorder(options, build_metadata(graph, options, namespace), subscribed)
     except OSError as exc:
