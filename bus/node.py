@@ -706,7 +706,11 @@ class NodeRuntime(NodeHost):
         signal.signal(signal.SIGINT, handler)
 
     def run(self) -> None:
-        self.start()
+        try:
+            self.start()
+        except BaseException:
+            self.close()  # a setup that failed leaves no queryable or session behind to keep the process alive
+            raise
         self._status_thread.start()
         self.log.info("node %s up (%s)", self.spec.name, self.spec.run)
         next_poll_wall: float | None = time.monotonic()
