@@ -22,6 +22,7 @@ import logging
 import math
 import os
 import signal
+import socket
 import threading
 import time
 import typing
@@ -595,6 +596,31 @@ class NodeHost:
             self._guarded("reset", self.node.reset)
 
 
+def _hub_listening(endpoints: list[str]) -> bool:
+    """Whether a TCP endpoint of the graph already accepts connections (a launcher's hub on this machine)."""
+    for endpoint in endpoints:
+        proto, _, address = endpoint.partition("/")
+        host, _, port = address.split("#", 1)[0].rpartition(":")
+        if proto not in ("tcp", "tls") or not port.isdigit():
+            continue
+        try:
+            with contextlib.closing(socket.create_connection((host.strip("[]"), int(port)), timeout=0.3)):
+                return True
+        except OSError:
+            continue
+    return False
+
+
+def _node_settings(graph: Graph) -> Any:
+    """A launched node joins the launcher's session, the hub (session.py as_launched_node); so does a node started
+    by hand beside a running launch of a router graph with access control, whose own allow-list would refuse the
+    hub's link (it carries no user name on the node's side)."""
+    launched = os.environ.get(LAUNCH_ID_ENV) is not None
+    if launched or _hub_listening(list(graph.zenoh.listen)):
+        return graph.zenoh.as_launched_node()
+    return graph.zenoh
+
+
 class NodeRuntime(NodeHost):
     """Hosts one node in this process, its messages carried over Zenoh."""
 
@@ -604,8 +630,7 @@ class NodeRuntime(NodeHost):
         super().__init__(graph, name, Clock(clock))
         _set_priority(self.spec.nice, self.spec.realtime, logging.getLogger(f"followbus.{name}"))
         self._own_session = session is None
-        launched = os.environ.get(LAUNCH_ID_ENV) is not None  # the launcher's session is the hub (session.py)
-        self.session = session or open_session(graph.zenoh.as_launched_node() if launched else graph.zenoh)
+        self.session = session or open_session(_node_settings(graph))
         self.started_ns = time.time_ns()
         self.subscribers: list[Subscriber] = []
         self.queues: dict[str, InputQueue] = {}
