@@ -100,8 +100,8 @@ def test_feed_hands_each_hint_over_before_its_frame(tmp_path):
 
 
 def test_a_replay_keeps_off_the_live_graphs_state_file(tmp_path):
-    """graph.yaml's template persists its state in state/{namespace}/template.npz: a replay of it neither starts from that file
-    nor overwrites it (issue 23), unless --param names a state file."""
+    """graph.yaml's template persists its state in state/{namespace}/template.npz: a replay of it neither starts
+    from that file nor overwrites it (issue 23), unless --param names a state file."""
     path = tmp_path / "t.mcap"
     writer = RecordingWriter(path)
     writer.metadata("graph", {"yaml": (REPO / "graph.yaml").read_text()})
