@@ -79,9 +79,6 @@ def test_eval_cli_on_a_real_sequence(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="known since the issue-22 merge: the launched graph differs from the "
-                   "in-process run by ~3e-4 px from frame 14 in 2 of 3 full-suite runs (a timing-dependent "
-                   "camera-motion input); to be fixed, not hidden: see the closing note")
 def test_launched_graph_matches_in_process_tracker(port):
     from followbus.tools.bench.eval import graph_check
 

@@ -411,6 +411,12 @@ def derived_graph(source: str, port: int, namespace: str, init_box: list[float],
         # Lockstep loses nothing, so a timeout could only mean a slow (cold, loaded) node, and a set
         # emitted without its feedback would make the graph diverge from the in-process run.
         node["sync_timeout_ms"] = 10_000
+    transform = g["nodes"]["prediction"].get("inputs", {}).get("transform")
+    if transform is not None and "egomotion" in g["nodes"]:
+        # The live rule for an optional input (not waited for before its first message) lets a cold egomotion's
+        # first transforms miss frames 0-1 or only frame 0, whichever process ran first: the priors then differ
+        # by ~3e-4 px. Lockstep waits for every transform (egomotion answers every frame, frame 0 included).
+        transform["optional"] = False
     g["nodes"]["template"]["params"]["state_file"] = ""
     g["nodes"]["reid"]["params"]["init_box"] = [float(v) for v in init_box]
     return yaml.safe_dump(g, sort_keys=False)
