@@ -53,6 +53,9 @@ RESET_AFTER_FAILURES = 5  # consecutive on_frame failures after which a node's s
 REPLAY_NOTES_KEEP = 512  # frames of live provenance a replayed node keeps
 # Set by the launcher for its children: the comma-separated names of the nodes it started.
 LAUNCHED_NODES_ENV = "FOLLOWBUS_LAUNCHED_NODES"
+# Set by the launcher for its children: the nodes of this host that ``--only`` left out. A source does not wait
+# for them: the user said they are not running (a node the graph puts on another host is still waited for).
+LEFT_OUT_NODES_ENV = "FOLLOWBUS_LEFT_OUT_NODES"
 # Set by the launcher for its children: one id per launch, so a node can tell its own restart (same launch)
 # from a new launch (state saved by an earlier run may belong to another session: another person to follow).
 LAUNCH_ID_ENV = "FOLLOWBUS_LAUNCH_ID"
@@ -188,6 +191,10 @@ class DownstreamBarrier:
                 frontier = fed
             if RECORDER_NAME in started:
                 self.waiting_for.add(RECORDER_NAME)
+        left_out = self.waiting_for & set(filter(None, os.environ.get(LEFT_OUT_NODES_ENV, "").split(",")))
+        if left_out:
+            self.log.info("not waiting for %s: left out of this launch by --only", ", ".join(sorted(left_out)))
+            self.waiting_for -= left_out
         self.waiting_for.discard(name)
         self._health = HealthWatcher(runtime.session, graph.namespace, watch_status=False)
         self._deadline = time.monotonic() + timeout_s

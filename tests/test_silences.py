@@ -53,6 +53,20 @@ def test_launch_only_names_the_inputs_nothing_launched_produces(graph_file):
                                              "they wait for a node started elsewhere (or a replay)")
 
 
+@pytest.mark.slow
+def test_launch_only_starts_a_source_without_waiting_for_the_consumers_it_left_out(graph_file):
+    """`launch --only capture` used to hold frame 0 for wait_for_consumers_s (15 s) waiting for a detection node
+    nobody was going to start, then blame capture for publishing nothing."""
+    graph = graph_file("  capture:\n    run: followbus.nodes.capture\n    outputs: [frame, preview, ground_truth]\n"
+                       "    params: {source: 'scene:wall-occlusion', loop: true}\n"
+                       "  detection:\n    run: followbus.nodes.detection\n    inputs: {frame: capture/frame}\n"
+                       "    outputs: [detections]\n    params: {backend: simulated}\n", namespace="o1left")
+    result = run_followbus("launch", str(graph), "--only", "capture", "--duration", "4", timeout=60)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "waits for" not in result.stderr
+    assert "not waiting for detection: left out of this launch by --only" in result.stdout + result.stderr
+
+
 def test_monitor_that_never_reached_a_graph_fails_in_one_line(tmp_path, port):
     result = run_followbus("monitor", "--connect", f"tcp/127.0.0.1:{port}", "--seconds", "1", timeout=30)
     assert one_error_line(result).startswith(f"followbus: no graph is running on tcp/127.0.0.1:{port}")

@@ -29,7 +29,8 @@ from .test_graph_group import _graph_copies
 from .test_monitor import Launch, _interrupt, robot_graph
 
 TOKEN = "s3cret-token-for-tests"
-# Capture holds frame 0 back until its consumer (detection) is up: the test decides when frames start.
+# Capture holds frame 0 back until its consumer (detection, which the graph puts on another host) is up: the test
+# decides when frames start.
 CAPTURE_AND_CONSUMER = """\
   capture:
     run: followbus.nodes.capture
@@ -37,6 +38,7 @@ CAPTURE_AND_CONSUMER = """\
     params: {source: "scene:wall-occlusion", max_frames: 12, wait_for_consumers_s: 600}
   detection:
     run: followbus.nodes.detection
+    host: gpu
     inputs: {frame: capture/frame, ground_truth: capture/ground_truth}
     outputs: [detections]
     params: {backend: simulated}
@@ -241,6 +243,8 @@ def test_page_says_unreachable_then_waiting_then_source_ended(tmp_path):
     browser = have_chromium()
     robot_port, web_port = free_port(), free_port()
     graph = robot_graph(tmp_path, robot_port, CAPTURE_AND_CONSUMER)
+    with open(tmp_path / "graph.yaml", "a") as base:
+        base.write("default_host: robot\n")  # the nodes without host: run on "robot"
     url = f"http://127.0.0.1:{web_port}/"
     proc, lines = _web_view(web_port, "--graph", str(graph), "--user", "monitor", "--password", "monitor-secret")
     launch = consumer = None
@@ -257,7 +261,7 @@ def test_page_says_unreachable_then_waiting_then_source_ended(tmp_path):
         assert element_text(page, "state")[1].startswith("no state yet")
 
         # Capture is up and waits for detection: the page waits for the first frame, visibly.
-        launch = Launch(graph, "--only", "capture")
+        launch = Launch(graph, "--host", "robot")
         launch.wait_ready()
         assert wait_until(lambda: _screen(web_port).get("code") == "waiting", 20), (_screen(web_port), lines[-5:])
         if browser:

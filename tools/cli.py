@@ -277,7 +277,8 @@ def cmd_launch(args) -> int:
     except ValueError as exc:
         print(f"followbus: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    _warn_unfed(graph, [c.name for c in launcher.children if c.spec.run != "<tool>"], bool(only or args.host))
+    _warn_unfed(graph, [c.name for c in launcher.children if c.spec.run != "<tool>"], bool(only or args.host),
+                left_out=set(on_host) - set(only or on_host))
     install_stop_signals(launcher)
     logging.getLogger("followbus.launch").setLevel(logging.INFO)
     try:
@@ -292,9 +293,10 @@ def cmd_launch(args) -> int:
     return status
 
 
-def _warn_unfed(graph, started: list[str], partial: bool) -> None:
+def _warn_unfed(graph, started: list[str], partial: bool, left_out: set[str]) -> None:
     """launch --only/--host: say at once which inputs of the started nodes nothing started here produces, and which
-    consumers outside it a source waits for before its first message (bus/node.py DownstreamBarrier)."""
+    consumers on other hosts a source waits for before its first message (bus/node.py DownstreamBarrier; nodes
+    that --only left out are not waited for)."""
     if not partial:
         return
     unfed = [f"{name}.{inp.name} ({inp.source_node}/{inp.source_output})" for name in started
@@ -303,10 +305,10 @@ def _warn_unfed(graph, started: list[str], partial: bool) -> None:
         print(f"followbus launch: no producer launched for {', '.join(unfed)}: they wait for a node started "
               "elsewhere (or a replay)", file=sys.stderr, flush=True)
     for source in (n for n in started if not graph.nodes[n].inputs):
-        waits = sorted(c for c, spec in graph.nodes.items() if c not in started
+        waits = sorted(c for c, spec in graph.nodes.items() if c not in started and c not in left_out
                        and any(i.source_node == source for i in spec.inputs.values()))
         if waits:
-            print(f"followbus launch: {source} waits for {', '.join(waits)} (not launched here) up to its "
+            print(f"followbus launch: {source} waits for {', '.join(waits)} (on another host) up to its "
                   f"wait_for_consumers_s before its first message (--set {source}.wait_for_consumers_s=0: at once)",
                   file=sys.stderr, flush=True)
 

@@ -28,7 +28,7 @@ from ..bus.health import (
 )
 from ..bus.hosts import nodes_on
 from ..bus.liveness import STOPPED_WORKING_EXIT
-from ..bus.node import LAUNCH_ID_ENV, LAUNCHED_NODES_ENV
+from ..bus.node import LAUNCH_ID_ENV, LAUNCHED_NODES_ENV, LEFT_OUT_NODES_ENV
 from ..bus.pubsub import Publisher, direct_callback
 from ..bus.session import open_session
 
@@ -106,6 +106,7 @@ class Launcher:
         # Nodes may wait for each other at start-up (capture holds frame 0 until its chain listens).
         self.env[LAUNCHED_NODES_ENV] = ",".join([spec.name for spec in selected]
                                                 + [name for name, _ in extra_children or []])
+        self.env[LEFT_OUT_NODES_ENV] = ",".join(sorted(on_host - {spec.name for spec in selected}))
         for name, argv in extra_children or []:
             self.children.append(Child(NodeSpec(name=name, run="<tool>"), argv))
         self.health: HealthWatcher | None = None
