@@ -14,7 +14,7 @@ import pytest
 
 from followbus.bus.recording import iter_bus_messages
 
-from .conftest import followbus_argv, free_port
+from .conftest import followbus_argv, free_port, wait_until
 from .test_monitor import DIAG_NODES, Launch, robot_graph
 
 pytestmark = pytest.mark.slow
@@ -90,6 +90,21 @@ def test_laptop_as_monitor_uses_every_bus_command(robot, tmp_path):
     assert "recorded " in done["record"][1] and "lost on the way" in done["record"][1]
     keys = {msg.key for msg in iter_bus_messages(tmp_path / "laptop.mcap")}
     assert {"t/ticker/tick", "t/relay/tick"} <= keys
+
+
+def test_web_view_names_the_namespaces_that_are_alive(robot):
+    """The web view, connected to a robot whose graph runs under another namespace, says so on its screen."""
+    from .test_monitor import _interrupt
+    from .test_webview import _screen, _web_view
+
+    web_port = free_port()
+    proc, lines = _web_view(web_port, "--connect", robot, "--user", "monitor", "--password", "monitor-secret")
+    try:
+        assert wait_until(lambda: "nodes are alive in: t (" in _screen(web_port).get("text", ""), 30), (
+            _screen(web_port), lines[-5:])
+        assert _screen(web_port)["text"].startswith("waiting for first frame: no node under fb/@health")
+    finally:
+        _interrupt(proc)
 
 
 def test_play_is_refused_for_monitor_and_allowed_for_operator(robot, tmp_path):

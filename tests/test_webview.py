@@ -76,6 +76,11 @@ def _snap(**kw) -> dict:
 
 def test_screen_states():
     assert screen_state(_snap(), "capture") == {"code": "waiting", "text": "waiting for first frame"}
+    elsewhere = {**_snap(), "nodes": [], "namespaces_hint": "no node under fb/@health; nodes are alive in: wf "
+                 "(capture, motor) (pick one with --namespace)"}
+    assert screen_state(elsewhere, "capture") == {"code": "waiting", "text": "waiting for first frame: no node under "
+                                                  "fb/@health; nodes are alive in: wf (capture, motor) (pick one with "
+                                                  "--namespace)"}
     preview = {"frame_seq": 41, "width": 320, "age_s": 0.1}
     assert screen_state(_snap(preview=preview), "capture") == {"code": "waiting", "text": "waiting for first frame"}
     live = _snap(preview=preview)

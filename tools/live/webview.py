@@ -112,7 +112,10 @@ def screen_state(snap: dict[str, Any], source_node: str, stale_after_s: float = 
         shown = "; last frame shown" if preview and published else ""
         return {"code": "ended", "text": f"source ended{count}{shown}"}
     if not preview or extra.get("published") == 0:
-        return {"code": "waiting", "text": "waiting for first frame"}
+        # Connected, but no node of our namespace: say which namespaces do have nodes (a robot's graph that
+        # runs under another namespace), as the terminal monitor does.
+        hint = snap.get("namespaces_hint")
+        return {"code": "waiting", "text": f"waiting for first frame: {hint}" if hint else "waiting for first frame"}
     age = preview.get("age_s")
     if age is not None and age > frame_stale_s:
         return {"code": "stalled", "text": f"no new frame for {age:.0f} s (showing frame {preview.get('frame_seq')})"}
