@@ -58,6 +58,8 @@ def test_bench_bus_measures_raw_and_bus_each_in_its_own_processes(tmp_path, monk
 
 def test_bench_bus_against_dora_runs_its_own_dataflow_and_counts_the_daemon(tmp_path, monkeypatch):
     why = dora_available()
+    if why and os.environ.get("CI"):
+        pytest.fail(f"`make test` installs dora-rs (the bench extra), yet: {why}")
     if why:
         pytest.skip(f"dora-rs not installed (pip install 'followbus[bench]'): {why}")
     result = _run(tmp_path, monkeypatch, "dora")

@@ -243,7 +243,13 @@ def _dora_sender(plan: dict[str, Any]) -> dict[str, Any]:
     from dora import Node
 
     node = Node()
-    time.sleep(1.0)  # as the zenoh senders: the receiver is up and subscribed before the first cell
+    # The receiver says when it listens (as the zenoh paths' ready file): a fixed sleep lost the first messages
+    # of a loaded machine, where the receiver's imports alone can take seconds.
+    for event in node:
+        if event["type"] == "INPUT" and event["id"] == "ready":
+            break
+        if event["type"] == "STOP":
+            raise RuntimeError("dora stopped the dataflow before the receiver was ready")
 
     def send(ci: int, i: int, buf: bytearray, image: np.ndarray) -> None:
         _stamp(buf, ci, i)
@@ -253,10 +259,12 @@ def _dora_sender(plan: dict[str, Any]) -> dict[str, Any]:
 
 
 def _dora_receiver(plan: dict[str, Any]) -> dict[str, Any]:
+    import pyarrow as pa
     from dora import Node
 
     rec = _Recorder(plan, daemon_pid=os.getppid())  # `dora run` is the daemon and the nodes' parent
     node = Node()
+    node.send_output("ready", pa.array([1]))
     for event in node:
         if event["type"] == "INPUT":
             arr = event["value"].to_numpy(zero_copy_only=True)  # valid while referenced
@@ -351,6 +359,8 @@ nodes:
   - id: sender
     path: {python}
     args: -m {module} --child send dora {plan} {send_out}
+    inputs:
+      ready: receiver/ready
     outputs: [frames]
   - id: receiver
     path: {python}
@@ -359,6 +369,7 @@ nodes:
       frames:
         source: sender/frames
         queue_size: 1000  # dora's default (10) discards a slow receiver's backlog; zenoh's paths drop nothing
+    outputs: [ready]
 """
 
 
