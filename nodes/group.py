@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 
 from ..bus.node import Node, ParamError
-from ..bus.schemas import GroundPoints, GroupState, Message
+from ..bus.schemas import Message
+from ..msgs.group import GroundPoints, GroupState
 from ..tracking.groundplane import to_robot_frame
 from ..tracking.group import GroupParams, MultiEllipseGroupTracker, SingleEllipseGroupTracker
 from .common import split_params

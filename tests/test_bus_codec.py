@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from followbus.bus.codec import DecodeError, pack, unpack
-from followbus.bus.schemas import Detections, Frame, Header, Measurement, Tick, decode, encode
+from followbus.bus.schemas import Frame, Header, Tick, decode, encode
+from followbus.msgs.perception import Detections
+from followbus.msgs.tracking import Measurement
 
 
 def test_large_array_roundtrip_is_zero_copy_view():
@@ -173,7 +175,10 @@ def _outcome(fn, msg):
 
 
 def _wire_cases():
-    from followbus.bus.schemas import SCHEMAS, GroupState, MotorCommand, NodeStatus, Prior, ReplayHint, Track
+    from followbus.bus.schemas import SCHEMAS, NodeStatus, ReplayHint
+    from followbus.msgs.group import GroupState
+    from followbus.msgs.robot import MotorCommand
+    from followbus.msgs.tracking import Prior, Track
 
     rng = np.random.default_rng(3)
     header = Header(seq=4, stamp_ns=1_700_000_000_123_456_789, frame_seq=12, source="reid", pub_ns=9, epoch_ns=7,
@@ -220,7 +225,8 @@ def test_wire_copy_is_exactly_what_decoding_the_encoded_message_gives(msg):
 
 
 def test_wire_copy_owns_its_arrays_and_header():
-    from followbus.bus.schemas import Prior, wire_copy
+    from followbus.bus.schemas import wire_copy
+    from followbus.msgs.tracking import Prior
 
     state = np.zeros(4)
     msg = Prior(header=Header(feedback={"reid": 1}), state=state)
