@@ -114,11 +114,17 @@ class Prediction(Node):
             posterior = None
         self.applied_seq = seq
         self.last_state = msg.state
-        track = posterior or Track(state=msg.state)  # no filter: no posterior box, no velocity
-        track.box = output_box(msg, prior)
-        self.publish("track", track, like=msg)
+        self.publish("track", self._track(msg, prior, posterior), like=msg)
         for old in [s for s in self.priors if s < seq]:
             del self.priors[old]
+
+    @staticmethod
+    def _track(msg: Measurement, prior: Prior | None, posterior: Track | None) -> Track:
+        """The track of a measurement: the filter's posterior (none: no filtered box, no velocity) with the
+        tracker's output box (tracking/tracker.py)."""
+        track = posterior or Track(state=msg.state)
+        track.box = output_box(msg, prior)
+        return track
 
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         dets = inputs["detections"]
