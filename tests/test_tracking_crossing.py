@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from followbus.tracking.kalman import Prior
+from followbus.msgs.tracking import Prior
 from followbus.tracking.params import TrackerParams
 from followbus.tracking.reid import Candidate, ReIdentifier, TrackState
 

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from followbus.msgs.tracking import Prior
 from followbus.tracking.appearance import hs_histogram
-from followbus.tracking.kalman import Prior
 from followbus.tracking.params import TrackerParams
 from followbus.tracking.reid import ReIdentifier, ReidResult, TrackState, appearance_weight, fuse, geometric_score
 
