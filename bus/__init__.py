@@ -1,1 +1,3 @@
-"""Thin layer over Zenoh: sessions, schemas, codec, pub/sub, sync, health, stats. Knows nothing of tracking."""
+"""Thin layer over Zenoh: sessions, schemas, codec, pub/sub, sync, health, stats.
+
+Generic: it carries any message type; the application's own are in msgs/."""

@@ -239,7 +239,7 @@ def _node_schema(runs: dict[str, tuple[type, ...]]) -> dict[str, Any]:
     described = {
         "run": {"type": "string", "description": "python module exporting NODE (a bus.node.Node class)",
                 "examples": sorted(runs)},
-        "description": {"type": "string", "description": "free text for people (not used)"},
+        "description": {"type": "string", "description": "free text for readers (not used)"},
         "inputs": {"type": "object", "propertyNames": {"pattern": NAME_RE.pattern},
                    "additionalProperties": {"$ref": "#/definitions/input"},
                    "description": "input name -> 'node/output' or {from: node/output, queue, policy, ...}"},
@@ -261,7 +261,7 @@ def _node_schema(runs: dict[str, tuple[type, ...]]) -> dict[str, Any]:
         "realtime": {"type": "integer", "minimum": 1, "maximum": 99,
                      "description": "run the node's process in the real-time class (SCHED_RR at this priority) "
                                     "where permitted (root or CAP_SYS_NICE), else at `nice` with a warning: "
-                                    "for light, timing-critical nodes (the motor's watchdog) only"},
+                                    "for light, timing-critical nodes (a watchdog) only"},
     }
     return {
         "type": "object", "required": ["run"], "additionalProperties": False,

@@ -3,7 +3,7 @@
 (``<ns>/@launcher/<launcher id>``, once a second and on every start and exit).
 
 A liveliness token only says that *some* session declared that key: on a bus without access control any
-local process can declare ``fb/@health/motor`` and keep a dead motor looking alive. The launcher knows
+local process can declare ``fb/@health/<node>`` and keep a dead node looking alive. The launcher knows
 better (it started the process and saw it exit), so a node is shown down when a fresh launcher table says
 its process is gone, whatever the token says, and a contradiction is flagged ``spoofed?``.
 """
@@ -34,7 +34,7 @@ LAUNCHER_STALE_S = 5.0  # a table not refreshed for this long is ignored (its la
 # A token and the launcher can disagree for a moment (a node that just died: its exit is seen before its
 # token's DELETE arrives): a token alive this long after the launcher saw its process exit is flagged.
 MISMATCH_GRACE_S = 2.0
-MAX_WATCHED_NODES = 256  # names a HealthWatcher keeps track of; tokens and statuses of more are ignored
+MAX_WATCHED_NODES = 256  # names a HealthWatcher watches; tokens and statuses of more are ignored
 SPOOF_HOLD_S = 10.0  # a status from a pid the launcher never ran keeps the node flagged this long
 
 VERIFIED = "verified"  # a fresh launcher table agrees with the token (and the status pid)

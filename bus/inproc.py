@@ -26,9 +26,9 @@ hints.
 
     graph = load_graph("graph.yaml")
     apply_overrides(graph, ["detection.backend=simulated"])
-    with InProcessGraph(graph, record=["prediction/track"]) as g:
+    with InProcessGraph(graph, record=["sink/out"]) as g:
         g.run_frames(60)
-        tracks = g.outputs("prediction", "track")
+        outs = g.outputs("sink", "out")
 """
 
 from __future__ import annotations
@@ -266,7 +266,7 @@ class InProcessGraph:
             host.next_poll_ns = self.now_ns
 
     def close(self) -> None:
-        """Tear every node down (its ``teardown``: a template saved, a serial port closed)."""
+        """Tear every node down (its ``teardown``: state saved, a serial port closed)."""
         if self.closed:
             return
         self.closed = True

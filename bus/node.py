@@ -57,7 +57,7 @@ LAUNCHED_NODES_ENV = "FOLLOWBUS_LAUNCHED_NODES"
 # for them: the user said they are not running (a node the graph puts on another host is still waited for).
 LEFT_OUT_NODES_ENV = "FOLLOWBUS_LEFT_OUT_NODES"
 # Set by the launcher for its children: one id per launch, so a node can tell its own restart (same launch)
-# from a new launch (state saved by an earlier run may belong to another session: another person to follow).
+# from a new launch (state saved by an earlier run may belong to another session: another task).
 LAUNCH_ID_ENV = "FOLLOWBUS_LAUNCH_ID"
 
 
@@ -294,7 +294,7 @@ class Node:
         self.runtime.production.published(time.monotonic())
 
     def note(self, key: str, value: int) -> None:
-        """Record a choice this handler made that a replay must repeat (e.g. which odometry sample, by stamp,
+        """Record a choice this handler made that a replay must repeat (e.g. which sample, by stamp,
         an unsynchronised input contributed): it travels in the ``header.feedback`` of what the handler
         publishes next, and ``followbus replay`` hands it back through :meth:`replayed_choice`. ``key`` must not
         name a frame-synchronised input: those keys are the set's own provenance (bus.sync)."""
@@ -328,7 +328,7 @@ def load_node_class(run: str) -> type[Node]:
 
     try:
         module = importlib.import_module(run)
-    except (ValueError, TypeError) as exc:  # "" or a relative name ("..template"): not a module name
+    except (ValueError, TypeError) as exc:  # "" or a relative name ("..capture"): not a module name
         raise ImportError(f"{run!r} is not a module name ({exc})") from exc
     cls = getattr(module, "NODE", None)
     if not (isinstance(cls, type) and issubclass(cls, Node)):
@@ -375,7 +375,7 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
 
 def _set_priority(nice: int | None, realtime: int | None, log: logging.Logger) -> None:
     """Run this process in the real-time class at ``realtime`` (SCHED_RR), or else at CPU priority ``nice``: the
-    motor's watchdog must keep its timing on a busy machine. Called before the session opens, so the threads
+    a watchdog must keep its timing on a busy machine. Called before the session opens, so the threads
     Zenoh starts (which deliver the node's messages) inherit it."""
     if realtime is not None:
         try:
@@ -435,7 +435,7 @@ class NodeHost:
                                        max_lag_ns=None if lag_ms is None else int(lag_ms * 1e6))
                      if frame_inputs else None)
         self._feedback_inputs = [i.name for i in frame_inputs if i.offset]
-        # Inputs not joined by frame are still frame-numbered streams (motor's tracks, capture's acks): the
+        # Inputs not joined by frame are still frame-numbered streams (a consumer's inputs, capture's acks): the
         # same sequence checks keep a forged or stale message from reaching the node.
         self._guards = {i.name: SequenceGuard() for i in self.spec.inputs.values() if i.sync != "frame"}
         self._held: list[tuple[str, Message]] = []  # replay: feedback the live node received later
@@ -542,7 +542,7 @@ class NodeHost:
         if (spec.offset and self.sync is not None and self.clock.mode == "stamps"
                 and self.sync.holds_back(name, h.frame_seq)):
             # Live, this feedback arrived after a set that joined an older one: hand it to the node after that
-            # set, as live, or on_message (prediction's measurement update) runs in an order that never was.
+            # set, as live, or on_message (a feedback update) runs in an order that never was.
             self._held.append((name, msg))
             return
         self.clock.observe(h.stamp_ns)
@@ -687,7 +687,7 @@ class NodeRuntime(NodeHost):
 
     def _enqueuer(self, queue: InputQueue):
         def push(msg: Message) -> None:
-            # Arrival order across inputs matters (a measurement for frame k-1 before the detections
+            # Arrival order across inputs matters (a result for frame k-1 before the detections
             # of frame k), so every message carries a process-wide arrival number.
             msg._arrival = next(self._arrival)  # type: ignore[attr-defined]
             queue.push(msg)

@@ -2,7 +2,7 @@
 
 The one place that reads recordings: the tools (record, play, replay, info, recover:
 tools/recording/mcap_io.py writes and repairs) and nodes (capture reads a recording as its source) share it,
-so it lives in bus/: it knows the frame (bus/codec.py) and the message types, nothing of tracking. The
+so it lives in bus/: it knows the frame (bus/codec.py) and the message registry, no application type. The
 record-level parsing of the file (a chunk's fields, the records of an unfinalised file) is here too, once.
 
 A bus channel is labelled ``message_encoding: x-followbus-frame/1``: a custom encoding in the MCAP

@@ -3,31 +3,26 @@
 Types, CDR (de)serialisation, ``ros2msg`` schema texts and RIHS01 type hashes all come from ``rosbags``' type
 store (ROS 2 Jazzy definitions); ``vision_msgs`` 4.1.1 (the Humble/Jazzy release, ros-perception/vision_msgs tag
 4.1.1), which rosbags does not ship, is registered below from its .msg definitions. Nothing here writes CDR by
-hand. The converters map bus messages to the standard messages a ROS 2 user expects, in REP-103 terms, which
-are followbus's own (control/kinematics.py): x forward, y left, z up, yaw counter-clockwise.
+hand. This module is generic (the type store, CDR, headers, images); the mapping of followbus's own messages to
+ROS 2 types lives with the messages (msgs/ros2.py).
 """
 
 from __future__ import annotations
 
-import math
 from functools import cache, lru_cache
 from typing import Any
 
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from .schemas import Detections, Frame, MotorCommand, Odometry
+from .schemas import Frame
 
 TWIST = "geometry_msgs/msg/Twist"
 POINT_STAMPED = "geometry_msgs/msg/PointStamped"
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
-ODOMETRY = "nav_msgs/msg/Odometry"
 DETECTION_2D_ARRAY = "vision_msgs/msg/Detection2DArray"
 
-ROBOT_FRAME = "base_link"  # REP-105 names
-ODOMETRY_FRAME = "odom"
-PERSON_CLASS = "person"
 
 # vision_msgs 4.1.1 (Apache-2.0), comments left out; dependencies before the types that use them.
 VISION_MSGS = {
@@ -101,61 +96,6 @@ def _vector3(x: float = 0.0, y: float = 0.0, z: float = 0.0) -> Any:
 
 def twist(vx_mps: float, vy_mps: float, wz_radps: float) -> Any:
     return message_class(TWIST)(linear=_vector3(vx_mps, vy_mps), angular=_vector3(z=wz_radps))
-
-
-def command_twist(msg: MotorCommand) -> Any:
-    """The motor command as ``/cmd_vel``: body-frame velocities (m/s, rad/s)."""
-    return twist(msg.vx_mps, msg.vy_mps, msg.wz_radps)
-
-
-def target_point(msg: MotorCommand) -> Any | None:
-    """The followed target as a point in the robot frame (from the command's range and bearing), None without one."""
-    if msg.range_m is None or msg.bearing_rad is None or not math.isfinite(msg.range_m * msg.bearing_rad):
-        return None
-    point = message_class("geometry_msgs/msg/Point")(x=msg.range_m * math.cos(msg.bearing_rad),
-                                                      y=msg.range_m * math.sin(msg.bearing_rad), z=0.0)
-    return message_class(POINT_STAMPED)(header=header(msg.header.stamp_ns, ROBOT_FRAME), point=point)
-
-
-def odometry(msg: Odometry) -> Any:
-    """nav_msgs/Odometry: the pose in ``odom``, the body-frame velocities in ``base_link`` (covariances unknown: 0)."""
-    g = "geometry_msgs/msg/"
-    half = 0.5 * msg.theta_rad
-    quat = message_class(g + "Quaternion")(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half))
-    pose = message_class(g + "Pose")(position=message_class(g + "Point")(x=msg.x_m, y=msg.y_m, z=0.0),
-                                     orientation=quat)
-    zero = np.zeros(36, np.float64)
-    return message_class(ODOMETRY)(
-        header=header(msg.header.stamp_ns, ODOMETRY_FRAME), child_frame_id=ROBOT_FRAME,
-        pose=message_class(g + "PoseWithCovariance")(pose=pose, covariance=zero),
-        twist=message_class(g + "TwistWithCovariance")(twist=twist(msg.vx_mps, msg.vy_mps, msg.wz_radps),
-                                                       covariance=zero.copy()))
-
-
-def _detection(hdr: Any, row: np.ndarray) -> Any:
-    v = "vision_msgs/msg/"
-    x, y, w, h = (float(c) for c in row[:4])
-    score = float(row[4]) if row.shape[0] > 4 else 1.0
-    centre = message_class(v + "Pose2D")(position=message_class(v + "Point2D")(x=x + w / 2, y=y + h / 2), theta=0.0)
-    g = "geometry_msgs/msg/"
-    no_pose = message_class(g + "PoseWithCovariance")(
-        pose=message_class(g + "Pose")(position=message_class(g + "Point")(x=0.0, y=0.0, z=0.0),
-                                       orientation=message_class(g + "Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0)),
-        covariance=np.zeros(36, np.float64))
-    result = message_class(v + "ObjectHypothesisWithPose")(
-        hypothesis=message_class(v + "ObjectHypothesis")(class_id=PERSON_CLASS, score=score), pose=no_pose)
-    return message_class(v + "Detection2D")(header=hdr, results=[result],
-                                            bbox=message_class(v + "BoundingBox2D")(center=centre, size_x=w, size_y=h),
-                                            id="")
-
-
-def detections(msg: Detections, frame_id: str) -> Any:
-    """vision_msgs/Detection2DArray: each box's centre and size in pixels, class ``person`` with its score."""
-    hdr = header(msg.header.stamp_ns, frame_id)
-    boxes = np.asarray(msg.boxes, dtype=np.float64)
-    rows = boxes if boxes.ndim == 2 and boxes.shape[1] >= 4 else np.zeros((0, 5))
-    return message_class(DETECTION_2D_ARRAY)(header=hdr, detections=[
-        _detection(hdr, row) for row in rows if np.all(np.isfinite(row[:4]))])
 
 
 def compressed_image(stamp: int, frame_id: str, jpeg: bytes) -> Any:

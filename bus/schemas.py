@@ -1,4 +1,4 @@
-"""Typed message schemas: the one place where every bus payload is defined.
+"""The message base, its registry and codec binding, and generic validation: what every payload on the bus shares.
 
 Every message starts with a :class:`Header`. ``stamp_ns`` is the capture stamp of the camera
 frame the message derives from (so latency = now - stamp_ns, and replays are deterministic),
@@ -10,11 +10,16 @@ provenance of a frame-synchronised output: for each feedback input (``offset: -1
 the message the node used (-1: none), and -1 for each optional same-frame input the set went on without,
 so a replay reproduces what the live run did.
 
-Messages are checked twice on the way in: :func:`decode` checks the wire types, :func:`validate`
-the values (finite numbers, boxes of non-negative size, consistent frames); both raise DecodeError,
-which subscribers count and drop, so a malformed or poisoned message never reaches a filter.
+The application's messages are its own types (followbus's catalogue is the top-level ``msgs`` package, as ROS 2
+keeps messages in interface packages and rclpy type-agnostic): a subclass of :class:`Message` that sets ``TYPE``
+registers itself, and the importing program makes its types decodable. This module keeps only what the bus
+itself publishes: camera frames (the runtime's frame lane and sync), node status, diagnostics ticks and replay
+hints.
 
-Boxes are ``[x, y, w, h]`` float pixels, top-left origin.
+Messages are checked twice on the way in: :func:`decode` checks the wire types, :func:`validate`
+the values: generic rules here (header in range, every float finite, the node never sees a NaN), then the
+type's own :meth:`Message.check` (shapes, ranges, known enumerations); both raise DecodeError, which
+subscribers count and drop, so a malformed or poisoned message never reaches a node.
 """
 
 from __future__ import annotations
@@ -59,6 +64,8 @@ class Message:
     # Fields added after recordings with this schema version were made: absent in such a message, they decode as
     # their default (an old recording stays readable).
     ADDED: ClassVar[frozenset[str]] = frozenset()
+    # Free-form payloads (diagnostics): :func:`validate` checks their header only.
+    FREE_FORM: ClassVar[bool] = False
     header: Header = field(default_factory=Header)
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -75,6 +82,10 @@ class Message:
     def encode(self) -> bytes:
         return encode(self)
 
+    def check(self) -> None:
+        """The type's own value checks, after the generic ones of :func:`validate`: raise DecodeError (use
+        :func:`require` and :func:`check_shape`) on a value a consumer must never see. Nothing by default."""
+
 
 @dataclass
 class Frame(Message):
@@ -90,113 +101,14 @@ class Frame(Message):
     source_width: int = 0
     source_height: int = 0
 
-
-@dataclass
-class GroundTruth(Message):
-    """Ground truth of the followed person for one frame, when the source has it."""
-
-    TYPE: ClassVar[str] = "GroundTruth"
-    available: bool = False  # False: this source has no ground truth (published anyway, so joins never wait)
-    box: np.ndarray | None = None  # [x, y, w, h]; None when the target is absent
-    visible_fraction: float = 1.0
-    others: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # other people's boxes
-    others_visible: np.ndarray = field(default_factory=lambda: np.zeros(0))  # their visible fractions
-
-
-@dataclass
-class Detections(Message):
-    TYPE: ClassVar[str] = "Detections"
-    MEASURED: ClassVar[frozenset[str]] = frozenset({"infer_ms"})
-    ADDED: ClassVar[frozenset[str]] = frozenset({"low_boxes"})
-    boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))  # x,y,w,h,score
-    backend: str = ""
-    infer_ms: float = 0.0
-    # Boxes scoring below the detection node's score_threshold but at least its low_score_threshold (same
-    # layout): only for a consumer that opts in (re-ID's second association stage, seed 002 / ByteTrack);
-    # everything else reads ``boxes`` alone.
-    low_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))
-
-
-@dataclass
-class Prior(Message):
-    """Kalman prior for a frame (seed 000 Eq. 4-8)."""
-
-    TYPE: ClassVar[str] = "Prior"
-    initialised: bool = False
-    state: np.ndarray = field(default_factory=lambda: np.zeros(4))  # x, y, vx, vy (px, px/s)
-    size: np.ndarray = field(default_factory=lambda: np.zeros(2))  # w, h (px)
-    covariance: np.ndarray = field(default_factory=lambda: np.zeros((4, 4)))  # P_k
-    innovation_cov: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))  # S = H P H^T + R
-    gate_chi2: float = 9.488
-    box: np.ndarray | None = None
-
-
-@dataclass
-class Measurement(Message):
-    """Re-identification result for a frame (seed 000 Algorithm 1)."""
-
-    TYPE: ClassVar[str] = "Measurement"
-    state: str = "LOST"  # TRACKING | OCCLUDED | REACQUIRED | LOST | UNINITIALISED
-    accepted: bool = False
-    secure: bool = False
-    box: np.ndarray | None = None  # the accepted box (Alg. 1 line 11)
-    best_box: np.ndarray | None = None  # argmax M_fuse, even when rejected
-    source: str = ""  # "detection" | "motion" | "init": where the chosen box came from
-    m_fuse: float = 0.0
-    s_color: float = 0.0
-    s_geo: float = 0.0
-    omega: float = 0.0
-    c_t: float = 0.0
-    candidates: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))  # x,y,w,h,m_fuse
-    candidate_sources: list[str] = field(default_factory=list)
-    candidate_hist: np.ndarray | None = None
-    init_box: np.ndarray | None = None  # set on the frame the target was initialised
-
-
-@dataclass
-class Track(Message):
-    """Posterior target track published by prediction after each measurement."""
-
-    TYPE: ClassVar[str] = "Track"
-    state: str = "LOST"
-    box: np.ndarray | None = None  # the tracker's output: accepted box, predicted box while OCCLUDED, else None
-    filtered_box: np.ndarray | None = None  # Kalman posterior box
-    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))  # px/s
-    measured: bool = False
-
-
-@dataclass
-class Template(Message):
-    """Reference appearance model M and its learning rate eta_k (seed 000 Eq. 9-10)."""
-
-    TYPE: ClassVar[str] = "Template"
-    initialised: bool = False
-    hist: np.ndarray | None = None  # bins_h x bins_s, sums to 1
-    eta: float = 0.0
-    p_specular: float = 0.0
-
-
-@dataclass
-class MotorCommand(Message):
-    TYPE: ClassVar[str] = "MotorCommand"
-    vx_mps: float = 0.0
-    vy_mps: float = 0.0
-    wz_radps: float = 0.0
-    wheel_radps: np.ndarray = field(default_factory=lambda: np.zeros(4))  # fl, fr, rl, rr
-    range_m: float | None = None
-    bearing_rad: float | None = None
-    reason: str = ""
-
-
-@dataclass
-class Odometry(Message):
-    TYPE: ClassVar[str] = "Odometry"
-    x_m: float = 0.0
-    y_m: float = 0.0
-    theta_rad: float = 0.0
-    vx_mps: float = 0.0
-    vy_mps: float = 0.0
-    wz_radps: float = 0.0
+    def check(self) -> None:
+        if self.encoding == "bgr8":
+            require(self.data.dtype == np.uint8 and self.data.shape == (self.height, self.width, 3), self,
+                    f"bgr8 data {self.data.dtype} {list(self.data.shape)} does not match {self.width}x{self.height}")
+        elif self.encoding == "jpeg":
+            require(self.data.dtype == np.uint8 and self.data.ndim == 1, self, "jpeg data must be 1-D uint8")
+        else:
+            raise DecodeError(f"{self.TYPE}: unknown encoding {self.encoding!r}")
 
 
 @dataclass
@@ -204,6 +116,7 @@ class NodeStatus(Message):
     """Once-a-second health and per-topic statistics of one node."""
 
     TYPE: ClassVar[str] = "NodeStatus"
+    FREE_FORM: ClassVar[bool] = True
     node: str = ""
     pid: int = 0
     uptime_s: float = 0.0
@@ -219,6 +132,7 @@ class Tick(Message):
     """Diagnostic message (bus checks, benchmarks): a counter and an optional payload."""
 
     TYPE: ClassVar[str] = "Tick"
+    FREE_FORM: ClassVar[bool] = True
     value: int = 0
     payload: np.ndarray | None = None
 
@@ -233,65 +147,6 @@ class ReplayHint(Message):
     TYPE: ClassVar[str] = "ReplayHint"
     skip: bool = False
     feedback: dict[str, int] = field(default_factory=dict)
-
-
-@dataclass
-class GroundPoints(Message):
-    """One frame's people on the floor (groundplane node): robot frame (x forward, y left) and the fixed
-    odometry frame (seed 004 Eq. 4, with the robot pose used), one row per kept detection."""
-
-    TYPE: ClassVar[str] = "GroundPoints"
-    points_robot_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    points_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # odometry frame
-    covs_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))  # odometry frame
-    scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    robot_x_m: float = 0.0
-    robot_y_m: float = 0.0
-    robot_theta_rad: float = 0.0
-    odometry_stamp_ns: int = -1  # the odometry sample the pose came from (-1: none yet, the origin)
-
-
-@dataclass
-class GroupState(Message):
-    """The followed group for one frame (seed 004 ME-CGT-UGV): odometry frame unless named ``_robot``."""
-
-    TYPE: ClassVar[str] = "GroupState"
-    MEASURED: ClassVar[frozenset[str]] = frozenset({"step_ms"})
-    valid: bool = False  # False: no group yet (the other fields are zeros)
-    lost: bool = False  # no member seen this frame: the state is the prediction
-    centre_m: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    velocity_mps: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    orientation_rad: float = 0.0  # main axis of the group's extent
-    centre_robot_m: np.ndarray = field(default_factory=lambda: np.zeros(2))  # at this frame's pose: what motor follows
-    ellipse_centres_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    ellipse_extents_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
-    ellipse_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    members_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # the points selected this frame
-    others_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # the points left out (disturbers)
-    step_ms: float = 0.0  # tracker cost of this frame
-
-
-@dataclass
-class CameraMotion(Message):
-    """Global image motion from the frame stamped ``from_stamp_ns`` to this one: p_k = M p_prev + t (px).
-
-    ``valid`` False: no trustworthy estimate for this frame (``reason`` says why); consumers go without."""
-
-    TYPE: ClassVar[str] = "CameraMotion"
-    valid: bool = False
-    matrix: np.ndarray = field(default_factory=lambda: np.eye(2, 3))  # 2x3 [M | t]
-    inliers: int = 0  # points consistent with the matrix
-    tracked: int = 0  # points the fit was made from
-    from_stamp_ns: int = 0
-    reason: str = ""
-    # The fit's uncertainty (issue 22; tracking/egomotion.py), px at full resolution.
-    residual_px: float = 0.0  # RMS distance of the inliers from the fit
-    spread: float = 0.0  # fraction of the image's grid cells holding an inlier
-    rival_px: float = 0.0  # how far the competing hypothesis moves the image centre from this one
-    rival_inliers: int = 0
-    agreement_px: float = -1.0  # distance from the previous frame's motion at the image centre; -1: none
-    std_px: float = 0.0  # 1-σ of the displacement a point gets (prediction widens its prior by it)
-    static_cells: int = 0  # grid cells taken for screen-fixed content and left out of the fit
 
 
 M = TypeVar("M", bound=Message)
@@ -421,83 +276,49 @@ def wire_copy(msg: M, *, share_arrays: bool = False) -> M:
     return cls(**kwargs)  # type: ignore[return-value]
 
 
-TRACK_STATES = frozenset({"TRACKING", "OCCLUDED", "REACQUIRED", "LOST", "UNINITIALISED"})
-BOX_FIELDS = frozenset({"box", "best_box", "init_box", "filtered_box"})
-UNCHECKED_TYPES = frozenset({"NodeStatus", "Tick"})  # free-form diagnostics
+def require(condition: bool, msg: Message, what: str) -> None:
+    """Raise DecodeError naming the message type unless ``condition`` holds (a message's own checks use it)."""
+    if not condition:
+        raise DecodeError(f"{msg.TYPE}: {what}")
 
 
-def _check_box(name: str, box: np.ndarray) -> None:
-    if box.shape != (4,):
-        raise DecodeError(f"{name}: a box is [x, y, w, h], got shape {list(box.shape)}")
-    if box[2] < 0 or box[3] < 0:
-        raise DecodeError(f"{name}: box of negative size {box.tolist()}")
+def check_shape(msg: Message, name: str, value: np.ndarray, shape: tuple[int | None, ...]) -> None:
+    """Raise DecodeError unless array field ``name`` has ``shape`` (None: any length on that axis)."""
+    fits = value.ndim == len(shape) and all(want is None or got == want
+                                            for got, want in zip(value.shape, shape, strict=True))
+    if not fits:
+        wanted = " x ".join("N" if n is None else str(n) for n in shape)
+        raise DecodeError(f"{msg.TYPE}.{name}: expected {wanted}, got {list(value.shape)}")
+
+
+def _check_header(msg: Message) -> None:
+    h = msg.header
+    if h.stamp_ns < 0 or h.frame_seq < -1 or h.epoch_ns < 0:
+        raise DecodeError(f"{msg.TYPE}: header out of range (stamp_ns {h.stamp_ns}, frame_seq {h.frame_seq})")
+
+
+def _check_finite(msg: Message) -> None:
+    """Every float and float array finite: a NaN reaching a filter poisons it for good."""
+    for field_name, _, _ in _field_plan(type(msg)):
+        value = getattr(msg, field_name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise DecodeError(f"{msg.TYPE}.{field_name}: non-finite value {value}")
+        if isinstance(value, np.ndarray) and value.dtype.kind == "f" and not np.isfinite(value).all():
+            raise DecodeError(f"{msg.TYPE}.{field_name}: non-finite values in array")
 
 
 def validate(msg: Message) -> Message:
     """Check a decoded message's values; raise DecodeError on anything a node must never see.
 
-    Every float and float array must be finite (a NaN reaching a Kalman filter poisons it for good),
-    boxes have non-negative width and height, frames match their declared size, track states are known.
-    Returns the message, so ``validate(decode(data))`` reads naturally.
+    Generic rules first (the header in range, every float finite), then the type's own :meth:`Message.check`;
+    free-form diagnostics get the header check only. Returns the message, so ``validate(decode(data))`` reads
+    naturally.
     """
-    h = msg.header
-    where = msg.TYPE
-    if h.stamp_ns < 0 or h.frame_seq < -1 or h.epoch_ns < 0:
-        raise DecodeError(f"{where}: header out of range (stamp_ns {h.stamp_ns}, frame_seq {h.frame_seq})")
-    if msg.TYPE in UNCHECKED_TYPES:
+    _check_header(msg)
+    if msg.FREE_FORM:
         return msg
-    for field_name, _, _ in _field_plan(type(msg)):
-        value = getattr(msg, field_name)
-        if isinstance(value, float) and not math.isfinite(value):
-            raise DecodeError(f"{where}.{field_name}: non-finite value {value}")
-        if isinstance(value, np.ndarray) and value.dtype.kind == "f" and not np.isfinite(value).all():
-            raise DecodeError(f"{where}.{field_name}: non-finite values in array")
-        if field_name in BOX_FIELDS and value is not None:
-            _check_box(f"{where}.{field_name}", value)
-    if isinstance(msg, Detections):
-        for name, boxes in (("boxes", msg.boxes), ("low_boxes", msg.low_boxes)):
-            if boxes.ndim != 2 or boxes.shape[1] != 5:
-                raise DecodeError(f"{where}.{name}: expected N x 5 (x, y, w, h, score), got {list(boxes.shape)}")
-            if (boxes[:, 2:4] < 0).any():
-                raise DecodeError(f"{where}.{name}: box of negative size")
-    elif isinstance(msg, Frame):
-        data = msg.data
-        if msg.encoding == "bgr8":
-            if data.dtype != np.uint8 or data.shape != (msg.height, msg.width, 3):
-                raise DecodeError(f"{where}: bgr8 data {data.dtype} {list(data.shape)} does not match "
-                                  f"{msg.width}x{msg.height}")
-        elif msg.encoding == "jpeg":
-            if data.dtype != np.uint8 or data.ndim != 1:
-                raise DecodeError(f"{where}: jpeg data must be 1-D uint8")
-        else:
-            raise DecodeError(f"{where}: unknown encoding {msg.encoding!r}")
-    elif isinstance(msg, (Measurement, Track)) and msg.state not in TRACK_STATES:
-        raise DecodeError(f"{where}.state: unknown state {msg.state!r}")
-    elif isinstance(msg, Prior) and (msg.state.shape != (4,) or msg.covariance.shape != (4, 4)
-                                     or msg.innovation_cov.shape != (2, 2)):
-        raise DecodeError(f"{where}: state, covariance or innovation covariance of the wrong shape")
-    elif isinstance(msg, CameraMotion):
-        if msg.matrix.shape != (2, 3) or not 0 <= msg.inliers <= msg.tracked:
-            raise DecodeError(f"{where}: matrix must be 2 x 3 and 0 <= inliers <= tracked")
-        if msg.valid and not 0 <= msg.from_stamp_ns < h.stamp_ns:
-            raise DecodeError(f"{where}.from_stamp_ns: {msg.from_stamp_ns} is not before the frame's stamp")
-    elif isinstance(msg, GroundPoints):
-        n = len(msg.points_m)
-        if (msg.points_m.shape != (n, 2) or msg.points_robot_m.shape != (n, 2) or msg.covs_m2.shape != (n, 2, 2)
-                or msg.scores.shape != (n,)):
-            raise DecodeError(f"{where}: points N x 2, covariances N x 2 x 2 and scores N must agree")
-        if n and (msg.covs_m2[:, [0, 1], [0, 1]] < 0).any():
-            raise DecodeError(f"{where}.covs_m2: negative variance")
-    elif isinstance(msg, GroupState):
-        n = len(msg.ellipse_weights)
-        if (msg.centre_m.shape != (2,) or msg.velocity_mps.shape != (2,) or msg.centre_robot_m.shape != (2,)
-                or msg.ellipse_centres_m.shape != (n, 2) or msg.ellipse_extents_m2.shape != (n, 2, 2)
-                or msg.ellipse_weights.shape != (n,) or msg.members_m.ndim != 2 or msg.members_m.shape[1] != 2
-                or msg.others_m.ndim != 2 or msg.others_m.shape[1] != 2):
-            raise DecodeError(f"{where}: centre, velocity or ellipses of the wrong shape")
-        if n and ((msg.ellipse_weights < 0).any() or (msg.ellipse_weights > 1).any()
-                  or (msg.ellipse_extents_m2[:, [0, 1], [0, 1]] < 0).any()):
-            raise DecodeError(f"{where}: ellipse weight outside [0, 1] or negative extent")
+    _check_finite(msg)
+    msg.check()
     return msg
 
 

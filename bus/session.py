@@ -6,7 +6,7 @@ well-known endpoint; gossip then tells peers about each other so they form a dir
 survives whichever process held the well-known port going away.
 
 Exposure: with no ``transport/auth`` settings every local process is trusted (anyone on the machine can
-publish motor commands or declare health tokens); that is acceptable only on loopback, so a session
+publish actuator commands or declare health tokens); that is acceptable only on loopback, so a session
 listening on any other address without authentication is logged loudly (:func:`exposure`).
 """
 
@@ -209,7 +209,7 @@ def exposure(settings: ZenohSettings) -> str | None:
     if not reachable:
         return None
     return (f"listening on {', '.join(reachable)} without authentication: anyone who can reach it can publish "
-            "on the bus (motor commands included) and fake node health; add transport/auth/usrpwd to the zenoh "
+            "on the bus (actuator commands included) and fake node health; add transport/auth/usrpwd to the zenoh "
             "config (README, Security)")
 
 

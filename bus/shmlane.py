@@ -39,7 +39,7 @@ array bytes outside Zenoh instead, where a receiver on the same machine maps the
   always carries the real message whenever anyone subscribes to it (a plain Zenoh program, a bridge, the
   recorder): the publisher asks Zenoh's matching status.
 
-bus/ knows nothing of tracking: this module moves bytes.
+bus/ knows no application message: this module moves bytes.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ MAX_SEGMENTS = 8
 MAX_LANE_BYTES = 48 * 1024 * 1024  # = pubsub.MAX_PAYLOAD_BYTES: a descriptor naming more is refused
 MAX_DESCRIPTOR_BYTES = 256
 TOKEN_PREFIX = "@followbus/lane"
-MAX_TRACKED_TOKENS = 64  # lane tokens matching one publisher's key it keeps track of; past it: inline
+MAX_TRACKED_TOKENS = 64  # lane tokens matching one publisher's key it watches; past it: inline
 MEMFD_NAME = "followbus-lane"
 _MEMFD_LINK = f"/memfd:{MEMFD_NAME} (deleted)"  # what /proc/<pid>/fd/<n> reads for one of our segments
 F_SEAL_FUTURE_WRITE = getattr(fcntl, "F_SEAL_FUTURE_WRITE", 0x0010)  # Linux 5.1; Python's fcntl may lack it
@@ -213,7 +213,7 @@ class LaneWriter:
                 self._tokens.pop(key, None)
             elif len(self._tokens) < MAX_TRACKED_TOKENS:
                 self._tokens[key] = host == HOST_ID
-            else:  # a flood of tokens (or a very wide fan-out): stop tracking, stay inline
+            else:  # a flood of tokens (or a very wide fan-out): stop counting them, stay inline
                 self.overflowed = True
             self.ready = bool(self._tokens) and all(self._tokens.values()) and not self.overflowed
 

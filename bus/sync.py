@@ -10,15 +10,15 @@ frame order; an incomplete set is dropped as soon as a newer set has all the sam
 running (or has stopped) costs one wait per outage, never one per frame. Before its first message ever an
 optional input is not on time: sets go on without it. It is on time once one of its messages arrives
 before its set's deadline: before the set was emitted, or after a set that did not wait for it went out
-(a producer that needs the set's required input, as egomotion needs the detections, always comes second;
+(a producer that needs the set's required input, as one reading the same frame's required input, always comes second;
 its message is dropped, but the next sets wait for it). A set that reached its deadline without it puts it
 off time again. Sets emitted without an optional input they did not wait for are counted
 (``without_optional``); the runtime notes each input a set lacked (-1 in the output's ``header.feedback``)
 and a replay's hint makes the replayed set lack it too, whatever the replay's arrival order.
 
 **Feedback.** A feedback input (``offset = -1``) contributes to frame k's set the message of the
-*previous frame this node handled* (k-1 when no frame was skipped upstream): the re-ID of frame k
-waits for the template learnt on the frame before it. The first set has no previous frame and does not
+*previous frame this node handled* (k-1 when no frame was skipped upstream): a node's frame k
+waits for the state another node learnt on the frame before it. The first set has no previous frame and does not
 wait. When that message has not come by the set's deadline (its producer dropped the frame, restarted,
 or is stopped), the set goes on with the newest feedback at or before the previous handled frame, and
 from then on sets stop waiting for feedback until an exact one is there in time again: a producer that

@@ -29,24 +29,13 @@ import select
 import termios
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
+from ..msgs.robot import Odometry
 from .kinematics import mecanum_body_twist
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class OdometrySample:
-    t_ns: int
-    x_m: float = 0.0
-    y_m: float = 0.0
-    theta_rad: float = 0.0
-    vx_mps: float = 0.0
-    vy_mps: float = 0.0
-    wz_radps: float = 0.0
 
 
 def _wrap_angle(a: float) -> float:
@@ -133,7 +122,7 @@ class SimDriver:
                 self._wheels = self._cmd + gap * decay
         self._pose = (x, y, th)
 
-    def apply(self, cmd_wheel_speeds: Sequence[float] | np.ndarray, t_ns: int) -> OdometrySample:
+    def apply(self, cmd_wheel_speeds: Sequence[float] | np.ndarray, t_ns: int) -> Odometry:
         """Advance to ``t_ns`` under the previous command, latch the new one, return odometry."""
         cmd = _as_wheels(cmd_wheel_speeds)
         t_ns = int(t_ns)
@@ -149,10 +138,10 @@ class SimDriver:
             self._wheels = cmd.copy()  # ideal drive: the reported velocity is the new command's
         return self.odometry()
 
-    def odometry(self) -> OdometrySample:
+    def odometry(self) -> Odometry:
         vx, vy, wz = self._twist(self._wheels)
         x, y, th = self._pose
-        return OdometrySample(t_ns=self._t_ns or 0, x_m=x, y_m=y, theta_rad=th, vx_mps=vx, vy_mps=vy,
+        return Odometry.at(self._t_ns or 0, x_m=x, y_m=y, theta_rad=th, vx_mps=vx, vy_mps=vy,
                               wz_radps=wz)
 
 
@@ -183,7 +172,7 @@ def format_stop() -> bytes:
     return STOP_LINE
 
 
-def parse_odometry_line(line: bytes | str, t_ns: int) -> OdometrySample:
+def parse_odometry_line(line: bytes | str, t_ns: int) -> Odometry:
     """Parse ``O <x> <y> <theta> <vx> <vy> <wz>``; raise ``ValueError`` if it is not one."""
     text = line.decode("ascii", errors="replace") if isinstance(line, (bytes, bytearray)) else line
     parts = text.strip().split()
@@ -196,7 +185,7 @@ def parse_odometry_line(line: bytes | str, t_ns: int) -> OdometrySample:
     if not all(math.isfinite(v) for v in values):
         raise ValueError(f"non-finite value in odometry line {text.strip()!r}")
     x, y, th, vx, vy, wz = values
-    return OdometrySample(t_ns=int(t_ns), x_m=x, y_m=y, theta_rad=th, vx_mps=vx, vy_mps=vy, wz_radps=wz)
+    return Odometry.at(t_ns, x_m=x, y_m=y, theta_rad=th, vx_mps=vx, vy_mps=vy, wz_radps=wz)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -276,7 +265,7 @@ class SerialDriver:
     def stop(self) -> None:
         self._write(STOP_LINE)
 
-    def read_odometry(self, timeout_s: float = 0.0) -> OdometrySample | None:
+    def read_odometry(self, timeout_s: float = 0.0) -> Odometry | None:
         """Newest odometry line received within ``timeout_s`` (None if none arrived).
 
         Drains everything already buffered and returns the latest complete ``O`` line; waits up to
@@ -285,7 +274,7 @@ class SerialDriver:
         if self._fd is None:
             raise OSError(f"serial port {self.port} is closed")
         deadline = time.monotonic() + max(0.0, timeout_s)
-        latest: OdometrySample | None = None
+        latest: Odometry | None = None
         while True:
             try:
                 chunk = os.read(self._fd, 4096)
@@ -304,7 +293,7 @@ class SerialDriver:
                 return None
             select.select([self._fd], [], [], remaining)
 
-    def _parse_buffered(self) -> OdometrySample | None:
+    def _parse_buffered(self) -> Odometry | None:
         latest = None
         while True:
             end = self._rx.find(b"\n")

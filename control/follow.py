@@ -11,7 +11,7 @@ seed 000 §3.2: PID + Mecanum kinematics at 30 Hz):
   camera on the person (the range equation assumes it is straight ahead), the strafe only removes
   the lateral offset faster, using the Mecanum chassis' holonomy.
 
-Track states (see ``followbus.bus.schemas.Measurement.state``):
+Track states (see ``followbus.msgs.tracking.TrackState``):
 
 * ``TRACKING`` / ``REACQUIRED``: follow the box.
 * ``OCCLUDED``: the box is the tracker's Kalman prediction, not an observation. Keep following it

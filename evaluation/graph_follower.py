@@ -19,7 +19,10 @@ import numpy as np
 
 from ..bus.graph import Graph, load_graph
 from ..bus.inproc import InProcessGraph
-from ..bus.schemas import CameraMotion, Detections, Frame, Measurement, Odometry, Prior, Template, Track
+from ..bus.schemas import Frame
+from ..msgs.perception import CameraMotion, Detections
+from ..msgs.robot import Odometry
+from ..msgs.tracking import Measurement, Prior, Template, Track
 from ..tracking.params import TrackerParams
 from .trace import ReidCapture, frame_record
 

@@ -28,11 +28,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..tracking.kalman import box_iou  # one IoU for the tracker and its evaluation
+from ..msgs.box import Box, box_iou  # one box and one IoU for the tracker and its evaluation
 
 log = logging.getLogger(__name__)
-
-Box = tuple[float, float, float, float]
 
 __all__ = [
     "Box",

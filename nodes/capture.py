@@ -22,7 +22,9 @@ import numpy as np
 
 from ..bus.codec import DecodeError
 from ..bus.node import DownstreamBarrier, Node, ParamError
-from ..bus.schemas import Frame, GroundTruth, Message, Track, decode
+from ..bus.schemas import Frame, Message, decode
+from ..msgs.perception import GroundTruth
+from ..msgs.tracking import Track
 from ..vision.sources import SourceError, check_source, open_source
 
 

@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 
 from ..bus.node import Node, ParamError
-from ..bus.schemas import Detections, Frame, GroundTruth, Message
+from ..bus.schemas import Frame, Message
+from ..msgs.perception import Detections, GroundTruth
 from ..vision.detectors import BACKENDS, RUNTIMES, DetectorUnavailable, SimulatedDetector, make_detector, split_by_score
 
 

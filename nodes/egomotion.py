@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 
 from ..bus.node import Node
-from ..bus.schemas import CameraMotion, Detections, Frame, Message
+from ..bus.schemas import Frame, Message
+from ..msgs.perception import CameraMotion, Detections
 from ..tracking.egomotion import EgoMotionEstimator, EgoMotionParams
-from .convert import camera_motion_to_msg
 
 
 class EgoMotion(Node):
@@ -38,7 +38,7 @@ class EgoMotion(Node):
         assert isinstance(frame, Frame) and isinstance(dets, Detections)
         if frame.encoding != "bgr8":
             self.log.warning("frame %d is %s, not bgr8: no camera motion", frame_seq, frame.encoding)
-            self.publish("transform", camera_motion_to_msg(None, "not_bgr8"), like=frame)
+            self.publish("transform", CameraMotion(valid=False, reason="not_bgr8"), like=frame)
             return
         if frame.header.epoch_ns != self.epoch_ns:
             self.epoch_ns = frame.header.epoch_ns  # a restarted capture: its first frame has no predecessor
@@ -47,7 +47,7 @@ class EgoMotion(Node):
         motion = self.estimator.step(frame.data, np.asarray(dets.boxes), frame.header.stamp_ns)
         self.step_ms_total += (time.perf_counter() - t0) * 1e3
         self.steps += 1
-        self.publish("transform", camera_motion_to_msg(motion, self.estimator.last_reason), like=frame)
+        self.publish("transform", motion or CameraMotion(valid=False, reason=self.estimator.last_reason), like=frame)
 
     def status_extra(self) -> dict[str, Any]:
         return {"counts": dict(self.estimator.counts),

@@ -16,8 +16,11 @@ from typing import Any
 import numpy as np
 
 from ..bus.node import Node
-from ..bus.schemas import Detections, GroundPoints, Message, Odometry
-from ..tracking.groundplane import CameraGeometry, GroundPlaneParams, boxes_to_ground, to_odometry_frame
+from ..bus.schemas import Message
+from ..msgs.group import GroundPoints
+from ..msgs.perception import Detections
+from ..msgs.robot import Odometry
+from ..tracking.groundplane import CameraGeometry, GroundPlaneParams, boxes_to_ground
 from .common import split_params
 
 
@@ -60,19 +63,16 @@ class GroundPlane(Node):
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         dets = inputs["detections"]
         assert isinstance(dets, Detections)
-        ground = boxes_to_ground(dets.boxes, self.camera, self.plane)
         odom = self._pose(dets.header.stamp_ns, frame_seq)
         if odom is None:
             self.without_odometry += 1
-        x, y, th = (odom.x_m, odom.y_m, odom.theta_rad) if odom is not None else (0.0, 0.0, 0.0)
-        pts, covs = to_odometry_frame(ground.points_m, ground.covs_m2, x, y, th)  # seed 004 Eq. 4
+        pose = (odom.x_m, odom.y_m, odom.theta_rad) if odom is not None else (0.0, 0.0, 0.0)
+        ground = boxes_to_ground(dets.boxes, self.camera, self.plane, pose)  # seed 004 Eq. 4 at this pose
+        ground.odometry_stamp_ns = -1 if odom is None else odom.header.stamp_ns
         self.frames += 1
-        self.points += len(pts)
-        self.dropped_boxes += int(np.count_nonzero(ground.index < 0))
-        self.publish("points", GroundPoints(
-            points_robot_m=ground.points_m, points_m=pts, covs_m2=covs, scores=ground.scores.astype(np.float64),
-            robot_x_m=float(x), robot_y_m=float(y), robot_theta_rad=float(th),
-            odometry_stamp_ns=-1 if odom is None else odom.header.stamp_ns), like=dets)
+        self.points += len(ground.points_m)
+        self.dropped_boxes += len(np.asarray(dets.boxes).reshape(-1, 5)) - len(ground.points_m)
+        self.publish("points", ground, like=dets)
 
     def status_extra(self) -> dict[str, Any]:
         return {"frames": self.frames, "points": self.points, "dropped_boxes": self.dropped_boxes,

@@ -15,12 +15,10 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from ..bus.node import Node, ParamError
-from ..bus.schemas import GroundPoints, GroupState, Message
-from ..tracking.groundplane import to_robot_frame
-from ..tracking.group import GroupParams, MultiEllipseGroupTracker, SingleEllipseGroupTracker
+from ..bus.schemas import Message
+from ..msgs.group import GroundPoints, GroupState
+from ..tracking.group import GroupEstimate, GroupParams, MultiEllipseGroupTracker, SingleEllipseGroupTracker
 from .common import split_params
 
 
@@ -68,30 +66,15 @@ class Group(Node):
         self.frames += 1
         self.step_ms_total += step_ms
         self.step_ms_max = max(self.step_ms_max, step_ms)
-        out = GroupState(step_ms=step_ms)
-        pts = msg.points_m
-        selected = est.selected if len(est.selected) == len(pts) else np.zeros(len(pts), dtype=bool)
-        if est.valid:
-            numbers = [est.centre_m, est.velocity_mps, np.array([est.orientation_rad])]
-            numbers += [np.concatenate([e.centre_m, e.extent_m2.ravel(), [e.weight]]) for e in est.ellipses]
-            if not all(np.isfinite(a).all() for a in numbers):
-                self.rejected += 1
-                self.log.warning("the group estimate is not finite; restarting the tracker")
-                self.tracker = type(self.tracker)(self.tracker.p)
-            else:
-                self.valid_frames += 1
-                out.valid, out.lost = True, bool(est.lost)
-                out.centre_m = np.asarray(est.centre_m, dtype=np.float64)
-                out.velocity_mps = np.asarray(est.velocity_mps, dtype=np.float64)
-                out.orientation_rad = float(est.orientation_rad)
-                out.centre_robot_m = to_robot_frame(out.centre_m, msg.robot_x_m, msg.robot_y_m,
-                                                    msg.robot_theta_rad)[0]
-                out.ellipse_centres_m = np.array([e.centre_m for e in est.ellipses], dtype=np.float64).reshape(-1, 2)
-                out.ellipse_extents_m2 = np.array([e.extent_m2 for e in est.ellipses],
-                                                  dtype=np.float64).reshape(-1, 2, 2)
-                out.ellipse_weights = np.clip(np.array([e.weight for e in est.ellipses], dtype=np.float64), 0, 1)
-        out.members_m = pts[selected].reshape(-1, 2)
-        out.others_m = pts[~selected].reshape(-1, 2)
+        if est.valid and not est.is_finite():
+            self.rejected += 1
+            self.log.warning("the group estimate is not finite; restarting the tracker")
+            self.tracker = type(self.tracker)(self.tracker.p)
+            est = GroupEstimate(valid=False, selected=est.selected)
+        elif est.valid:
+            self.valid_frames += 1
+        out = est.to_message(msg.points_m, (msg.robot_x_m, msg.robot_y_m, msg.robot_theta_rad))
+        out.step_ms = step_ms
         self.publish("group", out, like=msg)
 
     def status_extra(self) -> dict[str, Any]:

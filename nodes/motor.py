@@ -24,9 +24,12 @@ from typing import Any
 import numpy as np
 
 from ..bus.node import Node, ParamError
-from ..bus.schemas import GroupState, Message, MotorCommand, Odometry, Track
+from ..bus.schemas import Message
 from ..control.drivers import SerialDriver, SimDriver
 from ..control.follow import FollowCommand, FollowController, FollowParams
+from ..msgs.group import GroupState
+from ..msgs.robot import MotorCommand, Odometry
+from ..msgs.tracking import Track
 from .common import split_params
 
 
@@ -145,14 +148,11 @@ class Motor(Node):
             return bound
         return bound - (self.monotonic_ns() - received_ns) / 1e6
 
-    def _odometry(self, sample) -> None:
-        if sample.t_ns <= self.last_odom_ns:
+    def _odometry(self, sample: Odometry) -> None:
+        if sample.header.stamp_ns <= self.last_odom_ns:
             return
-        self.last_odom_ns = sample.t_ns
-        odom = Odometry(x_m=sample.x_m, y_m=sample.y_m, theta_rad=sample.theta_rad, vx_mps=sample.vx_mps,
-                        vy_mps=sample.vy_mps, wz_radps=sample.wz_radps)
-        odom.header.stamp_ns = sample.t_ns
-        self.publish("odometry", odom)
+        self.last_odom_ns = sample.header.stamp_ns
+        self.publish("odometry", sample)
 
     def teardown(self) -> None:
         if self.serial is not None:

@@ -25,12 +25,14 @@ from typing import Any
 import numpy as np
 
 from ..bus.node import Node
-from ..bus.schemas import CameraMotion, Detections, Measurement, Message, Odometry, Prior, Track
+from ..bus.schemas import Message
+from ..msgs.perception import CameraMotion, Detections
+from ..msgs.robot import Odometry
+from ..msgs.tracking import Measurement, Prior, Track
 from ..tracking.kalman import Predictor
 from ..tracking.params import TrackerParams
 from ..tracking.tracker import output_box
 from .common import split_params
-from .convert import make_track, msg_to_camera_motion, msg_to_reid, prior_to_msg
 
 
 @dataclass
@@ -55,7 +57,7 @@ class Prediction(Node):
     def setup(self) -> None:
         self.node_params, tracker_params = self.params
         self.predictor = Predictor(tracker_params)
-        self.priors: dict[int, Any] = {}  # frame_seq -> pure Prior, until its measurement arrives
+        self.priors: dict[int, Prior] = {}  # frame_seq -> the published prior, until its measurement arrives
         self.applied_seq = -1
         self.applied_epoch = 0
         self.last_state = "UNINITIALISED"
@@ -105,17 +107,24 @@ class Prediction(Node):
             self.priors.clear()
         if seq <= self.applied_seq:
             return
-        reid = msg_to_reid(msg)
         prior = self.priors.pop(seq, None)
-        posterior = self.predictor.apply(reid, self._v_ego(msg.header.stamp_ns, seq, "odometry_update"))
+        posterior = self.predictor.apply(msg, self._v_ego(msg.header.stamp_ns, seq, "odometry_update"))
         if not self._filter_ok():
             self._reset_filter("the measurement update left a non-finite state")
             posterior = None
         self.applied_seq = seq
         self.last_state = msg.state
-        self.publish("track", make_track(msg.state, output_box(reid, prior), posterior), like=msg)
+        self.publish("track", self._track(msg, prior, posterior), like=msg)
         for old in [s for s in self.priors if s < seq]:
             del self.priors[old]
+
+    @staticmethod
+    def _track(msg: Measurement, prior: Prior | None, posterior: Track | None) -> Track:
+        """The track of a measurement: the filter's posterior (none: no filtered box, no velocity) with the
+        tracker's output box (tracking/tracker.py)."""
+        track = posterior or Track(state=msg.state)
+        track.box = output_box(msg, prior)
+        return track
 
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         dets = inputs["detections"]
@@ -126,13 +135,15 @@ class Prediction(Node):
             self._reset_filter(f"frame stamp jumped by {(stamp - last) / 1e6:.0f} ms")
         # The egomotion node's transform of this frame, when it came in time: the prior warped by the camera's
         # motion (seed 002 §3.3); without it (no such node, late, no trustworthy fit) the prior is not warped.
-        motion = msg_to_camera_motion(inputs.get("transform"))  # type: ignore[arg-type]
+        motion = inputs.get("transform")
+        assert motion is None or isinstance(motion, CameraMotion)
         prior = self.predictor.predict(stamp, self._v_ego(stamp, frame_seq, "odometry"), motion)
         if not self._filter_ok():
             self._reset_filter("the prediction left a non-finite state")
             prior = None
+        prior = prior or Prior()  # uninitialised: re-ID initialises the target
         self.priors[frame_seq] = prior
-        self.publish("prior", prior_to_msg(prior), like=dets)
+        self.publish("prior", prior, like=dets)
 
     def status_extra(self) -> dict[str, Any]:
         return {"state": self.last_state, "initialised": self.predictor.initialised,

@@ -21,11 +21,12 @@ from typing import Any
 import numpy as np
 
 from ..bus.node import Node
-from ..bus.schemas import Detections, Frame, Measurement, Message, Prior, Template
+from ..bus.schemas import Frame, Message
+from ..msgs.perception import Detections
+from ..msgs.tracking import Measurement, Prior, Template
 from ..tracking.params import TrackerParams
 from ..tracking.reid import ReIdentifier
 from .common import split_params
-from .convert import msg_to_prior, reid_to_msg
 
 # init_box describes the target at the start of the source: a re-ID node (re)started later in the run, or
 # joining a capture that restarted long ago, re-acquires the target from its template instead.
@@ -79,11 +80,11 @@ class Reid(Node):
         init_box = None
         if self.node_params.init_box and new_source and frame_seq < INIT_BOX_MAX_FRAME:
             init_box = self.node_params.init_box
-        result = self.reid.step(frame.data, dets.boxes, msg_to_prior(prior), self.template_hist,
+        result = self.reid.step(frame.data, dets.boxes, prior if prior.initialised else None, self.template_hist,
                                 frame.header.stamp_ns, init_box=init_box, defer_learning=True,
                                 low_detections=dets.low_boxes)  # the second stage's (low_score_stage)
         self.frames += 1
-        msg = reid_to_msg(result)
+        msg = result.to_message()
         self.last = msg
         self.publish("measurement", msg, like=frame)
         # The learned appearance's sample (OSNet descriptors) after the measurement is out: off the motor's path.

@@ -32,7 +32,9 @@ import zenoh
 from ..bus import ros2
 from ..bus.node import Node, ParamError
 from ..bus.rmw_zenoh import SENSOR_QOS, Qos, Ros2Node
-from ..bus.schemas import Message, MotorCommand
+from ..bus.schemas import Message
+from ..msgs import ros2 as msgs_ros2
+from ..msgs.robot import MotorCommand
 from ..vision.sources import SourceError, SourceFrame
 
 ROS2_SOURCE_PREFIX = "ros2:"
@@ -95,8 +97,8 @@ class Ros2Out(Node):
         if not isinstance(msg, MotorCommand):
             return
         self.last_command_ns = self.monotonic_ns()  # a watchdog: no stamp may steer it
-        self._send(ros2.command_twist(msg), moving=bool(msg.vx_mps or msg.vy_mps or msg.wz_radps))
-        point = ros2.target_point(msg)
+        self._send(msgs_ros2.command_twist(msg), moving=bool(msg.vx_mps or msg.vy_mps or msg.wz_radps))
+        point = msgs_ros2.target_point(msg)
         if self.target is not None and point is not None:
             self.target.publish(point)
 

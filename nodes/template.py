@@ -22,11 +22,11 @@ from typing import Any
 import numpy as np
 
 from ..bus.node import LAUNCH_ID_ENV, Node
-from ..bus.schemas import Frame, Measurement, Message, Template
+from ..bus.schemas import Frame, Message
+from ..msgs.tracking import Measurement, Template
 from ..tracking.params import TrackerParams
 from ..tracking.template import TemplateUpdater
 from .common import split_params
-from .convert import msg_to_reid
 
 
 @dataclass
@@ -89,7 +89,7 @@ class TemplateNode(Node):
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         frame, meas = inputs["frame"], inputs["measurement"]
         assert isinstance(frame, Frame) and isinstance(meas, Measurement)
-        hist, self.eta, self.p_specular = self.updater.step(frame.data, msg_to_reid(meas))
+        hist, self.eta, self.p_specular = self.updater.step(frame.data, meas)
         msg = Template(initialised=hist is not None, hist=None if hist is None else np.asarray(hist),
                        eta=float(self.eta), p_specular=float(self.p_specular))
         self.publish("template", msg, like=frame)

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from followbus.bus.codec import DecodeError, pack, unpack
-from followbus.bus.schemas import Detections, Frame, Header, Measurement, Tick, decode, encode
+from followbus.bus.schemas import Frame, Header, Tick, decode, encode
+from followbus.msgs.perception import Detections
+from followbus.msgs.tracking import Measurement
 
 
 def test_large_array_roundtrip_is_zero_copy_view():
@@ -173,7 +175,10 @@ def _outcome(fn, msg):
 
 
 def _wire_cases():
-    from followbus.bus.schemas import SCHEMAS, GroupState, MotorCommand, NodeStatus, Prior, ReplayHint, Track
+    from followbus.bus.schemas import SCHEMAS, NodeStatus, ReplayHint
+    from followbus.msgs.group import GroupState
+    from followbus.msgs.robot import MotorCommand
+    from followbus.msgs.tracking import Prior, Track
 
     rng = np.random.default_rng(3)
     header = Header(seq=4, stamp_ns=1_700_000_000_123_456_789, frame_seq=12, source="reid", pub_ns=9, epoch_ns=7,
@@ -220,7 +225,8 @@ def test_wire_copy_is_exactly_what_decoding_the_encoded_message_gives(msg):
 
 
 def test_wire_copy_owns_its_arrays_and_header():
-    from followbus.bus.schemas import Prior, wire_copy
+    from followbus.bus.schemas import wire_copy
+    from followbus.msgs.tracking import Prior
 
     state = np.zeros(4)
     msg = Prior(header=Header(feedback={"reid": 1}), state=state)
@@ -231,3 +237,44 @@ def test_wire_copy_owns_its_arrays_and_header():
     assert copied.state[0] == 0.0 and copied.header.feedback == {"reid": 1} and copied.header.seq == 0
     with pytest.raises(ValueError):
         copied.state[0] = 1.0  # read-only, as a decoded array
+
+
+def _bad_messages():
+    """One message per kind of value a consumer must never see, each caught by its type's own check()
+    (msgs/) or by bus/schemas.py's generic rules."""
+    from followbus.msgs.group import GroundPoints, GroupState
+    from followbus.msgs.perception import CameraMotion, GroundTruth
+    from followbus.msgs.tracking import Prior, Track
+
+    bad_motion = CameraMotion(valid=True, matrix=np.eye(2, 3), inliers=5, tracked=4)
+    bad_motion.header.stamp_ns = 10
+    return [
+        (Track(state="FOLLOWING"), "unknown state"),
+        (Measurement(state="TRACKING", box=np.array([0.0, 0.0, -1.0, 5.0])), "negative size"),
+        (GroundTruth(available=True, box=np.zeros(3)), "GroundTruth.box"),
+        (Prior(initialised=True, covariance=np.eye(3)), "Prior.covariance"),
+        (bad_motion, "inliers"),
+        (GroundPoints(points_m=np.zeros((2, 2)), points_robot_m=np.zeros((1, 2)), covs_m2=np.zeros((2, 2, 2)),
+                      scores=np.zeros(2)), "must agree"),
+        (GroupState(centre_m=np.zeros(3)), "GroupState.centre_m"),
+        (Frame(width=2, height=2, data=np.zeros((2, 3, 3), np.uint8)), "does not match"),
+        (Track(state="TRACKING", velocity=np.array([np.nan, 0.0])), "non-finite"),  # generic: any type
+    ]
+
+
+@pytest.mark.parametrize("msg, error", _bad_messages(), ids=lambda v: getattr(v, "TYPE", None) or str(v))
+def test_each_message_type_checks_its_own_fields(msg, error):
+    from followbus.bus.schemas import validate
+
+    with pytest.raises(DecodeError, match=error):
+        validate(msg)
+    with pytest.raises(DecodeError, match=error):
+        validate(decode(encode(msg)))  # the same on the way in from the wire
+
+
+def test_free_form_diagnostics_get_the_header_check_only():
+    from followbus.bus.schemas import validate
+
+    assert validate(Tick(payload=np.array([np.nan])))  # a benchmark's payload is not a node's input
+    with pytest.raises(DecodeError, match="header out of range"):
+        validate(Tick(header=Header(stamp_ns=-1)))

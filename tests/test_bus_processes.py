@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 
+from followbus import msgs
 from followbus.bus import schemas
 from followbus.bus.pubsub import Publisher, Subscriber, payload_bytes
 from followbus.bus.schemas import NodeStatus, Tick, decode
@@ -23,6 +24,7 @@ pytestmark = pytest.mark.slow
 ECHO_SERVER = """
 import sys, time
 from followbus.bus.schemas import decode
+import followbus.msgs  # the application's message types: decodable here too
 from followbus.bus.session import ZenohSettings, open_session
 port = int(sys.argv[1])
 s = open_session(ZenohSettings(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
@@ -46,30 +48,30 @@ def _sample_messages() -> list[schemas.Message]:
     return [
         schemas.Frame(width=64, height=48, encoding="bgr8", data=rng.integers(0, 255, (48, 64, 3), dtype=np.uint8),
                       source_width=128, source_height=96),
-        schemas.GroundTruth(available=True, box=box, visible_fraction=0.4, others=np.ones((2, 4), np.float32)),
-        schemas.Detections(boxes=rng.random((3, 5)).astype(np.float32), backend="yolox", infer_ms=12.5),
-        schemas.Prior(initialised=True, state=np.arange(4.0), size=np.array([30.0, 60.0]), covariance=np.eye(4) * 2,
+        msgs.GroundTruth(available=True, box=box, visible_fraction=0.4, others=np.ones((2, 4), np.float32)),
+        msgs.Detections(boxes=rng.random((3, 5)).astype(np.float32), backend="yolox", infer_ms=12.5),
+        msgs.Prior(initialised=True, state=np.arange(4.0), size=np.array([30.0, 60.0]), covariance=np.eye(4) * 2,
                       innovation_cov=np.eye(2) * 3, gate_chi2=9.488, box=box),
-        schemas.Measurement(state="REACQUIRED", accepted=True, secure=True, box=box, m_fuse=0.8, s_color=0.9,
+        msgs.Measurement(state="REACQUIRED", accepted=True, secure=True, box=box, m_fuse=0.8, s_color=0.9,
                             s_geo=0.7, omega=0.6, c_t=0.9, candidates=np.ones((2, 5), np.float32),
                             candidate_hist=np.full((16, 8), 1 / 128, np.float32)),
-        schemas.Track(state="TRACKING", box=box, velocity=np.array([1.0, -2.0]), measured=True),
-        schemas.Template(initialised=True, hist=np.full((16, 8), 1 / 128, np.float32), eta=0.019, p_specular=0.05),
-        schemas.MotorCommand(vx_mps=0.4, vy_mps=0.0, wz_radps=-0.2, wheel_radps=np.array([1.0, 2, 3, 4]),
+        msgs.Track(state="TRACKING", box=box, velocity=np.array([1.0, -2.0]), measured=True),
+        msgs.Template(initialised=True, hist=np.full((16, 8), 1 / 128, np.float32), eta=0.019, p_specular=0.05),
+        msgs.MotorCommand(vx_mps=0.4, vy_mps=0.0, wz_radps=-0.2, wheel_radps=np.array([1.0, 2, 3, 4]),
                              range_m=2.1, bearing_rad=None, reason="follow"),
-        schemas.Odometry(x_m=1.0, y_m=2.0, theta_rad=0.3, vx_mps=0.4, vy_mps=0.1, wz_radps=0.05),
+        msgs.Odometry(x_m=1.0, y_m=2.0, theta_rad=0.3, vx_mps=0.4, vy_mps=0.1, wz_radps=0.05),
         schemas.NodeStatus(node="n", pid=42, uptime_s=3.5, topics={"k": {"rate_hz": 30.0}}, extra={"a": 1}),
         schemas.Tick(value=7, payload=np.arange(5000, dtype=np.uint8)),
         schemas.ReplayHint(skip=False, feedback={"template": 8}),
-        schemas.GroundPoints(points_robot_m=rng.random((3, 2)), points_m=rng.random((3, 2)),
+        msgs.GroundPoints(points_robot_m=rng.random((3, 2)), points_m=rng.random((3, 2)),
                              covs_m2=np.stack([np.eye(2) * 0.1] * 3), scores=np.full(3, 0.8), robot_x_m=0.5,
                              robot_theta_rad=0.1, odometry_stamp_ns=120),
-        schemas.GroupState(valid=True, centre_m=np.array([4.0, 0.5]), velocity_mps=np.array([0.4, 0.0]),
+        msgs.GroupState(valid=True, centre_m=np.array([4.0, 0.5]), velocity_mps=np.array([0.4, 0.0]),
                            orientation_rad=0.2, centre_robot_m=np.array([3.5, 0.4]),
                            ellipse_centres_m=rng.random((2, 2)), ellipse_extents_m2=np.stack([np.eye(2)] * 2),
                            ellipse_weights=np.array([0.6, 0.4]), members_m=rng.random((4, 2)),
                            others_m=rng.random((1, 2)), step_ms=1.5),
-        schemas.CameraMotion(valid=True, matrix=np.array([[1.01, 0.02, -3.5], [-0.02, 1.01, 1.25]]), inliers=40,
+        msgs.CameraMotion(valid=True, matrix=np.array([[1.01, 0.02, -3.5], [-0.02, 1.01, 1.25]]), inliers=40,
                              tracked=55, from_stamp_ns=90, reason=""),
     ]
 
@@ -134,7 +136,7 @@ def test_node_counts_and_drops_malformed_messages_and_keeps_running(graph_file, 
         assert wait_until(lambda: bool(statuses), 20), "sink never published its status"
         raw = session.declare_publisher("t/ticker/tick")
         good = Publisher(session, "t/ticker/tick", "ticker")
-        for junk in (b"\x00\x01garbage", b"FB1\x05\x00\x00\x00\xc1\xc1", schemas.Odometry().encode()):
+        for junk in (b"\x00\x01garbage", b"FB1\x05\x00\x00\x00\xc1\xc1", msgs.Odometry().encode()):
             raw.put(junk)
         tick = Tick(value=41)
         tick.header.stamp_ns = time.time_ns()

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from followbus.bus.schemas import Detections, Frame, GroundTruth
+from followbus.bus.schemas import Frame
+from followbus.msgs.perception import Detections, GroundTruth
 from followbus.nodes.capture import McapFrameSource
 from followbus.tools.recording.mcap_io import RecordingWriter
 

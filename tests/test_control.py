@@ -285,7 +285,7 @@ def test_sim_forward_one_second() -> None:
     sim.apply(_forward(0.4), 0)
     odo = sim.apply(_forward(0.4), S)
     assert (odo.x_m, odo.y_m, odo.theta_rad) == pytest.approx((0.4, 0.0, 0.0), abs=1e-12)
-    assert odo.vx_mps == pytest.approx(0.4) and odo.t_ns == S
+    assert odo.vx_mps == pytest.approx(0.4) and odo.header.stamp_ns == S
     stepped = SimDriver(**GEOM)
     for k in range(31):
         odo = stepped.apply(_forward(0.4), k * S // 30)
@@ -298,8 +298,8 @@ def test_sim_rotation_strafe_and_circle() -> None:
     odo = sim.apply(np.zeros(4), int(math.pi / 2 * S))
     assert odo.theta_rad == pytest.approx(math.pi / 2, abs=1e-9)
     assert (odo.x_m, odo.y_m) == pytest.approx((0.0, 0.0), abs=1e-12)
-    odo = sim.apply(mecanum_wheel_speeds(0.0, 0.2, 0.0, **GEOM), odo.t_ns)
-    odo = sim.apply(np.zeros(4), odo.t_ns + S)  # strafe left while facing +y → moves to −x
+    odo = sim.apply(mecanum_wheel_speeds(0.0, 0.2, 0.0, **GEOM), odo.header.stamp_ns)
+    odo = sim.apply(np.zeros(4), odo.header.stamp_ns + S)  # strafe left while facing +y → moves to −x
     assert (odo.x_m, odo.y_m) == pytest.approx((-0.2, 0.0), abs=1e-9)
     circle = SimDriver(**GEOM)
     circle.apply(mecanum_wheel_speeds(0.5, 0.0, 0.5, **GEOM), 0)
@@ -334,7 +334,7 @@ def test_serial_format_parse_round_trip() -> None:
         format_command([0, 0, 0, 0], float("nan"))
     line = b"O 1.500 -0.250 0.785 0.400 0.000 -0.100\r\n"
     odo = parse_odometry_line(line, 42)
-    assert (odo.t_ns, odo.x_m, odo.y_m, odo.theta_rad, odo.vx_mps, odo.vy_mps, odo.wz_radps) == (
+    assert (odo.header.stamp_ns, odo.x_m, odo.y_m, odo.theta_rad, odo.vx_mps, odo.vy_mps, odo.wz_radps) == (
         42, 1.5, -0.25, 0.785, 0.4, 0.0, -0.1)
     wheels = (3.25, -1.5, 0.001, 12.0)
     parsed = [float(v) for v in format_command(wheels, 100).decode().split()[1:5]]
@@ -395,7 +395,7 @@ def test_motor_arms_the_mcu_stop_on_every_serial_command() -> None:
     how long the MCU may hold it (what is left of mcu_stop_ms since the track it answers was received)."""
     from followbus.bus.graph import apply_overrides, load_graph
     from followbus.bus.inproc import InProcessGraph
-    from followbus.bus.schemas import Track
+    from followbus.msgs.tracking import Track
 
     from .conftest import REPO
 

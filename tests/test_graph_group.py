@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from followbus.bus.pubsub import Subscriber
-from followbus.bus.schemas import GroundPoints, GroupState, MotorCommand
 from followbus.bus.session import ZenohSettings, open_session
+from followbus.msgs.group import GroundPoints, GroupState
+from followbus.msgs.robot import MotorCommand
 from followbus.vision.scenes import make_scene
 
 from .conftest import REPO, followbus_argv, processes_matching

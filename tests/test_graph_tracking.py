@@ -14,8 +14,10 @@ import numpy as np
 import pytest
 
 from followbus.bus.pubsub import Subscriber
-from followbus.bus.schemas import GroundTruth, MotorCommand, Track
 from followbus.bus.session import ZenohSettings, open_session
+from followbus.msgs.perception import GroundTruth
+from followbus.msgs.robot import MotorCommand
+from followbus.msgs.tracking import Track
 
 from .conftest import REPO, followbus_argv, processes_matching, wait_until
 

@@ -32,8 +32,7 @@ def test_level_camera_gives_the_true_positions():
     cam = CameraGeometry()
     truth = [(2.5, 0.0), (4.0, 1.2), (6.0, -2.0), (10.0, 0.5)]
     out = boxes_to_ground(np.array([_box_at(cam, *p) for p in truth]), cam, GroundPlaneParams())
-    assert out.index.tolist() == [0, 1, 2, 3]
-    np.testing.assert_allclose(out.points_m, truth, atol=1e-9)
+    np.testing.assert_allclose(out.points_robot_m, truth, atol=1e-9)  # every box gives a point, in order
     # Range uncertainty grows with range (∝ range² for a monocular camera) and covariances are SPD.
     var_fwd = out.covs_m2[:, 0, 0]
     assert np.all(np.diff(var_fwd[[0, 1, 3]]) > 0)
@@ -46,9 +45,9 @@ def test_tilted_camera():
     cam = CameraGeometry(focal_px=500, cx_px=320, cy_px=240, camera_height_m=1.2, camera_tilt_rad=tilt)
     v = 240 + 500 * math.tan(math.atan2(1.2, 3.0) - tilt)
     out = boxes_to_ground(np.array([[300.0, v - 100, 40.0, 100.0, 0.8]]), cam, GroundPlaneParams())
-    assert out.points_m[0, 0] == pytest.approx(3.0, abs=1e-9)
+    assert out.points_robot_m[0, 0] == pytest.approx(3.0, abs=1e-9)
     # u = 320 (box centre) is straight ahead.
-    assert out.points_m[0, 1] == pytest.approx(0.0, abs=1e-9)
+    assert out.points_robot_m[0, 1] == pytest.approx(0.0, abs=1e-9)
 
 
 @pytest.mark.parametrize("tilt_deg", [0.0, 12.0])
@@ -60,7 +59,7 @@ def test_floor_to_image_inverts_the_foot_projection(tilt_deg):
     floor = np.array([[2.5, 0.4], [4.0, -1.1], [9.0, 2.0]])
     uv = floor_to_image(floor, cam)
     boxes = np.array([[u - 20, v - 120, 40.0, 120.0, 0.9] for u, v in uv])  # foot at (u, v)
-    np.testing.assert_allclose(boxes_to_ground(boxes, cam, GroundPlaneParams()).points_m, floor, atol=1e-9)
+    np.testing.assert_allclose(boxes_to_ground(boxes, cam, GroundPlaneParams()).points_robot_m, floor, atol=1e-9)
     assert np.isnan(floor_to_image(np.array([[-1.0, 0.0]]), cam)).all()
 
 
@@ -69,8 +68,8 @@ def test_width_based_range_is_seed_001_eq_1():
     params = GroundPlaneParams(range_from="width", person_width_m=0.45)
     # 0.45 m wide at 2 m: 112.5 px (control/kinematics' example); centred 100 px left of cx.
     out = boxes_to_ground(np.array([[320 - 100 - 56.25, 100, 112.5, 300, 0.9]]), cam, params)
-    assert out.points_m[0, 0] == pytest.approx(2.0)
-    assert out.points_m[0, 1] == pytest.approx(2.0 * 100 / 500)
+    assert out.points_robot_m[0, 0] == pytest.approx(2.0)
+    assert out.points_robot_m[0, 1] == pytest.approx(2.0 * 100 / 500)
 
 
 def test_unusable_boxes_are_dropped():
@@ -84,8 +83,7 @@ def test_unusable_boxes_are_dropped():
         _box_at(cam, 30.0, 0.0),          # farther than max_range_m
     ])
     out = boxes_to_ground(boxes, cam, GroundPlaneParams())
-    assert out.index.tolist() == [0, -1, -1, -1, -1, -1]
-    assert len(out.points_m) == 1
+    np.testing.assert_allclose(out.points_robot_m, [[3.0, 0.0]], atol=1e-9)  # the first box alone
 
 
 def test_odometry_frame_round_trip_and_covariance_rotation():

@@ -8,7 +8,10 @@ import pytest
 
 from followbus.bus.graph import apply_overrides, load_graph
 from followbus.bus.inproc import InProcessGraph
-from followbus.bus.schemas import Detections, GroupState, Message, Odometry
+from followbus.bus.schemas import Message
+from followbus.msgs.group import GroupState
+from followbus.msgs.perception import Detections
+from followbus.msgs.robot import Odometry
 from followbus.tracking.groundplane import CameraGeometry
 from followbus.vision.scenes import make_scene
 

@@ -9,12 +9,13 @@ explicit and relative (``from ..bus.node import Node``), and each must name a fi
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGE_DIRS = ("bus", "nodes", "tools", "tracking", "control", "vision", "evaluation", "followbus")
+PACKAGE_DIRS = ("bus", "msgs", "nodes", "tools", "tracking", "control", "vision", "evaluation", "followbus")
 
 
 def _modules() -> list[Path]:
@@ -71,7 +72,7 @@ def test_every_internal_import_names_a_file_of_the_repository():
 # What stays at the top of tools/: the command line and what every room uses. Anything else belongs in a room.
 TOOLS_TOP = {"__init__", "cli", "command", "errors", "connect", "identity", "launch", "demo", "models_cmd"}
 TOOLS_ROOMS = {"recording", "live", "bench", "runs"}
-LIBRARY_DIRS = ("bus", "nodes", "tracking", "control", "vision", "evaluation")
+LIBRARY_DIRS = ("bus", "msgs", "nodes", "tracking", "control", "vision", "evaluation")
 
 
 def test_tools_is_rooms_not_a_hall():
@@ -120,3 +121,70 @@ def test_only_bus_recording_reads_mcap():
                 if names is None or any(a.name in names for a in node.names):
                     users.add(str(path.relative_to(REPO)))
     assert users <= {"bus/recording.py"}, f"MCAP read outside bus/recording.py: {sorted(users - {'bus/recording.py'})}"
+
+
+# --- messages are application types: bus/ is generic -------------------------------------------------
+
+# Words of followbus's application (seed 000's tracker, the robot, the group follower), whole words in any case,
+# and its message types, case-sensitive. "target" is not among them: bus/ uses it in its generic English sense
+# (a thread's target, an override's target).
+TRACKING_WORDS = re.compile(r"\b(kalman|re-?id|egomotion|odometry|motor|person|people|seeds?|tracker|tracking|tracks?"
+                            r"|template|measurement|prior)\b", re.IGNORECASE)
+APPLICATION_TYPES = re.compile(r"\b(TrackState|Detections|GroundTruth|MotorCommand|CameraMotion|GroundPoints"
+                               r"|GroupState)\b")
+
+
+def _imported_folders(path: Path) -> set[str]:
+    """The top-level repository folders a module imports from (relative imports)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.level > 0:
+            target = _target(path, node).resolve()
+            if REPO in target.parents:
+                found.add(target.relative_to(REPO).parts[0])
+    return found
+
+
+def test_bus_knows_no_tracking_word():
+    """bus/ is the generic layer: any message type, no word of the application, code and comments alike (the
+    tracking messages and their ROS 2 mapping are msgs/'s)."""
+    hits = []
+    for path in sorted((REPO / "bus").rglob("*.py")):
+        for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            found = TRACKING_WORDS.findall(line) + APPLICATION_TYPES.findall(line)
+            if found:
+                hits.append(f"{path.relative_to(REPO)}:{lineno} {sorted(set(found))}: {line.strip()}")
+    assert not hits, "tracking vocabulary in bus/:\n" + "\n".join(hits)
+
+
+def test_bus_imports_nothing_above_it_and_msgs_only_the_bus():
+    """Layering: bus/ <- msgs/ <- tracking/, control/, vision/ <- nodes/ <- tools/."""
+    wrong = [f"{p.relative_to(REPO)} imports {sorted(_imported_folders(p) - {'bus'})}"
+             for p in sorted((REPO / "bus").rglob("*.py")) if _imported_folders(p) - {"bus"}]
+    wrong += [f"{p.relative_to(REPO)} imports {sorted(_imported_folders(p) - {'bus', 'msgs'})}"
+              for p in sorted((REPO / "msgs").rglob("*.py")) if _imported_folders(p) - {"bus", "msgs"}]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_no_hand_written_bridge_between_messages_and_algorithms():
+    """The algorithms use the message types themselves: no conversion module, no twin class of a message."""
+    assert not (REPO / "nodes" / "convert.py").exists(), "nodes/convert.py is back: use the msgs/ types in tracking/"
+    message_types = {n.name for p in (REPO / "msgs").glob("*.py") for n in ast.parse(p.read_text()).body
+                     if isinstance(n, ast.ClassDef) and any(getattr(b, "id", "") == "Message" for b in n.bases)}
+    assert {"Prior", "CameraMotion", "GroundPoints", "Odometry", "Measurement", "Track"} <= message_types
+    twins = [f"{p.relative_to(REPO)}:{n.lineno} class {n.name}"
+             for d in PACKAGE_DIRS if d != "msgs" for p in sorted((REPO / d).rglob("*.py"))
+             for n in ast.walk(ast.parse(p.read_text(encoding="utf-8")))
+             if isinstance(n, ast.ClassDef) and n.name in message_types | {"OdometrySample", "Posterior"}]
+    assert not twins, "classes that duplicate a message type:\n" + "\n".join(twins)
+
+
+def test_one_box():
+    """One Box in the repository (msgs/box.py); everything else imports it."""
+    defined = []
+    for path in sorted(p for d in PACKAGE_DIRS for p in (REPO / d).rglob("*.py")):
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            names = [t.id for t in getattr(node, "targets", [getattr(node, "target", None)]) if isinstance(t, ast.Name)]
+            if "Box" in names or (isinstance(node, ast.ClassDef) and node.name == "Box"):
+                defined.append(f"{path.relative_to(REPO)}:{node.lineno}")
+    assert defined == ["msgs/box.py:" + defined[0].split(":")[1]] if len(defined) == 1 else False, defined

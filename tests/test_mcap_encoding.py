@@ -20,18 +20,9 @@ import pytest
 from mcap.reader import make_reader
 
 from followbus.bus.recording import bus_channels, iter_bus_messages, schema_document
-from followbus.bus.schemas import (
-    SCHEMAS,
-    Detections,
-    Frame,
-    Header,
-    Measurement,
-    Message,
-    NodeStatus,
-    Tick,
-    decode,
-    encode,
-)
+from followbus.bus.schemas import SCHEMAS, Frame, Header, Message, NodeStatus, Tick, decode, encode
+from followbus.msgs.perception import Detections
+from followbus.msgs.tracking import Measurement
 from followbus.nodes.capture import McapFrameSource
 
 from . import test_record_replay

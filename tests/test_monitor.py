@@ -16,9 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from followbus.bus.schemas import MotorCommand, NodeStatus, Track
+from followbus.bus.schemas import NodeStatus
 from followbus.bus.session import ZenohSettings, open_session
 from followbus.bus.stats import TopicStats
+from followbus.msgs.robot import MotorCommand
+from followbus.msgs.tracking import Track
 from followbus.tools.live.monitor import SEPARATOR, BusMonitor, GraphInfo, show
 
 from .chromium import docs_picture, element_text, page_layout, render_dom, require_chromium, screenshot
@@ -416,7 +418,7 @@ def test_foxglove_bridge_serves_previews_and_annotations(tracking_robot):
 
 def _group_messages(seq: int, stamp_ns: int):
     """A group of three (two ellipses) seen from a robot at (1, 0) facing +y, and the points of the same frame."""
-    from followbus.bus.schemas import GroundPoints, GroupState
+    from followbus.msgs.group import GroundPoints, GroupState
 
     points = GroundPoints(points_robot_m=np.array([[2.0, 0.5], [2.5, -0.5], [4.0, 1.0]]),
                           robot_x_m=1.0, robot_y_m=0.0, robot_theta_rad=np.pi / 2)

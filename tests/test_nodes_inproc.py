@@ -8,18 +8,10 @@ import pytest
 
 from followbus.bus.graph import GraphError, apply_overrides, load_graph
 from followbus.bus.inproc import InProcessError, InProcessGraph
-from followbus.bus.schemas import (
-    Detections,
-    Frame,
-    Measurement,
-    Message,
-    Odometry,
-    Prior,
-    ReplayHint,
-    Tick,
-    Track,
-    encode,
-)
+from followbus.bus.schemas import Frame, Message, ReplayHint, Tick, encode
+from followbus.msgs.perception import Detections
+from followbus.msgs.robot import Odometry
+from followbus.msgs.tracking import Measurement, Prior, Track
 
 from .conftest import REPO
 

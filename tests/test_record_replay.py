@@ -24,8 +24,10 @@ from mcap.reader import make_reader
 from followbus.bus.health import HealthWatcher
 from followbus.bus.pubsub import Publisher
 from followbus.bus.recording import read_metadata
-from followbus.bus.schemas import Detections, Frame, Prior, Tick, Track, decode
+from followbus.bus.schemas import Frame, Tick, decode
 from followbus.bus.session import ZenohSettings, open_session
+from followbus.msgs.perception import Detections
+from followbus.msgs.tracking import Prior, Track
 from followbus.tools.recording import foxglove_schemas as fox
 from followbus.tools.recording.mcap_io import RecordingWriter
 

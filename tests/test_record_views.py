@@ -19,7 +19,10 @@ from rosbags.rosbag2 import Reader as RosbagsReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from followbus.bus.recording import BUS_MESSAGE_ENCODING
-from followbus.bus.schemas import SCHEMAS, Detections, Frame, MotorCommand, Odometry, Track, decode
+from followbus.bus.schemas import SCHEMAS, Frame, decode
+from followbus.msgs.perception import Detections
+from followbus.msgs.robot import MotorCommand, Odometry
+from followbus.msgs.tracking import Track
 from followbus.tools.recording.record import Recorder, RecordOptions, ros2_path
 
 from .conftest import free_port, run_followbus

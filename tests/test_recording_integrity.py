@@ -17,7 +17,7 @@ from followbus.bus.recording import (
     iter_bus_messages,
     read_summary,
 )
-from followbus.bus.schemas import Detections
+from followbus.msgs.perception import Detections
 from followbus.tools.cli import main
 from followbus.tools.recording.mcap_io import RecordingWriter
 from followbus.tools.recording.replay import ReplayOptions, ReplayPlan

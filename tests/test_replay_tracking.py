@@ -22,8 +22,8 @@ def _record(tmp, namespace: str, frames: int, during=None, *extra: str):
     ``during(graph)`` returned, when given), then stop it as a user would (SIGINT). Counting frames rather
     than seconds keeps the recording the same size on a loaded machine, where start-up can take seconds."""
     from followbus.bus.pubsub import Subscriber
-    from followbus.bus.schemas import Measurement
     from followbus.bus.session import ZenohSettings, open_session
+    from followbus.msgs.tracking import Measurement
 
     from .conftest import free_port, wait_until
 
@@ -206,7 +206,8 @@ def test_a_lost_optional_input_is_replayed_exactly(tmp_path):
     The priors note which sets lacked the transform (-1), and a lockstep replay of prediction lacks exactly
     those, whatever its own arrival order, with zero mismatches."""
     from followbus.bus.recording import iter_bus_messages
-    from followbus.bus.schemas import Prior, decode
+    from followbus.bus.schemas import decode
+    from followbus.msgs.tracking import Prior
 
     path = _record(tmp_path, "ro", 60, _stopper("egomotion"))
     priors = [decode(m.data, Prior) for m in iter_bus_messages(path, ["ro/prediction/prior"])]

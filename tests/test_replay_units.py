@@ -9,7 +9,9 @@ import pytest
 from mcap.reader import make_reader
 
 from followbus.bus.recording import is_bus_channel, iter_bus_messages
-from followbus.bus.schemas import Detections, Measurement, Prior, Tick
+from followbus.bus.schemas import Tick
+from followbus.msgs.perception import Detections
+from followbus.msgs.tracking import Measurement, Prior
 from followbus.tools.recording.mcap_io import RecordingWriter
 from followbus.tools.recording.replay import ReplayOptions, ReplayPlan, Tolerance, diff_messages
 from followbus.tools.recording.replay_feed import Feed

@@ -142,7 +142,8 @@ def test_ros2_camera_in_cmd_vel_out_tracks_the_demo_scene(tmp_path):
     capture's subscription token); the graph tracks the person (IoU with the scene's truth) and the ros2 node's
     Twist on /n1/cmd_vel reaches a ROS 2 subscription with the motor's velocities."""
     from followbus.bus.pubsub import Subscriber
-    from followbus.bus.schemas import MotorCommand, Track
+    from followbus.msgs.robot import MotorCommand
+    from followbus.msgs.tracking import Track
     from followbus.vision.sources import open_source
 
     port = free_port()
@@ -258,7 +259,7 @@ def test_the_ros2_node_sends_a_zero_twist_when_commands_stop_or_it_stops():
     than stale_after_ms (200) is followed by a zero Twist, and so is its teardown; a stopped base gets no repeats."""
     from types import SimpleNamespace
 
-    from followbus.bus.schemas import MotorCommand
+    from followbus.msgs.robot import MotorCommand
     from followbus.nodes.ros2 import Ros2Out, Ros2Params
 
     port = free_port()

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from followbus.tracking.kalman import Prior
+from followbus.msgs.tracking import Prior
 from followbus.tracking.params import TrackerParams
 from followbus.tracking.reid import Candidate, ReIdentifier, TrackState
 
@@ -49,7 +49,7 @@ def candidate(box: tuple[float, ...], m_fuse: float) -> Candidate:
 def decide(reid: ReIdentifier, candidates: list[Candidate]) -> tuple[tuple[float, ...], bool]:
     reid._note_crowd(len(candidates))
     best = max(candidates, key=lambda c: c.m_fuse)
-    prior = Prior(t_ns=0, state=np.array([120.0, 150.0, 0.0, 0.0]), size=(40.0, 100.0),
+    prior = Prior.of_filter(t_ns=0, state=np.array([120.0, 150.0, 0.0, 0.0]), size=(40.0, 100.0),
                   covariance=np.eye(4) * 100.0, innovation_cov=np.eye(2) * 100.0, gate_chi2=9.488)
     chosen, accepted = reid._identity_decision(np.zeros((4, 4, 3), np.uint8), candidates, best, prior)
     return chosen.box, accepted

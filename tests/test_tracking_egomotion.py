@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from followbus.tracking.egomotion import CameraMotion, EgoMotionEstimator, EgoMotionParams, background_mask
+from followbus.msgs.perception import CameraMotion
+from followbus.tracking.egomotion import EgoMotionEstimator, EgoMotionParams, background_mask
 from followbus.tracking.kalman import KalmanCV, Predictor
 from followbus.tracking.params import TrackerParams
 
@@ -60,7 +61,7 @@ def test_known_similarity_is_recovered(angle_deg: float, scale: float, tx: float
     np.testing.assert_allclose(pts @ motion.matrix.T, pts @ truth.T, atol=0.6)
     assert motion.scale == pytest.approx(scale, abs=3e-3)
     assert motion.inliers >= 50 and motion.tracked >= motion.inliers
-    assert (motion.from_t_ns, motion.t_ns) == (0, 33_000_000)
+    assert (motion.from_stamp_ns, motion.header.stamp_ns) == (0, 33_000_000)
     assert est.counts["transform"] == 1
 
 
@@ -155,7 +156,7 @@ def test_warped_prior_lands_on_the_moved_target() -> None:
     _, plain = prior(TrackerParams(camera_motion_compensation=False), motion)
     assert plain.centre == pytest.approx((240.0, 220.0)) and not plain.in_gate(target)
     # A motion that does not start at the filter's stamp (a frame either side did not see) is not applied.
-    stale = CameraMotion(motion.matrix, motion.inliers, motion.tracked, -33_000_000, 33_000_000)
+    stale = _motion_of(motion.matrix, -33_000_000, 33_000_000)
     pred, unwarped = prior(TrackerParams(camera_motion_compensation=True), stale)
     assert unwarped.centre == pytest.approx((240.0, 220.0)) and pred.motion_mismatched == 1
 
@@ -195,8 +196,10 @@ def test_egomotion_node_publishes_the_transform_and_prediction_warps_by_it(tmp_p
     transform of a 60 px pan is valid, checked on the wire, and prediction's prior lands on the moved target."""
     from followbus.bus.graph import load_graph
     from followbus.bus.inproc import InProcessGraph
-    from followbus.bus.schemas import CameraMotion as CameraMotionMsg
-    from followbus.bus.schemas import Detections, Frame, Measurement, decode, validate
+    from followbus.bus.schemas import Frame, decode, validate
+    from followbus.msgs import CameraMotion as CameraMotionMsg
+    from followbus.msgs.perception import Detections
+    from followbus.msgs.tracking import Measurement
 
     from .conftest import REPO
 
@@ -284,7 +287,7 @@ def test_a_failed_fit_keeps_the_reference_so_the_next_motion_spans_it() -> None:
     motions, est = run(frames)
     assert motions[2] is None and est.counts["transform"] == 2
     m = motions[3]
-    assert m is not None and m.from_t_ns == 2 * 33_000_000  # from the last fitted frame, across the blank one
+    assert m is not None and m.from_stamp_ns == 2 * 33_000_000  # from the last fitted frame, across the blank one
     np.testing.assert_allclose(m.matrix[:, 2], (0.0, 40.0), atol=0.6)
 
 
@@ -300,9 +303,9 @@ def _prior_after(motion: CameraMotion, coasting: bool, params: TrackerParams | N
     from followbus.tracking.reid import ReidResult, TrackState
 
     pred = Predictor(params or TrackerParams())
-    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)))
+    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)).to_message())
     if coasting:
-        pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED))
+        pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED).to_message())
         pred.predict(33_000_000)
     start = pred.kf.x[:2].copy()
     prior = pred.predict(66_000_000 if coasting else 33_000_000, camera_motion=motion)
@@ -310,7 +313,14 @@ def _prior_after(motion: CameraMotion, coasting: bool, params: TrackerParams | N
 
 
 def _motion(tx: float, std: float, from_t: int, t: int) -> CameraMotion:
-    return CameraMotion(np.array([[1.0, 0, tx], [0, 1.0, 0]]), 50, 60, from_t, t, std_px=std)
+    return _motion_of(np.array([[1.0, 0, tx], [0, 1.0, 0]]), from_t, t, std_px=std)
+
+
+def _motion_of(matrix: np.ndarray, from_t: int, t: int, std_px: float = 0.0) -> CameraMotion:
+    """A valid camera motion from stamp ``from_t`` to ``t`` (50 of 60 corners agree)."""
+    motion = CameraMotion(valid=True, matrix=matrix, inliers=50, tracked=60, from_stamp_ns=from_t, std_px=std_px)
+    motion.header.stamp_ns = t
+    return motion
 
 
 def test_a_doubtful_motion_widens_a_coasting_prior_instead_of_dragging_it() -> None:
@@ -328,9 +338,8 @@ def test_a_motion_spanning_a_frame_without_one_is_applied() -> None:
     from followbus.tracking.reid import ReidResult, TrackState
 
     pred = Predictor(TrackerParams())
-    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)))
+    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)).to_message())
     pred.predict(33_000_000)  # the jerk's frame: no motion came
-    pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED))
-    prior = pred.predict(66_000_000, camera_motion=_motion(0.0, 0.5, 0, 66_000_000).__class__(
-        np.array([[1.0, 0, 0], [0, 1.0, 45.0]]), 50, 60, 0, 66_000_000))
+    pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED).to_message())
+    prior = pred.predict(66_000_000, camera_motion=_motion_of(np.array([[1.0, 0, 0], [0, 1.0, 45.0]]), 0, 66_000_000))
     assert prior.centre[1] == pytest.approx(250.0 + 45.0, abs=1e-6) and pred.motion_mismatched == 0

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from followbus.msgs.tracking import Prior
 from followbus.tracking.appearance import hs_histogram
-from followbus.tracking.kalman import Prior
 from followbus.tracking.params import TrackerParams
 from followbus.tracking.reid import ReIdentifier, ReidResult, TrackState, appearance_weight, fuse, geometric_score
 
@@ -35,7 +35,7 @@ def dets(*boxes: tuple[float, float, float, float]) -> np.ndarray:
 def prior_at(box: tuple[float, float, float, float], t_ns: int, var_px2: float = 400.0) -> Prior:
     """A prior centred on ``box`` with S = var·I: gate radius sqrt(9.488·400) ≈ 61.6 px."""
     cx, cy = box[0] + box[2] / 2.0, box[1] + box[3] / 2.0
-    return Prior(t_ns=t_ns, state=np.array([cx, cy, 0.0, 0.0]), size=(box[2], box[3]),
+    return Prior.of_filter(t_ns=t_ns, state=np.array([cx, cy, 0.0, 0.0]), size=(box[2], box[3]),
                  covariance=np.diag([var_px2, var_px2, 1.0, 1.0]), innovation_cov=var_px2 * np.eye(2),
                  gate_chi2=9.488)
 
@@ -259,7 +259,7 @@ def test_a_restarted_reid_initialises_on_the_detection_the_prior_expects() -> No
     pred = Predictor(TrackerParams())
     left, centre = (40.0, 60.0, 40.0, 100.0), (140.0, 60.0, 40.0, 100.0)
     pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=left, source="init",
-                          init_box=left))
+                          init_box=left).to_message())
     prior = pred.predict(33_000_000)
     frame = np.zeros((240, 320, 3), np.uint8)
     res = ReIdentifier(TrackerParams()).step(frame, dets(left, centre), prior, None, 33_000_000)
@@ -292,7 +292,7 @@ def test_adaptive_gate_grows_for_fast_or_weakly_detected_targets() -> None:
     slow = prior_at(TARGET, 33_000_000)
     assert reid.gate_scale(slow) == 1.0  # the initial box: nothing to doubt
     h = TARGET[3]
-    fast = Prior(t_ns=33_000_000, state=np.array([slow.state[0], slow.state[1], 0.06 * h / 0.033, 0.0]),
+    fast = Prior.of_filter(t_ns=33_000_000, state=np.array([slow.state[0], slow.state[1], 0.06 * h / 0.033, 0.0]),
                  size=slow.size, covariance=slow.covariance, innovation_cov=slow.innovation_cov, gate_chi2=9.488)
     assert reid.gate_scale(fast) == pytest.approx(params.gate_scale_max)
     # accepted on a weak detection (score 0.3): the next gate is the widest

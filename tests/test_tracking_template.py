@@ -26,14 +26,14 @@ def frame_with(colour: tuple[int, int, int], specular_rows: int = 0) -> np.ndarr
 
 def result(frame: np.ndarray, state: TrackState, accepted: bool, secure: bool) -> ReidResult:
     return ReidResult(t_ns=0, state=state, accepted=accepted, secure=secure, box=BOX if accepted else None,
-                      best_box=BOX, source="detection", candidate_hist=hs_histogram(frame, BOX))
+                      best_box=BOX, source="detection", candidate_hist=hs_histogram(frame, BOX)).to_message()
 
 
 def initialised(params: TrackerParams) -> tuple[TemplateUpdater, np.ndarray]:
     tu = TemplateUpdater(params)
     red = frame_with((0, 0, 255))
     hist, eta, _ = tu.step(red, ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX,
-                                           source="init", init_box=BOX))
+                                           source="init", init_box=BOX).to_message())
     assert hist is not None and eta == 0.0
     return tu, hist
 
@@ -113,9 +113,11 @@ def test_step_before_initialisation_is_inert() -> None:
 def test_relock_with_existing_template_keeps_it() -> None:
     tu, m0 = initialised(TrackerParams())
     blue = frame_with((255, 0, 0))
-    relock = ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX, source="template", init_box=BOX)
+    relock = ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX, source="template",
+                        init_box=BOX).to_message()
     m1, eta, _ = tu.step(blue, relock)
     np.testing.assert_array_equal(m1, m0)
-    fresh = ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX, source="init", init_box=BOX)
+    fresh = ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX, source="init",
+                       init_box=BOX).to_message()
     m2, _, _ = tu.step(blue, fresh)
     assert m2[10, 7] == pytest.approx(1.0)  # a new target restarts the model

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import pytest
 
-from followbus.bus.schemas import GroundPoints, GroupState
+from followbus.msgs.group import GroundPoints, GroupState
 from followbus.tools.live.monitor import GraphInfo, _group_line, group_view
 from followbus.tools.live.webview import health_rows, is_loopback_bind, screen_state, web_token
 from followbus.tracking.groundplane import floor_to_image, to_odometry_frame

@@ -15,9 +15,11 @@ import numpy as np
 
 from ..bus.graph import Graph
 from ..bus.pubsub import Subscriber
-from ..bus.schemas import Detections, GroundTruth, MotorCommand, Template, Track
 from ..bus.session import open_session
 from ..evaluation.metrics import evaluate_single_target
+from ..msgs.perception import Detections, GroundTruth
+from ..msgs.robot import MotorCommand
+from ..msgs.tracking import Template, Track
 from ..vision.detectors import DetectorUnavailable, resolve_detector_model
 from .launch import Launcher, install_stop_signals
 

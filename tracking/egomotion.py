@@ -41,6 +41,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..msgs.perception import CameraMotion
+
 logger = logging.getLogger(__name__)
 
 
@@ -106,36 +108,6 @@ class EgoMotionParams:
             raise ValueError("EgoMotionParams: static_decay must be in [0, 1), the static grid at least 1x1")
         if self.model not in ("similarity", "affine"):
             raise ValueError(f"EgoMotionParams.model must be 'similarity' or 'affine', got {self.model!r}")
-
-
-@dataclass(frozen=True)
-class CameraMotion:
-    """Image motion from the frame stamped ``from_t_ns`` to the frame stamped ``t_ns``.
-
-    ``matrix`` is the 2x3 [M | t] with p_k = M p_{k-1} + t in full-resolution pixels.
-    """
-
-    matrix: np.ndarray
-    inliers: int
-    tracked: int  # corners LK followed into frame k (outside person boxes); the RANSAC input
-    from_t_ns: int
-    t_ns: int
-    # Uncertainty (issue 22), full-resolution px unless said otherwise.
-    residual_px: float = 0.0  # RMS distance of the inliers from the fitted motion
-    spread: float = 1.0  # fraction of the static grid's cells holding an inlier (0-1)
-    rival_px: float = 0.0  # the competing hypothesis' displacement of the image centre minus this one's
-    rival_inliers: int = 0  # its support (0: there was none)
-    agreement_px: float = -1.0  # |this displacement - the previous frame's| at the image centre; -1: no previous
-    std_px: float = 0.0  # 1-σ of the displacement this motion gives a point (fit + rival ambiguity)
-    static_cells: int = 0  # cells of the static map left out of the fit
-
-    @property
-    def doubt_px(self) -> float:
-        return self.std_px
-
-    @property
-    def scale(self) -> float:
-        return math.sqrt(abs(float(np.linalg.det(self.matrix[:, :2]))))
 
 
 def transform_scale(matrix: np.ndarray) -> float:
@@ -234,7 +206,7 @@ class EgoMotionEstimator:
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, t_ns: int) -> CameraMotion | None:
         """Motion from the reference frame (the previous one, or the last fitted one after a failed fit) to
-        this one; None when there is none to trust.
+        this one, stamped ``t_ns``; None when there is none to trust (:attr:`last_reason` says why).
 
         ``detections``: this frame's person boxes (N x 4+, full-resolution px); corners are taken
         outside them on both frames (the previous frame's corners were masked with its own boxes).
@@ -406,9 +378,11 @@ class EgoMotionEstimator:
             w = rival_n / float(rival_n + n_in)
             var += w * (1.0 - w) * rival_px**2  # the variance of the two-hypothesis mixture's shift
         agreement = -1.0 if self._prev_shift is None else float(np.linalg.norm(shift - self._prev_shift)) * unit
-        return CameraMotion(full, n_in, int(len(a)), self._prev_t_ns, int(t_ns), residual_px=residual,
-                            spread=spread, rival_px=rival_px, rival_inliers=rival_n, agreement_px=agreement,
-                            std_px=math.sqrt(var))
+        motion = CameraMotion(valid=True, matrix=full, inliers=n_in, tracked=int(len(a)),
+                              from_stamp_ns=self._prev_t_ns, residual_px=residual, spread=spread, rival_px=rival_px,
+                              rival_inliers=rival_n, agreement_px=agreement, std_px=math.sqrt(var))
+        motion.header.stamp_ns = int(t_ns)
+        return motion
 
 
 def _shift(m: np.ndarray, point: np.ndarray) -> np.ndarray:

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..msgs.group import GroundPoints
+
 
 @dataclass
 class CameraGeometry:
@@ -81,20 +83,23 @@ class GroundPlaneParams:
             raise ValueError(f"body_std_m must be finite and >= 0, got {self.body_std_m!r}")
 
 
-@dataclass
-class GroundPoints:
-    """Robot-frame points (N×2, m), their covariances (N×2×2, m²), the detection scores and, per input box,
-    the index of its point (-1: dropped)."""
-
-    points_m: np.ndarray
-    covs_m2: np.ndarray
-    scores: np.ndarray
-    index: np.ndarray
-
-
-def boxes_to_ground(boxes: np.ndarray, cam: CameraGeometry, params: GroundPlaneParams) -> GroundPoints:
-    """Project detection boxes ``[x, y, w, h, score]`` (px) onto the floor in the robot frame."""
+def boxes_to_ground(boxes: np.ndarray, cam: CameraGeometry, params: GroundPlaneParams,
+                    pose: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> GroundPoints:
+    """Project detection boxes ``[x, y, w, h, score]`` (px) onto the floor: the robot-frame points, and the same
+    points in the odometry frame at robot pose ``pose`` (x_m, y_m, theta_rad; seed 004 Eq. 4). A box that
+    gives no point (see the module docstring) has no row."""
     b = np.asarray(boxes, dtype=float).reshape(-1, 5)
+    pts, covs, keep = _project(b, cam, params)
+    x, y, th = pose
+    odom_pts, odom_covs = to_odometry_frame(pts[keep], covs[keep], x, y, th)
+    return GroundPoints(points_robot_m=pts[keep], points_m=odom_pts, covs_m2=odom_covs,
+                        scores=b[keep, 4].astype(np.float64), robot_x_m=float(x), robot_y_m=float(y),
+                        robot_theta_rad=float(th))
+
+
+def _project(b: np.ndarray, cam: CameraGeometry, params: GroundPlaneParams
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robot-frame points (N×2, m) and covariances (N×2×2, m²) of box rows ``b``, and which rows give one."""
     n = len(b)
     pts = np.zeros((n, 2))
     covs = np.zeros((n, 2, 2))
@@ -131,9 +136,7 @@ def boxes_to_ground(boxes: np.ndarray, cam: CameraGeometry, params: GroundPlaneP
     pts[:, 0] = fwd + cam.camera_forward_m
     pts[:, 1] = left + cam.camera_left_m
     covs = sp * sp * J @ J.transpose(0, 2, 1) + np.eye(2) * params.body_std_m ** 2
-    index = np.full(n, -1, dtype=int)
-    index[keep] = np.arange(int(keep.sum()))
-    return GroundPoints(pts[keep], covs[keep], b[keep, 4].copy(), index)
+    return pts, covs, keep
 
 
 def floor_to_image(points_m: np.ndarray, cam: CameraGeometry) -> np.ndarray:

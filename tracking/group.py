@@ -23,7 +23,8 @@ refer to seed 004 (Yu, Li, Wu, Drones 2025, 9, 620):
 * Alg. 1    group centre = mean of the sub-target centres (weighted here by E[π_l], so a starved
             component cannot pull it).
 
-Pure numpy; no bus, no vision. Every tracker has the same API: ``step(t_s, points_m, covs_m2) -> GroupEstimate``.
+Pure numpy; no network, no vision. Every tracker has the same API: ``step(t_s, points_m, covs_m2) -> GroupEstimate``
+(what the group node publishes of it: :meth:`GroupEstimate.to_message`).
 """
 
 from __future__ import annotations
@@ -33,6 +34,9 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from ..msgs.group import GroupState
+from .groundplane import to_robot_frame
 
 log = logging.getLogger(__name__)
 
@@ -168,6 +172,29 @@ class GroupEstimate:
     @property
     def heading_rad(self) -> float:
         return heading_rad(self.velocity_mps) if self.valid else math.nan
+
+    def is_finite(self) -> bool:
+        """Every number of the estimate finite (a diverged tracker gives NaN or inf)."""
+        numbers = [self.centre_m, self.velocity_mps, np.array([self.orientation_rad])]
+        numbers += [np.concatenate([e.centre_m, e.extent_m2.ravel(), [e.weight]]) for e in self.ellipses]
+        return all(np.isfinite(a).all() for a in numbers)
+
+    def to_message(self, points_m: np.ndarray, pose: tuple[float, float, float]) -> GroupState:
+        """The estimate as the group node publishes it (the one mapping): the input points it selected and left
+        out and, when valid, the group's state, its centre also in the robot frame at robot pose ``pose``."""
+        selected = self.selected if len(self.selected) == len(points_m) else np.zeros(len(points_m), dtype=bool)
+        out = GroupState(members_m=points_m[selected].reshape(-1, 2), others_m=points_m[~selected].reshape(-1, 2))
+        if not self.valid:
+            return out
+        out.valid, out.lost = True, bool(self.lost)
+        out.centre_m = np.asarray(self.centre_m, dtype=np.float64)
+        out.velocity_mps = np.asarray(self.velocity_mps, dtype=np.float64)
+        out.orientation_rad = float(self.orientation_rad)
+        out.centre_robot_m = to_robot_frame(out.centre_m, *pose)[0]
+        out.ellipse_centres_m = np.array([e.centre_m for e in self.ellipses], dtype=np.float64).reshape(-1, 2)
+        out.ellipse_extents_m2 = np.array([e.extent_m2 for e in self.ellipses], dtype=np.float64).reshape(-1, 2, 2)
+        out.ellipse_weights = np.clip(np.array([e.weight for e in self.ellipses], dtype=np.float64), 0, 1)
+        return out
 
 
 def _as_points(points_m: np.ndarray, covs_m2: np.ndarray | None, default_std_m: float

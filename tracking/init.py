@@ -8,9 +8,10 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
+from ..msgs.box import Box
+
 logger = logging.getLogger(__name__)
 
-Box = tuple[float, float, float, float]
 
 
 def to_grey(bgr: np.ndarray) -> np.ndarray:

@@ -13,44 +13,18 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..msgs.box import Box, box_array, box_centre, centre_size_to_box
+from ..msgs.perception import CameraMotion
+from ..msgs.tracking import Measurement, Prior, Track, mahalanobis_sq_from_cov
 from .params import TrackerParams
-
-if TYPE_CHECKING:
-    from .egomotion import CameraMotion
-    from .reid import ReidResult
 
 logger = logging.getLogger(__name__)
 
-Box = tuple[float, float, float, float]
-
 # Eq. 5 measurement matrix: only the centre is observed.
 H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
-
-
-def box_centre(box: Sequence[float]) -> tuple[float, float]:
-    return (float(box[0]) + float(box[2]) / 2.0, float(box[1]) + float(box[3]) / 2.0)
-
-
-def box_iou(a: Sequence[float], b: Sequence[float]) -> float:
-    """Intersection over union of two ``(x, y, w, h)`` boxes (continuous coordinates, no +1)."""
-    ax, ay, aw, ah = a
-    bx, by, bw, bh = b
-    iw = min(ax + aw, bx + bw) - max(ax, bx)
-    ih = min(ay + ah, by + bh) - max(ay, by)
-    if iw <= 0 or ih <= 0:
-        return 0.0
-    inter = iw * ih
-    union = aw * ah + bw * bh - inter
-    return inter / union if union > 0 else 0.0
-
-
-def centre_size_to_box(cx: float, cy: float, w: float, h: float) -> Box:
-    return (cx - w / 2.0, cy - h / 2.0, w, h)
 
 
 def transition_matrix(dt_s: float) -> np.ndarray:
@@ -65,12 +39,6 @@ def process_noise(dt_s: float, accel_std_px_s2: float) -> np.ndarray:
     q = accel_std_px_s2**2
     a, b, c = dt_s**4 / 4.0, dt_s**3 / 2.0, dt_s**2
     return q * np.array([[a, 0.0, b, 0.0], [0.0, a, 0.0, b], [b, 0.0, c, 0.0], [0.0, b, 0.0, c]])
-
-
-def mahalanobis_sq_from_cov(z: Sequence[float], centre: Sequence[float], S: np.ndarray) -> float:
-    """(Z - Ẑ)ᵀ S⁻¹ (Z - Ẑ) of Eq. 8."""
-    d = np.array([float(z[0]) - float(centre[0]), float(z[1]) - float(centre[1])])
-    return float(d @ np.linalg.solve(S, d))
 
 
 def gate_ellipse_from_cov(
@@ -95,43 +63,6 @@ def gate_ellipse_from_cov(
     elif angle > 90.0:
         angle -= 180.0
     return (float(centre[0]), float(centre[1]), a, b, angle)
-
-
-@dataclass
-class Prior:
-    """Kalman prior of one frame: what re-identification gates and scores against.
-
-    Field names mirror the bus ``Prior`` message: ``state`` X̂⁻ (x, y, vx, vy), ``covariance`` the
-    4x4 P⁻, ``innovation_cov`` the 2x2 S = H P⁻ Hᵀ + R used by the gate (Eq. 8).
-    """
-
-    t_ns: int
-    state: np.ndarray
-    size: tuple[float, float]
-    covariance: np.ndarray
-    innovation_cov: np.ndarray
-    gate_chi2: float
-
-    @property
-    def centre(self) -> tuple[float, float]:
-        return (float(self.state[0]), float(self.state[1]))
-
-    @property
-    def velocity_px_s(self) -> tuple[float, float]:
-        return (float(self.state[2]), float(self.state[3]))
-
-    @property
-    def box(self) -> Box:
-        return centre_size_to_box(*self.centre, *self.size)
-
-    def mahalanobis_sq(self, z: Sequence[float]) -> float:
-        return mahalanobis_sq_from_cov(z, self.centre, self.innovation_cov)
-
-    def in_gate(self, z: Sequence[float]) -> bool:
-        return self.mahalanobis_sq(z) <= self.gate_chi2  # Eq. 8
-
-    def gate_ellipse(self) -> tuple[float, float, float, float, float]:
-        return gate_ellipse_from_cov(self.centre, self.innovation_cov, self.gate_chi2)
 
 
 class KalmanCV:
@@ -294,16 +225,6 @@ class KalmanCV:
         return centre_size_to_box(float(self.x[0]), float(self.x[1]), *self.size)
 
 
-@dataclass
-class Posterior:
-    """Track estimate after a frame's measurement step (mirrors the bus ``Track`` message)."""
-
-    t_ns: int
-    box: Box
-    velocity_px_s: tuple[float, float]
-    measured: bool
-
-
 class Predictor:
     """The prediction process: owns the Kalman filter and the Eq. 7 noise, consumes re-ID results.
 
@@ -335,23 +256,20 @@ class Predictor:
         """Prior of frame ``t_ns``; None before initialisation.
 
         ``camera_motion`` (frame k-1 → k image motion) warps the predicted state before it is published
-        and gated, when ``camera_motion_compensation`` is on and the motion starts at the filter's stamp.
+        and gated, when ``camera_motion_compensation`` is on and the motion starts at the filter's stamp; one
+        marked not valid (no trustworthy fit) is as none.
         """
         if not self.kf.initialised:
             return None
+        if camera_motion is not None and not camera_motion.valid:
+            camera_motion = None
         from_t_ns = self.kf.t_ns
         self.kf.predict(t_ns)
         if self.params.camera_motion_compensation:
             self._compensate(camera_motion, from_t_ns, int(t_ns))
         R = self.kf.measurement_noise(v_ego_mps)  # Eq. 7 with the current ego speed
-        return Prior(
-            t_ns=int(t_ns),
-            state=self.kf.x.copy(),
-            size=self.kf.size,
-            covariance=self.kf.P.copy(),
-            innovation_cov=self.kf.innovation_cov(R),
-            gate_chi2=self.kf.gate_chi2,
-        )
+        return Prior.of_filter(int(t_ns), self.kf.x.copy(), self.kf.size, self.kf.P.copy(),
+                               self.kf.innovation_cov(R), self.kf.gate_chi2)
 
     def _compensate(self, motion: CameraMotion | None, from_t_ns: int | None, t_ns: int) -> None:
         """Seed 002 §3.3's warp with issue 22's doubt. A motion that starts where the applied chain ends (the
@@ -359,7 +277,8 @@ class Predictor:
         prior and widens it by its std²; a doubtful one (std above camera_motion_doubt_px) leaves a coasting
         prior in place, widened by the displacement it would have applied. No motion: the prior as predicted."""
         p = self.params
-        chained = motion is not None and motion.t_ns == t_ns and motion.from_t_ns in (from_t_ns, self._motion_t_ns)
+        chained = (motion is not None and motion.header.stamp_ns == t_ns
+                   and motion.from_stamp_ns in (from_t_ns, self._motion_t_ns))
         if motion is not None and not chained:
             self.motion_mismatched += 1
         if not chained:
@@ -382,31 +301,31 @@ class Predictor:
         self.kf.widen(motion.std_px**2 * np.eye(2))
         self.warped += 1
 
-    def apply(self, reid: ReidResult, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> Posterior | None:
-        """Fold frame k's re-ID result into the filter (Alg. 1 lines 11/13 and 16/17)."""
+    def apply(self, reid: Measurement, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> Track | None:
+        """Fold frame k's re-ID measurement into the filter (Alg. 1 lines 11/13 and 16/17); the posterior as a
+        track (its output ``box`` is the caller's: tracking/tracker.py ``output_box``), None before initialisation."""
+        t_ns = reid.header.stamp_ns
         self._coasting = not reid.accepted and reid.init_box is None
         if reid.init_box is not None:
-            self.kf.initialise(reid.init_box, reid.t_ns)
-            self._motion_t_ns = int(reid.t_ns)
-            logger.info("predictor initialised at %s", tuple(round(v, 1) for v in reid.init_box))
-            return self._posterior(reid.t_ns, measured=True)
+            self.kf.initialise(reid.init_box, t_ns)
+            self._motion_t_ns = int(t_ns)
+            logger.info("predictor initialised at %s", tuple(round(float(v), 1) for v in reid.init_box))
+            return self._posterior(reid, measured=True)
         if not self.kf.initialised:
             return None
         box = reid.box if reid.accepted else None
         if box is None and not self.params.suspend_updates:
             box = reid.best_box  # ablation "w/o update suspension": trust the best candidate anyway
         if box is None:
-            return self._posterior(reid.t_ns, measured=False)
+            return self._posterior(reid, measured=False)
         # Motion-blob boxes cover only the moving part of the target, so they locate it but do
         # not measure its extent: only detector boxes update the size.
         wh = (box[2], box[3]) if reid.source == "detection" else None
         self.kf.update(box_centre(box), wh, self.kf.measurement_noise(v_ego_mps))
-        return self._posterior(reid.t_ns, measured=True)
+        return self._posterior(reid, measured=True)
 
-    def _posterior(self, t_ns: int, measured: bool) -> Posterior:
-        return Posterior(
-            t_ns=int(t_ns),
-            box=self.kf.box,
-            velocity_px_s=(float(self.kf.x[2]), float(self.kf.x[3])),
-            measured=measured,
-        )
+    def _posterior(self, reid: Measurement, measured: bool) -> Track:
+        track = Track(state=reid.state, filtered_box=box_array(self.kf.box),
+                      velocity=np.array([float(self.kf.x[2]), float(self.kf.x[3])]), measured=measured)
+        track.header.stamp_ns = int(reid.header.stamp_ns)
+        return track

@@ -26,25 +26,17 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from enum import Enum
 
 import numpy as np
 
+from ..msgs.box import Box, box_array, box_centre, box_iou
+from ..msgs.tracking import Measurement, Prior, TrackState
 from .appearance import bhattacharyya, hs_histogram
 from .identity import IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
-from .kalman import Box, Prior, box_centre, box_iou
 from .params import TrackerParams
 
 logger = logging.getLogger(__name__)
-
-
-class TrackState(str, Enum):
-    UNINITIALISED = "UNINITIALISED"  # no target chosen yet
-    TRACKING = "TRACKING"
-    OCCLUDED = "OCCLUDED"  # no acceptable match: Kalman update suspended, template frozen
-    REACQUIRED = "REACQUIRED"  # first accepted frame(s) after OCCLUDED/LOST
-    LOST = "LOST"  # occluded for longer than lost_after_ms; still searching
 
 
 def geometric_score(
@@ -109,7 +101,8 @@ class Candidate:
 
 @dataclass
 class ReidResult:
-    """Outcome of Algorithm 1 for one frame (mirrors the bus ``Measurement`` message)."""
+    """Outcome of Algorithm 1 for one frame, with the scored candidates themselves; what the other nodes read of it
+    is its :class:`Measurement` (:meth:`to_message`, the one mapping)."""
 
     t_ns: int
     state: TrackState
@@ -128,6 +121,20 @@ class ReidResult:
     candidates: list[Candidate] = field(default_factory=list)
     candidate_hist: np.ndarray | None = None  # H-S histogram C* of the chosen candidate
     init_box: Box | None = None  # set on the frame the target was (re)initialised
+
+    def to_message(self) -> Measurement:
+        """The result as prediction and template update consume it, stamped with the frame (candidates as
+        x, y, w, h, M_fuse rows in float64, so a value is the same in-process and across the bus)."""
+        msg = Measurement(
+            state=self.state.value, accepted=bool(self.accepted), secure=bool(self.secure), box=box_array(self.box),
+            best_box=box_array(self.best_box), source=self.source, m_fuse=float(self.m_fuse),
+            s_color=float(self.s_color), s_geo=float(self.s_geo), omega=float(self.omega), c_t=float(self.c_t),
+            candidates=np.array([(*c.box, c.m_fuse) for c in self.candidates], dtype=np.float64).reshape(-1, 5),
+            candidate_sources=[c.source for c in self.candidates],
+            candidate_hist=None if self.candidate_hist is None else np.asarray(self.candidate_hist),
+            init_box=box_array(self.init_box))
+        msg.header.stamp_ns = int(self.t_ns)
+        return msg
 
     def candidates_array(self) -> np.ndarray:
         """(N, 5) float32 rows x, y, w, h, M_fuse (the bus ``Measurement.candidates`` layout)."""

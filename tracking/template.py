@@ -8,9 +8,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..msgs.tracking import Measurement
 from .appearance import hs_histogram, learning_rate, specular_penalty
 from .params import TrackerParams
-from .reid import ReidResult
 
 logger = logging.getLogger(__name__)
 
@@ -40,8 +40,8 @@ class TemplateUpdater:
         logger.info("template initialised from box %s", tuple(round(float(v), 1) for v in box[:4]))
         return self.hist.copy()
 
-    def step(self, frame_bgr: np.ndarray, reid_result: ReidResult) -> tuple[np.ndarray | None, float, float]:
-        """Apply frame k's re-ID result; returns (M_k, η_k, P_specular)."""
+    def step(self, frame_bgr: np.ndarray, reid_result: Measurement) -> tuple[np.ndarray | None, float, float]:
+        """Apply frame k's re-ID measurement; returns (M_k, η_k, P_specular)."""
         p = self.params
         if reid_result.init_box is not None:
             p_specular = specular_penalty(frame_bgr, reid_result.init_box, p.tau_v, p.tau_s)

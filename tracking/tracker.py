@@ -13,16 +13,17 @@ the graph's, in graph.yaml and the nodes' synchronisers, and evaluation runs tho
 
 from __future__ import annotations
 
-from .kalman import Box, Prior
-from .reid import ReidResult, TrackState
+import numpy as np
+
+from ..msgs.tracking import Measurement, Prior, TrackState
 
 
-def output_box(reid: ReidResult, prior: Prior | None) -> Box | None:
+def output_box(reid: Measurement, prior: Prior | None) -> np.ndarray | None:
     """The tracker's output for a frame: the accepted box; while OCCLUDED the predicted box (§2.3:
     keep following the hidden trajectory); None when LOST or before initialisation. The prediction
-    node publishes exactly this in its Track message."""
+    node publishes exactly this as its Track message's ``box``."""
     if reid.accepted:
         return reid.box
-    if reid.state is TrackState.OCCLUDED and prior is not None:
+    if reid.state == TrackState.OCCLUDED and prior is not None and prior.initialised:
         return prior.box
     return None

@@ -34,7 +34,6 @@ YOLOX_STRIDES = (8, 16, 32)
 LETTERBOX_PAD = 114
 DEFAULT_YOLOV8_FILE = "yolov8n.onnx"
 
-Box = tuple[float, float, float, float]
 
 
 class DetectorUnavailable(ModelError):

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-Box = tuple[float, float, float, float]
+from ..msgs.box import Box
 
 CAMERA_HEIGHT_M = 1.1
 FIGURE_WIDTH_RATIO = 0.36  # figure width / height (arms included)

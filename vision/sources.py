@@ -32,11 +32,11 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..msgs.box import Box
 from .scenes import DEFAULT_SCENE, SCENES, make_scene
 
 log = logging.getLogger(__name__)
 
-Box = tuple[float, float, float, float]
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp")
 VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg")
 DEFAULT_FPS = 30.0

@@ -58,19 +58,11 @@ from ...bus.codec import pack
 from ...bus.graph import Graph, load_graph
 from ...bus.health import HealthWatcher
 from ...bus.pubsub import Publisher, ShmPool, Subscriber, declare_subscriber, frame_bytes
-from ...bus.schemas import (
-    Detections,
-    Frame,
-    GroundTruth,
-    Measurement,
-    Message,
-    MotorCommand,
-    Tick,
-    Track,
-    decode,
-    encode,
-)
+from ...bus.schemas import Frame, Message, Tick, decode, encode
 from ...bus.session import open_session
+from ...msgs.perception import Detections, GroundTruth
+from ...msgs.robot import MotorCommand
+from ...msgs.tracking import Measurement, Track
 
 log = logging.getLogger("followbus.chaos")
 

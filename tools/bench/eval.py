@@ -512,8 +512,8 @@ def _run_graph_once(source: str, port: int, init_box: list[float], n: int, max_i
     frame 0 only once every consuming node is listening (nodes/capture.py), so the lockstep always starts."""
     from ...bus.graph import load_graph
     from ...bus.pubsub import Subscriber
-    from ...bus.schemas import Track
     from ...bus.session import open_session
+    from ...msgs.tracking import Track
     from ..launch import Launcher
 
     tracks: dict[int, Any] = {}

@@ -96,6 +96,7 @@ class Probe:
     def _header(self, sample: Any):
         from ...bus.pubsub import frame_bytes
         from ...bus.schemas import decode
+        from ...msgs import catalogue  # noqa: F401  (followbus's message types: decodable)
 
         try:
             return decode(frame_bytes(sample)).header

@@ -118,7 +118,10 @@ def run_bench_pipeline(args) -> int:
                         pub[stage].setdefault(h.frame_seq, (h.stamp_ns, h.pub_ns))
             return cb
 
-        from ...bus.schemas import Detections, Frame, Measurement, MotorCommand, Prior, Track
+        from ...bus.schemas import Frame
+        from ...msgs.perception import Detections
+        from ...msgs.robot import MotorCommand
+        from ...msgs.tracking import Measurement, Prior, Track
 
         schemas = {("capture", "frame"): Frame, ("detection", "detections"): Detections,
                    ("prediction", "prior"): Prior, ("reid", "measurement"): Measurement,

@@ -24,6 +24,7 @@ import numpy as np
 
 from ...bus.recording import iter_bus_messages
 from ...bus.schemas import Frame, decode
+from ...msgs import catalogue  # noqa: F401  (followbus's message types: decodable)
 from ..recording import foxglove_schemas as fox
 from ..recording.mcap_io import ROS2_PROFILE, RecordingWriter
 from ..recording.views import ROS2_SCHEMA_ENCODING, View, foxglove_schema, message_views

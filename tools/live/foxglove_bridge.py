@@ -26,20 +26,11 @@ import zenoh
 
 from ...bus.codec import DecodeError
 from ...bus.pubsub import declare_subscriber, frame_bytes
-from ...bus.schemas import (
-    Frame,
-    GroundPoints,
-    GroupState,
-    Measurement,
-    Message,
-    MotorCommand,
-    NodeStatus,
-    Prior,
-    Track,
-    decode,
-    to_plain,
-)
+from ...bus.schemas import Frame, Message, NodeStatus, decode, to_plain
 from ...bus.session import ZenohSettings, open_session
+from ...msgs.group import GroundPoints, GroupState
+from ...msgs.robot import MotorCommand
+from ...msgs.tracking import Measurement, Prior, Track
 from .introspect import wait_for
 from .monitor import GraphInfo, ellipse_outline, group_view
 

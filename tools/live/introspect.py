@@ -18,6 +18,7 @@ from ...bus.health import HealthWatcher, live_namespaces, namespaces_hint
 from ...bus.pubsub import declare_subscriber, frame_bytes, payload_bytes
 from ...bus.schemas import decode, to_plain
 from ...bus.session import ZenohSettings, open_session
+from ...msgs import catalogue  # noqa: F401  (followbus's message types: decodable)
 from ..connect import open_client_session
 from .silence import warn_if_silent
 

@@ -33,21 +33,12 @@ from rich.text import Text
 from ...bus.codec import DecodeError
 from ...bus.health import HealthWatcher, live_namespaces, namespaces_hint
 from ...bus.pubsub import declare_subscriber, frame_bytes
-from ...bus.schemas import (
-    Frame,
-    GroundPoints,
-    GroundTruth,
-    GroupState,
-    Measurement,
-    Message,
-    MotorCommand,
-    NodeStatus,
-    Prior,
-    Template,
-    Track,
-    decode,
-)
+from ...bus.schemas import Frame, Message, NodeStatus, decode
 from ...bus.session import ZenohSettings, open_session
+from ...msgs.group import GroundPoints, GroupState
+from ...msgs.perception import GroundTruth
+from ...msgs.robot import MotorCommand
+from ...msgs.tracking import Measurement, Prior, Template, Track
 from ...tracking.groundplane import CameraGeometry, floor_to_image, rotation, to_robot_frame
 
 log = logging.getLogger("followbus.monitor")

@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from ...bus.schemas import Detections, Prior, Track
+from ...msgs.perception import Detections
+from ...msgs.tracking import Prior, Track
 
 SCHEMA_ENCODING = "jsonschema"
 MESSAGE_ENCODING = "json"

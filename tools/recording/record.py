@@ -64,6 +64,7 @@ from ...bus.codec import DecodeError, Header, peek
 from ...bus.node import RECORDER_NAME
 from ...bus.pubsub import RateLimitedLog, declare_subscriber, frame_bytes
 from ...bus.schemas import decode
+from ...msgs import catalogue  # noqa: F401  (followbus's message types: decodable)
 from .. import __version__
 from .mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, ROS2_PROFILE, FinaliseResult, RecordingWriter
 from .remote import is_remote, raw_frame_keys, subscription_patterns

@@ -52,6 +52,7 @@ from ...bus.recording import (
     read_summary,
 )
 from ...bus.schemas import Message, ReplayHint, decode
+from ...msgs import catalogue  # noqa: F401  (followbus's message types: decodable)
 from .replay_feed import Feed, _header, recording_first_frame
 
 log = logging.getLogger("followbus.replay")

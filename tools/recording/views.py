@@ -27,7 +27,10 @@ import cv2
 import numpy as np
 
 from ...bus import ros2
-from ...bus.schemas import SCHEMAS, Detections, Frame, Message, MotorCommand, Odometry
+from ...bus.schemas import SCHEMAS, Frame, Message
+from ...msgs import ros2 as msgs_ros2
+from ...msgs.perception import Detections
+from ...msgs.robot import MotorCommand, Odometry
 from . import foxglove_schemas as fox
 
 ROS2_SCHEMA_ENCODING = "ros2msg"
@@ -152,11 +155,11 @@ def _jpeg(frame: Frame, quality: int) -> bytes | None:
 def standard_view(key: str, msg: Message) -> View | None:
     """The ROS 2 standard message of a bus message, where one exists."""
     if isinstance(msg, MotorCommand):
-        return _cdr(f"{key}/twist", ros2.command_twist(msg), ros2.TWIST)
+        return _cdr(f"{key}/twist", msgs_ros2.command_twist(msg), ros2.TWIST)
     if isinstance(msg, Odometry):
-        return _cdr(f"{key}/odometry", ros2.odometry(msg), ros2.ODOMETRY)
+        return _cdr(f"{key}/odometry", msgs_ros2.odometry(msg), msgs_ros2.ODOMETRY)
     if isinstance(msg, Detections):
-        return _cdr(f"{key}/detections2d", ros2.detections(msg, key), ros2.DETECTION_2D_ARRAY)
+        return _cdr(f"{key}/detections2d", msgs_ros2.detections(msg, key), ros2.DETECTION_2D_ARRAY)
     return None
 
 
