@@ -81,7 +81,28 @@ def params_from_dict(cls: type, data: dict[str, Any]) -> Any:
     kwargs = {}
     for key, value in data.items():
         kwargs[key] = _coerce(value, hints[key], key)
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ValueError as exc:
+        # A params class's own range check that names its parameter (an attribute ``key``) points at its line.
+        key = getattr(exc, "key", None)
+        if isinstance(exc, ParamError) or not isinstance(key, str):
+            raise
+        raise ParamError(key, str(exc)) from exc
+
+
+def split_params(raw: dict[str, Any], *classes: type) -> tuple[Any, ...]:
+    """One params dataclass per class from one flat ``params`` mapping: each key goes to the first class with a
+    field of that name; a key no class has is a ParamError naming it (so validation points at its line)."""
+    parts: list[dict[str, Any]] = [{} for _ in classes]
+    owners = [{f.name for f in dataclasses.fields(cls)} for cls in classes]
+    for key, value in raw.items():
+        owner = next((i for i, names in enumerate(owners) if key in names), None)
+        if owner is None:
+            known = ", ".join(sorted(set().union(*owners))) or "none"
+            raise ParamError(key, f"unknown parameter {key!r} (known: {known})")
+        parts[owner][key] = value
+    return tuple(params_from_dict(cls, part) for cls, part in zip(classes, parts, strict=True))
 
 
 def _non_finite(value: Any) -> bool:
@@ -219,7 +240,10 @@ class Node:
     CONGESTION: ClassVar[dict[str, str]] = {}  # output -> "block" | "drop" (default block)
     EXPRESS: ClassVar[frozenset[str]] = frozenset()  # outputs sent without batching (control)
     PRIORITY: ClassVar[dict[str, str]] = {}  # output -> "real_time" | "interactive_high" | "data" (default)
-    Params: ClassVar[type] = NoParams
+    # The dataclass of the node's graph.yaml ``params``; or a tuple of them (the node's own settings and its
+    # algorithm's), which split the mapping by field name: the node then gets a tuple of instances, in that order.
+    # Either way a key no class declares is an error at the key's line: every parameter given is one it reads.
+    Params: ClassVar[type | tuple[type, ...]] = NoParams
     TIMER_PERIOD_MS: ClassVar[float | None] = None
     # What a command may fill in without knowing the graph's node names (followbus demo): the param naming
     # where a source node's data comes from (``--scene`` sets it), and the param taking the [x, y, w, h] box
@@ -242,6 +266,10 @@ class Node:
 
     @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> Any:
+        """The node's params from its graph.yaml mapping (ParamError naming the key). A node with rules across
+        fields overrides this, calls it first and checks them."""
+        if isinstance(cls.Params, tuple):
+            return split_params(raw, *cls.Params)
         return params_from_dict(cls.Params, raw)
 
     @classmethod
@@ -252,8 +280,8 @@ class Node:
     @classmethod
     def params_classes(cls) -> tuple[type, ...]:
         """The dataclasses whose fields are this node's graph.yaml ``params`` (``followbus schema`` documents
-        them). A node whose ``parse_params`` splits the params over several classes overrides this too."""
-        return (cls.Params,)
+        them, ``followbus param`` reads and sets them)."""
+        return cls.Params if isinstance(cls.Params, tuple) else (cls.Params,)
 
     # hooks
     def setup(self) -> None: ...
@@ -360,10 +388,28 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
     try:
         params = cls.parse_params(spec.params)
     except ParamError as exc:
-        raise graph.error(spec.param_lines.get(exc.key, spec.line), f"node {spec.name!r}: {exc}") from exc
+        readers = _read_elsewhere(graph, spec, cls, exc.key)
+        message = f"{spec.name} does not read {exc.key!r}; {', '.join(readers)} does" if readers else str(exc)
+        raise graph.error(spec.param_lines.get(exc.key, spec.line), f"node {spec.name!r}: {message}") from exc
     except (TypeError, ValueError) as exc:
         raise graph.error(spec.line, f"node {spec.name!r}: params: {exc}") from exc
     return cls, params
+
+
+def _read_elsewhere(graph: Graph, spec: NodeSpec, cls: type[Node], key: str) -> list[str]:
+    """For a parameter this node does not read: the other nodes of the graph that do (a setting put on the wrong
+    node, e.g. the gate's χ² on re-ID rather than on prediction)."""
+    if any(key == f.name for c in cls.params_classes() for f in dataclasses.fields(c)):
+        return []  # the node reads it: the value, not the name, was wrong
+    readers = []
+    for name, other in graph.nodes.items():
+        try:
+            classes = load_node_class(other.run).params_classes() if name != spec.name else ()
+        except ImportError:
+            continue
+        if any(key == f.name for c in classes for f in dataclasses.fields(c)):
+            readers.append(name)
+    return readers
 
 
 def _set_priority(nice: int | None, realtime: int | None, log: logging.Logger) -> None:

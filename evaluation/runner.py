@@ -15,7 +15,6 @@ the robot runs, in the graph's own data order.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import queue
@@ -28,8 +27,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ..tracking.egomotion import EgoMotionParams
-from ..tracking.params import TrackerParams
+from ..tracking.params import KalmanParams, ReidParams
 from ..vision.detector_presets import DETECTOR_PRESETS, apply_detector_preset, preset_of
 from . import detcache
 from .baselines import KalmanFollower, PeerFollower, peer_kind
@@ -51,7 +49,7 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o update suspension": {"suspend_updates": False},
     "followbus w/o adaptive η": {"adaptive_eta": False},
     # seed 002 §3.3, not a Table 6 row: the prior not warped by the camera's image motion (graph.yaml's
-    # egomotion node; TrackerParams.camera_motion_compensation)
+    # egomotion node; KalmanParams.camera_motion_compensation)
     "followbus w/o camera-motion compensation": {"camera_motion_compensation": False},
     # seed 002 §3.2: the gate at its base χ² whatever the target's speed and last detection score
     "followbus w/o adaptive gate": {"adaptive_gate": False},
@@ -59,7 +57,7 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o learned appearance": {"learned_appearance": False},
     # seed 002 §3.1 (ByteTrack's second stage): the boxes below the detector's score threshold never considered
     "followbus w/o low-score stage": {"low_score_stage": False},
-    # issue 22, one part at a time (EgoMotionParams switches go to the egomotion node, the rest to the tracker):
+    # issue 22, one part at a time (each switch goes to the node that reads it: egomotion, prediction or reid):
     # the per-cell static-content map; the rival hypothesis and the temporal choice between the two; the
     # reference kept across a failed fit; the prior widened by (and held against) the fit's uncertainty
     "followbus w/o static-content map": {"static_evidence": False},
@@ -109,33 +107,33 @@ class _NoEgo:
         self.inner.update_reference(box)
 
 
-def method_factories(methods: Sequence[str], ablations: bool = False, base: TrackerParams | None = None,
-                     trace: bool = False) -> dict[str, Callable[[float], Follower]]:
+def method_factories(methods: Sequence[str], ablations: bool = False, trace: bool = False
+                     ) -> dict[str, Callable[[float], Follower]]:
     """Method name → factory(fps) of a fresh follower. Unknown names raise ValueError. ``trace``: followbus and
     its ablations record every frame's prior, candidates, camera motion and reason (info["trace"])."""
-    base = base or TrackerParams()
     out: dict[str, Callable[[float], Follower]] = {}
     for m in methods:
         if m == "followbus":
-            out[m] = lambda fps, p=base: GraphFollower(p, trace=trace)
+            out[m] = lambda fps: GraphFollower(trace=trace)
         elif m == "kalman":
-            out[m] = lambda fps, p=base: _NoEgo(KalmanFollower(accel_std_px_s2=p.accel_std_px_s2, r_px2=p.r0_px2,
-                                                               init_velocity_std_px_s=p.init_velocity_std_px_s,
-                                                               size_smoothing=p.size_smoothing,
-                                                               lost_after_ms=p.lost_after_ms))
+            out[m] = lambda fps: _NoEgo(_kalman_baseline())
         elif m.startswith("peer:"):
             kind = peer_kind(m.split(":", 1)[1])
             out[m] = lambda fps, k=kind: _NoEgo(PeerFollower(k, fps))
         else:
             raise ValueError(f"unknown method {m!r} (followbus, kalman, peer:bytetrack|ocsort|botsort)")
     if ablations:
-        ego_keys = {f.name for f in dataclasses.fields(EgoMotionParams)}
         for name, switches in ABLATIONS.items():
-            ego = {k: v for k, v in switches.items() if k in ego_keys}
-            params = TrackerParams.from_dict({**base.to_dict(), **{k: v for k, v in switches.items()
-                                                                    if k not in ego_keys}})
-            out[name] = lambda fps, p=params, e=ego: GraphFollower(p, trace=trace, egomotion=e)
+            out[name] = lambda fps, s=switches: GraphFollower(s, trace=trace)
     return out
+
+
+def _kalman_baseline() -> KalmanFollower:
+    """The prediction node's Kalman filter alone, with the prediction and re-ID nodes' default settings."""
+    kalman, reid = KalmanParams(), ReidParams()
+    return KalmanFollower(accel_std_px_s2=kalman.accel_std_px_s2, r_px2=kalman.r0_px2,
+                          init_velocity_std_px_s=kalman.init_velocity_std_px_s, size_smoothing=kalman.size_smoothing,
+                          lost_after_ms=reid.lost_after_ms)
 
 
 # --------------------------------------------------------------------------- sequences

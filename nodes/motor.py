@@ -27,7 +27,6 @@ from ..bus.node import Node, ParamError
 from ..bus.schemas import GroupState, Message, MotorCommand, Odometry, Track
 from ..control.drivers import SerialDriver, SimDriver
 from ..control.follow import FollowCommand, FollowController, FollowParams
-from .common import split_params
 
 
 @dataclass
@@ -58,13 +57,11 @@ class Motor(Node):
     # reaches the bus, a monitor that joins late sees it, and the bus carries 10 stops/s, not 100.
     STOP_REPEAT_MS = 100.0
 
-    @classmethod
-    def params_classes(cls) -> tuple[type, ...]:
-        return (MotorParams, FollowParams)
+    Params = (MotorParams, FollowParams)
 
     @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> tuple[MotorParams, FollowParams]:
-        motor, follow = split_params(raw, *cls.params_classes())
+        motor, follow = super().parse_params(raw)
         if motor.driver not in ("sim", "serial"):
             raise ParamError("driver", f"driver must be 'sim' or 'serial', not {motor.driver!r}")
         if motor.driver == "serial" and not motor.port:

@@ -234,10 +234,10 @@ def test_template_freezes_under_occlusion():
 ])
 def test_template_restores_only_its_own_launch_by_default(tmp_path, monkeypatch, saved_by, max_age_s, restored):
     from followbus.bus.node import LAUNCH_ID_ENV
-    from followbus.tracking.params import TrackerParams
+    from followbus.tracking.params import TemplateParams
     from followbus.tracking.template import TemplateUpdater
 
-    saved = TemplateUpdater(TrackerParams())
+    saved = TemplateUpdater(TemplateParams())
     saved.initialise(person_frame((150, 120, 24, 80)), (150.0, 120.0, 24.0, 80.0))
     path = tmp_path / "template.npz"
     saved.save(path, saved_by=saved_by)

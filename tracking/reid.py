@@ -34,7 +34,7 @@ from .appearance import bhattacharyya, hs_histogram
 from .identity import IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
 from .kalman import Box, Prior, box_centre, box_iou
-from .params import TrackerParams
+from .params import ReidParams
 
 logger = logging.getLogger(__name__)
 
@@ -165,8 +165,8 @@ def _detection_score(detections: np.ndarray | None, box: Box) -> float | None:
 class ReIdentifier:
     """Stateful Algorithm 1: keeps the previous grey frame (for motion blobs) and the track state."""
 
-    def __init__(self, params: TrackerParams | None = None) -> None:
-        self.params = params or TrackerParams()
+    def __init__(self, params: ReidParams | None = None) -> None:
+        self.params = params or ReidParams()
         p = self.params
         self._embedder: PersonEmbedder | None = None
         self._embedder_loaded = False  # loaded at the first decision that needs it (absent: logged once)
@@ -262,7 +262,7 @@ class ReIdentifier:
         if (not candidates and prev_grey is not None
                 and changed_fraction(prev_grey, grey, p.diff_threshold) <= p.motion_max_changed_fraction):
             # Alg. 1 line 2: nothing detected in R, look for moving regions inside it instead (only while
-            # the background holds still: see TrackerParams.motion_max_changed_fraction).
+            # the background holds still: see ReidParams.motion_max_changed_fraction).
             roi = self._search_window(prior, grey.shape) if p.use_gate else None
             blobs = motion_blobs(prev_grey, grey, p.diff_threshold, p.morph_kernel_px, p.min_blob_area_px, roi)
             candidates = self._gate_candidates([b for b, _ in blobs], prior, "motion")
@@ -353,7 +353,7 @@ class ReIdentifier:
         §III-D): among the contenders within ``identity_margin`` of it, the one it scores highest, if that
         one clears δ_switch; on a re-lock after an occlusion, a lone contender scoring below δ_switch is taken
         for someone else and rejected (the target stays occluded), and a contender far from the prior (issue 22)
-        must score δ_id on ``n_id`` consecutive frames (seed 001's Re-ID state). Returns (chosen, accepted)."""
+        must score δ_id on ``n_id_frames`` consecutive frames (seed 001's Re-ID state). Returns (chosen, accepted)."""
         p = self.params
         relock = self.state in (TrackState.OCCLUDED, TrackState.LOST)
         if not relock:
@@ -405,7 +405,7 @@ class ReIdentifier:
         return math.hypot(cx - px, cy - py) > self.params.relock_far_height_fraction * max(prior.size[1], 1.0)
 
     def _confirmed(self, box: Box, score: float) -> bool:
-        """Seed 001's N_id: a far re-lock needs δ_id on n_id consecutive frames, on the same person (overlapping
+        """Seed 001's N_id: a far re-lock needs δ_id on n_id_frames consecutive frames, on the same person (overlapping
         the box confirmed on the frame before)."""
         p = self.params
         if score < p.delta_id:
@@ -415,7 +415,7 @@ class ReIdentifier:
         if self._confirming is not None and box_iou(self._confirming[0], box) > 0.3:
             count = self._confirming[1] + 1
         self._confirming = (box, count)
-        return count >= p.n_id
+        return count >= p.n_id_frames
 
     def _learn_identity(self, frame_bgr: np.ndarray, target: Box, boxes: list[Box]) -> None:
         """Every ``identity_sample_every_frames``-th secure frame: the target's descriptor as a positive and
