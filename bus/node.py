@@ -389,7 +389,8 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
         params = cls.parse_params(spec.params)
     except ParamError as exc:
         readers = _read_elsewhere(graph, spec, cls, exc.key)
-        message = f"{spec.name} does not read {exc.key!r}; {', '.join(readers)} does" if readers else str(exc)
+        verb = "does" if len(readers) == 1 else "do"
+        message = f"{spec.name} does not read {exc.key!r}; {' and '.join(readers)} {verb}" if readers else str(exc)
         raise graph.error(spec.param_lines.get(exc.key, spec.line), f"node {spec.name!r}: {message}") from exc
     except (TypeError, ValueError) as exc:
         raise graph.error(spec.line, f"node {spec.name!r}: params: {exc}") from exc

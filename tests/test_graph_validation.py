@@ -150,6 +150,63 @@ def test_check_refuses_a_set_override_that_is_not_finite(capsys):
     assert err.startswith("followbus: --set prediction.gate_chi2=.nan:") and "must be finite" in err
 
 
+# --------------------------------------------------------------------------- parameters a node does not read (issue 24)
+
+
+def _check_error(capsys, path) -> str:
+    from followbus.tools.cli import main
+
+    assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+def _line_of(text: str, needle: str, after: str = "") -> int:
+    """The 1-based line of the first ``needle`` after the first ``after``."""
+    start = text.index(after)
+    return text[:text.index(needle, start)].count("\n") + 1
+
+
+def test_a_parameter_the_node_does_not_read_fails_check_at_its_line(tmp_path, capsys):
+    """Re-ID gates with the prior's χ² (prediction's): a gate_chi2 on reid would be accepted and ignored."""
+    text = GRAPH_YAML.replace("      reid_threshold: 0.75\n", "      reid_threshold: 0.75\n      gate_chi2: 12.0\n", 1)
+    path = tmp_path / "graph.yaml"
+    path.write_text(text)
+    err = _check_error(capsys, path)
+    line = _line_of(text, "gate_chi2: 12.0")
+    assert f"{path}:{line}: node 'reid': reid does not read 'gate_chi2'; prediction does" in err, err
+    # A name no node reads at all: the node's own parameters are listed.
+    path.write_text(GRAPH_YAML.replace("      tau_s: 45\n", "      tau_sat: 45\n", 1))
+    err = _check_error(capsys, path)
+    assert f"{path}:{_line_of(GRAPH_YAML, 'tau_s: 45')}: node 'template': unknown parameter 'tau_sat' (known: " in err
+
+
+def test_an_unread_parameter_is_reported_in_the_file_that_sets_it(tmp_path, capsys):
+    """Through ``extends``: the line of the file that holds the parameter, the override's or the base's."""
+    over = tmp_path / "over.yaml"
+    over.write_text(f"extends: {REPO / 'graph.yaml'}\nnodes:\n  template:\n    params:\n      gate_chi2: 9.0\n")
+    assert f"{over}:5: node 'template': template does not read 'gate_chi2'; prediction does" in \
+        _check_error(capsys, over)
+    base_text = GRAPH_YAML.replace("      eta_base: 0.02\n", "      eta_base: 0.02\n      dt_ms: 33.0\n", 1)
+    base = tmp_path / "base.yaml"
+    base.write_text(base_text)
+    over.write_text("extends: base.yaml\nnodes:\n  template:\n    params:\n      tau_v: 200\n")
+    err = _check_error(capsys, over)
+    assert f"{base}:{_line_of(base_text, 'dt_ms: 33.0', 'eta_base')}: node 'template': template does not read " \
+           "'dt_ms'; prediction and reid do" in err, err
+
+
+def test_a_parameter_out_of_range_points_at_its_line(tmp_path, capsys):
+    """A tracking class's own range check names its parameter, so the error is at that line, not the node's."""
+    text = GRAPH_YAML.replace("      reid_threshold: 0.75\n", "      reid_threshold: 1.75\n", 1)
+    path = tmp_path / "graph.yaml"
+    path.write_text(text)
+    err = _check_error(capsys, path)
+    assert f"{path}:{_line_of(text, 'reid_threshold: 1.75')}: node 'reid': ReidParams.reid_threshold must be in " \
+           "[0, 1], got 1.75" in err, err
+
+
 @pytest.mark.parametrize("target", ["fifo", "/dev/zero", "directory"])
 @pytest.mark.parametrize("command", ["check", "launch"])
 def test_extends_only_a_regular_file(tmp_path, target, command):
