@@ -283,6 +283,11 @@ class Node:
         them, ``followbus param`` reads and sets them)."""
         return cls.Params if isinstance(cls.Params, tuple) else (cls.Params,)
 
+    @classmethod
+    def param_names(cls) -> frozenset[str]:
+        """Every parameter the node reads (its params classes' fields)."""
+        return frozenset(f.name for c in cls.params_classes() for f in dataclasses.fields(c))
+
     # hooks
     def setup(self) -> None: ...
     def reset(self) -> None:
@@ -400,16 +405,15 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
 def _read_elsewhere(graph: Graph, spec: NodeSpec, cls: type[Node], key: str) -> list[str]:
     """For a parameter this node does not read: the other nodes of the graph that do (a setting put on the wrong
     node, e.g. the gate's χ² on re-ID rather than on prediction)."""
-    if any(key == f.name for c in cls.params_classes() for f in dataclasses.fields(c)):
+    if key in cls.param_names():
         return []  # the node reads it: the value, not the name, was wrong
     readers = []
     for name, other in graph.nodes.items():
         try:
-            classes = load_node_class(other.run).params_classes() if name != spec.name else ()
+            if name != spec.name and key in load_node_class(other.run).param_names():
+                readers.append(name)
         except ImportError:
-            continue
-        if any(key == f.name for c in classes for f in dataclasses.fields(c)):
-            readers.append(name)
+            continue  # reported at that node
     return readers
 
 

@@ -10,7 +10,6 @@ stamped at the frame's capture time, as the motor node would publish it.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,7 +56,7 @@ def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH) -
     unread = set(settings)
     for name in (n for n in TRACKING_NODES if n in graph.nodes):
         spec = graph.nodes[name]
-        reads = {f.name for c in load_node_class(spec.run).params_classes() for f in dataclasses.fields(c)}
+        reads = load_node_class(spec.run).param_names()
         spec.params.update({key: value for key, value in settings.items() if key in reads})
         unread -= reads
     if unread:
