@@ -105,6 +105,14 @@ def split_params(raw: dict[str, Any], *classes: type) -> tuple[Any, ...]:
     return tuple(params_from_dict(cls, part) for cls, part in zip(classes, parts, strict=True))
 
 
+def _renamed(raw: dict[str, Any], renamed: dict[str, str]) -> dict[str, Any]:
+    """``raw`` with the old names of renamed parameters replaced by the new ones (the new name wins if both)."""
+    old = [key for key in raw if key in renamed]
+    for key in old:
+        logging.getLogger(__name__).warning("parameter %r is now called %r", key, renamed[key])
+    return {renamed.get(key, key): value for key, value in raw.items() if key not in old or renamed[key] not in raw}
+
+
 def _non_finite(value: Any) -> bool:
     """Whether a parameter value holds NaN or ±inf anywhere (in a list or mapping too)."""
     if isinstance(value, float):
@@ -253,6 +261,9 @@ class Node:
     # The param naming a file the node keeps its state in across restarts: a replay clears it, so it neither
     # starts from nor overwrites the live graph's state.
     STATE_FILE_PARAM: ClassVar[str | None] = None
+    # Parameters renamed (old name -> new name): a graph, or a recording's graph, written before the rename still
+    # loads, with a warning naming the new name.
+    RENAMED_PARAMS: ClassVar[dict[str, str]] = {}
     # Params `followbus param set` may change while the node runs (bus/live_params.py): only those the node's code
     # reads afresh on every message from its params objects.
     LIVE_PARAMS: ClassVar[frozenset[str]] = frozenset()
@@ -268,6 +279,7 @@ class Node:
     def parse_params(cls, raw: dict[str, Any]) -> Any:
         """The node's params from its graph.yaml mapping (ParamError naming the key). A node with rules across
         fields overrides this, calls it first and checks them."""
+        raw = _renamed(raw, cls.RENAMED_PARAMS)
         if isinstance(cls.Params, tuple):
             return split_params(raw, *cls.Params)
         return params_from_dict(cls.Params, raw)
@@ -396,7 +408,9 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
         readers = _read_elsewhere(graph, spec, cls, exc.key)
         verb = "does" if len(readers) == 1 else "do"
         message = f"{spec.name} does not read {exc.key!r}; {' and '.join(readers)} {verb}" if readers else str(exc)
-        raise graph.error(spec.param_lines.get(exc.key, spec.line), f"node {spec.name!r}: {message}") from exc
+        old = {new: old for old, new in cls.RENAMED_PARAMS.items()}.get(exc.key, exc.key)
+        line = spec.param_lines.get(exc.key) or spec.param_lines.get(old) or spec.line
+        raise graph.error(line, f"node {spec.name!r}: {message}") from exc
     except (TypeError, ValueError) as exc:
         raise graph.error(spec.line, f"node {spec.name!r}: params: {exc}") from exc
     return cls, params

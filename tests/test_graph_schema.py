@@ -189,7 +189,7 @@ WRONG = {
     "bad zenoh mode": _set("zenoh.mode", "mesh"),
     "unknown zenoh key": _set("zenoh.listen_on", []),
     "unknown param": _set("nodes.detection.params.treshold", 0.5),
-    "param of the wrong type": _set("nodes.detection.params.input_size", "big"),
+    "param of the wrong type": _set("nodes.detection.params.input_size_px", "big"),
     "boolean param as a string": _set("nodes.prediction.params.use_odometry", "no"),
 }
 

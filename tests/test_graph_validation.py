@@ -108,8 +108,8 @@ CANNOT_RUN = [
     ("same-frame cycle", [("template: {from: template/template, queue: 32, offset: -1, optional: true}",
                            "template: {from: template/template, queue: 32, optional: true}")],
      "same-frame cycle reid -> template -> reid"),
-    ("zero input size", [("      input_size: 416\n", "      input_size: 0\n")],
-     "input_size must be a positive multiple of 32"),
+    ("zero input size", [("      input_size_px: 416\n", "      input_size_px: 0\n")],
+     "input_size_px must be a positive multiple of 32"),
     ("capture of width 0", [('      pace: realtime ', '      width_px: 0\n      pace: realtime ')],
      "width_px must be >= 16"),
     ("unknown zenoh config key", [("zenoh:\n", "zenoh:\n  config: {transport/auth/usrpwdd: {user: a}}\n")],
@@ -205,6 +205,23 @@ def test_a_parameter_out_of_range_points_at_its_line(tmp_path, capsys):
     err = _check_error(capsys, path)
     assert f"{path}:{_line_of(text, 'reid_threshold: 1.75')}: node 'reid': ReidParams.reid_threshold must be in " \
            "[0, 1], got 1.75" in err, err
+
+
+def test_a_renamed_parameter_still_loads_under_its_old_name(tmp_path, capsys, caplog):
+    """detection's input_size became input_size_px (units in the names): a graph, or a recording's graph, written
+    before still loads, with a warning; a bad value is still reported at its line."""
+    from followbus.bus.graph import load_graph
+    from followbus.bus.node import validate_node
+
+    path = tmp_path / "graph.yaml"
+    path.write_text(GRAPH_YAML.replace("      input_size_px: 416\n", "      input_size: 640\n", 1))
+    graph = load_graph(path)
+    assert validate_node(graph, graph.nodes["detection"])[1].input_size_px == 640
+    assert "'input_size' is now called 'input_size_px'" in caplog.text
+    text = GRAPH_YAML.replace("      input_size_px: 416\n", "      input_size: 100\n", 1)
+    path.write_text(text)
+    err = _check_error(capsys, path)
+    assert f"{path}:{_line_of(text, 'input_size: 100')}: node 'detection': input_size_px must be a positive " in err
 
 
 @pytest.mark.parametrize("target", ["fifo", "/dev/zero", "directory"])

@@ -473,7 +473,7 @@ def test_detection_publishes_low_score_boxes_apart_from_its_detections():
     bgr = cv2.imread(str(img))
     out = {}
     for low in (0.1, 0.3):
-        graph = tracking_graph("detection.backend=yolox", "detection.input_size=640",
+        graph = tracking_graph("detection.backend=yolox", "detection.input_size_px=640",
                                f"detection.low_score_threshold={low}")
         with InProcessGraph(graph, nodes=["detection"], record=["detection/detections"]) as g:
             g.inject("capture/frame", frame_msg(0, g.now_ns, bgr))
