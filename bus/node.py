@@ -381,6 +381,19 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
             cls = load_node_class(spec.run)
         except ImportError as exc:
             raise graph.error(spec.line, f"node {spec.name!r}: run: {exc}") from exc
+    _check_ports(graph, spec, cls)
+    try:
+        params = cls.parse_params(spec.params)
+    except ParamError as exc:
+        raise _param_error(graph, spec, cls, exc) from exc
+    except (TypeError, ValueError) as exc:
+        raise graph.error(spec.line, f"node {spec.name!r}: params: {exc}") from exc
+    return cls, params
+
+
+def _check_ports(graph: Graph, spec: NodeSpec, cls: type[Node]) -> None:
+    """The node's inputs and outputs against its class: names, required inputs, and each input's message type
+    against what its producer publishes."""
     for inp in spec.inputs.values():
         if inp.name not in cls.INPUTS:
             raise graph.error(inp.line, f"node {spec.name!r}: {spec.run} has no input {inp.name!r} "
@@ -402,18 +415,17 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
         if out not in cls.OUTPUTS:
             raise graph.error(spec.line, f"node {spec.name!r}: {spec.run} has no output {out!r} "
                                          f"(it produces: {', '.join(cls.OUTPUTS) or 'none'})")
-    try:
-        params = cls.parse_params(spec.params)
-    except ParamError as exc:
-        readers = _read_elsewhere(graph, spec, cls, exc.key)
-        verb = "does" if len(readers) == 1 else "do"
-        message = f"{spec.name} does not read {exc.key!r}; {' and '.join(readers)} {verb}" if readers else str(exc)
-        old = {new: old for old, new in cls.RENAMED_PARAMS.items()}.get(exc.key, exc.key)
-        line = spec.param_lines.get(exc.key) or spec.param_lines.get(old) or spec.line
-        raise graph.error(line, f"node {spec.name!r}: {message}") from exc
-    except (TypeError, ValueError) as exc:
-        raise graph.error(spec.line, f"node {spec.name!r}: params: {exc}") from exc
-    return cls, params
+
+
+def _param_error(graph: Graph, spec: NodeSpec, cls: type[Node], exc: ParamError) -> GraphError:
+    """A parameter problem at the parameter's line (under its old name too, RENAMED_PARAMS); a parameter this node
+    does not read but another does is said so: a setting put on the wrong node."""
+    readers = _read_elsewhere(graph, spec, cls, exc.key)
+    verb = "does" if len(readers) == 1 else "do"
+    message = f"{spec.name} does not read {exc.key!r}; {' and '.join(readers)} {verb}" if readers else str(exc)
+    old = {new: old for old, new in cls.RENAMED_PARAMS.items()}.get(exc.key, exc.key)
+    line = spec.param_lines.get(exc.key) or spec.param_lines.get(old) or spec.line
+    return graph.error(line, f"node {spec.name!r}: {message}")
 
 
 def _read_elsewhere(graph: Graph, spec: NodeSpec, cls: type[Node], key: str) -> list[str]:
