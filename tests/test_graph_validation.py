@@ -207,6 +207,39 @@ def test_a_parameter_out_of_range_points_at_its_line(tmp_path, capsys):
            "[0, 1], got 1.75" in err, err
 
 
+def _attributes_read_by(module: str) -> set[str]:
+    """Every attribute name the code of ``module`` and of the nodes/tracking/control/vision modules it imports
+    (transitively, by relative import) reads: what a node's parameters can be read through."""
+    import ast
+
+    seen: set[str] = set()
+    todo, attributes = [module], set()
+    while todo:
+        name = todo.pop()
+        parts = name.split(".")
+        path = REPO.joinpath(*parts[1:]).with_suffix(".py")
+        if name in seen or len(parts) < 3 or parts[1] not in ("nodes", "tracking", "control", "vision") \
+                or not path.exists():
+            continue
+        seen.add(name)
+        tree = ast.parse(path.read_text())
+        attributes |= {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
+        todo += [".".join(parts[:len(parts) - n.level] + [n.module]) for n in ast.walk(tree)
+                 if isinstance(n, ast.ImportFrom) and n.level and n.module]
+    return attributes
+
+
+def test_every_parameter_a_node_declares_is_read_by_its_code():
+    """The other half of "a node declares exactly what it reads": no declared parameter that no code of the node
+    reads (a setting that would be accepted and change nothing)."""
+    from followbus.bus.graph_schema import node_runs
+
+    for run, classes in node_runs("followbus.nodes").items():
+        read = _attributes_read_by(run)
+        unread = [f.name for c in classes for f in dataclasses.fields(c) if f.name not in read]
+        assert not unread, f"{run} declares parameters no code of it reads: {unread}"
+
+
 def test_a_renamed_parameter_still_loads_under_its_old_name(tmp_path, capsys, caplog):
     """detection's input_size became input_size_px (units in the names): a graph, or a recording's graph, written
     before still loads, with a warning; a bad value is still reported at its line."""
