@@ -42,6 +42,7 @@ class Reid(Node):
     OUTPUTS = {"measurement": Measurement}
     INIT_BOX_PARAM = "init_box"  # followbus demo sets it from the source's first ground-truth box
     Params = (ReidNodeParams, ReidParams)
+    RENAMED_PARAMS = {"n_id": "n_id_frames"}  # issue 24: units in the names
     # Read from the ReidParams object on every decision (tracking/reid.py), so `followbus param set` takes effect
     # on the next frame.
     LIVE_PARAMS = frozenset({"reid_threshold"})
