@@ -79,11 +79,12 @@ class GraphFollower:
 
     def __init__(self, settings: Mapping[str, Any] | None = None, graph_path: Path = GRAPH_PATH, *,
                  details: bool = False, trace: bool = False) -> None:
-        self.spec = tracking_graph(settings or {}, graph_path)
+        self.planned = tracking_graph(settings or {}, graph_path)  # built at the first step
         # What the graph's settings decide before it is built: whether re-ID takes low-score boxes, and whether
         # prediction warps its prior by the camera's motion (without it the egomotion node is not run).
-        self.uses_low_scores = node_params(self.spec, "reid", ReidParams).low_score_stage
-        self.compensates_camera_motion = node_params(self.spec, "prediction", KalmanParams).camera_motion_compensation
+        self.uses_low_scores = node_params(self.planned, "reid", ReidParams).low_score_stage
+        kalman = node_params(self.planned, "prediction", KalmanParams)
+        self.compensates_camera_motion = kalman.camera_motion_compensation
         # Eval reads the track and the template's η; tests (details=True) also the measurement and prior;
         # ``trace`` (followbus eval --trace) also the camera motion and re-ID's scores: info["trace"] each frame.
         self.recorded = self.DETAILS if details or trace else self.RECORDED
@@ -99,7 +100,7 @@ class GraphFollower:
     DETAILS = (*RECORDED, "prediction/prior", "reid/measurement")
 
     def _start(self, init_box: Sequence[float] | None) -> InProcessGraph:
-        graph = self.spec
+        graph = self.planned
         if init_box is not None:
             graph.nodes["reid"].params["init_box"] = [float(v) for v in init_box]
         nodes = [n for n in TRACKING_NODES if n in graph.nodes]
