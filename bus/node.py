@@ -430,7 +430,7 @@ def _param_error(graph: Graph, spec: NodeSpec, cls: type[Node], exc: ParamError)
 
 def _read_elsewhere(graph: Graph, spec: NodeSpec, cls: type[Node], key: str) -> list[str]:
     """For a parameter this node does not read: the other nodes of the graph that do (a setting put on the wrong
-    node, e.g. the gate's χ² on re-ID rather than on prediction)."""
+    node)."""
     if key in cls.param_names():
         return []  # the node reads it: the value, not the name, was wrong
     readers = []
