@@ -176,6 +176,8 @@ def test_a_parameter_the_node_does_not_read_fails_check_at_its_line(tmp_path, ca
     err = _check_error(capsys, path)
     line = _line_of(text, "gate_chi2: 12.0")
     assert f"{path}:{line}: node 'reid': reid does not read 'gate_chi2'; prediction does" in err, err
+    launched = run_followbus("launch", str(path), "--duration", "1")  # refused before anything starts
+    assert launched.returncode == 2 and f"{path}:{line}: node 'reid'" in launched.stderr, launched.stderr
     # A name no node reads at all: the node's own parameters are listed.
     path.write_text(GRAPH_YAML.replace("      tau_s: 45\n", "      tau_sat: 45\n", 1))
     err = _check_error(capsys, path)
