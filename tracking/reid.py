@@ -394,21 +394,11 @@ class ReIdentifier:
         relock = self.state in (TrackState.OCCLUDED, TrackState.LOST)
         if not relock:
             self._confirming = None
-        if not (p.learned_appearance and self.identity.ready):
+        scored = self._score_contenders(frame_bgr, candidates, best, relock)
+        if scored is None:
             return best, True
-        contenders = sorted((c for c in candidates if c.m_fuse > p.reid_threshold
-                             and c.m_fuse >= best.m_fuse - p.identity_margin), key=lambda c: -c.m_fuse)
-        lone_check = len(contenders) < 2 and not relock
-        if lone_check and not self._crowded_recently():  # a lone contender is scored only just after a crowd
-            return best, True
-        embs = self._embed(frame_bgr, [c.box for c in contenders])
-        if embs is None or not len(embs):
-            return best, True
-        scores = self.identity.score(embs)
-        self.identity_decisions += 1
+        contenders, scores = scored
         i = int(np.argmax(scores))
-        if not relock and not lone_check and scores[i] >= p.delta_id:
-            self._crowd_told_apart = True
         if scores[i] < p.delta_switch:
             # Nobody here looks like the target: on a re-lock, wait; while tracking, keep colour's choice, unless
             # the classifier just told these people apart (a crossing: the target is hidden behind them): wait.
@@ -416,6 +406,28 @@ class ReIdentifier:
         if relock and p.far_relock_needs_identity and self._far(contenders[i].box, prior):
             return contenders[i], self._confirmed(contenders[i].box, float(scores[i]))
         return contenders[i], True
+
+    def _score_contenders(self, frame_bgr: np.ndarray, candidates: list[Candidate], best: Candidate,
+                          relock: bool) -> tuple[list[Candidate], np.ndarray] | None:
+        """The classifier's scores of the contenders within ``identity_margin`` of ``best`` (best first), or None
+        when it has no say: not ready or off, a lone contender while tracking outside a crowd's aftermath, no
+        descriptor. Notes a crowd the classifier told apart (its choice among several at δ_id or more)."""
+        p = self.params
+        if not (p.learned_appearance and self.identity.ready):
+            return None
+        contenders = sorted((c for c in candidates if c.m_fuse > p.reid_threshold
+                             and c.m_fuse >= best.m_fuse - p.identity_margin), key=lambda c: -c.m_fuse)
+        lone_check = len(contenders) < 2 and not relock
+        if lone_check and not self._crowded_recently():  # a lone contender is scored only just after a crowd
+            return None
+        embs = self._embed(frame_bgr, [c.box for c in contenders])
+        if embs is None or not len(embs):
+            return None
+        scores = self.identity.score(embs)
+        self.identity_decisions += 1
+        if not relock and not lone_check and scores[int(np.argmax(scores))] >= p.delta_id:
+            self._crowd_told_apart = True
+        return contenders, scores
 
     def _note_crowd(self, gated_detections: int) -> None:
         """Count the frames since another detection shared the gate with the target; a crowd over forgets whether
