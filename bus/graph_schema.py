@@ -141,13 +141,22 @@ def field_comments(cls: type) -> dict[str, str]:
     return comments
 
 
+def inherited_field_comments(cls: type) -> dict[str, str]:
+    """:func:`field_comments` of a dataclass and of the dataclasses it inherits fields from (its own win)."""
+    notes: dict[str, str] = {}
+    for base in reversed(cls.__mro__):
+        if dataclasses.is_dataclass(base):
+            notes.update(field_comments(base))
+    return notes
+
+
 def params_schema(classes: Iterable[type]) -> dict[str, Any]:
     """The ``params`` mapping of a node whose parameters are these dataclasses' fields (the first one wins
-    a name, as nodes.common.split_params does)."""
+    a name, as bus.node.split_params does)."""
     properties: dict[str, Any] = {}
     for cls in classes:
         hints = typing.get_type_hints(cls)
-        notes = field_comments(cls)
+        notes = inherited_field_comments(cls)
         for f in dataclasses.fields(cls):
             if f.name in properties or not f.init:
                 continue

@@ -84,7 +84,36 @@ def params_from_dict(cls: type, data: dict[str, Any]) -> Any:
     kwargs = {}
     for key, value in data.items():
         kwargs[key] = _coerce(value, hints[key], key)
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ValueError as exc:
+        # A params class's own range check that names its parameter (an attribute ``key``) points at its line.
+        key = getattr(exc, "key", None)
+        if isinstance(exc, ParamError) or not isinstance(key, str):
+            raise
+        raise ParamError(key, str(exc)) from exc
+
+
+def split_params(raw: dict[str, Any], *classes: type) -> tuple[Any, ...]:
+    """One params dataclass per class from one flat ``params`` mapping: each key goes to the first class with a
+    field of that name; a key no class has is a ParamError naming it (so validation points at its line)."""
+    parts: list[dict[str, Any]] = [{} for _ in classes]
+    owners = [{f.name for f in dataclasses.fields(cls)} for cls in classes]
+    for key, value in raw.items():
+        owner = next((i for i, names in enumerate(owners) if key in names), None)
+        if owner is None:
+            known = ", ".join(sorted(set().union(*owners))) or "none"
+            raise ParamError(key, f"unknown parameter {key!r} (known: {known})")
+        parts[owner][key] = value
+    return tuple(params_from_dict(cls, part) for cls, part in zip(classes, parts, strict=True))
+
+
+def _renamed(raw: dict[str, Any], renamed: dict[str, str]) -> dict[str, Any]:
+    """``raw`` with the old names of renamed parameters replaced by the new ones (the new name wins if both)."""
+    old = [key for key in raw if key in renamed]
+    for key in old:
+        logging.getLogger(__name__).warning("parameter %r is now called %r", key, renamed[key])
+    return {renamed.get(key, key): value for key, value in raw.items() if key not in old or renamed[key] not in raw}
 
 
 def _non_finite(value: Any) -> bool:
@@ -226,7 +255,10 @@ class Node:
     CONGESTION: ClassVar[dict[str, str]] = {}  # output -> "block" | "drop" (default block)
     EXPRESS: ClassVar[frozenset[str]] = frozenset()  # outputs sent without batching (control)
     PRIORITY: ClassVar[dict[str, str]] = {}  # output -> "real_time" | "interactive_high" | "data" (default)
-    Params: ClassVar[type] = NoParams
+    # The dataclass of the node's graph.yaml ``params``; or a tuple of them (the node's own settings and its
+    # algorithm's), which split the mapping by field name: the node then gets a tuple of instances, in that order.
+    # Either way a key no class declares is an error at the key's line: every parameter given is one it reads.
+    Params: ClassVar[type | tuple[type, ...]] = NoParams
     TIMER_PERIOD_MS: ClassVar[float | None] = None
     # What a command may fill in without knowing the graph's node names (followbus demo): the param naming
     # where a source node's data comes from (``--scene`` sets it), and the param taking the [x, y, w, h] box
@@ -236,6 +268,9 @@ class Node:
     # The param naming a file the node keeps its state in across restarts: a replay clears it, so it neither
     # starts from nor overwrites the live graph's state.
     STATE_FILE_PARAM: ClassVar[str | None] = None
+    # Parameters renamed (old name -> new name): a graph, or a recording's graph, written before the rename still
+    # loads, with a warning naming the new name.
+    RENAMED_PARAMS: ClassVar[dict[str, str]] = {}
     # Params `followbus param set` may change while the node runs (bus/live_params.py): only those the node's code
     # reads afresh on every message from its params objects.
     LIVE_PARAMS: ClassVar[frozenset[str]] = frozenset()
@@ -249,6 +284,11 @@ class Node:
 
     @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> Any:
+        """The node's params from its graph.yaml mapping (ParamError naming the key). A node with rules across
+        fields overrides this, calls it first and checks them."""
+        raw = _renamed(raw, cls.RENAMED_PARAMS)
+        if isinstance(cls.Params, tuple):
+            return split_params(raw, *cls.Params)
         return params_from_dict(cls.Params, raw)
 
     @classmethod
@@ -259,8 +299,13 @@ class Node:
     @classmethod
     def params_classes(cls) -> tuple[type, ...]:
         """The dataclasses whose fields are this node's graph.yaml ``params`` (``followbus schema`` documents
-        them). A node whose ``parse_params`` splits the params over several classes overrides this too."""
-        return (cls.Params,)
+        them, ``followbus param`` reads and sets them)."""
+        return cls.Params if isinstance(cls.Params, tuple) else (cls.Params,)
+
+    @classmethod
+    def param_names(cls) -> frozenset[str]:
+        """Every parameter the node reads (its params classes' fields)."""
+        return frozenset(f.name for c in cls.params_classes() for f in dataclasses.fields(c))
 
     # hooks
     def setup(self) -> None: ...
@@ -343,6 +388,19 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
             cls = load_node_class(spec.run)
         except ImportError as exc:
             raise graph.error(spec.line, f"node {spec.name!r}: run: {exc}") from exc
+    _check_ports(graph, spec, cls)
+    try:
+        params = cls.parse_params(spec.params)
+    except ParamError as exc:
+        raise _param_error(graph, spec, cls, exc) from exc
+    except (TypeError, ValueError) as exc:
+        raise graph.error(spec.line, f"node {spec.name!r}: params: {exc}") from exc
+    return cls, params
+
+
+def _check_ports(graph: Graph, spec: NodeSpec, cls: type[Node]) -> None:
+    """The node's inputs and outputs against its class: names, required inputs, and each input's message type
+    against what its producer publishes."""
     for inp in spec.inputs.values():
         if inp.name not in cls.INPUTS:
             raise graph.error(inp.line, f"node {spec.name!r}: {spec.run} has no input {inp.name!r} "
@@ -364,13 +422,32 @@ def validate_node(graph: Graph, spec: NodeSpec, cls: type[Node] | None = None) -
         if out not in cls.OUTPUTS:
             raise graph.error(spec.line, f"node {spec.name!r}: {spec.run} has no output {out!r} "
                                          f"(it produces: {', '.join(cls.OUTPUTS) or 'none'})")
-    try:
-        params = cls.parse_params(spec.params)
-    except ParamError as exc:
-        raise graph.error(spec.param_lines.get(exc.key, spec.line), f"node {spec.name!r}: {exc}") from exc
-    except (TypeError, ValueError) as exc:
-        raise graph.error(spec.line, f"node {spec.name!r}: params: {exc}") from exc
-    return cls, params
+
+
+def _param_error(graph: Graph, spec: NodeSpec, cls: type[Node], exc: ParamError) -> GraphError:
+    """A parameter problem at the parameter's line (under its old name too, RENAMED_PARAMS); a parameter this node
+    does not read but another does is said so: a setting put on the wrong node."""
+    readers = _read_elsewhere(graph, spec, cls, exc.key)
+    verb = "does" if len(readers) == 1 else "do"
+    message = f"{spec.name} does not read {exc.key!r}; {' and '.join(readers)} {verb}" if readers else str(exc)
+    old = {new: old for old, new in cls.RENAMED_PARAMS.items()}.get(exc.key, exc.key)
+    line = spec.param_lines.get(exc.key) or spec.param_lines.get(old) or spec.line
+    return graph.error(line, f"node {spec.name!r}: {message}")
+
+
+def _read_elsewhere(graph: Graph, spec: NodeSpec, cls: type[Node], key: str) -> list[str]:
+    """For a parameter this node does not read: the other nodes of the graph that do (a setting put on the wrong
+    node)."""
+    if key in cls.param_names():
+        return []  # the node reads it: the value, not the name, was wrong
+    readers = []
+    for name, other in graph.nodes.items():
+        try:
+            if name != spec.name and key in load_node_class(other.run).param_names():
+                readers.append(name)
+        except ImportError:
+            continue  # reported at that node
+    return readers
 
 
 def _set_priority(nice: int | None, realtime: int | None, log: logging.Logger) -> None:

@@ -76,6 +76,24 @@ class _Slot:
     msgs: dict[str, Any] = field(default_factory=dict)
 
 
+# What FrameSynchronizer._verdict decides for the first pending set.
+_EMIT, _DROP, _WAIT = "emit", "drop", "wait"
+
+
+@dataclass
+class _Candidate:
+    """The first pending set, as it stands at a poll: its messages, what it lacks, and its deadline."""
+
+    seq: int
+    msgs: dict[str, Any]
+    required: bool  # every required same-frame input present
+    awaited: bool  # every optional same-frame input it waits for present
+    exact: bool  # the feedback of the previous handled frame (or, in a replay, the live set's) present
+    deadline: int
+    forced: bool  # replay: a frame the live run handled
+    expired: bool
+
+
 class SequenceGuard:
     """The sequence checks of one stream of frame-numbered messages (see the module docstring).
 
@@ -305,24 +323,9 @@ class FrameSynchronizer:
         ready: list[tuple[int, dict[str, Any]]] = []
         if not self._slots:
             return ready
-        # One pending set cannot lag behind another: the scan is for two or more.
-        newest_complete = None if self.max_lag_ns is None or len(self._slots) < 2 else max(
-            (s.stamp_ns for seq, s in self._slots.items()
-             if s.stamp_ns is not None and not self._missing_same_frame(s, seq)), default=None)
+        newest_complete = self._newest_complete_stamp()
+        self._drop_expired_incomplete(now_ns)
         behind = False  # a set was skipped for lag: waiting any longer for feedback only adds to it
-        # A set still without a required input at its deadline is dropped wherever it stands, not only once it
-        # is first in line: a set waiting for its feedback must not shield sets numbered ahead of the stream
-        # that will never complete (a flood): they would fill the table, and the overflow would evict the
-        # stream's own sets (the oldest numbers) before their wait ends, until its numbering caught up.
-        # A replay knows which frames the live run handled (force_feedback): their inputs are in the recording
-        # and come in the order they were published, so such a set waits for them whatever the replay clock says
-        # (its stamps can run far ahead of a live run's arrival times when the whole graph lagged behind the
-        # camera); only a newer complete set ends its wait (an input the recorder lost).
-        for seq in [s for s, slot in self._slots.items()
-                    if self._missing_required(slot) and now_ns >= self._deadline(slot) and s not in self._forced]:
-            del self._slots[seq]
-            self._skipped.discard(seq)
-            self.dropped += 1
         for seq in sorted(self._slots):
             slot = self._slots[seq]
             if seq in self._skipped:
@@ -335,56 +338,97 @@ class FrameSynchronizer:
                 self.late += 1
                 behind = True
                 continue
-            msgs, required, awaited, exact = self._gather(seq, slot)
-            deadline = self._deadline(slot)
-            # A set the live run handled (replay) does not expire: the inputs it had live are still to come in the
-            # recording's order, whatever the replay clock says. It stops waiting only when a newer handled set is
-            # ready in full (an input the recorder lost).
-            forced = seq in self._forced
-            expired = now_ns >= deadline and not forced
-            if not required:
-                if expired or self._superseded(seq, forced):
-                    # A required input never came, or this frame lost an input upstream (a detector that
-                    # skipped it) while a newer frame is complete: waiting would only add latency.
-                    del self._slots[seq]
-                    self.dropped += 1
-                    continue
-                break  # wait for it, bounded by its timeout
-            if not awaited and not expired and not self._superseded(seq, forced):
-                break  # an optional same-frame input that is on time may still come
-            if not exact and (forced or not self._feedback_lost):
-                if forced:
-                    if not self._superseded(seq, forced):
-                        break  # replay: the feedback the live set joined is still to come
-                elif not (expired or behind):
-                    break  # wait for the feedback of the previous frame, bounded by the timeout and the lag
-                if seq not in self._forced:
-                    self._feedback_lost = True  # stop waiting until exact feedback is back in time
-            if exact:
-                self._feedback_lost = False
-            else:
-                self.feedback_fallbacks += 1
-            lacking = frozenset(name for name in self.optional if name not in msgs)
-            waited = {name for name in lacking if self._awaited(name, seq)}
-            if waited and expired and seq not in self._forced:
-                self._off_time |= waited  # missed its deadline: not waited for until on time again
-            if waited or not exact:
-                self.timeouts += 1
-            if lacking - waited:
-                self.without_optional += 1
-            if lacking:
-                self._lacked[seq] = (deadline, lacking)
-                while len(self._lacked) > FEEDBACK_KEEP:
-                    del self._lacked[min(self._lacked)]
-            del self._slots[seq]
-            done = bisect_right(self._forced_frames, seq)  # emitted, or never to be (dropped)
-            for s in self._forced_frames[:done]:
-                del self._forced[s]
-            del self._forced_frames[:done]
-            ready.append((seq, {name: msgs.get(name) for name in self.inputs}))
-            self._last_emitted = seq
-            self._last_emit_ns = now_ns
+            candidate = self._candidate(seq, slot, now_ns)
+            verdict = self._verdict(candidate, behind)
+            if verdict == _WAIT:
+                break
+            if verdict == _DROP:
+                del self._slots[seq]
+                self.dropped += 1
+                continue
+            ready.append(self._emit(candidate, now_ns))
         return ready
+
+    def _newest_complete_stamp(self) -> int | None:
+        """The capture stamp of the newest set with all its same-frame inputs (None: no lag bound, or fewer than
+        two sets pending: one pending set cannot lag behind another)."""
+        if self.max_lag_ns is None or len(self._slots) < 2:
+            return None
+        return max((s.stamp_ns for seq, s in self._slots.items()
+                    if s.stamp_ns is not None and not self._missing_same_frame(s, seq)), default=None)
+
+    def _drop_expired_incomplete(self, now_ns: int) -> None:
+        """Drop every set still without a required input at its deadline, wherever it stands.
+
+        Not only once it is first in line: a set waiting for its feedback must not shield sets numbered ahead of
+        the stream that will never complete (a flood): they would fill the table, and the overflow would evict the
+        stream's own sets (the oldest numbers) before their wait ends, until its numbering caught up. A replay
+        knows which frames the live run handled (force_feedback): their inputs are in the recording and come in
+        the order they were published, so such a set waits for them whatever the replay clock says (its stamps
+        can run far ahead of a live run's arrival times when the whole graph lagged behind the camera); only a
+        newer complete set ends its wait (an input the recorder lost)."""
+        for seq in [s for s, slot in self._slots.items()
+                    if self._missing_required(slot) and now_ns >= self._deadline(slot) and s not in self._forced]:
+            del self._slots[seq]
+            self._skipped.discard(seq)
+            self.dropped += 1
+
+    def _candidate(self, seq: int, slot: _Slot, now_ns: int) -> _Candidate:
+        msgs, required, awaited, exact = self._gather(seq, slot)
+        deadline = self._deadline(slot)
+        # A set the live run handled (replay) does not expire: the inputs it had live are still to come in the
+        # recording's order, whatever the replay clock says. It stops waiting only when a newer handled set is
+        # ready in full (an input the recorder lost).
+        forced = seq in self._forced
+        return _Candidate(seq, msgs, required, awaited, exact, deadline, forced,
+                          expired=now_ns >= deadline and not forced)
+
+    def _verdict(self, c: _Candidate, behind: bool) -> str:
+        """Whether the first pending set goes out now (_EMIT), is dropped (_DROP) or is waited for (_WAIT)."""
+        if not c.required:
+            # A required input never came, or this frame lost an input upstream (a detector that skipped it)
+            # while a newer frame is complete: waiting would only add latency. Else wait, bounded by the timeout.
+            return _DROP if c.expired or self._superseded(c.seq, c.forced) else _WAIT
+        if not c.awaited and not c.expired and not self._superseded(c.seq, c.forced):
+            return _WAIT  # an optional same-frame input that is on time may still come
+        if not c.exact and c.forced and not self._superseded(c.seq, c.forced):
+            return _WAIT  # replay: the feedback the live set joined is still to come
+        if not c.exact and not c.forced and not self._feedback_lost and not (c.expired or behind):
+            return _WAIT  # wait for the feedback of the previous frame, bounded by the timeout and the lag
+        return _EMIT
+
+    def _emit(self, c: _Candidate, now_ns: int) -> tuple[int, dict[str, Any]]:
+        """Hand out the set ``c`` (the first pending one), with the counters and state its going out changes."""
+        if c.exact:
+            self._feedback_lost = False
+        else:
+            if not c.forced:
+                self._feedback_lost = True  # stop waiting until exact feedback is back in time
+            self.feedback_fallbacks += 1
+        self._account_optional(c)
+        del self._slots[c.seq]
+        done = bisect_right(self._forced_frames, c.seq)  # emitted, or never to be (dropped)
+        for s in self._forced_frames[:done]:
+            del self._forced[s]
+        del self._forced_frames[:done]
+        self._last_emitted = c.seq
+        self._last_emit_ns = now_ns
+        return c.seq, {name: c.msgs.get(name) for name in self.inputs}
+
+    def _account_optional(self, c: _Candidate) -> None:
+        """Count and remember the optional same-frame inputs the set ``c`` goes out without."""
+        lacking = frozenset(name for name in self.optional if name not in c.msgs)
+        waited = {name for name in lacking if self._awaited(name, c.seq)}
+        if waited and c.expired and not c.forced:
+            self._off_time |= waited  # missed its deadline: not waited for until on time again
+        if waited or not c.exact:
+            self.timeouts += 1
+        if lacking - waited:
+            self.without_optional += 1
+        if lacking:
+            self._lacked[c.seq] = (c.deadline, lacking)
+            while len(self._lacked) > FEEDBACK_KEEP:
+                del self._lacked[min(self._lacked)]
 
     def _lagging(self, slot: _Slot, newest_complete_ns: int | None) -> bool:
         """Is this set more than max_lag_ns (capture time) behind the newest set with all its inputs?"""

@@ -10,7 +10,7 @@ stamped at the frame's capture time, as the motor node would publish it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,11 +19,12 @@ import numpy as np
 
 from ..bus.graph import Graph, load_graph
 from ..bus.inproc import InProcessGraph
+from ..bus.node import load_node_class, validate_node
 from ..bus.schemas import Frame
 from ..msgs.perception import CameraMotion, Detections
 from ..msgs.robot import Odometry
 from ..msgs.tracking import Measurement, Prior, Template, Track
-from ..tracking.params import TrackerParams
+from ..tracking.params import KalmanParams, ReidParams
 from .trace import ReidCapture, frame_record
 
 GRAPH_PATH = Path(__file__).resolve().parents[1] / "graph.yaml"
@@ -50,21 +51,27 @@ class GraphFrame:
     template: Template | None
 
 
-def tracking_graph(params: TrackerParams, init_box: Sequence[float] | None,
-                   graph_path: Path = GRAPH_PATH, egomotion: dict[str, Any] | None = None) -> Graph:
-    """graph.yaml with ``params`` as every tracking node's tracker parameters, told whom to follow (``None``:
-    re-ID picks the person itself, as on the robot), no template file read or written; ``egomotion`` overrides
-    the egomotion node's parameters (an ablation)."""
+def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH) -> Graph:
+    """graph.yaml with each of ``settings`` (parameter name -> value: an ablation's switches) given to every
+    tracking node that reads it, and no template file read or written. A setting no tracking node reads is a
+    ValueError: it would change nothing."""
     graph = load_graph(graph_path)
-    tracker = params.to_dict()
-    for name in ("prediction", "reid", "template"):
-        graph.nodes[name].params.update(tracker)
-    if egomotion and "egomotion" in graph.nodes:
-        graph.nodes["egomotion"].params.update(egomotion)
-    if init_box is not None:
-        graph.nodes["reid"].params["init_box"] = [float(v) for v in init_box]
+    unread = set(settings)
+    for name in (n for n in TRACKING_NODES if n in graph.nodes):
+        spec = graph.nodes[name]
+        reads = load_node_class(spec.run).param_names()
+        spec.params.update({key: value for key, value in settings.items() if key in reads})
+        unread -= reads
+    if unread:
+        raise ValueError(f"no tracking node of {graph_path} reads {', '.join(sorted(unread))}")
     graph.nodes["template"].params["state_file"] = ""
     return graph
+
+
+def node_params(graph: Graph, node: str, cls: type) -> Any:
+    """The ``cls`` part of ``node``'s params in ``graph``, defaults included."""
+    params = validate_node(graph, graph.nodes[node])[1]
+    return next(p for p in (params if isinstance(params, tuple) else (params,)) if isinstance(p, cls))
 
 
 class GraphFollower:
@@ -73,10 +80,14 @@ class GraphFollower:
     returns the box of the Track that prediction publishes for it; :attr:`last` holds all the graph published
     for that frame, :meth:`node` a node instance (as a test would inspect it)."""
 
-    def __init__(self, params: TrackerParams | None = None, graph_path: Path = GRAPH_PATH, *,
-                 details: bool = False, trace: bool = False, egomotion: dict[str, Any] | None = None) -> None:
-        self.params = params or TrackerParams()
-        self.egomotion = dict(egomotion or {})
+    def __init__(self, settings: Mapping[str, Any] | None = None, graph_path: Path = GRAPH_PATH, *,
+                 details: bool = False, trace: bool = False) -> None:
+        self.planned = tracking_graph(settings or {}, graph_path)  # built at the first step
+        # What the graph's settings decide before it is built: whether re-ID takes low-score boxes, and whether
+        # prediction warps its prior by the camera's motion (without it the egomotion node is not run).
+        self.uses_low_scores = node_params(self.planned, "reid", ReidParams).low_score_stage
+        kalman = node_params(self.planned, "prediction", KalmanParams)
+        self.compensates_camera_motion = kalman.camera_motion_compensation
         # Eval reads the track and the template's η; tests (details=True) also the measurement and prior;
         # ``trace`` (followbus eval --trace) also the camera motion and re-ID's scores: info["trace"] each frame.
         self.recorded = self.DETAILS if details or trace else self.RECORDED
@@ -84,8 +95,6 @@ class GraphFollower:
         self.capture = ReidCapture()
         self.transforms: dict[int, CameraMotion] = {}
         self.loose: list[str] = []  # recorded topics a frame may lack or get late
-        self.graph_path = graph_path
-        self.uses_low_scores = self.params.low_score_stage
         self.graph: InProcessGraph | None = None
         self.k = 0
         self.last: GraphFrame | None = None
@@ -94,9 +103,11 @@ class GraphFollower:
     DETAILS = (*RECORDED, "prediction/prior", "reid/measurement")
 
     def _start(self, init_box: Sequence[float] | None) -> InProcessGraph:
-        graph = tracking_graph(self.params, init_box, self.graph_path, self.egomotion)
+        graph = self.planned
+        if init_box is not None:
+            graph.nodes["reid"].params["init_box"] = [float(v) for v in init_box]
         nodes = [n for n in TRACKING_NODES if n in graph.nodes]
-        if not self.params.camera_motion_compensation and "egomotion" in nodes:
+        if not self.compensates_camera_motion and "egomotion" in nodes:
             nodes.remove("egomotion")  # as in the graph without the node: priors are not warped
         self.loose = [TRANSFORM_TOPIC] if self.trace and "egomotion" in nodes else []
         g = InProcessGraph(graph, nodes=nodes, clock="sim", clock_start_ns=CLOCK_BASE_NS,

@@ -15,7 +15,6 @@ the robot runs, in the graph's own data order.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import queue
@@ -28,8 +27,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ..tracking.egomotion import EgoMotionParams
-from ..tracking.params import TrackerParams
+from ..tracking.params import KalmanParams, ReidParams
 from ..vision.detector_presets import DETECTOR_PRESETS, apply_detector_preset, preset_of
 from . import detcache
 from .baselines import KalmanFollower, PeerFollower, peer_kind
@@ -51,7 +49,7 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o update suspension": {"suspend_updates": False},
     "followbus w/o adaptive η": {"adaptive_eta": False},
     # seed 002 §3.3, not a Table 6 row: the prior not warped by the camera's image motion (graph.yaml's
-    # egomotion node; TrackerParams.camera_motion_compensation)
+    # egomotion node; KalmanParams.camera_motion_compensation)
     "followbus w/o camera-motion compensation": {"camera_motion_compensation": False},
     # seed 002 §3.2: the gate at its base χ² whatever the target's speed and last detection score
     "followbus w/o adaptive gate": {"adaptive_gate": False},
@@ -59,7 +57,7 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o learned appearance": {"learned_appearance": False},
     # seed 002 §3.1 (ByteTrack's second stage): the boxes below the detector's score threshold never considered
     "followbus w/o low-score stage": {"low_score_stage": False},
-    # issue 22, one part at a time (EgoMotionParams switches go to the egomotion node, the rest to the tracker):
+    # issue 22, one part at a time (each switch goes to the node that reads it: egomotion, prediction or reid):
     # the per-cell static-content map; the rival hypothesis and the temporal choice between the two; the
     # reference kept across a failed fit; the prior widened by (and held against) the fit's uncertainty
     "followbus w/o static-content map": {"static_evidence": False},
@@ -109,33 +107,33 @@ class _NoEgo:
         self.inner.update_reference(box)
 
 
-def method_factories(methods: Sequence[str], ablations: bool = False, base: TrackerParams | None = None,
-                     trace: bool = False) -> dict[str, Callable[[float], Follower]]:
+def method_factories(methods: Sequence[str], ablations: bool = False, trace: bool = False
+                     ) -> dict[str, Callable[[float], Follower]]:
     """Method name → factory(fps) of a fresh follower. Unknown names raise ValueError. ``trace``: followbus and
     its ablations record every frame's prior, candidates, camera motion and reason (info["trace"])."""
-    base = base or TrackerParams()
     out: dict[str, Callable[[float], Follower]] = {}
     for m in methods:
         if m == "followbus":
-            out[m] = lambda fps, p=base: GraphFollower(p, trace=trace)
+            out[m] = lambda fps: GraphFollower(trace=trace)
         elif m == "kalman":
-            out[m] = lambda fps, p=base: _NoEgo(KalmanFollower(accel_std_px_s2=p.accel_std_px_s2, r_px2=p.r0_px2,
-                                                               init_velocity_std_px_s=p.init_velocity_std_px_s,
-                                                               size_smoothing=p.size_smoothing,
-                                                               lost_after_ms=p.lost_after_ms))
+            out[m] = lambda fps: _NoEgo(_kalman_baseline())
         elif m.startswith("peer:"):
             kind = peer_kind(m.split(":", 1)[1])
             out[m] = lambda fps, k=kind: _NoEgo(PeerFollower(k, fps))
         else:
             raise ValueError(f"unknown method {m!r} (followbus, kalman, peer:bytetrack|ocsort|botsort)")
     if ablations:
-        ego_keys = {f.name for f in dataclasses.fields(EgoMotionParams)}
         for name, switches in ABLATIONS.items():
-            ego = {k: v for k, v in switches.items() if k in ego_keys}
-            params = TrackerParams.from_dict({**base.to_dict(), **{k: v for k, v in switches.items()
-                                                                    if k not in ego_keys}})
-            out[name] = lambda fps, p=params, e=ego: GraphFollower(p, trace=trace, egomotion=e)
+            out[name] = lambda fps, s=switches: GraphFollower(s, trace=trace)
     return out
+
+
+def _kalman_baseline() -> KalmanFollower:
+    """The prediction node's Kalman filter alone, with the prediction and re-ID nodes' default settings."""
+    kalman, reid = KalmanParams(), ReidParams()
+    return KalmanFollower(accel_std_px_s2=kalman.accel_std_px_s2, r_px2=kalman.r0_px2,
+                          init_velocity_std_px_s=kalman.init_velocity_std_px_s, size_smoothing=kalman.size_smoothing,
+                          lost_after_ms=reid.lost_after_ms)
 
 
 # --------------------------------------------------------------------------- sequences
@@ -294,7 +292,7 @@ def detector_key(name: str) -> str:
     found = preset_of(params)
     if found is not None:
         return found
-    keys = ("backend", "model_file", "input_size", "runtime")
+    keys = ("backend", "model_file", "input_size_px", "runtime")
     return "graph-" + "-".join(str(params.get(k, "")) for k in keys)
 
 
@@ -376,94 +374,140 @@ def run_sequence(seq: EvalSequence, factories: dict[str, Callable[[float], Follo
     from ..vision.detectors import split_by_score
 
     low_score_threshold = min(float(low_score_threshold), SCORE_THRESHOLD)
-    cached = None
-    path = None
-    if cache_dir is not None:
-        # simulated detections depend on the seed: it is part of the key
-        det_key = detector_key(detector)
-        det_key = f"{det_key}-seed{seed}" if det_key == "simulated" else det_key
-        if low_score_threshold < SCORE_THRESHOLD:
-            det_key += f"-low{low_score_threshold:g}"
-        path = detcache.cache_path(cache_dir, seq.key, det_key, seq.n_frames)
-        cached = detcache.load(path, seq.n_frames)
-    from_cache = cached is not None
-    det = None if from_cache else make_eval_detector(detector, seed, low_score_threshold)
-    if cached is not None:
-        log.info("%s: detections from cache %s", seq.name, path)
+    source = _FrameDetections(seq, detector, cache_dir, seed, low_score_threshold)
     followers = {name: make(seq.fps) for name, make in factories.items()}
     runs = {name: MethodRun([], [], []) for name in factories}
-    gts: list[Box | None] = []
-    others: list[list[Box]] = []
-    people: list[list[tuple[int, Box]]] = []
-    visible: list[float | None] = []
-    det_frames: list[np.ndarray] = []  # every box down to low_score_threshold (what the cache holds)
-    high_frames: list[np.ndarray] = []
-    det_ms: list[float] = []
+    truth = _Truth()
     initialised = False
+    for k, item in enumerate(_frames(seq, progress)):
+        dets, low_dets = split_by_score(source.detect(k, item), SCORE_THRESHOLD, low_score_threshold)  # as the node
+        truth.add(item, dets)
+        init_box = None
+        if not initialised:
+            if item.gt_box is None:
+                _not_yet_told(runs)
+                continue
+            init_box, initialised = item.gt_box, True
+        v_ego = item.v_ego_mps if use_ego_velocity else (0.0, 0.0)
+        for name, follower in followers.items():
+            _step_follower(follower, runs[name], item, dets, low_dets, v_ego, init_box)
+    for follower in followers.values():
+        close = getattr(follower, "close", None)
+        if close is not None:
+            close()  # the graph's nodes tear down (nothing is saved: no template file in eval)
+    result = SequenceRun(seq, detector, truth.gts, truth.others, truth.visible, source.finish().ms,
+                         source.from_cache, runs, truth.people)
+    _score_methods(result, truth)
+    return result
+
+
+class _FrameDetections:
+    """Each frame's detections down to the low-score threshold: from the cache, or detected once and then cached."""
+
+    def __init__(self, seq: EvalSequence, detector: str, cache_dir: Path | None, seed: int,
+                 low_score_threshold: float) -> None:
+        self.cached: detcache.CachedDetections | None = None
+        self.path: Path | None = None
+        if cache_dir is not None:
+            # simulated detections depend on the seed: it is part of the key
+            det_key = detector_key(detector)
+            det_key = f"{det_key}-seed{seed}" if det_key == "simulated" else det_key
+            if low_score_threshold < SCORE_THRESHOLD:
+                det_key += f"-low{low_score_threshold:g}"
+            self.path = detcache.cache_path(cache_dir, seq.key, det_key, seq.n_frames)
+            self.cached = detcache.load(self.path, seq.n_frames)
+        self.from_cache = self.cached is not None
+        self.det = None if self.from_cache else make_eval_detector(detector, seed, low_score_threshold)
+        if self.cached is not None:
+            log.info("%s: detections from cache %s", seq.name, self.path)
+        self.frames: list[np.ndarray] = []  # every box down to low_score_threshold (what the cache holds)
+        self.ms: list[float] = []
+
+    def detect(self, k: int, item: FrameItem) -> np.ndarray:
+        if self.cached is not None:
+            return self.cached.per_frame[k]
+        t0 = time.perf_counter()
+        simulated = getattr(self.det, "is_simulated", False)
+        rows = self.det.detect(item.bgr, item.truth) if simulated else self.det.detect(item.bgr)
+        self.ms.append((time.perf_counter() - t0) * 1e3)
+        rows = np.asarray(rows, dtype=np.float32).reshape(-1, 5)
+        self.frames.append(rows)
+        return rows
+
+    def finish(self) -> detcache.CachedDetections:
+        """The sequence's detections; saved to the cache when they were detected here."""
+        if self.cached is None:
+            self.cached = detcache.CachedDetections(self.frames, np.asarray(self.ms))
+            if self.path is not None:
+                detcache.save(self.path, self.cached)
+        return self.cached
+
+
+@dataclass
+class _Truth:
+    """The ground truth of every frame, and the detections every method saw (for the ceiling)."""
+
+    gts: list[Box | None] = field(default_factory=list)
+    others: list[list[Box]] = field(default_factory=list)
+    people: list[list[tuple[int, Box]]] = field(default_factory=list)
+    visible: list[float | None] = field(default_factory=list)
+    detections: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, item: FrameItem, detections: np.ndarray) -> None:
+        self.detections.append(detections)
+        self.gts.append(item.gt_box)
+        self.others.append(item.others)
+        self.people.append(item.people)
+        self.visible.append(item.visible_fraction)
+
+
+def _frames(seq: EvalSequence, progress: bool) -> Iterator[FrameItem]:
     frames = seq.frames()
     if progress:
         from tqdm import tqdm
 
         frames = tqdm(frames, total=seq.n_frames, desc=seq.name, unit="fr", leave=False)
-    for k, item in enumerate(frames):
-        if cached is not None:
-            all_dets = cached.per_frame[k]
-        else:
-            t0 = time.perf_counter()
-            simulated = getattr(det, "is_simulated", False)
-            all_dets = det.detect(item.bgr, item.truth) if simulated else det.detect(item.bgr)
-            det_ms.append((time.perf_counter() - t0) * 1e3)
-            all_dets = np.asarray(all_dets, dtype=np.float32).reshape(-1, 5)
-            det_frames.append(all_dets)
-        dets, low_dets = split_by_score(all_dets, SCORE_THRESHOLD, low_score_threshold)  # as the detection node
-        high_frames.append(dets)
-        gts.append(item.gt_box)
-        others.append(item.others)
-        people.append(item.people)
-        visible.append(item.visible_fraction)
-        init_box = None
-        if not initialised:
-            if item.gt_box is None:
-                for run in runs.values():  # not yet told whom to follow
-                    run.boxes.append(None)
-                    run.infos.append({"state": "WAITING"})
-                    run.tracker_ms.append(0.0)
-                continue
-            init_box, initialised = item.gt_box, True
-        v_ego = item.v_ego_mps if use_ego_velocity else (0.0, 0.0)
-        for name, follower in followers.items():
-            if item.gt_box is not None and getattr(follower, "wants_reference", False):
-                follower.update_reference(item.gt_box)  # a peer still choosing whom to follow: this frame's box
-            low = {"low_detections": low_dets} if getattr(follower, "uses_low_scores", False) else {}
-            prepare = getattr(follower, "prepare", None)
-            if init_box is not None and prepare is not None:
-                prepare(init_box)
-            t0 = time.perf_counter()
-            box, info = follower.step(item.bgr, dets, item.t_ns, v_ego, init_box, **low)
-            runs[name].tracker_ms.append((time.perf_counter() - t0) * 1e3)
-            runs[name].boxes.append(box)
-            runs[name].infos.append(info)
-    for follower in followers.values():
-        close = getattr(follower, "close", None)
-        if close is not None:
-            close()  # the graph's nodes tear down (nothing is saved: no template file in eval)
-    if not from_cache:
-        cached = detcache.CachedDetections(det_frames, np.asarray(det_ms))
-        if path is not None:
-            detcache.save(path, cached)
-    result = SequenceRun(seq, detector, gts, others, visible, cached.ms, from_cache, runs, people)
-    # the ceiling of the boxes every method sees (those above SCORE_THRESHOLD), comparable across runs
-    result.ceiling = evaluate_single_target(nearest_detections(high_frames, gts), gts, other_gt=others,
-                                            fps=seq.fps, image_size=(seq.width, seq.height))
+    return frames
+
+
+def _not_yet_told(runs: dict[str, MethodRun]) -> None:
+    """A frame before the first one with a ground-truth box: no method knows whom to follow yet."""
     for run in runs.values():
+        run.boxes.append(None)
+        run.infos.append({"state": "WAITING"})
+        run.tracker_ms.append(0.0)
+
+
+def _step_follower(follower: Follower, run: MethodRun, item: FrameItem, dets: np.ndarray, low_dets: np.ndarray,
+                   v_ego: Sequence[float], init_box: Box | None) -> None:
+    """One method on one frame, timed (its set-up, when this frame tells it whom to follow, is not)."""
+    if item.gt_box is not None and getattr(follower, "wants_reference", False):
+        follower.update_reference(item.gt_box)  # a peer still choosing whom to follow: this frame's box
+    low = {"low_detections": low_dets} if getattr(follower, "uses_low_scores", False) else {}
+    prepare = getattr(follower, "prepare", None)
+    if init_box is not None and prepare is not None:
+        prepare(init_box)
+    t0 = time.perf_counter()
+    box, info = follower.step(item.bgr, dets, item.t_ns, v_ego, init_box, **low)
+    run.tracker_ms.append((time.perf_counter() - t0) * 1e3)
+    run.boxes.append(box)
+    run.infos.append(info)
+
+
+def _score_methods(result: SequenceRun, truth: _Truth) -> None:
+    """Every method's metrics, and the ceiling of the boxes every method sees (those above SCORE_THRESHOLD),
+    comparable across runs."""
+    seq, gts, others = result.sequence, truth.gts, truth.others
+    result.ceiling = evaluate_single_target(nearest_detections(truth.detections, gts), gts, other_gt=others,
+                                            fps=seq.fps, image_size=(seq.width, seq.height))
+    for run in result.runs.values():
         run.metrics = evaluate_single_target(run.boxes, gts, other_gt=others, fps=seq.fps,
                                              image_size=(seq.width, seq.height))
         if seq.kind == "mot" and any("mot" in info for info in run.infos):
             run.mot_frames = [info.get("mot") for info in run.infos]
             if seq.gt_regions:
                 run.mot_frames = remove_distractor_matches(run.mot_frames, seq.gt_regions)
-            run.mot = evaluate_mot(gt_mot_frames(people), run.mot_frames)
-    return result
+            run.mot = evaluate_mot(gt_mot_frames(truth.people), run.mot_frames)
 
 
 def nearest_detections(per_frame: Sequence[np.ndarray], gts: Sequence[Box | None]) -> list[Box | None]:

@@ -25,8 +25,8 @@ from ..vision.detectors import BACKENDS, RUNTIMES, DetectorUnavailable, Simulate
 class DetectionParams:
     backend: str = "auto"
     model_dir: str = ""  # first place on the model search path
-    model_file: str = ""  # default: yolox_nano_<input_size>.onnx
-    input_size: int = 416
+    model_file: str = ""  # default: yolox_nano_<input_size_px>.onnx
+    input_size_px: int = 416  # the network's square input (letterboxed); a model per size
     score_threshold: float = 0.3
     # Boxes scoring in [low_score_threshold, score_threshold) are published apart (Detections.low_boxes) for
     # re-ID's second association stage (seed 002 §3.1 / ByteTrack; its 0.1, seed 002 §4.3); every other
@@ -49,7 +49,7 @@ def detector_from_params(p: DetectionParams):
     in-process, so both paths infer the same way)."""
     detector = make_detector(
         p.backend, model_dir=p.model_dir or None, model_file=p.model_file or None,
-        input_size=p.input_size, score_threshold=min(p.low_score_threshold, p.score_threshold), nms_iou=p.nms_iou,
+        input_size=p.input_size_px, score_threshold=min(p.low_score_threshold, p.score_threshold), nms_iou=p.nms_iou,
         threads=p.threads or None, runtime=p.runtime, noise_px=p.sim_noise_px, miss_rate=p.sim_miss_rate,
         false_positive_rate=p.sim_false_positive_rate, seed=p.seed,
     )
@@ -68,15 +68,16 @@ class Detection(Node):
     REQUIRED_INPUTS = frozenset({"frame"})
     OUTPUTS = {"detections": Detections}
     Params = DetectionParams
+    RENAMED_PARAMS = {"input_size": "input_size_px"}  # issue 24: units in the names
 
     @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> DetectionParams:
         params = super().parse_params(raw)
         if params.backend not in BACKENDS:
             raise ParamError("backend", f"backend must be one of {', '.join(BACKENDS)}, not {params.backend!r}")
-        if params.input_size < 32 or params.input_size % 32:
-            raise ParamError("input_size", "input_size must be a positive multiple of 32 (the detector's largest "
-                                           f"stride), e.g. 416 or 640, not {params.input_size!r}")
+        if params.input_size_px < 32 or params.input_size_px % 32:
+            raise ParamError("input_size_px", "input_size_px must be a positive multiple of 32 (the detector's "
+                                              f"largest stride), e.g. 416 or 640, not {params.input_size_px!r}")
         if params.runtime not in RUNTIMES:
             raise ParamError("runtime", f"runtime must be one of {', '.join(RUNTIMES)}, not {params.runtime!r}")
         if not params.sim_delay_ms >= 0:

@@ -21,21 +21,13 @@ from ..msgs.group import GroundPoints
 from ..msgs.perception import Detections
 from ..msgs.robot import Odometry
 from ..tracking.groundplane import CameraGeometry, GroundPlaneParams, boxes_to_ground
-from .common import split_params
 
 
 class GroundPlane(Node):
     INPUTS = {"detections": Detections, "odometry": Odometry}
     REQUIRED_INPUTS = frozenset({"detections"})
     OUTPUTS = {"points": GroundPoints}
-
-    @classmethod
-    def params_classes(cls) -> tuple[type, ...]:
-        return (GroundPlaneParams, CameraGeometry)
-
-    @classmethod
-    def parse_params(cls, raw: dict[str, Any]) -> tuple[GroundPlaneParams, CameraGeometry]:
-        return split_params(raw, *cls.params_classes())
+    Params = (GroundPlaneParams, CameraGeometry)
 
     def setup(self) -> None:
         self.plane, self.camera = self.params

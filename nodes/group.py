@@ -19,7 +19,6 @@ from ..bus.node import Node, ParamError
 from ..bus.schemas import Message
 from ..msgs.group import GroundPoints, GroupState
 from ..tracking.group import GroupEstimate, GroupParams, MultiEllipseGroupTracker, SingleEllipseGroupTracker
-from .common import split_params
 
 
 @dataclass
@@ -32,13 +31,11 @@ class Group(Node):
     REQUIRED_INPUTS = frozenset({"points"})
     OUTPUTS = {"group": GroupState}
 
-    @classmethod
-    def params_classes(cls) -> tuple[type, ...]:
-        return (GroupNodeParams, GroupParams)
+    Params = (GroupNodeParams, GroupParams)
 
     @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> tuple[GroupNodeParams, GroupParams]:
-        node, group = split_params(raw, *cls.params_classes())
+        node, group = super().parse_params(raw)
         if node.shape not in ("multi", "single"):
             raise ParamError("shape", f"shape must be 'multi' or 'single', not {node.shape!r}")
         if group.n_ellipses < 1 or group.dbscan_min_samples < 1:

@@ -30,7 +30,6 @@ from ..control.follow import FollowCommand, FollowController, FollowParams
 from ..msgs.group import GroupState
 from ..msgs.robot import MotorCommand, Odometry
 from ..msgs.tracking import Track
-from .common import split_params
 
 
 @dataclass
@@ -61,13 +60,11 @@ class Motor(Node):
     # reaches the bus, a monitor that joins late sees it, and the bus carries 10 stops/s, not 100.
     STOP_REPEAT_MS = 100.0
 
-    @classmethod
-    def params_classes(cls) -> tuple[type, ...]:
-        return (MotorParams, FollowParams)
+    Params = (MotorParams, FollowParams)
 
     @classmethod
     def parse_params(cls, raw: dict[str, Any]) -> tuple[MotorParams, FollowParams]:
-        motor, follow = split_params(raw, *cls.params_classes())
+        motor, follow = super().parse_params(raw)
         if motor.driver not in ("sim", "serial"):
             raise ParamError("driver", f"driver must be 'sim' or 'serial', not {motor.driver!r}")
         if motor.driver == "serial" and not motor.port:

@@ -30,13 +30,12 @@ from ..msgs.perception import CameraMotion, Detections
 from ..msgs.robot import Odometry
 from ..msgs.tracking import Measurement, Prior, Track
 from ..tracking.kalman import Predictor
-from ..tracking.params import TrackerParams
+from ..tracking.params import KalmanParams
 from ..tracking.tracker import output_box
-from .common import split_params
 
 
 @dataclass
-class PredictionParams:
+class PredictionNodeParams:
     use_odometry: bool = True  # False: R_k = R0 (the ablation without ego-motion-aware noise)
     max_predict_gap_ms: float = 5000.0  # a longer jump between frame stamps re-initialises the filter
 
@@ -45,18 +44,11 @@ class Prediction(Node):
     INPUTS = {"detections": Detections, "measurement": Measurement, "odometry": Odometry, "transform": CameraMotion}
     REQUIRED_INPUTS = frozenset({"detections", "measurement"})
     OUTPUTS = {"prior": Prior, "track": Track}
-
-    @classmethod
-    def params_classes(cls) -> tuple[type, ...]:
-        return (PredictionParams, TrackerParams)
-
-    @classmethod
-    def parse_params(cls, raw: dict[str, Any]) -> tuple[PredictionParams, TrackerParams]:
-        return split_params(raw, *cls.params_classes())
+    Params = (PredictionNodeParams, KalmanParams)
 
     def setup(self) -> None:
-        self.node_params, tracker_params = self.params
-        self.predictor = Predictor(tracker_params)
+        self.node_params, kalman_params = self.params
+        self.predictor = Predictor(kalman_params)
         self.priors: dict[int, Prior] = {}  # frame_seq -> the published prior, until its measurement arrives
         self.applied_seq = -1
         self.applied_epoch = 0

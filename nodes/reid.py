@@ -20,13 +20,12 @@ from typing import Any
 
 import numpy as np
 
-from ..bus.node import Node
+from ..bus.node import Node, ParamError
 from ..bus.schemas import Frame, Message
 from ..msgs.perception import Detections
 from ..msgs.tracking import Measurement, Prior, Template
-from ..tracking.params import TrackerParams
+from ..tracking.params import ReidParams
 from ..tracking.reid import ReIdentifier
-from .common import split_params
 
 # init_box describes the target at the start of the source: a re-ID node (re)started later in the run, or
 # joining a capture that restarted long ago, re-acquires the target from its template instead.
@@ -34,7 +33,7 @@ INIT_BOX_MAX_FRAME = 10
 
 
 @dataclass
-class ReidParams:
+class ReidNodeParams:
     init_box: list[float] = field(default_factory=list)  # [x, y, w, h] of the target on the first frame
 
 
@@ -43,26 +42,22 @@ class Reid(Node):
     REQUIRED_INPUTS = frozenset({"frame", "detections", "prior"})
     OUTPUTS = {"measurement": Measurement}
     INIT_BOX_PARAM = "init_box"  # followbus demo sets it from the source's first ground-truth box
-    # Read from the shared TrackerParams on every decision (tracking/reid.py), so `followbus param set` takes effect
+    Params = (ReidNodeParams, ReidParams)
+    RENAMED_PARAMS = {"n_id": "n_id_frames"}  # issue 24: units in the names
+    # Read from the ReidParams object on every decision (tracking/reid.py), so `followbus param set` takes effect
     # on the next frame.
     LIVE_PARAMS = frozenset({"reid_threshold"})
 
     @classmethod
-    def params_classes(cls) -> tuple[type, ...]:
-        return (ReidParams, TrackerParams)
-
-    @classmethod
-    def parse_params(cls, raw: dict[str, Any]) -> tuple[ReidParams, TrackerParams]:
-        node_params, tracker_params = split_params(raw, *cls.params_classes())
+    def parse_params(cls, raw: dict[str, Any]) -> tuple[ReidNodeParams, ReidParams]:
+        node_params, reid_params = super().parse_params(raw)
         if node_params.init_box and len(node_params.init_box) != 4:
-            from ..bus.node import ParamError
-
             raise ParamError("init_box", "init_box must be [x, y, w, h]")
-        return node_params, tracker_params
+        return node_params, reid_params
 
     def setup(self) -> None:
-        self.node_params, tracker_params = self.params
-        self.reid = ReIdentifier(tracker_params)
+        self.node_params, reid_params = self.params
+        self.reid = ReIdentifier(reid_params)
         self.learned_appearance = self.reid.prepare()  # the model loads here, not on a frame
         self.template_hist: np.ndarray | None = None
         self.frames = 0

@@ -24,13 +24,12 @@ import numpy as np
 from ..bus.node import LAUNCH_ID_ENV, Node
 from ..bus.schemas import Frame, Message
 from ..msgs.tracking import Measurement, Template
-from ..tracking.params import TrackerParams
+from ..tracking.params import TemplateParams
 from ..tracking.template import TemplateUpdater
-from .common import split_params
 
 
 @dataclass
-class TemplateParams:
+class TemplateNodeParams:
     state_file: str = ""  # e.g. state/{namespace}/template.npz ({namespace}: the graph's); empty: do not persist
     save_every_s: float = 5.0
     # A template saved by another launch (not this launch's earlier process) is restored only if at most this
@@ -48,18 +47,11 @@ class TemplateNode(Node):
     REQUIRED_INPUTS = frozenset({"frame", "measurement"})
     OUTPUTS = {"template": Template}
     STATE_FILE_PARAM = "state_file"
-
-    @classmethod
-    def params_classes(cls) -> tuple[type, ...]:
-        return (TemplateParams, TrackerParams)
-
-    @classmethod
-    def parse_params(cls, raw: dict[str, Any]) -> tuple[TemplateParams, TrackerParams]:
-        return split_params(raw, *cls.params_classes())
+    Params = (TemplateNodeParams, TemplateParams)
 
     def setup(self) -> None:
-        self.node_params, tracker_params = self.params
-        self.updater = TemplateUpdater(tracker_params)
+        self.node_params, template_params = self.params
+        self.updater = TemplateUpdater(template_params)
         self.last_save = time.monotonic()
         self.eta = 0.0
         self.p_specular = 0.0

@@ -103,8 +103,11 @@ def test_params_of_every_shipped_node_module(schema):
         cls.parse_params({k: p["default"] for k, p in definition["properties"].items()})
         with pytest.raises(ValueError, match="not_a_param"):
             cls.parse_params({"not_a_param": 1})
-    gate = params["followbus.nodes.reid"]["properties"]["gate_chi2"]
+    gate = params["followbus.nodes.prediction"]["properties"]["gate_chi2"]
     assert gate["type"] == "number" and "Mahalanobis" in gate["description"]  # tracking/params.py's comment
+    assert "gate_chi2" not in params["followbus.nodes.reid"]["properties"]  # re-ID gates with the prior's
+    # A field inherited from a shared base keeps its comment.
+    assert "Δt" in params["followbus.nodes.reid"]["properties"]["dt_ms"]["description"]
 
 
 def test_committed_schema_is_fresh():
@@ -186,7 +189,7 @@ WRONG = {
     "bad zenoh mode": _set("zenoh.mode", "mesh"),
     "unknown zenoh key": _set("zenoh.listen_on", []),
     "unknown param": _set("nodes.detection.params.treshold", 0.5),
-    "param of the wrong type": _set("nodes.detection.params.input_size", "big"),
+    "param of the wrong type": _set("nodes.detection.params.input_size_px", "big"),
     "boolean param as a string": _set("nodes.prediction.params.use_odometry", "no"),
 }
 

@@ -97,10 +97,10 @@ def test_target_is_reacquired_after_a_complete_occlusion(tmp_path, port):
     assert np.median(errors) < 20, errors
     assert not processes_matching(str(graph))
     # The template node saved the reference model at shutdown, in a form it can restore.
-    from followbus.tracking.params import TrackerParams
+    from followbus.tracking.params import TemplateParams
     from followbus.tracking.template import TemplateUpdater
 
-    restored = TemplateUpdater(TrackerParams())
+    restored = TemplateUpdater(TemplateParams())
     restored.load(tmp_path / "template.npz")
     assert restored.initialised and abs(float(restored.hist.sum()) - 1.0) < 1e-5
 

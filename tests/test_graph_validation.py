@@ -108,8 +108,8 @@ CANNOT_RUN = [
     ("same-frame cycle", [("template: {from: template/template, queue: 32, offset: -1, optional: true}",
                            "template: {from: template/template, queue: 32, optional: true}")],
      "same-frame cycle reid -> template -> reid"),
-    ("zero input size", [("      input_size: 416\n", "      input_size: 0\n")],
-     "input_size must be a positive multiple of 32"),
+    ("zero input size", [("      input_size_px: 416\n", "      input_size_px: 0\n")],
+     "input_size_px must be a positive multiple of 32"),
     ("capture of width 0", [('      pace: realtime ', '      width_px: 0\n      pace: realtime ')],
      "width_px must be >= 16"),
     ("unknown zenoh config key", [("zenoh:\n", "zenoh:\n  config: {transport/auth/usrpwdd: {user: a}}\n")],
@@ -148,6 +148,115 @@ def test_check_refuses_a_set_override_that_is_not_finite(capsys):
     assert main(["check", str(REPO / "graph.yaml"), "--set", "prediction.gate_chi2=.nan"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("followbus: --set prediction.gate_chi2=.nan:") and "must be finite" in err
+
+
+# --------------------------------------------------------------------------- parameters a node does not read (issue 24)
+
+
+def _check_error(capsys, path) -> str:
+    from followbus.tools.cli import main
+
+    assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+def _line_of(text: str, needle: str, after: str = "") -> int:
+    """The 1-based line of the first ``needle`` after the first ``after``."""
+    start = text.index(after)
+    return text[:text.index(needle, start)].count("\n") + 1
+
+
+def test_a_parameter_the_node_does_not_read_fails_check_at_its_line(tmp_path, capsys):
+    """Re-ID gates with the prior's χ² (prediction's): a gate_chi2 on reid would be accepted and ignored."""
+    text = GRAPH_YAML.replace("      reid_threshold: 0.75\n", "      reid_threshold: 0.75\n      gate_chi2: 12.0\n", 1)
+    path = tmp_path / "graph.yaml"
+    path.write_text(text)
+    err = _check_error(capsys, path)
+    line = _line_of(text, "gate_chi2: 12.0")
+    assert f"{path}:{line}: node 'reid': reid does not read 'gate_chi2'; prediction does" in err, err
+    launched = run_followbus("launch", str(path), "--duration", "1")  # refused before anything starts
+    assert launched.returncode == 2 and f"{path}:{line}: node 'reid'" in launched.stderr, launched.stderr
+    # A name no node reads at all: the node's own parameters are listed.
+    path.write_text(GRAPH_YAML.replace("      tau_s: 45\n", "      tau_sat: 45\n", 1))
+    err = _check_error(capsys, path)
+    assert f"{path}:{_line_of(GRAPH_YAML, 'tau_s: 45')}: node 'template': unknown parameter 'tau_sat' (known: " in err
+
+
+def test_an_unread_parameter_is_reported_in_the_file_that_sets_it(tmp_path, capsys):
+    """Through ``extends``: the line of the file that holds the parameter, the override's or the base's."""
+    over = tmp_path / "over.yaml"
+    over.write_text(f"extends: {REPO / 'graph.yaml'}\nnodes:\n  template:\n    params:\n      gate_chi2: 9.0\n")
+    assert f"{over}:5: node 'template': template does not read 'gate_chi2'; prediction does" in \
+        _check_error(capsys, over)
+    base_text = GRAPH_YAML.replace("      eta_base: 0.02\n", "      eta_base: 0.02\n      dt_ms: 33.0\n", 1)
+    base = tmp_path / "base.yaml"
+    base.write_text(base_text)
+    over.write_text("extends: base.yaml\nnodes:\n  template:\n    params:\n      tau_v: 200\n")
+    err = _check_error(capsys, over)
+    assert f"{base}:{_line_of(base_text, 'dt_ms: 33.0', 'eta_base')}: node 'template': template does not read " \
+           "'dt_ms'; prediction and reid do" in err, err
+
+
+def test_a_parameter_out_of_range_points_at_its_line(tmp_path, capsys):
+    """A tracking class's own range check names its parameter, so the error is at that line, not the node's."""
+    text = GRAPH_YAML.replace("      reid_threshold: 0.75\n", "      reid_threshold: 1.75\n", 1)
+    path = tmp_path / "graph.yaml"
+    path.write_text(text)
+    err = _check_error(capsys, path)
+    assert f"{path}:{_line_of(text, 'reid_threshold: 1.75')}: node 'reid': ReidParams.reid_threshold must be in " \
+           "[0, 1], got 1.75" in err, err
+
+
+def _attributes_read_by(module: str) -> set[str]:
+    """Every attribute name the code of ``module`` and of the nodes/tracking/control/vision modules it imports
+    (transitively, by relative import) reads: what a node's parameters can be read through."""
+    import ast
+
+    seen: set[str] = set()
+    todo, attributes = [module], set()
+    while todo:
+        name = todo.pop()
+        parts = name.split(".")
+        path = REPO.joinpath(*parts[1:]).with_suffix(".py")
+        if name in seen or len(parts) < 3 or parts[1] not in ("nodes", "tracking", "control", "vision") \
+                or not path.exists():
+            continue
+        seen.add(name)
+        tree = ast.parse(path.read_text())
+        attributes |= {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
+        todo += [".".join(parts[:len(parts) - n.level] + [n.module]) for n in ast.walk(tree)
+                 if isinstance(n, ast.ImportFrom) and n.level and n.module]
+    return attributes
+
+
+def test_every_parameter_a_node_declares_is_read_by_its_code():
+    """The other half of "a node declares exactly what it reads": no declared parameter that no code of the node
+    reads (a setting that would be accepted and change nothing)."""
+    from followbus.bus.graph_schema import node_runs
+
+    for run, classes in node_runs("followbus.nodes").items():
+        read = _attributes_read_by(run)
+        unread = [f.name for c in classes for f in dataclasses.fields(c) if f.name not in read]
+        assert not unread, f"{run} declares parameters no code of it reads: {unread}"
+
+
+def test_a_renamed_parameter_still_loads_under_its_old_name(tmp_path, capsys, caplog):
+    """detection's input_size became input_size_px (units in the names): a graph, or a recording's graph, written
+    before still loads, with a warning; a bad value is still reported at its line."""
+    from followbus.bus.graph import load_graph
+    from followbus.bus.node import validate_node
+
+    path = tmp_path / "graph.yaml"
+    path.write_text(GRAPH_YAML.replace("      input_size_px: 416\n", "      input_size: 640\n", 1))
+    graph = load_graph(path)
+    assert validate_node(graph, graph.nodes["detection"])[1].input_size_px == 640
+    assert "'input_size' is now called 'input_size_px'" in caplog.text
+    text = GRAPH_YAML.replace("      input_size_px: 416\n", "      input_size: 100\n", 1)
+    path.write_text(text)
+    err = _check_error(capsys, path)
+    assert f"{path}:{_line_of(text, 'input_size: 100')}: node 'detection': input_size_px must be a positive " in err
 
 
 @pytest.mark.parametrize("target", ["fifo", "/dev/zero", "directory"])

@@ -62,3 +62,37 @@ def test_param_get_set_on_a_running_node(graph_file):
 
 def _set(graph: str, value: str) -> subprocess.CompletedProcess:
     return run_followbus("param", "set", "ticker.rate_hz", value, "--graph", graph)
+
+
+def test_reid_threshold_is_set_on_the_object_reid_reads():
+    """The per-node params classes are plain dataclasses: a live value lands in the ReidParams the node's
+    ReIdentifier reads on its next frame (a frozen class refused it), validated by that class as at launch."""
+    import types
+
+    from followbus.bus.graph import load_graph
+    from followbus.bus.live_params import LiveParams
+    from followbus.bus.node import validate_node
+    from followbus.bus.session import ZenohSettings, open_session
+    from followbus.tracking.params import ReidParams
+    from followbus.tracking.reid import ReIdentifier
+
+    graph = load_graph(REPO / "graph.yaml")
+    spec = graph.nodes["reid"]
+    cls, params = validate_node(graph, spec)
+    events = []
+    session = open_session(ZenohSettings(listen=[], connect=[], shm=False))
+    try:
+        runtime = types.SimpleNamespace(session=session, graph=graph, spec=spec, cls=cls, params=params)
+        live = LiveParams(runtime, lambda key, msg: events.append((key, msg)))
+        reid_params = next(p for p in params if isinstance(p, ReidParams))
+        reads = ReIdentifier(reid_params).params
+        assert live.get("reid_threshold") == {"ok": True, "value": 0.75, "live": True}
+        assert live.set("reid_threshold", 0.8)["ok"] and reads.reid_threshold == 0.8
+        assert events and events[-1][0] == f"{graph.namespace}/reid/parameter_events"
+        refused = live.set("reid_threshold", 1.5)
+        assert not refused["ok"] and "must be in [0, 1]" in refused["error"] and reads.reid_threshold == 0.8
+        assert "is not live-tunable" in live.set("lost_after_ms", 10.0)["error"]
+        assert live.get("gate_chi2") == {"ok": False, "error": "node 'reid' has no parameter 'gate_chi2'"}
+        live.close()
+    finally:
+        session.close()

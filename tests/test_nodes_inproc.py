@@ -226,10 +226,10 @@ def test_template_freezes_under_occlusion():
 ])
 def test_template_restores_only_its_own_launch_by_default(tmp_path, monkeypatch, saved_by, max_age_s, restored):
     from followbus.bus.node import LAUNCH_ID_ENV
-    from followbus.tracking.params import TrackerParams
+    from followbus.tracking.params import TemplateParams
     from followbus.tracking.template import TemplateUpdater
 
-    saved = TemplateUpdater(TrackerParams())
+    saved = TemplateUpdater(TemplateParams())
     saved.initialise(person_frame((150, 120, 24, 80)), (150.0, 120.0, 24.0, 80.0))
     path = tmp_path / "template.npz"
     saved.save(path, saved_by=saved_by)
@@ -465,7 +465,7 @@ def test_detection_publishes_low_score_boxes_apart_from_its_detections():
     bgr = cv2.imread(str(img))
     out = {}
     for low in (0.1, 0.3):
-        graph = tracking_graph("detection.backend=yolox", "detection.input_size=640",
+        graph = tracking_graph("detection.backend=yolox", "detection.input_size_px=640",
                                f"detection.low_score_threshold={low}")
         with InProcessGraph(graph, nodes=["detection"], record=["detection/detections"]) as g:
             g.inject("capture/frame", frame_msg(0, g.now_ns, bgr))

@@ -12,16 +12,16 @@ import numpy as np
 
 from followbus.evaluation.graph_follower import GraphFollower
 from followbus.evaluation.runner import SCORE_THRESHOLD, make_eval_detector, open_sequence
-from followbus.tracking.params import TrackerParams
+from followbus.tracking.params import ReidParams
 from followbus.tracking.reid import ReIdentifier
 from followbus.vision.detectors import split_by_score
 
 
-def errors(scene: str, frames: int, params: TrackerParams | None = None) -> list[float]:
+def errors(scene: str, frames: int, settings: dict | None = None) -> list[float]:
     """Centre error (px; inf without output) of the graph's track on the first ``frames`` frames."""
     seq = open_sequence(f"scene:{scene}", max_frames=frames)
     det = make_eval_detector("simulated", 0)
-    follower = GraphFollower(params or TrackerParams())
+    follower = GraphFollower(settings)
     out = []
     try:
         for k, item in enumerate(seq.frames()):
@@ -52,7 +52,7 @@ def test_the_target_is_taken_again_on_the_frame_after_a_jerk() -> None:
 
 
 def test_a_far_relock_needs_delta_id_on_n_id_consecutive_frames() -> None:
-    reid = ReIdentifier(TrackerParams(n_id=2, delta_id=0.6))
+    reid = ReIdentifier(ReidParams(n_id_frames=2, delta_id=0.6))
     box = (100.0, 100.0, 40.0, 100.0)
     assert not reid._confirmed(box, 0.5)  # above δ_switch, below δ_id: not evidence enough
     assert not reid._confirmed(box, 0.7)  # one confirmation

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from followbus.msgs.tracking import Prior
-from followbus.tracking.params import TrackerParams
+from followbus.tracking.params import ReidParams
 from followbus.tracking.reid import Candidate, ReIdentifier, TrackState
 
 TARGET = (100.0, 100.0, 40.0, 100.0)
@@ -29,7 +29,7 @@ class ScriptedClassifier:
 
 
 def tracking_reid(scores: dict[tuple[float, ...], float]) -> tuple[ReIdentifier, list[int]]:
-    reid = ReIdentifier(TrackerParams())
+    reid = ReIdentifier(ReidParams())
     reid.state = TrackState.TRACKING
     reid.identity = ScriptedClassifier(scores)
     embedded: list[int] = []

@@ -9,7 +9,7 @@ import pytest
 from followbus.msgs.perception import CameraMotion
 from followbus.tracking.egomotion import EgoMotionEstimator, EgoMotionParams, background_mask
 from followbus.tracking.kalman import KalmanCV, Predictor
-from followbus.tracking.params import TrackerParams
+from followbus.tracking.params import KalmanParams
 
 H, W = 480, 640
 
@@ -145,19 +145,19 @@ def test_warped_prior_lands_on_the_moved_target() -> None:
     assert motion is not None
     target = (300.0, 245.0)
 
-    def prior(params: TrackerParams, m):
+    def prior(params: KalmanParams, m):
         pred = Predictor(params)
         pred.kf.initialise(box0, t_ns=0)
         return pred, pred.predict(33_000_000, (0.0, 0.0), m)
 
-    pred, warped = prior(TrackerParams(camera_motion_compensation=True), motion)
+    pred, warped = prior(KalmanParams(camera_motion_compensation=True), motion)
     assert warped.centre == pytest.approx(target, abs=1.0) and warped.in_gate(target)
     assert pred.warped == 1
-    _, plain = prior(TrackerParams(camera_motion_compensation=False), motion)
+    _, plain = prior(KalmanParams(camera_motion_compensation=False), motion)
     assert plain.centre == pytest.approx((240.0, 220.0)) and not plain.in_gate(target)
     # A motion that does not start at the filter's stamp (a frame either side did not see) is not applied.
     stale = _motion_of(motion.matrix, -33_000_000, 33_000_000)
-    pred, unwarped = prior(TrackerParams(camera_motion_compensation=True), stale)
+    pred, unwarped = prior(KalmanParams(camera_motion_compensation=True), stale)
     assert unwarped.centre == pytest.approx((240.0, 220.0)) and pred.motion_mismatched == 1
 
 
@@ -172,7 +172,7 @@ def test_tracker_keeps_a_still_person_through_camera_shake() -> None:
     offsets = [0, 60, 0, 60, 0, 60, 0, 60, 10, 70, 20, 80, 30]
 
     def run(cmc: bool) -> tuple[list, int]:
-        follower = GraphFollower(TrackerParams(camera_motion_compensation=cmc), details=True)  # the graph, in-process
+        follower = GraphFollower({"camera_motion_compensation": cmc}, details=True)  # the graph, in-process
         out = []
         for k, o in enumerate(offsets):
             frame = np.ascontiguousarray(world[:, o:o + W])
@@ -299,10 +299,10 @@ def test_a_rival_hypothesis_raises_the_published_uncertainty() -> None:
     assert clean[1] is not None and clean[1].std_px < 0.5 and clean[1].rival_inliers == 0
 
 
-def _prior_after(motion: CameraMotion, coasting: bool, params: TrackerParams | None = None):
+def _prior_after(motion: CameraMotion, coasting: bool, params: KalmanParams | None = None):
     from followbus.tracking.reid import ReidResult, TrackState
 
-    pred = Predictor(params or TrackerParams())
+    pred = Predictor(params or KalmanParams())
     pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)).to_message())
     if coasting:
         pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED).to_message())
@@ -330,14 +330,14 @@ def test_a_doubtful_motion_widens_a_coasting_prior_instead_of_dragging_it() -> N
     assert doubt.centre[0] == pytest.approx(start[0], abs=1e-6)  # not dragged
     assert doubt.innovation_cov[0, 0] > sure.innovation_cov[0, 0] + 30.0**2  # the gate covers both
     off, _ = _prior_after(_motion(30.0, 12.0, 33_000_000, 66_000_000), coasting=True,
-                          params=TrackerParams(camera_motion_uncertainty=False))
+                          params=KalmanParams(camera_motion_uncertainty=False))
     assert off.centre[0] == pytest.approx(start[0] + 30.0, abs=1e-6)  # the ablation moves it with confidence
 
 
 def test_a_motion_spanning_a_frame_without_one_is_applied() -> None:
     from followbus.tracking.reid import ReidResult, TrackState
 
-    pred = Predictor(TrackerParams())
+    pred = Predictor(KalmanParams())
     pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)).to_message())
     pred.predict(33_000_000)  # the jerk's frame: no motion came
     pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED).to_message())

@@ -76,12 +76,11 @@ def test_learned_appearance_keeps_the_target_when_a_lookalike_walks_out_of_it():
     steps out from behind the target; colour and geometry score both alike (S_color 0.93 vs 0.94) and seed 000
     alone follows the walker from frame 94 on. With the learned appearance the output stays on the target."""
     from followbus.evaluation.graph_follower import GraphFollower
-    from followbus.tracking.params import TrackerParams
     from followbus.vision.detectors import make_detector
 
     seq = load_sequence(_data("sot/otb-human3"))
     detector = make_detector("yolox", input_size=640)
-    follower = GraphFollower(TrackerParams())  # the graph's tracking nodes, in-process
+    follower = GraphFollower()  # the graph's tracking nodes, in-process
     errors = {}
     for k in range(111):
         bgr = cv2.imread(str(seq.image_paths[k]))

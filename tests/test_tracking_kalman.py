@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from followbus.tracking.kalman import KalmanCV, Predictor, gate_ellipse_from_cov
-from followbus.tracking.params import TrackerParams
+from followbus.tracking.params import KalmanParams
 from followbus.tracking.reid import ReidResult, TrackState
 
 
@@ -119,7 +119,7 @@ def test_gate_ellipse_axes() -> None:
 
 
 def test_predictor_suspends_without_accepted_match() -> None:
-    params = TrackerParams()
+    params = KalmanParams()
     pred = Predictor(params)
     assert pred.predict(0) is None
     init = ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=(90.0, 40.0, 20.0, 40.0),
@@ -150,7 +150,7 @@ def test_predictor_suspends_without_accepted_match() -> None:
 
 
 def test_predictor_without_suspension_updates_on_best_candidate() -> None:
-    pred = Predictor(TrackerParams(suspend_updates=False))
+    pred = Predictor(KalmanParams(suspend_updates=False))
     pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=(90.0, 40.0, 20.0, 40.0),
                           source="init", init_box=(90.0, 40.0, 20.0, 40.0)).to_message())
     pred.predict(33_000_000)
@@ -161,7 +161,7 @@ def test_predictor_without_suspension_updates_on_best_candidate() -> None:
 
 
 def test_predictor_uses_stamp_gaps_and_learns_size_only_from_detections() -> None:
-    params = TrackerParams()
+    params = KalmanParams()
     pred = Predictor(params)
     box = (90.0, 40.0, 20.0, 40.0)
     pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=box, source="init",

@@ -9,7 +9,7 @@ import pytest
 
 from followbus.msgs.tracking import Prior
 from followbus.tracking.appearance import hs_histogram
-from followbus.tracking.params import TrackerParams
+from followbus.tracking.params import KalmanParams, ReidParams
 from followbus.tracking.reid import ReIdentifier, ReidResult, TrackState, appearance_weight, fuse, geometric_score
 
 W, H = 320, 240
@@ -40,7 +40,7 @@ def prior_at(box: tuple[float, float, float, float], t_ns: int, var_px2: float =
                  gate_chi2=9.488)
 
 
-def started(params: TrackerParams) -> tuple[ReIdentifier, np.ndarray]:
+def started(params: ReidParams) -> tuple[ReIdentifier, np.ndarray]:
     reid = ReIdentifier(params)
     frame = draw((TARGET, RED))
     res = reid.step(frame, dets(TARGET), None, None, 0, init_box=TARGET)
@@ -77,7 +77,7 @@ def test_geometric_score_formula() -> None:
 
 
 def test_accepts_target_and_rejects_distractor() -> None:
-    params = TrackerParams()
+    params = ReidParams()
     reid, template = started(params)
     distractor = (140.0, 100.0, 30.0, 60.0)  # 40 px right of the prediction: inside the gate
     frame = draw((TARGET, RED), (distractor, BLUE))
@@ -98,7 +98,7 @@ def test_accepts_target_and_rejects_distractor() -> None:
 
 
 def test_distractor_alone_is_rejected_and_state_goes_occluded_then_lost_then_reacquired() -> None:
-    params = TrackerParams(lost_after_ms=100.0, reacquired_hold_frames=2)
+    params = ReidParams(lost_after_ms=100.0, reacquired_hold_frames=2)
     reid, template = started(params)
     distractor = (140.0, 100.0, 30.0, 60.0)
     states, ms = [], [33, 66, 99, 132, 165]
@@ -121,7 +121,7 @@ def test_distractor_alone_is_rejected_and_state_goes_occluded_then_lost_then_rea
 
 
 def test_empty_frame_suspends() -> None:
-    params = TrackerParams()
+    params = ReidParams()
     reid, template = started(params)
     res = reid.step(draw(), dets(), prior_at(TARGET, 33 * MS), template, 33 * MS)
     assert res.state is TrackState.OCCLUDED
@@ -131,7 +131,7 @@ def test_empty_frame_suspends() -> None:
 def test_geometry_decides_when_appearance_is_unreliable() -> None:
     # Eq. 3: with C_t far below τ_occ, ω → 0 and a box matching the predicted position and
     # size is accepted on geometry alone (the paper's behaviour under degraded appearance).
-    params = TrackerParams()
+    params = ReidParams()
     reid, template = started(params)
     frame = draw((TARGET, (90, 90, 90)))  # same place, colour washed out
     res = reid.step(frame, dets(TARGET), prior_at(TARGET, 33 * MS), template, 33 * MS)
@@ -139,13 +139,13 @@ def test_geometry_decides_when_appearance_is_unreliable() -> None:
     assert res.s_geo == pytest.approx(1.0)
     assert res.accepted
     # Without the geometric cue (ablation) ω = 1 and the washed-out box is rejected.
-    reid2, template2 = started(TrackerParams(use_geometry=False))
+    reid2, template2 = started(ReidParams(use_geometry=False))
     res2 = reid2.step(frame, dets(TARGET), prior_at(TARGET, 33 * MS), template2, 33 * MS)
     assert res2.omega == 1.0 and res2.s_geo == 0.0 and not res2.accepted
 
 
 def test_motion_blob_candidates_when_no_detection_in_gate() -> None:
-    params = TrackerParams()
+    params = ReidParams()
     reid = ReIdentifier(params)
     black = (0, 0, 0)
     f0 = draw((TARGET, RED), bg=black)
@@ -167,7 +167,7 @@ def test_no_motion_blob_candidates_while_the_camera_pans(max_changed: float) -> 
     """Frame differencing on a panning camera marks the whole background as moving: with the default
     limit those blobs are not candidates (the target is held OCCLUDED on its prior); without it (1.0) a
     background blob gets accepted as the target."""
-    params = TrackerParams(motion_max_changed_fraction=max_changed)
+    params = ReidParams(motion_max_changed_fraction=max_changed)
     reid = ReIdentifier(params)
     blocks = np.random.default_rng(3).integers(0, 256, (H // 16, (W + 48) // 16, 3), dtype=np.uint8)
     texture = np.kron(blocks, np.ones((16, 16, 1), np.uint8))  # a cluttered background of 16-px patches
@@ -187,18 +187,18 @@ def test_no_motion_blob_candidates_while_the_camera_pans(max_changed: float) -> 
 def test_gate_excludes_far_detection_unless_disabled() -> None:
     far = (250.0, 20.0, 30.0, 60.0)  # ~170 px from the prediction, gate radius ~62 px
     frame = draw((far, RED))
-    reid, template = started(TrackerParams())
+    reid, template = started(ReidParams())
     res = reid.step(frame, dets(far), prior_at(TARGET, 33 * MS), template, 33 * MS)
     assert res.candidates == [] or all(c.source == "motion" for c in res.candidates)
     assert not res.accepted
-    reid, template = started(TrackerParams(use_gate=False))
+    reid, template = started(ReidParams(use_gate=False))
     res = reid.step(frame, dets(far), prior_at(TARGET, 33 * MS), template, 33 * MS)
     assert res.accepted and res.box == far
     assert res.candidates[0].maha_sq > 9.488
 
 
 def test_two_equal_matches_are_ambiguous() -> None:
-    params = TrackerParams()
+    params = ReidParams()
     reid, template = started(params)
     a = (100.0, 100.0, 30.0, 60.0)
     b = (100.0, 100.0, 30.0, 60.0)
@@ -208,7 +208,7 @@ def test_two_equal_matches_are_ambiguous() -> None:
 
 
 def test_initialisation_without_init_box() -> None:
-    params = TrackerParams()
+    params = ReidParams()
     reid = ReIdentifier(params)
     low = (150.0, 170.0, 30.0, 60.0)  # bottom-centre nearest the image bottom-centre
     high = (145.0, 10.0, 30.0, 60.0)
@@ -225,7 +225,7 @@ def test_initialisation_without_init_box() -> None:
 def test_restored_template_relocks_onto_matching_detection() -> None:
     # Prediction restarted (no prior) but the template was restored: the red target is chosen
     # although the blue person is nearer the image bottom-centre.
-    params = TrackerParams()
+    params = ReidParams()
     template = hs_histogram(draw((TARGET, RED)), TARGET)
     near = (145.0, 175.0, 30.0, 60.0)
     reid = ReIdentifier(params)
@@ -238,7 +238,7 @@ def test_restored_template_relocks_onto_matching_detection() -> None:
 
 @pytest.mark.parametrize("global_search", [True, False])
 def test_lost_target_is_re_detected_outside_the_gate_only_with_global_search(global_search: bool) -> None:
-    params = TrackerParams(lost_after_ms=100.0, global_search_when_lost=global_search)
+    params = ReidParams(lost_after_ms=100.0, global_search_when_lost=global_search)
     reid, template = started(params)
     for t in (33, 66, 99, 132):  # nothing visible: OCCLUDED, then LOST after 100 ms
         res = reid.step(draw(), dets(), prior_at(TARGET, t * MS), template, t * MS)
@@ -256,13 +256,13 @@ def test_a_restarted_reid_initialises_on_the_detection_the_prior_expects() -> No
     gated detection nearest the prior, not whoever stands nearest the image centre."""
     from followbus.tracking.kalman import Predictor
 
-    pred = Predictor(TrackerParams())
+    pred = Predictor(KalmanParams())
     left, centre = (40.0, 60.0, 40.0, 100.0), (140.0, 60.0, 40.0, 100.0)
     pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=left, source="init",
                           init_box=left).to_message())
     prior = pred.predict(33_000_000)
     frame = np.zeros((240, 320, 3), np.uint8)
-    res = ReIdentifier(TrackerParams()).step(frame, dets(left, centre), prior, None, 33_000_000)
+    res = ReIdentifier(ReidParams()).step(frame, dets(left, centre), prior, None, 33_000_000)
     assert res.init_box == left and res.source == "prior"
 
 
@@ -273,12 +273,12 @@ def test_after_a_prediction_restart_reid_reinitialises_where_its_target_just_was
     than lost_after_ms it falls back to bottom-centre."""
     frame = np.zeros((240, 320, 3), np.uint8)
     target, passer = (40.0, 60.0, 40.0, 100.0), (140.0, 120.0, 50.0, 115.0)  # the passer-by: nearer, centred
-    reid = ReIdentifier(TrackerParams(lost_after_ms=500.0))
+    reid = ReIdentifier(ReidParams(lost_after_ms=500.0))
     assert reid.step(frame, dets(target), None, None, 0, init_box=target).accepted
     moved = (44.0, 61.0, 40.0, 100.0)
     res = reid.step(frame, dets(moved, passer), None, None, 100 * MS)
     assert res.accepted and res.box == moved and res.source == "last"
-    later = ReIdentifier(TrackerParams(lost_after_ms=500.0))
+    later = ReIdentifier(ReidParams(lost_after_ms=500.0))
     later.step(frame, dets(target), None, None, 0, init_box=target)
     assert later.step(frame, dets(moved, passer), None, None, 900 * MS).box == passer  # too old to trust
 
@@ -287,7 +287,7 @@ def test_adaptive_gate_grows_for_fast_or_weakly_detected_targets() -> None:
     """Seed 002 §3.2: k = 1 for a slow target last seen on a confident detection, up to 1.5 (the gate's χ²
     × 2.25) when it moves fast in the image or its last detection was weak; a candidate just outside the base
     gate is then taken in."""
-    params = TrackerParams()
+    params = ReidParams()
     reid, template = started(params)
     slow = prior_at(TARGET, 33_000_000)
     assert reid.gate_scale(slow) == 1.0  # the initial box: nothing to doubt
@@ -304,7 +304,7 @@ def test_adaptive_gate_grows_for_fast_or_weakly_detected_targets() -> None:
     moved = (TARGET[0] + math.sqrt(12.0 * 400.0), TARGET[1], TARGET[2], TARGET[3])
     result = reid.step(draw((moved, RED)), dets(moved), prior_at(TARGET, 66_000_000), template, 66_000_000)
     assert result.accepted and result.box == pytest.approx(moved, abs=1e-3)
-    off = ReIdentifier(TrackerParams(adaptive_gate=False))
+    off = ReIdentifier(ReidParams(adaptive_gate=False))
     assert off.gate_scale(fast) == 1.0
 
 
@@ -312,7 +312,7 @@ def test_low_score_detections_are_a_second_stage_never_a_training_sample() -> No
     """Seed 002 / ByteTrack: the partly hidden target scores under the detector's threshold; with no detection
     in the gate matching, re-ID takes the low-score box that matches (not secure: the template and the
     classifier learn nothing from it); with a matching detection the low-score boxes are not looked at."""
-    params = TrackerParams()
+    params = ReidParams()
     reid, template = started(params)
     frame = draw((TARGET, RED))
     low = np.array([(*TARGET, 0.15)], np.float32)
@@ -323,7 +323,7 @@ def test_low_score_detections_are_a_second_stage_never_a_training_sample() -> No
     result = reid.step(frame, dets(TARGET), prior_at(TARGET, 66_000_000), template, 66_000_000,
                        low_detections=np.array([(TARGET[0] + 5, TARGET[1], TARGET[2], TARGET[3], 0.2)], np.float32))
     assert result.accepted and result.source == "detection" and len(result.candidates) == 1
-    off, template_off = started(TrackerParams(low_score_stage=False))
+    off, template_off = started(ReidParams(low_score_stage=False))
     result = off.step(frame, dets(), prior_at(TARGET, 33_000_000), template_off, 33_000_000, low_detections=low)
     assert not any(c.source == "low-score" for c in result.candidates)
 
@@ -332,7 +332,7 @@ def test_low_score_stage_keeps_bytetracks_caution() -> None:
     """ByteTrack's second stage (seed 002): only for a target matched on the previous frame and only a low-score
     box overlapping the predicted box by low_score_min_iou: an occluded target's gate may hold a stranger's weak
     box, and a weak box inside the gate but beside the prediction is someone else."""
-    params = TrackerParams()
+    params = ReidParams()
     reid, template = started(params)
     frame = draw((TARGET, RED))
     beside = (TARGET[0] + 18.0, TARGET[1], TARGET[2], TARGET[3])  # in the gate, IoU 0.25 with the prediction
@@ -347,7 +347,7 @@ def test_low_score_stage_keeps_bytetracks_caution() -> None:
     assert reid.step(frame, dets(TARGET), prior_at(TARGET, 99 * MS), template, 99 * MS).accepted
     result = reid.step(frame, dets(), prior_at(TARGET, 132 * MS), template, 132 * MS, low_detections=on)
     assert result.accepted and result.source == "low-score"
-    loose = ReIdentifier(TrackerParams(low_score_min_iou=0.0))
+    loose = ReIdentifier(ReidParams(low_score_min_iou=0.0))
     loose.step(frame, dets(TARGET), None, None, 0, init_box=TARGET)
     assert loose.step(draw((beside, RED)), dets(), prior_at(TARGET, 33 * MS), template, 33 * MS,
                       low_detections=weak).accepted

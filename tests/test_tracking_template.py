@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from followbus.tracking.appearance import hs_histogram
-from followbus.tracking.params import TrackerParams
+from followbus.tracking.params import TemplateParams
 from followbus.tracking.reid import ReidResult, TrackState
 from followbus.tracking.template import TemplateUpdater
 
@@ -29,7 +29,7 @@ def result(frame: np.ndarray, state: TrackState, accepted: bool, secure: bool) -
                       best_box=BOX, source="detection", candidate_hist=hs_histogram(frame, BOX)).to_message()
 
 
-def initialised(params: TrackerParams) -> tuple[TemplateUpdater, np.ndarray]:
+def initialised(params: TemplateParams) -> tuple[TemplateUpdater, np.ndarray]:
     tu = TemplateUpdater(params)
     red = frame_with((0, 0, 255))
     hist, eta, _ = tu.step(red, ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX,
@@ -39,7 +39,7 @@ def initialised(params: TrackerParams) -> tuple[TemplateUpdater, np.ndarray]:
 
 
 def test_update_follows_alg1_line12() -> None:
-    tu, m0 = initialised(TrackerParams())
+    tu, m0 = initialised(TemplateParams())
     blue = frame_with((255, 0, 0))
     m1, eta, p = tu.step(blue, result(blue, TrackState.TRACKING, True, True))
     assert p == 0.0 and eta == pytest.approx(0.02)
@@ -56,7 +56,7 @@ def test_update_follows_alg1_line12() -> None:
      (TrackState.REACQUIRED, True, False), (TrackState.TRACKING, True, False)],
 )
 def test_eta_zero_when_not_secure(state: TrackState, accepted: bool, secure: bool) -> None:
-    tu, m0 = initialised(TrackerParams())
+    tu, m0 = initialised(TemplateParams())
     blue = frame_with((255, 0, 0))
     m1, eta, _ = tu.step(blue, result(blue, state, accepted, secure))
     assert eta == 0.0
@@ -66,7 +66,7 @@ def test_eta_zero_when_not_secure(state: TrackState, accepted: bool, secure: boo
 def test_eta_decreases_with_specular_penalty() -> None:
     etas, ps = [], []
     for rows in (0, 2, 5, 10, 20):
-        tu, _ = initialised(TrackerParams())
+        tu, _ = initialised(TemplateParams())
         frame = frame_with((0, 0, 255), specular_rows=rows)
         _, eta, p = tu.step(frame, result(frame, TrackState.TRACKING, True, True))
         etas.append(eta)
@@ -78,10 +78,10 @@ def test_eta_decreases_with_specular_penalty() -> None:
 
 def test_ablations() -> None:
     frame = frame_with((0, 0, 255), specular_rows=10)  # P = 0.5
-    tu, _ = initialised(TrackerParams(adaptive_eta=False))
+    tu, _ = initialised(TemplateParams(adaptive_eta=False))
     _, eta, p = tu.step(frame, result(frame, TrackState.TRACKING, True, True))
     assert p == pytest.approx(0.5) and eta == pytest.approx(0.02)  # fixed η_base
-    tu, m0 = initialised(TrackerParams(suspend_updates=False))
+    tu, m0 = initialised(TemplateParams(suspend_updates=False))
     blue = frame_with((255, 0, 0))
     m1, eta, _ = tu.step(blue, result(blue, TrackState.OCCLUDED, False, False))
     assert eta == pytest.approx(0.02)  # the rejected best candidate is blended in anyway
@@ -89,29 +89,29 @@ def test_ablations() -> None:
 
 
 def test_save_load_roundtrip(tmp_path: Path) -> None:
-    tu, _ = initialised(TrackerParams())
+    tu, _ = initialised(TemplateParams())
     blue = frame_with((255, 0, 0))
     m1, _, _ = tu.step(blue, result(blue, TrackState.TRACKING, True, True))
     path = tmp_path / "template.npz"
     tu.save(path)
-    restored = TemplateUpdater(TrackerParams())
+    restored = TemplateUpdater(TemplateParams())
     assert not restored.initialised
     np.testing.assert_array_equal(restored.load(path), m1)
     assert restored.initialised
     with pytest.raises(ValueError, match="shape"):
-        TemplateUpdater(TrackerParams(bins_h=8)).load(path)
+        TemplateUpdater(TemplateParams(bins_h=8)).load(path)
     with pytest.raises(ValueError):
-        TemplateUpdater(TrackerParams()).save(tmp_path / "x.npz")
+        TemplateUpdater(TemplateParams()).save(tmp_path / "x.npz")
 
 
 def test_step_before_initialisation_is_inert() -> None:
-    tu = TemplateUpdater(TrackerParams())
+    tu = TemplateUpdater(TemplateParams())
     frame = frame_with((0, 0, 255))
     assert tu.step(frame, result(frame, TrackState.TRACKING, True, True)) == (None, 0.0, 0.0)
 
 
 def test_relock_with_existing_template_keeps_it() -> None:
-    tu, m0 = initialised(TrackerParams())
+    tu, m0 = initialised(TemplateParams())
     blue = frame_with((255, 0, 0))
     relock = ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX, source="template",
                         init_box=BOX).to_message()

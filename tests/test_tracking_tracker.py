@@ -9,7 +9,7 @@ import pytest
 from followbus.evaluation.graph_follower import GraphFollower
 from followbus.tracking.init import frame_difference_roi, motion_blobs, nearest_to_centre_bottom, to_grey
 from followbus.tracking.kalman import Predictor
-from followbus.tracking.params import TrackerParams
+from followbus.tracking.params import InvalidParam, KalmanParams, ReidParams, TemplateParams
 from followbus.tracking.reid import ReIdentifier
 from followbus.tracking.template import TemplateUpdater
 from followbus.tracking.tracker import output_box
@@ -57,7 +57,7 @@ def centre_error(box, gt: tuple[float, float]) -> float:
 
 def test_tracker_through_occlusion_with_distractor() -> None:
     """The graph's tracking nodes (run in-process, as `followbus eval` runs them) through an occlusion."""
-    frames = run(GraphFollower(TrackerParams(), details=True))
+    frames = run(GraphFollower(details=True))
     # Initialised on frame 0 from the detection nearest the image bottom-centre (the target).
     assert frames[0][3].measurement.init_box is not None
     assert centre_error(frames[0][3].measurement.init_box, frames[0][2]) == 0.0
@@ -91,10 +91,9 @@ def test_tracker_through_occlusion_with_distractor() -> None:
 def test_the_graph_is_deterministic_and_is_the_seeds_order_of_the_pure_modules() -> None:
     """Two runs of the graph's nodes are identical, and equal the pure modules driven by hand in seed 000's
     order (prior k after measurement k-1, re-ID against the template of k-1), bit for bit."""
-    a = run(GraphFollower(TrackerParams(), details=True))
-    b = run(GraphFollower(TrackerParams(), details=True))
-    params = TrackerParams()
-    predictor, reid, template = Predictor(params), ReIdentifier(params), TemplateUpdater(params)
+    a = run(GraphFollower(details=True))
+    b = run(GraphFollower(details=True))
+    predictor, reid, template = Predictor(KalmanParams()), ReIdentifier(ReidParams()), TemplateUpdater(TemplateParams())
     hist = None
     for k in range(N_FRAMES):
         img, dets, _, _ = scene(k)
@@ -120,7 +119,7 @@ def test_the_graph_is_deterministic_and_is_the_seeds_order_of_the_pure_modules()
 
 
 def test_explicit_init_box_and_lost() -> None:
-    follower = GraphFollower(TrackerParams(lost_after_ms=200.0), details=True)
+    follower = GraphFollower({"lost_after_ms": 200.0}, details=True)
     img, dets, _, _ = scene(0)
     box, info = follower.step(img, dets, 0, init_box=(40.0, 170.0, 30.0, 60.0))
     assert info["state"] == "TRACKING" and box == (40.0, 170.0, 30.0, 60.0)
@@ -133,7 +132,7 @@ def test_explicit_init_box_and_lost() -> None:
 
 
 def test_no_target_before_initialisation() -> None:
-    follower = GraphFollower(TrackerParams(), details=True)
+    follower = GraphFollower(details=True)
     empty = np.full((H, W, 3), (40, 90, 40), np.uint8)
     box, info = follower.step(empty, np.zeros((0, 5), np.float32), 0)
     assert info["state"] == "UNINITIALISED" and box is None and not follower.last.prior.initialised
@@ -157,14 +156,18 @@ def test_init_helpers() -> None:
     assert frame_difference_roi(prev, faint, 25, 5) is None
 
 
-def test_params_table1_defaults_and_dict_roundtrip() -> None:
-    p = TrackerParams()
-    assert (p.diff_threshold, p.morph_kernel_px, p.bins_h, p.bins_s) == (25, 5, 16, 8)
-    assert (p.dt_ms, p.gate_chi2, p.reid_threshold, p.tau_occ) == (33.0, 9.488, 0.75, 0.60)
-    assert (p.tau_v, p.tau_s, p.eta_base) == (220, 45, 0.02)
-    assert TrackerParams.from_dict(p.to_dict()) == p
-    assert TrackerParams.from_dict({"gamma": 5.0}).gamma == 5.0
-    with pytest.raises(ValueError, match="gate_chi"):
-        TrackerParams.from_dict({"gate_chi": 9.0})
-    with pytest.raises(ValueError, match="reid_threshold"):
-        TrackerParams(reid_threshold=1.5)
+def test_params_table1_defaults_each_node_its_own() -> None:
+    kalman, reid, template = KalmanParams(), ReidParams(), TemplateParams()
+    assert (reid.diff_threshold, reid.morph_kernel_px, reid.bins_h, reid.bins_s) == (25, 5, 16, 8)
+    assert (kalman.dt_ms, kalman.gate_chi2, reid.reid_threshold, reid.tau_occ) == (33.0, 9.488, 0.75, 0.60)
+    assert (template.tau_v, template.tau_s, template.eta_base) == (220, 45, 0.02)
+    # A node declares only what it reads: re-ID gates with the prior's χ², so it has no gate_chi2 of its own.
+    assert not hasattr(reid, "gate_chi2") and not hasattr(kalman, "reid_threshold")
+    # A value two nodes read is declared once (a shared base), so their defaults cannot drift apart.
+    for name, classes in (("dt_ms", (KalmanParams, ReidParams)), ("bins_h", (ReidParams, TemplateParams)),
+                          ("suspend_updates", (KalmanParams, TemplateParams))):
+        owners = {next(b for b in c.__mro__ if name in b.__dict__.get("__annotations__", {})) for c in classes}
+        assert len(owners) == 1, (name, owners)
+    with pytest.raises(InvalidParam, match="reid_threshold") as raised:
+        ReidParams(reid_threshold=1.5)
+    assert raised.value.key == "reid_threshold"  # graph validation points at that parameter's line

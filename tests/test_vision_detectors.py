@@ -266,7 +266,7 @@ def test_int8_and_512_models_find_the_people_the_640_model_finds() -> None:
 def test_presets_name_what_graph_params_amount_to() -> None:
     from followbus.vision.detector_presets import DETECTOR_PRESETS, apply_detector_preset, preset_of
 
-    graph_like = {"backend": "auto", "input_size": 416, "threads": 1}
+    graph_like = {"backend": "auto", "input_size_px": 416, "threads": 1}
     assert preset_of(graph_like) == "yolox"
     assert apply_detector_preset(dict(graph_like), "graph") == graph_like
     for name in DETECTOR_PRESETS:

@@ -161,7 +161,7 @@ def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: 
     try:
         model = resolve_detector_model(backend, model_dir=params.get("model_dir") or None,
                                        model_file=params.get("model_file") or None,
-                                       input_size=int(params.get("input_size", 416)))
+                                       input_size=int(params.get("input_size_px", 416)))
     except DetectorUnavailable as exc:
         print(f"followbus demo: {exc}", file=sys.stderr, flush=True)
         return 2

@@ -42,11 +42,12 @@ import cv2
 import numpy as np
 
 from ..msgs.perception import CameraMotion
+from .params import InvalidParam, check_ranges
 
 logger = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
+@dataclass
 class EgoMotionParams:
     """Parameters of the camera-motion estimate. Seed 002 gives no values; each is chosen and explained here."""
 
@@ -94,20 +95,21 @@ class EgoMotionParams:
     max_reference_age_frames: int = 3
 
     def __post_init__(self) -> None:
+        check_ranges(self, positive=("corner_quality", "min_corner_distance_px", "ransac_reproj_px",
+                                     "max_scale_change"),
+                     non_negative=("lk_levels", "box_margin"), unit_interval=("min_inlier_fraction",))
         if self.min_work_width_px < 32:
-            raise ValueError(f"EgoMotionParams.min_work_width_px must be >= 32, got {self.min_work_width_px!r}")
+            raise InvalidParam("min_work_width_px", f"EgoMotionParams.min_work_width_px must be >= 32, got "
+                                                    f"{self.min_work_width_px!r}")
         for name in ("max_corners", "lk_window_px", "min_inliers"):
             if getattr(self, name) < 3:
-                raise ValueError(f"EgoMotionParams.{name} must be >= 3, got {getattr(self, name)!r}")
-        for name in ("corner_quality", "min_corner_distance_px", "ransac_reproj_px", "max_scale_change"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"EgoMotionParams.{name} must be > 0, got {getattr(self, name)!r}")
-        if self.lk_levels < 0 or self.box_margin < 0 or not 0.0 <= self.min_inlier_fraction <= 1.0:
-            raise ValueError("EgoMotionParams: lk_levels and box_margin must be >= 0, min_inlier_fraction in [0, 1]")
-        if not 0.0 <= self.static_decay < 1.0 or self.static_grid_cols < 1 or self.static_grid_rows < 1:
-            raise ValueError("EgoMotionParams: static_decay must be in [0, 1), the static grid at least 1x1")
+                raise InvalidParam(name, f"EgoMotionParams.{name} must be >= 3, got {getattr(self, name)!r}")
+        if not 0.0 <= self.static_decay < 1.0:
+            raise InvalidParam("static_decay", f"EgoMotionParams.static_decay must be in [0, 1), got "
+                                               f"{self.static_decay!r}")
+        check_ranges(self, positive=("static_grid_cols", "static_grid_rows"))
         if self.model not in ("similarity", "affine"):
-            raise ValueError(f"EgoMotionParams.model must be 'similarity' or 'affine', got {self.model!r}")
+            raise InvalidParam("model", f"EgoMotionParams.model must be 'similarity' or 'affine', got {self.model!r}")
 
 
 def transform_scale(matrix: np.ndarray) -> float:

@@ -19,7 +19,7 @@ import numpy as np
 from ..msgs.box import Box, box_array, box_centre, centre_size_to_box
 from ..msgs.perception import CameraMotion
 from ..msgs.tracking import Measurement, Prior, Track, mahalanobis_sq_from_cov
-from .params import TrackerParams
+from .params import KalmanParams
 
 logger = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ class KalmanCV:
         self.initialised = False
 
     @classmethod
-    def from_params(cls, params: TrackerParams) -> KalmanCV:
+    def from_params(cls, params: KalmanParams) -> KalmanCV:
         return cls(
             accel_std_px_s2=params.accel_std_px_s2,
             r0_px2=params.r0_px2,
@@ -233,8 +233,8 @@ class Predictor:
     measurement update (§2.3, Alg. 1 line 17) is simply not updating when nothing was accepted.
     """
 
-    def __init__(self, params: TrackerParams | None = None) -> None:
-        self.params = params or TrackerParams()
+    def __init__(self, params: KalmanParams | None = None) -> None:
+        self.params = params or KalmanParams()
         self.kf = KalmanCV.from_params(self.params)
         # Priors warped by the camera motion, and motions not applied because they do not start at the
         # filter's stamp (a frame the motion estimate or this filter did not see).

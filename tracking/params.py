@@ -1,40 +1,81 @@
-"""Parameters of the seed-000 target tracker (paper Table 1 plus documented additions).
+"""Parameters of the seed-000 target tracker (paper Table 1 plus documented additions), one class per node.
 
-Table 1 values are the defaults of the first block. Everything after it is not given by the
-paper and is chosen here; each choice is explained next to the field. Pixel values assume the
-paper's 1280x720 camera; the H/S/V thresholds use OpenCV's 8-bit HSV scale (H 0-179, S,V 0-255).
+Each tracking node reads its own class and nothing else, so a setting a node never reads is an unknown
+parameter of that node (graph validation names its file:line): :class:`KalmanParams` is the prediction node's
+(tracking/kalman.py), :class:`ReidParams` the re-ID node's (tracking/reid.py), :class:`TemplateParams` the
+template node's (tracking/template.py). Every default is written once, here: a value two nodes read (Δt, the
+histogram's bins, the update-suspension switch) is a field of a small base class both inherit, not a copy.
+
+Table 1 values are marked "Table 1"; everything else is not given by the paper and is chosen here, each choice
+explained next to its field. Pixel values assume the paper's 1280x720 camera; the H/S/V thresholds use OpenCV's
+8-bit HSV scale (H 0-179, S,V 0-255).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
 
-@dataclass(frozen=True)
-class TrackerParams:
-    # --- Table 1 -------------------------------------------------------------------------
-    diff_threshold: int = 25  # Thresh_diff: frame-difference grey-level threshold (§2.1)
-    morph_kernel_px: int = 5  # K_morph: 5x5 morphology kernel for motion ROIs (§2.1)
-    bins_h: int = 16  # Bins_H: hue quantisation of the H-S histogram (§2.2.1)
-    bins_s: int = 8  # Bins_S: saturation quantisation (§2.2.1)
-    dt_ms: float = 33.0  # Δt (Eq. 5): only used when no previous stamp exists
-    gate_chi2: float = 9.488  # χ²_p of the Mahalanobis gate (Eq. 8)
-    reid_threshold: float = 0.75  # Thresh_reid on M_fuse (Alg. 1 line 9)
-    tau_occ: float = 0.60  # τ_occ: sigmoid centre of the appearance weight (Eq. 3)
-    tau_v: int = 220  # τ_v: specular Value threshold (Eq. 9)
-    tau_s: int = 45  # τ_s: specular Saturation threshold (Eq. 9)
-    eta_base: float = 0.02  # η_base: base template learning rate (Eq. 10)
+class InvalidParam(ValueError):
+    """A parameter value out of its range; ``key`` names the parameter, so graph validation points at its line."""
 
-    # --- not in Table 1 ------------------------------------------------------------------
-    # Eq. 3 gain. Bhattacharyya scores of the same person typically lie in 0.8-0.95 and of other
-    # people in 0.2-0.5; γ=10 maps C_t=0.9 to ω≈0.95 and C_t=0.3 to ω≈0.05, i.e. the sigmoid
-    # switches over the range the coefficient actually spans rather than acting as a step.
-    gamma: float = 10.0
-    # Eq. 10 penalty gain: 10% specular pixels cut η to 37% of η_base, 30% to 5%, 50% to <1%,
-    # which matches the paper's "η_k → 0 under severe reflections".
-    lambda_specular: float = 10.0
+    def __init__(self, key: str, message: str):
+        self.key = key
+        super().__init__(message)
+
+
+def check_ranges(params: Any, *, positive: Iterable[str] = (), non_negative: Iterable[str] = (),
+                 unit_interval: Iterable[str] = ()) -> None:
+    """Raise InvalidParam for the first named field of ``params`` outside its range."""
+    what = type(params).__name__
+    rules = ((positive, lambda v: v > 0, "> 0"), (non_negative, lambda v: v >= 0, ">= 0"),
+             (unit_interval, lambda v: 0.0 <= v <= 1.0, "in [0, 1]"))
+    for names, holds, bound in rules:
+        for name in names:
+            value = getattr(params, name)
+            if not holds(value):
+                raise InvalidParam(name, f"{what}.{name} must be {bound}, got {value!r}")
+
+
+def fields_of(cls: type) -> frozenset[str]:
+    """The parameter names a params class declares."""
+    return frozenset(f.name for f in dataclasses.fields(cls))
+
+
+# --- shared by two nodes: each default once ------------------------------------------------------
+
+
+@dataclass
+class _FramePeriod:
+    dt_ms: float = 33.0  # Table 1 Δt (Eq. 5): the frame period assumed when no previous stamp exists
+
+
+@dataclass
+class _ColourHistogram:
+    # Table 1 Bins_H x Bins_S: hue and saturation quantisation of the H-S histogram (§2.2.1). Re-ID's S_color and
+    # the template's M must use the same bins.
+    bins_h: int = 16
+    bins_s: int = 8
+
+
+@dataclass
+class _UpdateSuspension:
+    # Ablation switch (paper Table 6): False: the Kalman filter and the template also update on a rejected best
+    # candidate.
+    suspend_updates: bool = True
+
+
+# --- prediction ----------------------------------------------------------------------------------
+
+
+@dataclass
+class KalmanParams(_FramePeriod, _UpdateSuspension):
+    """What the prediction node's constant-velocity Kalman filter reads (seed 000 Eq. 4-8, seed 002 §3.3)."""
+
+    gate_chi2: float = 9.488  # Table 1 χ²_p of the Mahalanobis gate (Eq. 8); re-ID gates with the prior's
     # Kalman process noise (white acceleration, Eq. 4 W_k): a walking person at 2-4 m changes
     # image velocity by a few hundred px/s within a second at 1280x720.
     accel_std_px_s2: float = 500.0
@@ -46,6 +87,40 @@ class TrackerParams:
     init_velocity_std_px_s: float = 300.0
     # Box size (w, h) is smoothed separately from the centre filter: w,h ← (1-a)·w,h + a·z_wh.
     size_smoothing: float = 0.3
+    # Seed 002 §3.3 (optical-flow-corrected Kalman): warp the prior by the frame-to-frame image motion
+    # measured on the background (tracking/egomotion.py) before gating, so a panning, turning or zooming
+    # camera does not carry the target out of a gate that is only right in a still image. graph.yaml runs
+    # the egomotion node that measures it; `followbus eval --ablations` scores "followbus w/o camera-motion
+    # compensation".
+    camera_motion_compensation: bool = True
+    # Issue 22: the camera motion's uncertainty (egomotion's std_px) widens the prior's position covariance by
+    # std² (and so the gate); a fit more doubtful than camera_motion_doubt_px does not move a coasting prior
+    # (no detection matched on the previous frame), it widens it by the displacement it would have applied.
+    # (A frame without a transform is not widened: whether one came in time depends on live timing.)
+    camera_motion_uncertainty: bool = True
+    camera_motion_doubt_px: float = 4.0
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("dt_ms", "gate_chi2", "r0_px2", "camera_motion_doubt_px"),
+                     non_negative=("accel_std_px_s2", "kappa_px2_per_mps2", "init_velocity_std_px_s"),
+                     unit_interval=("size_smoothing",))
+
+
+# --- re-ID ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class ReidParams(_FramePeriod, _ColourHistogram):
+    """What the re-ID node's Algorithm 1 reads (seed 000 Alg. 1 with seeds 001 and 002)."""
+
+    diff_threshold: int = 25  # Table 1 Thresh_diff: frame-difference grey-level threshold (§2.1)
+    morph_kernel_px: int = 5  # Table 1 K_morph: 5x5 morphology kernel for motion ROIs (§2.1)
+    reid_threshold: float = 0.75  # Table 1 Thresh_reid on M_fuse (Alg. 1 line 9)
+    tau_occ: float = 0.60  # Table 1 τ_occ: sigmoid centre of the appearance weight (Eq. 3)
+    # Eq. 3 gain. Bhattacharyya scores of the same person typically lie in 0.8-0.95 and of other
+    # people in 0.2-0.5; γ=10 maps C_t=0.9 to ω≈0.95 and C_t=0.3 to ω≈0.05, i.e. the sigmoid
+    # switches over the range the coefficient actually spans rather than acting as a step.
+    gamma: float = 10.0
     # S_geo Euclidean scale as a fraction of the predicted box diagonal (see reid.geometric_score).
     geo_scale: float = 0.5
     # A match is "ambiguous" (not secure, template frozen) if another candidate's M_fuse is
@@ -81,10 +156,11 @@ class TrackerParams:
     delta_switch: float = 0.35  # δ_switch: below it a box is taken for someone else (seed 001 §III-D)
     # Issue 22: re-locking after an occlusion onto a person far from the prior (more than
     # relock_far_height_fraction of the target's height from its predicted centre) needs identification-level
-    # evidence: the classifier's score at δ_id or above on n_id consecutive frames (seed 001's N_id), not δ_switch.
+    # evidence: the classifier's score at δ_id or above on n_id_frames consecutive frames (seed 001's N_id), not
+    # δ_switch.
     far_relock_needs_identity: bool = True
     relock_far_height_fraction: float = 0.5
-    n_id: int = 2
+    n_id_frames: int = 2
     # While TRACKING, colour + geometry's choice stands when the classifier scores every contender below δ_switch,
     # and a lone contender is not even scored. Both fail in a crossing or a group: the target hides behind another
     # person of the same colours, the detector drops or merges it, and the lone (or best) detection in the gate is
@@ -100,69 +176,48 @@ class TrackerParams:
     # Number of accepted frames reported as REACQUIRED before returning to TRACKING; the
     # template is not updated during them (the re-lock is not yet confirmed).
     reacquired_hold_frames: int = 3
-
     # Once LOST the prior no longer says where the target is (a panning camera, a long occlusion):
     # re-detect over the whole image instead of inside the gate. Candidates outside the gate get
     # S_geo = 0, so only a strong appearance match (ω → 1 by Eq. 3) can pass T_reid.
     global_search_when_lost: bool = True
-
     # Alg. 1 line 2 (background subtraction) presumes a still background. When more than this fraction
     # of the whole frame changed since the previous one, the camera moved (a pan, a turning robot) and the
     # blobs are background, not the target: no motion candidates that frame. A person walking through a
     # still scene changes a few % of a 640x480 frame (the synthetic scenes, even with ego-motion: ≤ 12 %);
     # a camera panning with the target changes 30-55 % (otb-couple).
     motion_max_changed_fraction: float = 0.2
-
-    # Seed 002 §3.3 (optical-flow-corrected Kalman): warp the prior by the frame-to-frame image motion
-    # measured on the background (tracking/egomotion.py) before gating, so a panning, turning or zooming
-    # camera does not carry the target out of a gate that is only right in a still image. graph.yaml runs
-    # the egomotion node that measures it; `followbus eval --ablations` scores "followbus w/o camera-motion
-    # compensation".
-    camera_motion_compensation: bool = True
-    # Issue 22: the camera motion's uncertainty (egomotion's std_px) widens the prior's position covariance by
-    # std² (and so the gate); a fit more doubtful than camera_motion_doubt_px does not move a coasting prior
-    # (no detection matched on the previous frame), it widens it by the displacement it would have applied.
-    # (A frame without a transform is not widened: whether one came in time depends on live timing.)
-    camera_motion_uncertainty: bool = True
-    camera_motion_doubt_px: float = 4.0
-
-    # --- ablation switches (paper Table 6) ------------------------------------------------
+    # Ablation switches (paper Table 6).
     use_geometry: bool = True  # False: S_geo off, ω = 1 (M_fuse = S_color)
     use_gate: bool = True  # False: no Mahalanobis gate, every detection/blob is a candidate
-    suspend_updates: bool = True  # False: Kalman and template also update on rejected best candidate
-    adaptive_eta: bool = True  # False: η = η_base on every update (no specular penalty)
 
     def __post_init__(self) -> None:
-        positive = (
-            "morph_kernel_px", "bins_h", "bins_s", "dt_ms", "gate_chi2", "gamma", "r0_px2",
-            "lost_after_ms", "motion_max_changed_fraction", "identity_sample_every_frames", "identity_max_crops",
-            "ridge_lambda", "gate_scale_max", "gate_fast_height_fraction", "camera_motion_doubt_px",
-            "relock_far_height_fraction", "n_id",
-        )
-        for name in positive:
-            if getattr(self, name) <= 0:
-                raise ValueError(f"TrackerParams.{name} must be > 0, got {getattr(self, name)!r}")
-        non_negative = (
-            "diff_threshold", "eta_base", "lambda_specular", "accel_std_px_s2", "kappa_px2_per_mps2",
-            "init_velocity_std_px_s", "geo_scale", "ambiguity_margin", "min_blob_area_px",
-            "reacquired_hold_frames", "identity_margin", "identity_veto_after_crowd_frames",
-        )
-        for name in non_negative:
-            if getattr(self, name) < 0:
-                raise ValueError(f"TrackerParams.{name} must be >= 0, got {getattr(self, name)!r}")
-        for name in ("reid_threshold", "tau_occ", "eta_base", "size_smoothing", "delta_iou", "delta_id",
-                     "delta_switch", "low_score_min_iou"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"TrackerParams.{name} must be in [0, 1], got {getattr(self, name)!r}")
+        check_ranges(
+            self,
+            positive=("morph_kernel_px", "bins_h", "bins_s", "dt_ms", "gamma", "lost_after_ms",
+                      "motion_max_changed_fraction", "identity_sample_every_frames", "identity_max_crops",
+                      "ridge_lambda", "gate_scale_max", "gate_fast_height_fraction", "relock_far_height_fraction",
+                      "n_id_frames"),
+            non_negative=("diff_threshold", "geo_scale", "ambiguity_margin", "min_blob_area_px",
+                          "reacquired_hold_frames", "identity_margin", "identity_veto_after_crowd_frames"),
+            unit_interval=("reid_threshold", "tau_occ", "delta_iou", "delta_id", "delta_switch", "low_score_min_iou"))
 
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> TrackerParams:
-        """Build from a (YAML/JSON) mapping; unknown keys are an error so typos never pass silently."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        for key in d:
-            if key not in known:
-                raise ValueError(f"unknown tracker parameter {key!r} (known: {', '.join(sorted(known))})")
-        return cls(**d)
 
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+# --- template ------------------------------------------------------------------------------------
+
+
+@dataclass
+class TemplateParams(_ColourHistogram, _UpdateSuspension):
+    """What the template node's reference-model update reads (seed 000 Alg. 1 line 12, Eq. 9-10)."""
+
+    tau_v: int = 220  # Table 1 τ_v: specular Value threshold (Eq. 9)
+    tau_s: int = 45  # Table 1 τ_s: specular Saturation threshold (Eq. 9)
+    eta_base: float = 0.02  # Table 1 η_base: base template learning rate (Eq. 10)
+    # Eq. 10 penalty gain: 10% specular pixels cut η to 37% of η_base, 30% to 5%, 50% to <1%,
+    # which matches the paper's "η_k → 0 under severe reflections".
+    lambda_specular: float = 10.0
+    adaptive_eta: bool = True  # ablation switch (Table 6). False: η = η_base on every update (no specular penalty)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("bins_h", "bins_s"), non_negative=("eta_base", "lambda_specular"),
+                     unit_interval=("eta_base",))
+

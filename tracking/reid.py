@@ -34,7 +34,7 @@ from ..msgs.tracking import Measurement, Prior, TrackState
 from .appearance import bhattacharyya, hs_histogram
 from .identity import IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
-from .params import TrackerParams
+from .params import ReidParams
 
 logger = logging.getLogger(__name__)
 
@@ -169,11 +169,22 @@ def _detection_score(detections: np.ndarray | None, box: Box) -> float | None:
     return score if score is not None and math.isfinite(score) else None
 
 
+@dataclass
+class _Match:
+    """One association stage's outcome: every candidate so far, the best, whether it was accepted, C_t and ω."""
+
+    candidates: list[Candidate]
+    best: Candidate | None
+    accepted: bool
+    c_t: float
+    omega: float
+
+
 class ReIdentifier:
     """Stateful Algorithm 1: keeps the previous grey frame (for motion blobs) and the track state."""
 
-    def __init__(self, params: TrackerParams | None = None) -> None:
-        self.params = params or TrackerParams()
+    def __init__(self, params: ReidParams | None = None) -> None:
+        self.params = params or ReidParams()
         p = self.params
         self._embedder: PersonEmbedder | None = None
         self._embedder_loaded = False  # loaded at the first decision that needs it (absent: logged once)
@@ -242,66 +253,91 @@ class ReIdentifier:
         if init_box is not None or prior is None or template_hist is None:
             return self._initialise(frame_bgr, boxes, prev_grey, grey, t_ns, init_box, template_hist, prior)
 
-        p = self.params
         prior = self._scaled_gate(prior)
         # Stage 1: the detections (score >= the detector's threshold) in the gate.
         candidates = self._gate_candidates(boxes, prior, "detection")
         self._note_crowd(len(candidates))
-        best, c_t, omega = self._score(frame_bgr, candidates, prior, template_hist)
-        accepted = best is not None and best.m_fuse > p.reid_threshold  # Alg. 1 line 9
-        if accepted and best is not None:
-            best, accepted = self._identity_decision(frame_bgr, candidates, best, prior)
-        # ByteTrack's second association takes only the tracks matched on the previous frame (its T_remain holds
-        # tracked, not lost, tracks) and only boxes overlapping their prediction (IoU 0.5): not while OCCLUDED.
-        tracked = self.state in (TrackState.TRACKING, TrackState.REACQUIRED)
-        low = _valid_boxes(low_detections) if p.low_score_stage and tracked else []
-        if not accepted and low:
-            # Stage 2 (seed 002 / ByteTrack): nothing in the gate matched, so the low-score detections, where
-            # a partly hidden target still is; scored alike, never a training sample (not secure).
-            second = [c for c in self._gate_candidates(low, prior, "low-score")
-                      if box_iou(c.box, prior.box) >= p.low_score_min_iou]
-            best2, c_t2, omega2 = self._score(frame_bgr, second, prior, template_hist)
-            if best2 is not None and best2.m_fuse > p.reid_threshold:
-                best2, ok = self._identity_decision(frame_bgr, second, best2, prior)
-                if ok:
-                    best, accepted, c_t, omega = best2, True, c_t2, omega2
-            candidates = candidates + second
-        if (not candidates and prev_grey is not None
-                and changed_fraction(prev_grey, grey, p.diff_threshold) <= p.motion_max_changed_fraction):
-            # Alg. 1 line 2: nothing detected in R, look for moving regions inside it instead (only while
-            # the background holds still: see TrackerParams.motion_max_changed_fraction).
-            roi = self._search_window(prior, grey.shape) if p.use_gate else None
-            blobs = motion_blobs(prev_grey, grey, p.diff_threshold, p.morph_kernel_px, p.min_blob_area_px, roi)
-            candidates = self._gate_candidates([b for b, _ in blobs], prior, "motion")
-            best, c_t, omega = self._score(frame_bgr, candidates, prior, template_hist)
-            accepted = best is not None and best.m_fuse > p.reid_threshold
-            if accepted and best is not None:
-                best, accepted = self._identity_decision(frame_bgr, candidates, best, prior)
-        self._advance_state(accepted, t_ns)
-
-        result = ReidResult(t_ns=t_ns, state=self.state, accepted=accepted, omega=omega, c_t=c_t,
-                            candidates=candidates)
-        if best is not None:
-            ambiguous = any(
-                c is not best and c.m_fuse >= best.m_fuse - p.ambiguity_margin for c in candidates
-            )
-            result.best_box = best.box
-            result.source = best.source
-            result.m_fuse, result.s_color, result.s_geo = best.m_fuse, best.s_color, best.s_geo
-            result.candidate_hist = best.hist
-            if accepted:
-                result.box = best.box
-                result.secure = self.state is TrackState.TRACKING and not ambiguous and best.source == "detection"
-        if accepted and best is not None:
-            scored = {"detection": detections, "low-score": low_detections}.get(best.source)
-            self._last_score = (_detection_score(scored, best.box) if scored is not None
-                                else p.gate_low_score)  # a motion blob: as weak as a detection can be
+        match = self._match(frame_bgr, candidates, prior, template_hist)
+        match = self._second_stage(frame_bgr, low_detections, prior, template_hist, match)
+        if not match.candidates and self._background_still(prev_grey, grey):
+            match = self._motion_stage(frame_bgr, prev_grey, grey, prior, template_hist)
+        self._advance_state(match.accepted, t_ns)
+        result = self._result(t_ns, match)
+        if match.accepted and match.best is not None:
+            scored = {"detection": detections, "low-score": low_detections}.get(match.best.source)
+            self._last_score = (_detection_score(scored, match.best.box) if scored is not None
+                                else self.params.gate_low_score)  # a motion blob: as weak as a detection can be
         if result.secure and result.box is not None:
             self._pending = (frame_bgr, result.box, boxes)
         logger.debug(
-            "reid t=%d state=%s n=%d C_t=%.3f ω=%.3f M=%.3f", t_ns, self.state.value, len(candidates), c_t,
-            omega, result.m_fuse,
+            "reid t=%d state=%s n=%d C_t=%.3f ω=%.3f M=%.3f", t_ns, self.state.value, len(match.candidates),
+            match.c_t, match.omega, result.m_fuse,
         )
+        return result
+
+    def _match(self, frame_bgr: np.ndarray, candidates: list[Candidate], prior: Prior,
+               template_hist: np.ndarray) -> _Match:
+        """Score ``candidates`` and accept the best above Thresh_reid (Alg. 1 line 9), as the learned appearance
+        decides between look-alikes."""
+        best, c_t, omega = self._score(frame_bgr, candidates, prior, template_hist)
+        accepted = best is not None and best.m_fuse > self.params.reid_threshold
+        if accepted and best is not None:
+            best, accepted = self._identity_decision(frame_bgr, candidates, best, prior)
+        return _Match(candidates, best, accepted, c_t, omega)
+
+    def _second_stage(self, frame_bgr: np.ndarray, low_detections: np.ndarray | None, prior: Prior,
+                      template_hist: np.ndarray, first: _Match) -> _Match:
+        """Stage 2 (seed 002 / ByteTrack): nothing in the gate matched, so the low-score detections, where a partly
+        hidden target still is; scored alike, never a training sample (not secure). ByteTrack's second association
+        takes only the tracks matched on the previous frame (its T_remain holds tracked, not lost, tracks) and only
+        boxes overlapping their prediction (IoU 0.5): not while OCCLUDED."""
+        p = self.params
+        tracked = self.state in (TrackState.TRACKING, TrackState.REACQUIRED)
+        low = _valid_boxes(low_detections) if p.low_score_stage and tracked else []
+        if first.accepted or not low:
+            return first
+        second = [c for c in self._gate_candidates(low, prior, "low-score")
+                  if box_iou(c.box, prior.box) >= p.low_score_min_iou]
+        match = self._match(frame_bgr, second, prior, template_hist)
+        candidates = first.candidates + second
+        if match.accepted:
+            return _Match(candidates, match.best, True, match.c_t, match.omega)
+        return dataclasses.replace(first, candidates=candidates)
+
+    def _background_still(self, prev_grey: np.ndarray | None, grey: np.ndarray) -> bool:
+        """Alg. 1 line 2's background subtraction presumes a still background: see
+        ReidParams.motion_max_changed_fraction."""
+        p = self.params
+        return prev_grey is not None and changed_fraction(prev_grey, grey, p.diff_threshold) <= \
+            p.motion_max_changed_fraction
+
+    def _motion_stage(self, frame_bgr: np.ndarray, prev_grey: np.ndarray, grey: np.ndarray, prior: Prior,
+                      template_hist: np.ndarray) -> _Match:
+        """Alg. 1 line 2: nothing detected in R, look for moving regions inside it instead."""
+        p = self.params
+        roi = self._search_window(prior, grey.shape) if p.use_gate else None
+        blobs = motion_blobs(prev_grey, grey, p.diff_threshold, p.morph_kernel_px, p.min_blob_area_px, roi)
+        candidates = self._gate_candidates([b for b, _ in blobs], prior, "motion")
+        return self._match(frame_bgr, candidates, prior, template_hist)
+
+    def _result(self, t_ns: int, match: _Match) -> ReidResult:
+        """The frame's result once the state has advanced: the best candidate's scores, and its box if accepted
+        (secure: TRACKING on an unambiguous detection)."""
+        result = ReidResult(t_ns=t_ns, state=self.state, accepted=match.accepted, omega=match.omega, c_t=match.c_t,
+                            candidates=match.candidates)
+        best = match.best
+        if best is None:
+            return result
+        ambiguous = any(
+            c is not best and c.m_fuse >= best.m_fuse - self.params.ambiguity_margin for c in match.candidates
+        )
+        result.best_box = best.box
+        result.source = best.source
+        result.m_fuse, result.s_color, result.s_geo = best.m_fuse, best.s_color, best.s_geo
+        result.candidate_hist = best.hist
+        if match.accepted:
+            result.box = best.box
+            result.secure = self.state is TrackState.TRACKING and not ambiguous and best.source == "detection"
         return result
 
     def _score(self, frame_bgr: np.ndarray, candidates: list[Candidate], prior: Prior,
@@ -360,26 +396,16 @@ class ReIdentifier:
         §III-D): among the contenders within ``identity_margin`` of it, the one it scores highest, if that
         one clears δ_switch; on a re-lock after an occlusion, a lone contender scoring below δ_switch is taken
         for someone else and rejected (the target stays occluded), and a contender far from the prior (issue 22)
-        must score δ_id on ``n_id`` consecutive frames (seed 001's Re-ID state). Returns (chosen, accepted)."""
+        must score δ_id on ``n_id_frames`` consecutive frames (seed 001's Re-ID state). Returns (chosen, accepted)."""
         p = self.params
         relock = self.state in (TrackState.OCCLUDED, TrackState.LOST)
         if not relock:
             self._confirming = None
-        if not (p.learned_appearance and self.identity.ready):
+        scored = self._score_contenders(frame_bgr, candidates, best, relock)
+        if scored is None:
             return best, True
-        contenders = sorted((c for c in candidates if c.m_fuse > p.reid_threshold
-                             and c.m_fuse >= best.m_fuse - p.identity_margin), key=lambda c: -c.m_fuse)
-        lone_check = len(contenders) < 2 and not relock
-        if lone_check and not self._crowded_recently():  # a lone contender is scored only just after a crowd
-            return best, True
-        embs = self._embed(frame_bgr, [c.box for c in contenders])
-        if embs is None or not len(embs):
-            return best, True
-        scores = self.identity.score(embs)
-        self.identity_decisions += 1
+        contenders, scores = scored
         i = int(np.argmax(scores))
-        if not relock and not lone_check and scores[i] >= p.delta_id:
-            self._crowd_told_apart = True
         if scores[i] < p.delta_switch:
             # Nobody here looks like the target: on a re-lock, wait; while tracking, keep colour's choice, unless
             # the classifier just told these people apart (a crossing: the target is hidden behind them): wait.
@@ -387,6 +413,28 @@ class ReIdentifier:
         if relock and p.far_relock_needs_identity and self._far(contenders[i].box, prior):
             return contenders[i], self._confirmed(contenders[i].box, float(scores[i]))
         return contenders[i], True
+
+    def _score_contenders(self, frame_bgr: np.ndarray, candidates: list[Candidate], best: Candidate,
+                          relock: bool) -> tuple[list[Candidate], np.ndarray] | None:
+        """The classifier's scores of the contenders within ``identity_margin`` of ``best`` (best first), or None
+        when it has no say: not ready or off, a lone contender while tracking outside a crowd's aftermath, no
+        descriptor. Notes a crowd the classifier told apart (its choice among several at δ_id or more)."""
+        p = self.params
+        if not (p.learned_appearance and self.identity.ready):
+            return None
+        contenders = sorted((c for c in candidates if c.m_fuse > p.reid_threshold
+                             and c.m_fuse >= best.m_fuse - p.identity_margin), key=lambda c: -c.m_fuse)
+        lone_check = len(contenders) < 2 and not relock
+        if lone_check and not self._crowded_recently():  # a lone contender is scored only just after a crowd
+            return None
+        embs = self._embed(frame_bgr, [c.box for c in contenders])
+        if embs is None or not len(embs):
+            return None
+        scores = self.identity.score(embs)
+        self.identity_decisions += 1
+        if not relock and not lone_check and scores[int(np.argmax(scores))] >= p.delta_id:
+            self._crowd_told_apart = True
+        return contenders, scores
 
     def _note_crowd(self, gated_detections: int) -> None:
         """Count the frames since another detection shared the gate with the target; a crowd over forgets whether
@@ -412,7 +460,7 @@ class ReIdentifier:
         return math.hypot(cx - px, cy - py) > self.params.relock_far_height_fraction * max(prior.size[1], 1.0)
 
     def _confirmed(self, box: Box, score: float) -> bool:
-        """Seed 001's N_id: a far re-lock needs δ_id on n_id consecutive frames, on the same person (overlapping
+        """Seed 001's N_id: a far re-lock needs δ_id on n_id_frames consecutive frames, on the same person (overlapping
         the box confirmed on the frame before)."""
         p = self.params
         if score < p.delta_id:
@@ -422,7 +470,7 @@ class ReIdentifier:
         if self._confirming is not None and box_iou(self._confirming[0], box) > 0.3:
             count = self._confirming[1] + 1
         self._confirming = (box, count)
-        return count >= p.n_id
+        return count >= p.n_id_frames
 
     def _learn_identity(self, frame_bgr: np.ndarray, target: Box, boxes: list[Box]) -> None:
         """Every ``identity_sample_every_frames``-th secure frame: the target's descriptor as a positive and

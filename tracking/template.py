@@ -10,7 +10,7 @@ import numpy as np
 
 from ..msgs.tracking import Measurement
 from .appearance import hs_histogram, learning_rate, specular_penalty
-from .params import TrackerParams
+from .params import TemplateParams
 
 logger = logging.getLogger(__name__)
 
@@ -24,8 +24,8 @@ class TemplateUpdater:
     ``suspend_updates=False`` also blends in the best rejected candidate.
     """
 
-    def __init__(self, params: TrackerParams | None = None) -> None:
-        self.params = params or TrackerParams()
+    def __init__(self, params: TemplateParams | None = None) -> None:
+        self.params = params or TemplateParams()
         self.hist: np.ndarray | None = None
         self.saved_by = ""  # of the file :meth:`load` read last
 

@@ -10,14 +10,14 @@ from typing import Any
 
 DETECTOR_PRESETS: dict[str, dict[str, Any]] = {
     "graph": {},
-    "yolox": {"backend": "yolox", "input_size": 416, "model_file": "", "runtime": "onnxruntime"},
-    "yolox512": {"backend": "yolox", "input_size": 512, "model_file": "", "runtime": "onnxruntime"},
-    "yolox640": {"backend": "yolox", "input_size": 640, "model_file": "", "runtime": "onnxruntime"},
-    "yolox640-int8": {"backend": "yolox", "input_size": 640, "model_file": "yolox_nano_640_int8.onnx",
+    "yolox": {"backend": "yolox", "input_size_px": 416, "model_file": "", "runtime": "onnxruntime"},
+    "yolox512": {"backend": "yolox", "input_size_px": 512, "model_file": "", "runtime": "onnxruntime"},
+    "yolox640": {"backend": "yolox", "input_size_px": 640, "model_file": "", "runtime": "onnxruntime"},
+    "yolox640-int8": {"backend": "yolox", "input_size_px": 640, "model_file": "yolox_nano_640_int8.onnx",
                       "runtime": "onnxruntime"},
-    "yolox416-openvino": {"backend": "yolox", "input_size": 416, "model_file": "", "runtime": "openvino"},
-    "yolox512-openvino": {"backend": "yolox", "input_size": 512, "model_file": "", "runtime": "openvino"},
-    "yolox640-openvino": {"backend": "yolox", "input_size": 640, "model_file": "", "runtime": "openvino"},
+    "yolox416-openvino": {"backend": "yolox", "input_size_px": 416, "model_file": "", "runtime": "openvino"},
+    "yolox512-openvino": {"backend": "yolox", "input_size_px": 512, "model_file": "", "runtime": "openvino"},
+    "yolox640-openvino": {"backend": "yolox", "input_size_px": 640, "model_file": "", "runtime": "openvino"},
     "hog": {"backend": "hog"},
     "simulated": {"backend": "simulated"},
 }
@@ -34,7 +34,7 @@ def apply_detector_preset(params: dict[str, Any], name: str) -> dict[str, Any]:
 def preset_of(params: dict[str, Any]) -> str | None:
     """The preset name (other than ``graph``) that these detection params amount to, or None."""
     # the node's defaults; backend auto is YOLOX
-    given = {"model_file": "", "runtime": "onnxruntime", "input_size": 416, **params}
+    given = {"model_file": "", "runtime": "onnxruntime", "input_size_px": 416, **params}
     if given.get("backend", "auto") == "auto":
         given["backend"] = "yolox"
     for name, preset in DETECTOR_PRESETS.items():

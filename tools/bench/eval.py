@@ -465,11 +465,9 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
 
         def detect(item):
             return split_detections(node_params, real.detect(item.bgr))
-    from ...tracking.params import TrackerParams
-
     # The graph warps the prior by camera motion only where an egomotion node publishes it; in-process likewise.
     has_egomotion = "egomotion" in yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]
-    follower = GraphFollower(TrackerParams(camera_motion_compensation=has_egomotion))
+    follower = GraphFollower({"camera_motion_compensation": has_egomotion})
     inproc: list[Any] = []
     init_box: list[float] | None = None
     for item in seq.frames():
