@@ -6,6 +6,10 @@ detections as the capture and detection nodes would publish them. The graph's da
 measurement k-1, re-ID against the template of k-1, camera motion k-1 → k) is therefore the graph's own, kept in
 one place: the nodes and their synchronisers. The ego velocity of a frame reaches prediction as an odometry sample
 stamped at the frame's capture time, as the motor node would publish it.
+
+No node or topic is named here: the nodes run are those that produce none of what is fed in (frames, detections,
+odometry), and each topic is found by its message type in the node classes' declarations. This is evaluation/'s
+one module that uses the bus (its in-process runtime and graph model); tests/test_layout.py holds it to that.
 """
 
 from __future__ import annotations
@@ -19,18 +23,18 @@ import numpy as np
 
 from ..bus.graph import Graph, load_graph
 from ..bus.inproc import InProcessGraph
+from ..bus.node import load_node_class
 from ..bus.schemas import CameraMotion, Detections, Frame, Measurement, Odometry, Prior, Template, Track
 from ..tracking.params import TrackerParams
 from .trace import ReidCapture, frame_record
 
 GRAPH_PATH = Path(__file__).resolve().parents[1] / "graph.yaml"
-TRACKING_NODES = ("egomotion", "prediction", "reid", "template")
+FED_TYPES = (Frame, Detections, Odometry)  # what evaluation publishes in place of capture, detection and motor
 # The node clock starts here and frame k is stamped CLOCK_BASE_NS + its source time: stamps near the nodes' own
 # clock (nodes reject stamps far from it), differences exactly the source's (the Kalman Δt).
 CLOCK_BASE_NS = 1_700_000_000_000_000_000
 EPOCH_NS = CLOCK_BASE_NS
 MAX_STEPS_PER_FRAME = 1000
-TRANSFORM_TOPIC = "egomotion/transform"
 
 
 class GraphFollowerError(RuntimeError):
@@ -51,17 +55,47 @@ def tracking_graph(params: TrackerParams, init_box: Sequence[float] | None,
                    graph_path: Path = GRAPH_PATH, egomotion: dict[str, Any] | None = None) -> Graph:
     """graph.yaml with ``params`` as every tracking node's tracker parameters, told whom to follow (``None``:
     re-ID picks the person itself, as on the robot), no template file read or written; ``egomotion`` overrides
-    the egomotion node's parameters (an ablation)."""
+    the camera-motion node's parameters (an ablation)."""
     graph = load_graph(graph_path)
     tracker = params.to_dict()
-    for name in ("prediction", "reid", "template"):
-        graph.nodes[name].params.update(tracker)
-    if egomotion and "egomotion" in graph.nodes:
-        graph.nodes["egomotion"].params.update(egomotion)
+    topics = GraphTopics(graph)
+    changes: dict[str, dict[str, Any]] = {name: dict(tracker) for name in topics.tracker_nodes}
+    if egomotion and topics.camera_motion:
+        changes.setdefault(topics.node(topics.camera_motion), {}).update(egomotion)
     if init_box is not None:
-        graph.nodes["reid"].params["init_box"] = [float(v) for v in init_box]
-    graph.nodes["template"].params["state_file"] = ""
-    return graph
+        changes[topics.node(topics.measurement)]["init_box"] = [float(v) for v in init_box]
+    changes[topics.node(topics.template)]["state_file"] = ""
+    return graph.override(changes)
+
+
+def detector_params(graph_path: Path = GRAPH_PATH) -> dict[str, Any]:
+    """The params of the graph's detection node (the one that publishes Detections), as the file says them."""
+    graph = load_graph(graph_path)
+    node = next(name for name, spec in graph.nodes.items() if Detections in load_node_class(spec.run).OUTPUTS.values())
+    return dict(graph.nodes[node].params)
+
+
+class GraphTopics:
+    """The graph's tracking nodes and topics, found by message type (see the module docstring)."""
+
+    def __init__(self, graph: Graph) -> None:
+        outputs = {name: load_node_class(spec.run).OUTPUTS for name, spec in graph.nodes.items()}
+        fed_by = {name for name, out in outputs.items() if any(t in FED_TYPES for t in out.values())}
+        self.nodes = [name for name in graph.nodes if name not in fed_by]
+        by_type = {t: f"{name}/{output}" for name in self.nodes for output, t in outputs[name].items()}
+        self.track, self.template = by_type[Track], by_type[Template]
+        self.prior, self.measurement = by_type[Prior], by_type[Measurement]
+        self.camera_motion = by_type.get(CameraMotion)
+        # the nodes that take the tracker's parameters: all but the camera-motion one (its own params)
+        self.tracker_nodes = [n for n in self.nodes if self.camera_motion is None or n != self.node(self.camera_motion)]
+        boundary = graph.boundary(self.nodes)
+        inputs = {name: load_node_class(graph.nodes[name].run).INPUTS for name in self.nodes}
+        fed = {inputs[node][inp.name]: inp.topic for node, inp in boundary.inputs}
+        self.frame, self.detections, self.odometry = (fed[t] for t in FED_TYPES)
+
+    @staticmethod
+    def node(topic: str) -> str:
+        return topic.split("/", 1)[0]
 
 
 class GraphFollower:
@@ -76,7 +110,9 @@ class GraphFollower:
         self.egomotion = dict(egomotion or {})
         # Eval reads the track and the template's η; tests (details=True) also the measurement and prior;
         # ``trace`` (followbus eval --trace) also the camera motion and re-ID's scores: info["trace"] each frame.
-        self.recorded = self.DETAILS if details or trace else self.RECORDED
+        self.details = details or trace
+        self.recorded: list[str] = []  # the topics read each frame (known once the graph is built)
+        self.topics: GraphTopics | None = None
         self.trace = trace
         self.capture = ReidCapture()
         self.transforms: dict[int, CameraMotion] = {}
@@ -87,20 +123,19 @@ class GraphFollower:
         self.k = 0
         self.last: GraphFrame | None = None
 
-    RECORDED = ("prediction/track", "template/template")
-    DETAILS = (*RECORDED, "prediction/prior", "reid/measurement")
-
     def _start(self, init_box: Sequence[float] | None) -> InProcessGraph:
         graph = tracking_graph(self.params, init_box, self.graph_path, self.egomotion)
-        nodes = [n for n in TRACKING_NODES if n in graph.nodes]
-        if not self.params.camera_motion_compensation and "egomotion" in nodes:
-            nodes.remove("egomotion")  # as in the graph without the node: priors are not warped
-        self.loose = [TRANSFORM_TOPIC] if self.trace and "egomotion" in nodes else []
+        t = self.topics = GraphTopics(graph)
+        nodes = list(t.nodes)
+        self.recorded = [t.track, t.template, *([t.prior, t.measurement] if self.details else [])]
+        if t.camera_motion and not self.params.camera_motion_compensation:
+            nodes.remove(t.node(t.camera_motion))  # as in the graph without the node: priors are not warped
+        self.loose = [t.camera_motion] if self.trace and t.camera_motion and t.node(t.camera_motion) in nodes else []
         g = InProcessGraph(graph, nodes=nodes, clock="sim", clock_start_ns=CLOCK_BASE_NS,
                            record=[*self.recorded, *self.loose], record_bytes=False)  # read with drain: no bytes needed
         g.start()
         if self.trace:
-            self._instrument(g.node("reid").reid)
+            self._instrument(g.node(t.node(t.measurement)).reid)
         return g
 
     def _instrument(self, reid: Any) -> None:
@@ -145,14 +180,15 @@ class GraphFollower:
             return msg
 
         # Odometry first: prediction takes the newest sample not after the frame's stamp.
-        g.inject("motor/odometry", stamped(Odometry(vx_mps=float(v_ego_mps[0]), vy_mps=float(v_ego_mps[1]))))
+        t = self.topics
+        g.inject(t.odometry, stamped(Odometry(vx_mps=float(v_ego_mps[0]), vy_mps=float(v_ego_mps[1]))))
         bgr = np.ascontiguousarray(frame_bgr)
         # A read-only image (the runner's, decoded from disk for this run alone) is shared with the nodes rather
         # than copied for them: nobody can write to it any more.
-        g.inject("capture/frame", stamped(Frame(width=bgr.shape[1], height=bgr.shape[0], encoding="bgr8",
+        g.inject(t.frame, stamped(Frame(width=bgr.shape[1], height=bgr.shape[0], encoding="bgr8",
                                                 data=bgr)), handover=not bgr.flags.writeable)
         low = low_detections if low_detections is not None and self.uses_low_scores else None
-        g.inject("detection/detections", stamped(Detections(
+        g.inject(t.detections, stamped(Detections(
             boxes=np.asarray(detections, np.float32).reshape(-1, 5), backend="eval",
             low_boxes=np.zeros((0, 5), np.float32) if low is None else np.asarray(low, np.float32).reshape(-1, 5))))
         self.last = out = self._outputs_of(g, k)
@@ -183,9 +219,9 @@ class GraphFollower:
                         raise GraphFollowerError(f"frame {k}: the graph published {topic} of frame "
                                                  f"{msg.header.frame_seq}")
                     got[topic] = msg
-            if "prediction/track" in got:
-                return GraphFrame(got["prediction/track"], got.get("reid/measurement"),
-                                  got.get("prediction/prior"), got.get("template/template"))
+            t = self.topics
+            if t.track in got:
+                return GraphFrame(got[t.track], got.get(t.measurement), got.get(t.prior), got.get(t.template))
             if not g.step():
                 break
         raise GraphFollowerError(f"frame {k}: the graph published no track (node status: "

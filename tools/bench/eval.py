@@ -397,23 +397,19 @@ def derived_graph(source: str, port: int, namespace: str, init_box: list[float],
     """graph.yaml adapted for a lockstep run: private port/namespace, ``source`` (scene:<name> or a sequence
     dir), fast pace with capture acked by prediction/track, ``detector`` as in ``followbus eval``, no
     persisted template, the target given by init_box."""
-    import yaml
+    from ...bus.graph import load_graph
 
-    g = yaml.safe_load(base.read_text(encoding="utf-8"))
-    g["namespace"] = namespace
-    g["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
-    g["zenoh"]["connect"] = [f"tcp/127.0.0.1:{port}"]
-    cap = g["nodes"]["capture"]
-    cap.setdefault("inputs", {})["ack"] = {"from": "prediction/track", "sync": "none"}
-    cap["params"].update(source=source, pace="fast", max_frames=max_frames, max_in_flight=max_in_flight)
-    apply_detector_preset(g["nodes"]["detection"]["params"], detector)
-    for node in g["nodes"].values():
+    graph = load_graph(base).with_namespace(namespace).with_port(port)
+    graph = graph.with_input("capture", "ack", "prediction/track", sync="none")
+    graph = graph.override({
+        "capture": {"source": source, "pace": "fast", "max_frames": max_frames, "max_in_flight": max_in_flight},
+        "detection": apply_detector_preset({}, detector), "template": {"state_file": ""},
+        "reid": {"init_box": [float(v) for v in init_box]}})
+    for node in graph.nodes:
         # Lockstep loses nothing, so a timeout could only mean a slow (cold, loaded) node, and a set
         # emitted without its feedback would make the graph diverge from the in-process run.
-        node["sync_timeout_ms"] = 10_000
-    g["nodes"]["template"]["params"]["state_file"] = ""
-    g["nodes"]["reid"]["params"]["init_box"] = [float(v) for v in init_box]
-    return yaml.safe_dump(g, sort_keys=False)
+        graph = graph.with_node(node, sync_timeout_ms=10_000.0)
+    return graph.to_yaml()
 
 
 def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, port: int | None = None,
@@ -429,8 +425,7 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
 
     Returns {"compared", "mismatches", "missing", "first_mismatch", "graph", "inproc", "detector"}.
     """
-    import yaml
-
+    from ...bus.graph import load_graph
     from ...evaluation.graph_follower import GraphFollower
     from ...evaluation.runner import open_sequence
     from ...nodes.detection import Detection, detector_from_params, split_detections
@@ -439,8 +434,8 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
     is_scene = spec.startswith("scene:")
     detector = detector or ("simulated" if is_scene else DEFAULT_DETECTOR)
     # the detection node's params as the graph runs them (thresholds, threads, model), switched to ``detector``
-    graph_detection = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]["detection"]
-    node_params = Detection.parse_params(apply_detector_preset(dict(graph_detection["params"]), detector))
+    shipped = load_graph(REPO / "graph.yaml")
+    node_params = Detection.parse_params(apply_detector_preset(dict(shipped.nodes["detection"].params), detector))
     if detector == "simulated" and not is_scene:
         raise ValueError(f"{spec}: simulated detections are reproduced by the graph for scenes only; "
                          "use --detector yolox|yolox640|hog")
@@ -462,7 +457,7 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
     from ...tracking.params import TrackerParams
 
     # The graph warps the prior by camera motion only where an egomotion node publishes it; in-process likewise.
-    has_egomotion = "egomotion" in yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))["nodes"]
+    has_egomotion = "egomotion" in shipped.nodes
     follower = GraphFollower(TrackerParams(camera_motion_compensation=has_egomotion))
     inproc: list[Any] = []
     init_box: list[float] | None = None

@@ -43,22 +43,19 @@ def _graph_text(scene: str, port: int, namespace: str, detector: str, sim_delay_
                 resolution: tuple[int, int] | None = None, lane: bool | None = None) -> str:
     """graph.yaml of the repository on a private port and namespace, the scene looping in real time (also the
     graph `followbus bench chaos` launches)."""
-    import yaml
+    from ...bus.graph import load_graph
 
-    g = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))
-    g["namespace"] = namespace
-    g["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
-    g["zenoh"]["connect"] = [f"tcp/127.0.0.1:{port}"]
-    g["nodes"]["capture"]["params"].update(source=f"scene:{scene}", pace="realtime", fps=30.0, loop=True)
+    graph = load_graph(REPO / "graph.yaml")
+    capture: dict[str, Any] = {"source": f"scene:{scene}", "pace": "realtime", "fps": 30.0, "loop": True}
     if resolution is not None:
-        g["nodes"]["capture"]["params"].update(width_px=resolution[0], height_px=resolution[1])
-    if lane is not None:
-        g["zenoh"]["shm_lane"] = lane
-    det = apply_detector_preset(g["nodes"]["detection"]["params"], "yolox" if detector == "yolox416" else detector)
+        capture.update(width_px=resolution[0], height_px=resolution[1])
+    detection = apply_detector_preset({}, "yolox" if detector == "yolox416" else detector)
     if sim_delay_ms:
-        det["sim_delay_ms"] = float(sim_delay_ms)
-    g["nodes"]["template"]["params"]["state_file"] = ""  # every launch starts from the same template
-    return yaml.safe_dump(g, sort_keys=False)
+        detection["sim_delay_ms"] = float(sim_delay_ms)
+    graph = graph.override({"capture": capture, "detection": detection,
+                            "template": {"state_file": ""}})  # every launch starts from the same template
+    graph = graph.with_namespace(namespace).with_port(port)
+    return (graph if lane is None else graph.with_zenoh(shm_lane=lane)).to_yaml()
 
 
 def _model_present(detector: str) -> bool:

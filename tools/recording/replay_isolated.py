@@ -5,6 +5,7 @@ as the in-process replay (tools/recording/replay_feed.py)."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import secrets
@@ -14,14 +15,12 @@ import subprocess
 import sys
 import threading
 import time
-from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from ...bus.graph import Graph, NodeSpec, load_graph
+from ...bus.graph import Graph, RestartPolicy
 from ...bus.schemas import ReplayHint
+from ...bus.session import ZenohSettings
 from .replay import InProcessTarget, ReplayOptions, ReplayReport
 from .replay_feed import _header
 
@@ -37,28 +36,16 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def private_graph_text(graph: Graph, spec: NodeSpec, params: dict[str, Any], namespace: str, port: int) -> str:
-    """graph.yaml of the node under test plus stand-ins for its producers (their outputs only)."""
-    endpoint = f"tcp/127.0.0.1:{port}"
-    inputs = {}
-    producers: dict[str, list[str]] = defaultdict(list)
-    for inp in spec.inputs.values():
-        inputs[inp.name] = {"from": inp.topic, "queue": max(inp.queue, LOCKSTEP_QUEUE), "policy": "block",
-                            "sync": inp.sync, "offset": inp.offset, "optional": inp.optional}
-        if inp.source_output not in producers[inp.source_node]:
-            producers[inp.source_node].append(inp.source_output)
-    nodes: dict[str, Any] = {}
-    for name, outputs in producers.items():
-        if name != spec.name:
-            nodes[name] = {"run": graph.nodes[name].run, "outputs": outputs}
-    node_outputs = list(dict.fromkeys(spec.outputs + producers.get(spec.name, [])))
-    nodes[spec.name] = {"run": spec.run, "inputs": inputs, "outputs": node_outputs, "params": params,
-                        "sync_timeout_ms": spec.sync_timeout_ms, "restart": "never"}
-    doc = {"name": f"replay-{spec.name}", "namespace": namespace,
-           "zenoh": {"mode": "peer", "listen": [endpoint], "connect": [endpoint], "multicast_scouting": False,
-                     "shm": graph.zenoh.shm},
-           "nodes": nodes}
-    return yaml.safe_dump(doc, sort_keys=False)
+def private_graph(graph: Graph, name: str, params: dict[str, Any], namespace: str, port: int) -> Graph:
+    """The node under test alone (stand-ins for its producers), on a private peer bus: every input queues deep
+    and blocks (lockstep), the node's params as replayed, never restarted, at the replayer's own priority."""
+    spec = graph.nodes[name]
+    lockstep = {i.name: dataclasses.replace(i, queue=max(i.queue, LOCKSTEP_QUEUE), policy="block")
+                for i in spec.inputs.values()}
+    private = graph.subgraph([name], name=f"replay-{name}").override({name: params})
+    return (private.with_node(name, inputs=lockstep, restart=RestartPolicy(policy="never"), nice=None,
+                            realtime=None, host=None)
+            .with_zenoh(ZenohSettings(shm=graph.zenoh.shm)).with_port(port).with_namespace(namespace))
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec: the node never outlives us
@@ -105,9 +92,9 @@ class IsolatedTarget:
 
         self.reference.start()
         graph_path = self.tmp / "graph.yaml"
-        graph_path.write_text(private_graph_text(self.plan.graph, self.spec, self.plan.params[self.name],
-                                                 self.private_ns, free_port()))
-        private = load_graph(graph_path)
+        private = private_graph(self.plan.graph, self.name, self.plan.params[self.name], self.private_ns,
+                                free_port())
+        graph_path.write_text(private.to_yaml())
         self._session = open_session(private.zenoh)  # takes the private port first; the node connects to it
         for topic in self.plan.outputs.values():
             # Direct callbacks keep the order of samples across keys (bus.pubsub.direct_callback).
