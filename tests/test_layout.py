@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGE_DIRS = ("bus", "nodes", "tools", "tracking", "control", "vision", "evaluation", "followbus")
+PACKAGE_DIRS = ("bus", "nodes", "tools", "tracking", "control", "vision", "evaluation", "replay", "reliability",
+                "followbus")
 
 
 def _modules() -> list[Path]:
@@ -71,7 +72,7 @@ def test_every_internal_import_names_a_file_of_the_repository():
 # What stays at the top of tools/: the command line and what every room uses. Anything else belongs in a room.
 TOOLS_TOP = {"__init__", "cli", "command", "errors", "connect", "identity", "launch", "demo", "models_cmd"}
 TOOLS_ROOMS = {"recording", "live", "bench", "runs"}
-LIBRARY_DIRS = ("bus", "nodes", "tracking", "control", "vision", "evaluation")
+LIBRARY_DIRS = ("bus", "nodes", "tracking", "control", "vision", "evaluation", "replay", "reliability")
 
 
 def test_tools_is_rooms_not_a_hall():

@@ -21,8 +21,6 @@ from typing import Any
 
 import numpy as np
 
-from ...vision.detector_presets import apply_detector_preset
-
 log = logging.getLogger("followbus.bench")
 
 REPO = Path(__file__).resolve().parents[2]
@@ -37,25 +35,6 @@ def _cpu_ticks(pid: int) -> int | None:
         return int(fields[11]) + int(fields[12])  # utime + stime (fields 14, 15 of stat)
     except (OSError, IndexError, ValueError):
         return None
-
-
-def _graph_text(scene: str, port: int, namespace: str, detector: str, sim_delay_ms: float = 0.0,
-                resolution: tuple[int, int] | None = None, lane: bool | None = None) -> str:
-    """graph.yaml of the repository on a private port and namespace, the scene looping in real time (also the
-    graph `followbus bench chaos` launches)."""
-    from ...bus.graph import load_graph
-
-    graph = load_graph(REPO / "graph.yaml")
-    capture: dict[str, Any] = {"source": f"scene:{scene}", "pace": "realtime", "fps": 30.0, "loop": True}
-    if resolution is not None:
-        capture.update(width_px=resolution[0], height_px=resolution[1])
-    detection = apply_detector_preset({}, "yolox" if detector == "yolox416" else detector)
-    if sim_delay_ms:
-        detection["sim_delay_ms"] = float(sim_delay_ms)
-    graph = graph.override({"capture": capture, "detection": detection,
-                            "template": {"state_file": ""}})  # every launch starts from the same template
-    graph = graph.with_namespace(namespace).with_port(port)
-    return (graph if lane is None else graph.with_zenoh(shm_lane=lane)).to_yaml()
 
 
 def _model_present(detector: str) -> bool:
@@ -77,6 +56,7 @@ def run_bench_pipeline(args) -> int:
     from ...bus.pubsub import declare_subscriber, frame_bytes
     from ...bus.schemas import NodeStatus, decode
     from ...bus.session import open_session
+    from ...reliability.chaos import scene_graph
     from ..launch import Launcher
 
     detector = args.detector
@@ -95,7 +75,8 @@ def run_bench_pipeline(args) -> int:
     recording = threading.Event()
     with tempfile.TemporaryDirectory(prefix="followbus-bench-") as tmp:
         path = Path(tmp) / "graph.yaml"
-        path.write_text(_graph_text(args.scene, port, ns, detector, resolution=args.resolution,
+        path.write_text(scene_graph(scene=args.scene, port=port, namespace=ns, detector=detector,
+                                    resolution=args.resolution,
                                     lane=args.lane == "on"))
         graph = load_graph(path)
         session = open_session(graph.zenoh)

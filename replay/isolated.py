@@ -18,11 +18,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ...bus.graph import Graph, RestartPolicy
-from ...bus.schemas import ReplayHint
-from ...bus.session import ZenohSettings
-from .replay import InProcessTarget, ReplayOptions, ReplayReport
-from .replay_feed import _header
+from ..bus.children import die_with_parent
+from ..bus.graph import Graph, RestartPolicy
+from ..bus.schemas import ReplayHint
+from ..bus.session import ZenohSettings
+from .engine import InProcessTarget
+from .feed import frame_and_stamp
+from .plan import ReplayOptions, ReplayReport
 
 log = logging.getLogger("followbus.replay")
 
@@ -46,13 +48,6 @@ def private_graph(graph: Graph, name: str, params: dict[str, Any], namespace: st
     return (private.with_node(name, inputs=lockstep, restart=RestartPolicy(policy="never"), nice=None,
                             realtime=None, host=None)
             .with_zenoh(ZenohSettings(shm=graph.zenoh.shm)).with_port(port).with_namespace(namespace))
-
-
-def _die_with_parent() -> None:  # runs in the child between fork and exec: the node never outlives us
-    import ctypes
-
-    with contextlib.suppress(OSError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
 class IsolatedTarget:
@@ -86,9 +81,9 @@ class IsolatedTarget:
         self.log_path = tmp / "node.log"
 
     def start(self) -> None:
-        from ...bus.health import HealthWatcher
-        from ...bus.pubsub import Publisher, ShmPool, declare_subscriber
-        from ...bus.session import open_session
+        from ..bus.health import HealthWatcher
+        from ..bus.pubsub import Publisher, ShmPool, declare_subscriber
+        from ..bus.session import open_session
 
         self.reference.start()
         graph_path = self.tmp / "graph.yaml"
@@ -110,7 +105,7 @@ class IsolatedTarget:
                 [sys.executable, "-m", "followbus.tools.cli", "node", self.name, "--graph", str(graph_path),
                  "--clock", "stamps"],
                 stdout=node_log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=_die_with_parent)
+                env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=die_with_parent)
         t0 = time.perf_counter()
         missing = self._watcher.wait_for({self.name}, self.opts.startup_timeout_s)
         self.report.startup_s = time.perf_counter() - t0
@@ -121,14 +116,14 @@ class IsolatedTarget:
 
     def _on_output(self, topic: str):
         def callback(sample) -> None:
-            from ...bus.codec import DecodeError
-            from ...bus.pubsub import frame_bytes, payload_bytes
+            from ..bus.codec import DecodeError
+            from ..bus.pubsub import frame_bytes, payload_bytes
 
             try:
                 data = frame_bytes(sample)
             except DecodeError:  # a lane message that cannot be read: kept as it came, the comparison shows it
                 data = payload_bytes(sample)
-            awaited = topic not in self.plan.timer_topics or _header(data)[0] >= 0
+            awaited = topic not in self.plan.timer_topics or frame_and_stamp(data)[0] >= 0
             with self._cond:
                 self._received[topic].append(data)
                 self._awaited[topic] += awaited
@@ -165,7 +160,7 @@ class IsolatedTarget:
             return self.reference.published(topic)
         seen, count = self._reference_seen[topic]
         payloads = self.reference.graph.payloads(*topic.split("/", 1))
-        count += sum(_header(p)[0] >= 0 for p in payloads[seen:])
+        count += sum(frame_and_stamp(p)[0] >= 0 for p in payloads[seen:])
         self._reference_seen[topic] = (len(payloads), count)
         return count
 
