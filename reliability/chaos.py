@@ -82,6 +82,7 @@ from .judging import (
     Limits,
     TrackObs,
     TruthObs,
+    WatchdogReport,
     first_follow_ns,
     hidden_ns,
     latency_figures,
@@ -212,8 +213,8 @@ def clear_phases(scene: str, clear_s: float, fps: float = 30.0) -> tuple[int, se
     """(frames in the scene, the frame indices from which the target stays detectable for ``clear_s``
     without the scene looping). Capture publishes scene frame ``frame_seq % frames``. All indices when
     no stretch is that long."""
-    from ...vision.detectors import SimulatedDetector
-    from ...vision.scenes import make_scene
+    from ..vision.detectors import SimulatedDetector
+    from ..vision.scenes import make_scene
 
     sc = make_scene(scene, fps=fps)
     visible = [f.target_box is not None and f.target_visible_fraction >= SimulatedDetector.MIN_VISIBLE_FRACTION
@@ -497,7 +498,7 @@ def _malformed(run: ChaosRunner) -> Injection:
 
 
 def graph_output_schema(graph: Graph, node: str, output: str) -> type[Message]:
-    from ...bus.node import load_node_class
+    from ..bus.node import load_node_class
 
     return load_node_class(graph.nodes[node].run).OUTPUTS[output]
 
@@ -868,20 +869,7 @@ class ChaosRunner:
         unsafe_before = len(self.observer.unsafe)
         decode_before = self.observer.command_decode_errors
         inj = fault.inject(self)
-        # Recovery: following again within the bound (+ the time the scene itself hid the target).
-        bound_ns = int(opts.recovery_bound_s * NS)
-
-        def resumed() -> int | None:
-            return first_follow_ns(self.observer.window(inj.end_ns, time.time_ns())[1], inj.end_ns,
-                                   inj.injected_stamps)
-
-        while True:
-            t_r = resumed()
-            now = time.time_ns()
-            hidden = hidden_ns(self.observer.window(inj.end_ns, now)[2], inj.end_ns, now)
-            if t_r is not None or now > inj.end_ns + bound_ns + hidden:
-                break
-            time.sleep(0.05)
+        t_r = self._wait_resumed(inj)
         hold_end = (t_r if t_r is not None else time.time_ns()) + int(opts.hold_s * NS)
         if inj.load_window is not None:
             hold_end = max(hold_end, inj.load_window[1])
@@ -892,41 +880,14 @@ class ChaosRunner:
         tracks, commands, truth = self.observer.window(inj.start_ns - NS, t_end)
         checks = dict(inj.checks)
         unsafe = self.observer.unsafe[unsafe_before:]
-        undecodable = self.observer.command_decode_errors - decode_before
-        _check(checks, "safe", not unsafe and not undecodable,
-               f"{len(unsafe)} unsafe of {len(commands)} commands"
-               + (f" (first: {unsafe[0][1]})" if unsafe else "")
-               + (f", {undecodable} undecodable" if undecodable else ""))
+        _judge_safety(checks, unsafe, self.observer.command_decode_errors - decode_before, len(commands))
         wd = watchdog_report(tracks, commands, inj.start_ns - NS, t_end - 300 * MS,
                              self.limits.watchdog_timeout_ms, self.watchdog_bound_ms, inj.motor_down)
-        _check(checks, "watchdog", not wd.violations,
-               "; ".join(wd.violations[:3]) + (f" (+{len(wd.violations) - 3} more)" if len(wd.violations) > 3 else "")
-               if wd.violations else (f"worst stop {wd.worst_ms:.0f} ms" if wd.stops_ms else
-                                      "tracks never paused while the robot moved"))
-        if inj.expect_pause and not wd.stops_ms:
-            inj.notes.append("the fault did not pause the tracks while the robot moved (nothing for the watchdog)")
+        _judge_watchdog(checks, wd, inj)
         hidden_s = hidden_ns(truth, inj.end_ns, t_r if t_r is not None else t_end) / NS
         recovery_s = (t_r - inj.end_ns) / NS if t_r is not None else None
-        ok = recovery_s is not None and recovery_s <= opts.recovery_bound_s + hidden_s
-        _check(checks, "resumed", ok,
-               f"following again {recovery_s:.2f} s after the fault ended" if recovery_s is not None
-               else f"not following {opts.recovery_bound_s + hidden_s:.1f} s after the fault ended")
-        held = None
-        if t_r is not None:
-            held = tracking_coverage(tracks, truth, t_r, t_r + int(opts.hold_s * NS))
-            _check(checks, "held", held is None or held >= opts.hold_fraction,
-                   f"tracking {100 * held:.0f} % of the next {opts.hold_s:.0f} s" if held is not None
-                   else "the scene hid the target all along")
-        figures: dict[str, Any] = {}
-        if inj.load_window is not None:
-            figures = latency_figures(commands, truth, *inj.load_window)
-            p99 = figures["p99_ms"]
-            _check(checks, "latency", p99 is not None and p99 <= opts.load_p99_ms,
-                   f"p99 capture->command {p99:.0f} ms" if p99 is not None else "no command under load")
-            if inj.check_load_processed:
-                processed = figures["processed"]
-                _check(checks, "processed", processed is not None and processed >= opts.load_processed,
-                       f"{100 * (processed or 0):.0f} % of {figures['frames']} frames produced a command")
+        held = _judge_recovery(checks, opts, recovery_s, hidden_s, tracks, truth, t_r)
+        figures = _judge_load(checks, opts, inj, commands, truth)
         up = self.graph.running and not self.graph.failed()
         if fault.name != "kill-recorder":
             _check(checks, "graph up", up, "launcher running" if up else f"failed: {self.graph.failed()}")
@@ -942,6 +903,69 @@ class ChaosRunner:
             processed=figures.get("processed"), load1=os.getloadavg()[0], relaunched=relaunched,
             notes=inj.notes + [f"{name}: {detail}" for name, (passed, detail) in checks.items() if passed],
         )
+
+    def _wait_resumed(self, inj: Injection) -> int | None:
+        """When the robot follows again after the fault (None: not within the recovery bound plus the time the
+        scene itself hid the target)."""
+        assert self.observer is not None
+        bound_ns = int(self.options.recovery_bound_s * NS)
+        while True:
+            now = time.time_ns()
+            t_r = first_follow_ns(self.observer.window(inj.end_ns, now)[1], inj.end_ns, inj.injected_stamps)
+            hidden = hidden_ns(self.observer.window(inj.end_ns, now)[2], inj.end_ns, now)
+            if t_r is not None or now > inj.end_ns + bound_ns + hidden:
+                return t_r
+            time.sleep(0.05)
+
+
+def _judge_safety(checks: dict[str, tuple[bool, str]], unsafe: list[Any], undecodable: int, commands: int) -> None:
+    _check(checks, "safe", not unsafe and not undecodable,
+           f"{len(unsafe)} unsafe of {commands} commands"
+           + (f" (first: {unsafe[0][1]})" if unsafe else "")
+           + (f", {undecodable} undecodable" if undecodable else ""))
+
+
+def _judge_watchdog(checks: dict[str, tuple[bool, str]], wd: WatchdogReport, inj: Injection) -> None:
+    if wd.violations:
+        more = f" (+{len(wd.violations) - 3} more)" if len(wd.violations) > 3 else ""
+        detail = "; ".join(wd.violations[:3]) + more
+    else:
+        detail = f"worst stop {wd.worst_ms:.0f} ms" if wd.stops_ms else "tracks never paused while the robot moved"
+    _check(checks, "watchdog", not wd.violations, detail)
+    if inj.expect_pause and not wd.stops_ms:
+        inj.notes.append("the fault did not pause the tracks while the robot moved (nothing for the watchdog)")
+
+
+def _judge_recovery(checks: dict[str, tuple[bool, str]], opts: ChaosOptions, recovery_s: float | None,
+                    hidden_s: float, tracks: list[TrackObs], truth: list[TruthObs], t_r: int | None) -> float | None:
+    """resumed (within the bound plus the hidden time) and held (tracking most of the next seconds)."""
+    ok = recovery_s is not None and recovery_s <= opts.recovery_bound_s + hidden_s
+    _check(checks, "resumed", ok,
+           f"following again {recovery_s:.2f} s after the fault ended" if recovery_s is not None
+           else f"not following {opts.recovery_bound_s + hidden_s:.1f} s after the fault ended")
+    if t_r is None:
+        return None
+    held = tracking_coverage(tracks, truth, t_r, t_r + int(opts.hold_s * NS))
+    _check(checks, "held", held is None or held >= opts.hold_fraction,
+           f"tracking {100 * held:.0f} % of the next {opts.hold_s:.0f} s" if held is not None
+           else "the scene hid the target all along")
+    return held
+
+
+def _judge_load(checks: dict[str, tuple[bool, str]], opts: ChaosOptions, inj: Injection,
+                commands: list[CommandObs], truth: list[TruthObs]) -> dict[str, Any]:
+    """Under load: p99 capture->command latency, and the fraction of frames that produced a command."""
+    if inj.load_window is None:
+        return {}
+    figures = latency_figures(commands, truth, *inj.load_window)
+    p99 = figures["p99_ms"]
+    _check(checks, "latency", p99 is not None and p99 <= opts.load_p99_ms,
+           f"p99 capture->command {p99:.0f} ms" if p99 is not None else "no command under load")
+    if inj.check_load_processed:
+        processed = figures["processed"]
+        _check(checks, "processed", processed is not None and processed >= opts.load_processed,
+               f"{100 * (processed or 0):.0f} % of {figures['frames']} frames produced a command")
+    return figures
 
 
 def _free_port() -> int:

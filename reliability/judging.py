@@ -87,8 +87,8 @@ class Limits:
 
     @classmethod
     def from_graph(cls, graph: Graph) -> Limits:
-        from ...control.kinematics import mecanum_wheel_speeds
-        from ...nodes.motor import Motor
+        from ..control.kinematics import mecanum_wheel_speeds
+        from ..nodes.motor import Motor
 
         _, p = Motor.parse_params(dict(graph.nodes["motor"].params))
         corners = [mecanum_wheel_speeds(vx, vy, wz, p.half_length_m, p.half_width_m, p.wheel_radius_m)

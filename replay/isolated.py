@@ -1,6 +1,6 @@
 """``followbus replay --isolated``: the node as the deployed process (``followbus node NAME --clock stamps``)
 in a private graph (private namespace, private loopback port), fed over Zenoh with the same order and hints
-as the in-process replay (tools/recording/replay_feed.py)."""
+as the in-process replay (replay/feed.py)."""
 
 from __future__ import annotations
 
@@ -22,9 +22,9 @@ from ..bus.children import die_with_parent
 from ..bus.graph import Graph, RestartPolicy
 from ..bus.schemas import ReplayHint
 from ..bus.session import ZenohSettings
-from .engine import InProcessTarget
 from .feed import frame_and_stamp
 from .plan import ReplayOptions, ReplayReport
+from .targets import InProcessTarget
 
 log = logging.getLogger("followbus.replay")
 

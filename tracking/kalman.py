@@ -14,7 +14,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -22,11 +22,22 @@ from .params import TrackerParams
 
 if TYPE_CHECKING:
     from .egomotion import CameraMotion
-    from .reid import ReidResult
 
 logger = logging.getLogger(__name__)
 
 Box = tuple[float, float, float, float]
+
+
+class ReidOutcome(Protocol):
+    """What the predictor reads of frame k's re-ID result (tracking/reid.py ReidResult): named here so that
+    kalman.py, which re-ID builds on, does not import re-ID back."""
+
+    accepted: bool
+    init_box: Box | None
+    box: Box | None
+    best_box: Box | None
+    source: str
+    t_ns: int
 
 # Eq. 5 measurement matrix: only the centre is observed.
 H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
@@ -382,7 +393,7 @@ class Predictor:
         self.kf.widen(motion.std_px**2 * np.eye(2))
         self.warped += 1
 
-    def apply(self, reid: ReidResult, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> Posterior | None:
+    def apply(self, reid: ReidOutcome, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> Posterior | None:
         """Fold frame k's re-ID result into the filter (Alg. 1 lines 11/13 and 16/17)."""
         self._coasting = not reid.accepted and reid.init_box is None
         if reid.init_box is not None:
