@@ -65,7 +65,7 @@ class Replayer:
         feed = Feed(self.plan)
         bar = self._progress()
         started = time.perf_counter()
-        first_stamp = last_stamp = None
+        stamps: list[int] = []  # the first and the last input stamp seen
         done_frames: set[int] = set()
         sent: dict[int, set[str]] = defaultdict(set)  # frame -> recorded input keys fed for it
         try:
@@ -74,43 +74,49 @@ class Replayer:
                     break
                 for node, hint in hints:
                     target.hint(node, hint)
-                for item in messages:
-                    stamp = item.stamp_ns
-                    target.send(self.plan.inputs[item.msg.key], item.msg.data, stamp, frame_seq)
-                    self.report.inputs_sent += 1
-                    sent[item.frame_seq].add(item.msg.key)
-                    if stamp:
-                        first_stamp = stamp if first_stamp is None else min(first_stamp, stamp)
-                        last_stamp = stamp if last_stamp is None else max(last_stamp, stamp)
+                self._send(target, messages, frame_seq, sent, stamps)
                 if frame_seq >= 0:
                     self.report.frames += 1
                     done_frames.add(frame_seq)
                     bar.update(1)
         finally:
             bar.close()
-            produced = target.produced()
-            required = self.plan.required_inputs
-            # Frames the node cannot reproduce from this recording: a required input of the frame is not in
-            # it, the feedback the frame joined live is not, or an input's stream ends before the frame (the
-            # recorder stopped first: prediction's track k comes from re-ID's measurement k, say).
-            stream_end: dict[str, int] = {}
-            for fs, keys in sent.items():
-                for key in keys & self.plan.frame_inputs:
-                    stream_end[key] = max(stream_end.get(key, -1), fs)
-            incomplete = {fs for _topic, fs in feed.expected if fs >= 0 and (
-                (required and not required <= sent.get(fs, set()))
-                or any(key not in sent.get(joined, set()) for key, joined in feed.joined.get(fs, ()))
-                or any(end < fs for end in stream_end.values()))}
-            self._compare(feed.expected, produced, done_frames, incomplete)
+            self._compare(feed.expected, target.produced(), done_frames, self._incomplete(feed, sent))
             self.report.wall_s = time.perf_counter() - started
             self.report.outputs_expected = feed.outputs_expected
             self.report.hints, self.report.late_inputs = feed.hints_reproduced, feed.late_inputs
         if isinstance(target, InProcessTarget):
             self.report.handler_s, self.report.decode_s = target.handler_s, target.decode_s
-        if first_stamp is not None and last_stamp is not None:
-            self.report.recorded_span_s = (last_stamp - first_stamp) / 1e9
+        if stamps:
+            self.report.recorded_span_s = (stamps[-1] - stamps[0]) / 1e9
         if self.report.wall_s > 0:
             self.report.speed_x = self.report.recorded_span_s / self.report.wall_s
+
+    def _send(self, target: Target, messages: Any, frame_seq: int, sent: dict[int, set[str]],
+              stamps: list[int]) -> None:
+        """One frame's inputs to the target; ``stamps`` keeps the lowest and the highest stamp seen."""
+        for item in messages:
+            stamp = item.stamp_ns
+            target.send(self.plan.inputs[item.msg.key], item.msg.data, stamp, frame_seq)
+            self.report.inputs_sent += 1
+            sent[item.frame_seq].add(item.msg.key)
+            if stamp:
+                stamps[:] = [min(stamps[0], stamp), max(stamps[-1], stamp)] if stamps else [stamp, stamp]
+
+    def _incomplete(self, feed: Feed, sent: dict[int, set[str]]) -> set[int]:
+        """Frames the node cannot reproduce from this recording: a required input of the frame is not in it, the
+        feedback the frame joined live is not, or an input's stream ends before the frame (the recorder stopped
+        first: prediction's track k comes from re-ID's measurement k, say)."""
+        required = self.plan.required_inputs
+        stream_end: dict[str, int] = {}
+        for fs, keys in sent.items():
+            for key in keys & self.plan.frame_inputs:
+                stream_end[key] = max(stream_end.get(key, -1), fs)
+        last_end = min(stream_end.values(), default=None)
+        return {fs for _topic, fs in feed.expected if fs >= 0 and (
+            (required and not required <= sent.get(fs, set()))
+            or any(key not in sent.get(joined, set()) for key, joined in feed.joined.get(fs, ()))
+            or (last_end is not None and last_end < fs))}
 
     def _compare(self, expected: dict[tuple[str, int], list[bytes]], produced: dict[str, list[bytes]],
                  done_frames: set[int], incomplete: set[int] = frozenset()) -> None:
@@ -121,33 +127,39 @@ class Replayer:
             self.report.outputs_received += len(items)
             for data in items:
                 by_frame[(topic, frame_and_stamp(data)[0])].append(data)
-        last_recorded: dict[str, int] = {}
-        for topic, fs in expected:
-            last_recorded[topic] = max(last_recorded.get(topic, -1), fs)
-        key = {topic: f"{self.plan.recorded_ns}/{topic}" for topic in self.plan.outputs.values()}
         for (topic, fs), recorded in sorted(expected.items()):
             if fs < 0 and topic in self.plan.timer_topics:
                 self.report.timer_outputs += len(recorded)
+            elif not self.opts.max_frames or fs in done_frames:  # else beyond --max-frames
+                self._compare_frame(topic, fs, recorded, by_frame.get((topic, fs), []), fs in incomplete)
+        self._list_extra(expected, by_frame)
+
+    def _compare_frame(self, topic: str, fs: int, recorded: list[bytes], replayed: list[bytes],
+                       incomplete: bool) -> None:
+        """One output key's recorded and replayed messages of frame ``fs``, in order."""
+        key = self.plan.key(topic)
+        for i in range(min(len(recorded), len(replayed))):
+            self.report.outputs_compared += 1
+            diff = compare_output(recorded[i], replayed[i], self.opts.tolerance)
+            if diff is None:
+                self.report.matched += 1
                 continue
-            if self.opts.max_frames and fs not in done_frames:
-                continue  # beyond --max-frames
-            replayed = by_frame.get((topic, fs), [])
-            for i in range(min(len(recorded), len(replayed))):
-                self.report.outputs_compared += 1
-                diff = compare_output(recorded[i], replayed[i], self.opts.tolerance)
-                if diff is None:
-                    self.report.matched += 1
-                    continue
-                self.report.mismatch_count += 1
-                if len(self.report.mismatches) < MAX_REPORTED:
-                    self.report.mismatches.append({"frame_seq": fs, "key": key[topic], "index": i,
-                                                   "field": diff.field, "recorded": show_value(diff.recorded),
-                                                   "replayed": show_value(diff.replayed)})
-            if fs in incomplete and len(replayed) < len(recorded):
-                self.report.unverifiable += len(recorded) - len(replayed)
-                continue
-            for i in range(len(replayed), len(recorded)):
-                self.report.missing.append({"frame_seq": fs, "key": key[topic], "index": i})
+            self.report.mismatch_count += 1
+            if len(self.report.mismatches) < MAX_REPORTED:
+                self.report.mismatches.append({"frame_seq": fs, "key": key, "index": i, "field": diff.field,
+                                               "recorded": show_value(diff.recorded),
+                                               "replayed": show_value(diff.replayed)})
+        if incomplete and len(replayed) < len(recorded):
+            self.report.unverifiable += len(recorded) - len(replayed)
+            return
+        self.report.missing += [{"frame_seq": fs, "key": key, "index": i} for i in range(len(replayed), len(recorded))]
+
+    def _list_extra(self, expected: dict[tuple[str, int], list[bytes]],
+                    by_frame: dict[tuple[str, int], list[bytes]]) -> None:
+        """Produced but not recorded: extra, unless the recording stopped before that frame's outputs."""
+        last_recorded: dict[str, int] = {}
+        for topic, fs in expected:
+            last_recorded[topic] = max(last_recorded.get(topic, -1), fs)
         for (topic, fs), replayed in sorted(by_frame.items()):
             if fs < 0 and topic in self.plan.timer_topics:
                 continue
@@ -156,8 +168,8 @@ class Replayer:
                 # The recording stopped between this frame's inputs and its outputs: nothing to compare.
                 self.report.beyond_end += len(replayed) - n_exp
                 continue
-            for i in range(n_exp, len(replayed)):
-                self.report.extra.append({"frame_seq": fs, "key": key[topic], "index": i})
+            self.report.extra += [{"frame_seq": fs, "key": self.plan.key(topic), "index": i}
+                                  for i in range(n_exp, len(replayed))]
 
     def _progress(self):
         from tqdm import tqdm

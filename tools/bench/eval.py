@@ -207,38 +207,56 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
     Returns {"compared", "mismatches", "missing", "first_mismatch", "graph", "inproc", "detector"}.
     """
     from ...bus.graph import load_graph
-    from ...evaluation.graph_follower import GraphFollower
     from ...evaluation.runner import open_sequence
-    from ...nodes.detection import Detection, detector_from_params, split_detections
-    from ...vision.detectors import SimulatedDetector
 
     is_scene = spec.startswith("scene:")
     detector = detector or ("simulated" if is_scene else DEFAULT_DETECTOR)
-    # the detection node's params as the graph runs them (thresholds, threads, model), switched to ``detector``
-    shipped = load_graph(REPO / "graph.yaml")
-    node_params = Detection.parse_params(apply_detector_preset(dict(shipped.nodes["detection"].params), detector))
     if detector == "simulated" and not is_scene:
         raise ValueError(f"{spec}: simulated detections are reproduced by the graph for scenes only; "
                          "use --detector yolox|yolox640|hog")
+    shipped = load_graph(REPO / "graph.yaml")
     seq = open_sequence(spec, seed=seed, max_frames=max_frames)
-    source = spec if is_scene else str(Path(spec).resolve())
     n = seq.n_frames
-    # in-process: the same frames, the same detector, the same init box, v_ego = 0
+    inproc, init_box = _run_in_process(spec, seq, _graph_detector(shipped, detector), "egomotion" in shipped.nodes)
+    if port is None:
+        import socket
+
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+    source = spec if is_scene else str(Path(spec).resolve())
+    tracks = _run_graph_once(source, port, init_box, n, max_in_flight, timeout_s, log_file, detector)
+    mismatches = [k for k in range(n) if k in tracks and not _same_box(tracks[k], inproc[k])]
+    missing = sum(k not in tracks for k in range(n))
+    return {"compared": n - missing, "mismatches": len(mismatches), "missing": missing,
+            "first_mismatch": mismatches[0] if mismatches else None,
+            "graph": [tracks.get(k) for k in range(n)], "inproc": inproc, "detector": detector}
+
+
+def _same_box(a: Any, b: Any) -> bool:
+    return (a is None and b is None) or (a is not None and b is not None and np.allclose(a, b, rtol=0.0, atol=1e-9))
+
+
+def _graph_detector(graph: Any, detector: str) -> Any:
+    """item -> (high, low) detections as the graph's detection node makes them (its thresholds, threads, model),
+    switched to ``detector``; simulated: the node's defaults (noise 4 px, miss 0.05, fp 0.02, seed 0)."""
+    from ...nodes.detection import Detection, detector_from_params, split_detections
+    from ...vision.detectors import SimulatedDetector
+
+    node_params = Detection.parse_params(apply_detector_preset(dict(graph.nodes["detection"].params), detector))
     if detector == "simulated":
-        sim = SimulatedDetector(seed=0)  # detection node defaults: noise 4 px, miss 0.05, fp 0.02, seed 0
+        sim = SimulatedDetector(seed=0)
+        return lambda item: split_detections(node_params, sim.detect(item.bgr, item.truth))
+    real = detector_from_params(node_params)
+    return lambda item: split_detections(node_params, real.detect(item.bgr))
 
-        def detect(item):
-            return split_detections(node_params, sim.detect(item.bgr, item.truth))
-    else:
-        # exactly the detector the graph's detection node builds (threads, thresholds, model)
-        real = detector_from_params(node_params)
 
-        def detect(item):
-            return split_detections(node_params, real.detect(item.bgr))
+def _run_in_process(spec: str, seq: Any, detect: Any, has_egomotion: bool) -> tuple[list[Any], list[float]]:
+    """The same frames, detector and initial box through the graph's nodes in-process (v_ego = 0): the boxes
+    and the initial box. The prior is warped by camera motion only where the graph has an egomotion node."""
+    from ...evaluation.graph_follower import GraphFollower
     from ...tracking.params import TrackerParams
 
-    # The graph warps the prior by camera motion only where an egomotion node publishes it; in-process likewise.
-    has_egomotion = "egomotion" in shipped.nodes
     follower = GraphFollower(TrackerParams(camera_motion_compensation=has_egomotion))
     inproc: list[Any] = []
     init_box: list[float] | None = None
@@ -253,27 +271,7 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
                                low_detections=low)
         inproc.append(box)
     assert init_box is not None
-
-    if port is None:
-        import socket
-
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-    tracks = _run_graph_once(source, port, init_box, n, max_in_flight, timeout_s, log_file, detector)
-    mismatches, missing, first = 0, 0, None
-    for k in range(n):
-        if k not in tracks:
-            missing += 1
-            continue
-        a, b = tracks[k], inproc[k]
-        same = (a is None and b is None) or (a is not None and b is not None
-                                             and np.allclose(a, b, rtol=0.0, atol=1e-9))
-        if not same:
-            mismatches += 1
-            first = k if first is None else first
-    return {"compared": n - missing, "mismatches": mismatches, "missing": missing, "first_mismatch": first,
-            "graph": [tracks.get(k) for k in range(n)], "inproc": inproc, "detector": detector}
+    return inproc, init_box
 
 
 def _run_graph_once(source: str, port: int, init_box: list[float], n: int, max_in_flight: int, timeout_s: float,
