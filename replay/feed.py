@@ -1,6 +1,6 @@
 """The recording as a replay reads it: once, outputs of the replayed nodes kept as the expected outputs and
 turned into replay hints, inputs handed out in the order they were published, frame by frame. Shared by
-the in-process and the ``--isolated`` replay (tools/recording/replay.py)."""
+the in-process and the ``--isolated`` replay (replay/engine.py)."""
 
 from __future__ import annotations
 
