@@ -60,3 +60,23 @@ def test_one_parser_of_assignments():
         parse_assignments(["reed.gamma=3"], nodes=["reid"])
     with pytest.raises(GraphError, match=r"--param reid.gamma=\[1: the value is not valid YAML"):
         parse_assignments(["reid.gamma=[1"], flag="--param", nodes=["reid"])
+
+
+def _renamed_graph():
+    """graph.yaml with its prediction node called ``predictor``: no tool may know the node by name."""
+    text = (REPO / "graph.yaml").read_text().replace("  prediction:\n", "  predictor:\n")
+    return load_graph("renamed.yaml", text.replace("from: prediction/", "from: predictor/"))
+
+
+def test_the_evaluation_follower_and_the_monitor_find_topics_by_type():
+    from followbus.evaluation.graph_follower import GraphTopics
+    from followbus.viewing.monitor import GraphInfo
+
+    topics = GraphTopics(_renamed_graph())
+    assert (topics.track, topics.prior) == ("predictor/track", "predictor/prior")
+    assert topics.nodes == ["egomotion", "predictor", "reid", "template"]
+    assert (topics.frame, topics.detections, topics.odometry) == ("capture/frame", "detection/detections",
+                                                                  "motor/odometry")
+    info = GraphInfo.from_graph(_renamed_graph(), "ht")
+    assert info.keys["track"] == "ht/predictor/track" and info.keys["command"] == "ht/motor/command"
+    assert info.preview_key == "ht/capture/preview"  # the frame output no node reads

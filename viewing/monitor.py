@@ -82,14 +82,16 @@ class GraphInfo:
     @classmethod
     def from_graph(cls, graph: Graph | None, namespace: str | None = None) -> GraphInfo:
         """The keys of the watched messages: each the output of the graph that carries its type (a node class's
-        OUTPUTS); the preview is the frame output no node reads. No graph: the shipped graph.yaml's keys."""
+        OUTPUTS); the preview is the frame output no node reads. No graph (or a type it does not carry): the
+        shipped graph.yaml's keys."""
         info = cls()
         topics, preview = dict(SHIPPED_KEYS), SHIPPED_PREVIEW
         if graph is not None:
             from ..bus.graph_drawing import to_svg
 
             info.namespace, info.nodes, info.graph_svg = graph.namespace, list(graph.nodes), to_svg(graph)
-            topics, preview = _watched_topics(graph)
+            found, preview = _watched_topics(graph)
+            topics.update(found)  # a type the graph does not carry keeps the shipped key: nothing comes on it
             info._read_params(graph)
         info.namespace = namespace or info.namespace
         info.keys = {name: f"{info.namespace}/{topic}" for name, topic in topics.items()}
