@@ -327,11 +327,13 @@ def parse_assignments(items: Iterable[str], *, flag: str = "--set", nodes: Itera
         if known and node not in known:
             raise GraphError("<command line>", None, f"{flag} {item}: no node named {node!r} to set {param!r} on "
                                                      f"(nodes: {', '.join(known)})")
-        out.setdefault(node, {})[param] = _yaml_value(raw, f"{flag} {item}")
+        out.setdefault(node, {})[param] = parse_value(raw, f"{flag} {item}")
     return out
 
 
-def _yaml_value(raw: str, said: str) -> Any:
+def parse_value(raw: str, said: str) -> Any:
+    """A parameter value as every command reads one: YAML syntax (0.8, true, [1, 2], text), empty for ""; a
+    GraphError that names ``said`` (what the user typed) otherwise."""
     try:
         return yaml.safe_load(raw) if raw.strip() else ""
     except yaml.YAMLError as exc:
