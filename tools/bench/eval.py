@@ -8,6 +8,7 @@ per sequence, and the detection cache (``cache/``) so a repeated run does not re
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import shlex
 import sys
@@ -190,6 +191,13 @@ def derived_graph(source: str, port: int, namespace: str, init_box: list[float],
         # Lockstep loses nothing, so a timeout could only mean a slow (cold, loaded) node, and a set
         # emitted without its feedback would make the graph diverge from the in-process run.
         graph = graph.with_node(node, sync_timeout_ms=10_000.0)
+    inputs = graph.nodes["prediction"].inputs
+    if "transform" in inputs and "egomotion" in graph.nodes:
+        # The live rule for an optional input (not waited for before its first message) lets a cold egomotion's
+        # first transforms miss frames 0-1 or only frame 0, whichever process ran first: the priors then differ
+        # by ~3e-4 px. Lockstep waits for every transform (egomotion answers every frame, frame 0 included).
+        graph = graph.with_node("prediction", inputs={**inputs, "transform": dataclasses.replace(
+            inputs["transform"], optional=False)})
     return graph.to_yaml()
 
 
