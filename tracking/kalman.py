@@ -39,6 +39,7 @@ class ReidOutcome(Protocol):
     source: str
     t_ns: int
 
+
 # Eq. 5 measurement matrix: only the centre is observed.
 H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
 
