@@ -15,24 +15,20 @@ from followbus.bus.codec import DecodeError
 from followbus.bus.graph import load_graph
 from followbus.bus.node import ParamError
 from followbus.bus.schemas import SCHEMAS, decode
-from followbus.reliability import chaos
-from followbus.reliability.chaos import (
-    CI_FAULTS,
-    FAULTS,
-    ChaosOptions,
-    ChaosRunner,
-    FaultResult,
-    format_headline,
-    headline,
-    resolve_faults,
-)
+from followbus.reliability import faults as chaos
+from followbus.reliability.chaos import ChaosRunner
+from followbus.reliability.faults import CI_FAULTS, FAULTS, resolve_faults
 from followbus.reliability.judging import (
     INJECTOR,
+    ChaosOptions,
     CommandObs,
+    FaultResult,
     Limits,
     TrackObs,
     TruthObs,
     first_follow_ns,
+    format_headline,
+    headline,
     tracking_coverage,
     watchdog_report,
 )

@@ -1,6 +1,6 @@
-"""``followbus bench chaos``: the tracking graph under faults (the engine: reliability/chaos.py, its checks:
-reliability/judging.py). This command launches the graph for the runner (it owns the launcher), prints a line
-per fault, the table and the headline, and writes the JSON."""
+"""``followbus bench chaos``: the tracking graph under faults (the runner: reliability/chaos.py, the faults:
+reliability/faults.py, the checks: reliability/judging.py). This command launches the graph for the runner (it
+owns the launcher), prints a line per fault, the table and the headline, and writes the JSON."""
 
 from __future__ import annotations
 
@@ -15,19 +15,19 @@ from pathlib import Path
 from typing import Any
 
 from ...bus.graph import load_graph
-from ...reliability.chaos import (
+from ...reliability.chaos import ChaosRunner
+from ...reliability.faults import resolve_faults
+from ...reliability.judging import (
+    ChaosError,
     ChaosOptions,
-    ChaosRunner,
     Fault,
     FaultResult,
     fmt,
     format_headline,
     format_table,
     headline,
-    resolve_faults,
     summarise,
 )
-from ...reliability.judging import ChaosError
 
 log = logging.getLogger("followbus.chaos")
 
