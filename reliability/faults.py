@@ -42,13 +42,13 @@ log = logging.getLogger("followbus.chaos")
 
 def _kill(node: str) -> Callable[[ChaosRunner], Injection]:
     def inject(run: ChaosRunner) -> Injection:
-        return run.kill_andwait_for(node)
+        return run.kill_and_wait(node)
     return inject
 
 
 def _kill_capture(run: ChaosRunner) -> Injection:
     before = run.observer.last_truth()
-    inj = run.kill_andwait_for("capture")
+    inj = run.kill_and_wait("capture")
     first = wait_for(lambda: next((g for g in run.observer.window(inj.end_ns, time.time_ns())[2]), None), 5.0)
     restarted = first is not None and before is not None and first.frame_seq < before.frame_seq
     check(inj.checks, "frame_seq restarted", restarted,
@@ -90,7 +90,7 @@ def _future_stamp_track(run: ChaosRunner) -> Injection:
     track.header.frame_seq = (last.frame_seq + 1) if last else 0
     start = time.time_ns()
     pub.put(track)
-    inj = run.kill_andwait_for("prediction", start_ns=start)
+    inj = run.kill_and_wait("prediction", start_ns=start)
     inj.injected_stamps.add(track.header.stamp_ns)
     inj.notes.insert(0, "a TRACKING track stamped +1 h on the track key, then prediction SIGKILLed")
     return inj
