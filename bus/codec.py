@@ -375,3 +375,9 @@ def peek(data: bytes | bytearray | memoryview) -> Peeked:
         raise DecodeError(f"{type_name}: no header")
     header, provenance = header_from_wire(found[HEADER_KEY])
     return Peeked(type_name, found.get(VERSION_KEY), header, provenance)
+
+
+def frame_parts(data: bytes | bytearray | memoryview) -> tuple[memoryview, memoryview]:
+    """(head, blob area) views of an encoded message, neither decoded (a malformed one: DecodeError): what a
+    comparison of two messages' bytes needs (replay/diff.py)."""
+    return _split(data)

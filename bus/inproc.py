@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from .codec import DecodeError, Header, peek
-from .graph import Graph, GraphError
+from .graph import Graph
 from .node import Clock, Node, NodeHost, validate_node
 from .pubsub import MAX_PAYLOAD_BYTES, RateLimitedLog
 from .schemas import Frame, Message, ReplayHint, decode, encode, validate, wire_copy
@@ -216,11 +216,9 @@ class InProcessGraph:
         if clock not in ("sim", "stamps"):
             raise ValueError(f"clock must be 'sim' or 'stamps', not {clock!r}")
         self.graph = graph
-        names = list(graph.nodes) if nodes is None else list(nodes)
-        for name in names:
-            if name not in graph.nodes:
-                raise GraphError(graph.path, None, f"no node named {name!r} (nodes: {', '.join(graph.nodes)})")
-        order = [n for n in graph.nodes if n in names]  # graph order, whatever order they were named in
+        # The hosted nodes (graph order) and where they meet the rest of the graph: the inputs to inject.
+        self.boundary = graph.boundary(graph.nodes if nodes is None else nodes)
+        order = list(self.boundary.nodes)
         validated = {name: validate_node(graph, graph.nodes[name]) for name in order}  # all before any is built
         self.clock_mode = clock
         self.now_ns = clock_start_ns

@@ -6,6 +6,10 @@ detections as the capture and detection nodes would publish them. The graph's da
 measurement k-1, re-ID against the template of k-1, camera motion k-1 → k) is therefore the graph's own, kept in
 one place: the nodes and their synchronisers. The ego velocity of a frame reaches prediction as an odometry sample
 stamped at the frame's capture time, as the motor node would publish it.
+
+No node or topic is named here: the nodes run are those that produce none of what is fed in (frames, detections,
+odometry), and each topic is found by its message type in the node classes' declarations. This is evaluation/'s
+one module that uses the bus (its in-process runtime and graph model); tests/test_layout.py holds it to that.
 """
 
 from __future__ import annotations
@@ -28,13 +32,12 @@ from ..tracking.params import KalmanParams, ReidParams
 from .trace import ReidCapture, frame_record
 
 GRAPH_PATH = Path(__file__).resolve().parents[1] / "graph.yaml"
-TRACKING_NODES = ("egomotion", "prediction", "reid", "template")
+FED_TYPES = (Frame, Detections, Odometry)  # what evaluation publishes in place of capture, detection and motor
 # The node clock starts here and frame k is stamped CLOCK_BASE_NS + its source time: stamps near the nodes' own
 # clock (nodes reject stamps far from it), differences exactly the source's (the Kalman Δt).
 CLOCK_BASE_NS = 1_700_000_000_000_000_000
 EPOCH_NS = CLOCK_BASE_NS
 MAX_STEPS_PER_FRAME = 1000
-TRANSFORM_TOPIC = "egomotion/transform"
 
 
 class GraphFollowerError(RuntimeError):
@@ -56,16 +59,45 @@ def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH) -
     tracking node that reads it, and no template file read or written. A setting no tracking node reads is a
     ValueError: it would change nothing."""
     graph = load_graph(graph_path)
+    topics = GraphTopics(graph)
     unread = set(settings)
-    for name in (n for n in TRACKING_NODES if n in graph.nodes):
-        spec = graph.nodes[name]
-        reads = load_node_class(spec.run).param_names()
-        spec.params.update({key: value for key, value in settings.items() if key in reads})
+    changes: dict[str, dict[str, Any]] = {}
+    for name in topics.nodes:
+        reads = load_node_class(graph.nodes[name].run).param_names()
+        changes[name] = {key: value for key, value in settings.items() if key in reads}
         unread -= reads
     if unread:
         raise ValueError(f"no tracking node of {graph_path} reads {', '.join(sorted(unread))}")
-    graph.nodes["template"].params["state_file"] = ""
-    return graph
+    changes[topics.node(topics.template)]["state_file"] = ""
+    return graph.override(changes)
+
+
+def detector_params(graph_path: Path = GRAPH_PATH) -> dict[str, Any]:
+    """The params of the graph's detection node (the one that publishes Detections), as the file says them."""
+    graph = load_graph(graph_path)
+    node = next(name for name, spec in graph.nodes.items() if Detections in load_node_class(spec.run).OUTPUTS.values())
+    return dict(graph.nodes[node].params)
+
+
+class GraphTopics:
+    """The graph's tracking nodes and topics, found by message type (see the module docstring)."""
+
+    def __init__(self, graph: Graph) -> None:
+        outputs = {name: load_node_class(spec.run).OUTPUTS for name, spec in graph.nodes.items()}
+        fed_by = {name for name, out in outputs.items() if any(t in FED_TYPES for t in out.values())}
+        self.nodes = [name for name in graph.nodes if name not in fed_by]
+        by_type = {t: f"{name}/{output}" for name in self.nodes for output, t in outputs[name].items()}
+        self.track, self.template = by_type[Track], by_type[Template]
+        self.prior, self.measurement = by_type[Prior], by_type[Measurement]
+        self.camera_motion = by_type.get(CameraMotion)
+        boundary = graph.boundary(self.nodes)
+        inputs = {name: load_node_class(graph.nodes[name].run).INPUTS for name in self.nodes}
+        fed = {inputs[node][inp.name]: inp.topic for node, inp in boundary.inputs}
+        self.frame, self.detections, self.odometry = (fed[t] for t in FED_TYPES)
+
+    @staticmethod
+    def node(topic: str) -> str:
+        return topic.split("/", 1)[0]
 
 
 def node_params(graph: Graph, node: str, cls: type) -> Any:
@@ -83,14 +115,16 @@ class GraphFollower:
     def __init__(self, settings: Mapping[str, Any] | None = None, graph_path: Path = GRAPH_PATH, *,
                  details: bool = False, trace: bool = False) -> None:
         self.planned = tracking_graph(settings or {}, graph_path)  # built at the first step
+        t = self.topics = GraphTopics(self.planned)
         # What the graph's settings decide before it is built: whether re-ID takes low-score boxes, and whether
-        # prediction warps its prior by the camera's motion (without it the egomotion node is not run).
-        self.uses_low_scores = node_params(self.planned, "reid", ReidParams).low_score_stage
-        kalman = node_params(self.planned, "prediction", KalmanParams)
+        # prediction warps its prior by the camera's motion (without it the camera-motion node is not run).
+        self.uses_low_scores = node_params(self.planned, t.node(t.measurement), ReidParams).low_score_stage
+        kalman = node_params(self.planned, t.node(t.prior), KalmanParams)
         self.compensates_camera_motion = kalman.camera_motion_compensation
         # Eval reads the track and the template's η; tests (details=True) also the measurement and prior;
         # ``trace`` (followbus eval --trace) also the camera motion and re-ID's scores: info["trace"] each frame.
-        self.recorded = self.DETAILS if details or trace else self.RECORDED
+        self.details = details or trace
+        self.recorded: list[str] = []  # the topics read each frame (known once the graph is built)
         self.trace = trace
         self.capture = ReidCapture()
         self.transforms: dict[int, CameraMotion] = {}
@@ -99,22 +133,20 @@ class GraphFollower:
         self.k = 0
         self.last: GraphFrame | None = None
 
-    RECORDED = ("prediction/track", "template/template")
-    DETAILS = (*RECORDED, "prediction/prior", "reid/measurement")
-
     def _start(self, init_box: Sequence[float] | None) -> InProcessGraph:
-        graph = self.planned
+        graph, t = self.planned, self.topics
         if init_box is not None:
-            graph.nodes["reid"].params["init_box"] = [float(v) for v in init_box]
-        nodes = [n for n in TRACKING_NODES if n in graph.nodes]
-        if not self.compensates_camera_motion and "egomotion" in nodes:
-            nodes.remove("egomotion")  # as in the graph without the node: priors are not warped
-        self.loose = [TRANSFORM_TOPIC] if self.trace and "egomotion" in nodes else []
+            graph = graph.override({t.node(t.measurement): {"init_box": [float(v) for v in init_box]}})
+        nodes = list(t.nodes)
+        self.recorded = [t.track, t.template, *([t.prior, t.measurement] if self.details else [])]
+        if t.camera_motion and not self.compensates_camera_motion:
+            nodes.remove(t.node(t.camera_motion))  # as in the graph without the node: priors are not warped
+        self.loose = [t.camera_motion] if self.trace and t.camera_motion and t.node(t.camera_motion) in nodes else []
         g = InProcessGraph(graph, nodes=nodes, clock="sim", clock_start_ns=CLOCK_BASE_NS,
                            record=[*self.recorded, *self.loose], record_bytes=False)  # read with drain: no bytes needed
         g.start()
         if self.trace:
-            self._instrument(g.node("reid").reid)
+            self._instrument(g.node(t.node(t.measurement)).reid)
         return g
 
     def _instrument(self, reid: Any) -> None:
@@ -159,14 +191,15 @@ class GraphFollower:
             return msg
 
         # Odometry first: prediction takes the newest sample not after the frame's stamp.
-        g.inject("motor/odometry", stamped(Odometry(vx_mps=float(v_ego_mps[0]), vy_mps=float(v_ego_mps[1]))))
+        t = self.topics
+        g.inject(t.odometry, stamped(Odometry(vx_mps=float(v_ego_mps[0]), vy_mps=float(v_ego_mps[1]))))
         bgr = np.ascontiguousarray(frame_bgr)
         # A read-only image (the runner's, decoded from disk for this run alone) is shared with the nodes rather
         # than copied for them: nobody can write to it any more.
-        g.inject("capture/frame", stamped(Frame(width=bgr.shape[1], height=bgr.shape[0], encoding="bgr8",
+        g.inject(t.frame, stamped(Frame(width=bgr.shape[1], height=bgr.shape[0], encoding="bgr8",
                                                 data=bgr)), handover=not bgr.flags.writeable)
         low = low_detections if low_detections is not None and self.uses_low_scores else None
-        g.inject("detection/detections", stamped(Detections(
+        g.inject(t.detections, stamped(Detections(
             boxes=np.asarray(detections, np.float32).reshape(-1, 5), backend="eval",
             low_boxes=np.zeros((0, 5), np.float32) if low is None else np.asarray(low, np.float32).reshape(-1, 5))))
         self.last = out = self._outputs_of(g, k)
@@ -197,9 +230,9 @@ class GraphFollower:
                         raise GraphFollowerError(f"frame {k}: the graph published {topic} of frame "
                                                  f"{msg.header.frame_seq}")
                     got[topic] = msg
-            if "prediction/track" in got:
-                return GraphFrame(got["prediction/track"], got.get("reid/measurement"),
-                                  got.get("prediction/prior"), got.get("template/template"))
+            t = self.topics
+            if t.track in got:
+                return GraphFrame(got[t.track], got.get(t.measurement), got.get(t.prior), got.get(t.template))
             if not g.step():
                 break
         raise GraphFollowerError(f"frame {k}: the graph published no track (node status: "

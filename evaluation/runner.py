@@ -275,12 +275,9 @@ def read_ahead(read: Callable[[int], Any], n: int, depth: int = READ_AHEAD_FRAME
 
 def detection_params(name: str) -> dict[str, Any]:
     """graph.yaml's detection-node params switched to the detector ``name`` (``graph``: as they are)."""
-    import yaml
+    from .graph_follower import detector_params
 
-    from .graph_follower import GRAPH_PATH
-
-    graph = yaml.safe_load(GRAPH_PATH.read_text(encoding="utf-8"))
-    return apply_detector_preset(dict(graph["nodes"]["detection"].get("params") or {}), name)
+    return apply_detector_preset(detector_params(), name)
 
 
 def detector_key(name: str) -> str:

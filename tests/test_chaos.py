@@ -15,12 +15,12 @@ from followbus.bus.codec import DecodeError
 from followbus.bus.graph import load_graph
 from followbus.bus.node import ParamError
 from followbus.bus.schemas import SCHEMAS, decode
-from followbus.tools.bench import chaos
-from followbus.tools.bench.chaos import (
-    CI_FAULTS,
-    FAULTS,
+from followbus.reliability import faults as chaos
+from followbus.reliability.chaos import ChaosRunner
+from followbus.reliability.faults import CI_FAULTS, FAULTS, resolve_faults
+from followbus.reliability.judging import (
+    INJECTOR,
     ChaosOptions,
-    ChaosRunner,
     CommandObs,
     FaultResult,
     Limits,
@@ -29,10 +29,10 @@ from followbus.tools.bench.chaos import (
     first_follow_ns,
     format_headline,
     headline,
-    resolve_faults,
     tracking_coverage,
     watchdog_report,
 )
+from followbus.tools.bench.chaos import ChaosGraph
 
 from .conftest import REPO, free_port, run_followbus
 
@@ -113,13 +113,13 @@ def test_tracking_coverage_counts_stale_tracks_as_lost_and_skips_a_hidden_target
     assert tracking_coverage(occluded, hidden, T0, T0 + 1000 * MS) is None
     assert tracking_coverage(occluded, truth, T0, T0 + 1000 * MS) == 0.0
     # Injected tracks do not count as tracking.
-    spoofed = [dataclasses.replace(t, source=chaos.INJECTOR) for t in tracks]
+    spoofed = [dataclasses.replace(t, source=INJECTOR) for t in tracks]
     assert tracking_coverage(spoofed, truth, T0, T0 + 1000 * MS) == 0.0
 
 
 @pytest.mark.parametrize("schema", sorted(SCHEMAS.values(), key=lambda c: c.TYPE), ids=lambda c: c.TYPE)
 def test_malformed_payloads_are_all_undecodable(schema):
-    payloads = chaos._malformed_payloads(schema, 40, np.random.default_rng(0))
+    payloads = chaos.malformed_payloads(schema, 40, np.random.default_rng(0))
     for payload in payloads:
         with pytest.raises(DecodeError):
             decode(payload, schema)
@@ -201,7 +201,7 @@ def runner(tmp_path_factory):
     workdir = tmp_path_factory.mktemp("chaos")
     options = ChaosOptions(detector="simulated", port=free_port(), workdir=workdir, log_file=workdir / "nodes.log",
                            hold_s=2.0, malformed_per_key=400, warmup_s=6.0)
-    with ChaosRunner(options) as r:
+    with ChaosRunner(options, launch=ChaosGraph) as r:
         yield r
 
 

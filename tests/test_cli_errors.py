@@ -416,11 +416,10 @@ def test_replay_mistakes_are_one_line(tmp_path):
     writer.finish()
     cases = {
         ("--node", "relay,sink", "--isolated"): "followbus: --isolated replays one node (several run in-process only)",
-        ("--node", "relay,sink", "--param", "add=1"): "followbus: --param add=...: with several nodes, name the node "
-                                                      "(node.param=value, nodes: relay, sink)",
+        ("--node", "relay,sink", "--param", "add=1"): "followbus: --param add=1: must look like node.param=value",
         ("--node", "ticker"): "followbus: ticker: no inputs from outside: there is nothing to replay into",
-        ("--node", "relay", "--param", "add=[1"): "followbus: --param 'add=[1': value is not valid YAML (expected ',' "
-                                                  "or ']', but got '<stream end>')",
+        ("--node", "relay", "--param", "add=[1"): "followbus: --param add=[1: the value is not valid YAML (expected "
+                                                  "',' or ']', but got '<stream end>')",
     }
     for args, expected in cases.items():
         assert one_error_line(run_followbus("replay", str(path), *args, "--no-progress")) == expected, args

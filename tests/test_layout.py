@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGE_DIRS = ("bus", "msgs", "nodes", "tools", "tracking", "control", "vision", "evaluation", "followbus")
+PACKAGE_DIRS = ("bus", "msgs", "nodes", "tools", "tracking", "control", "vision", "evaluation", "replay",
+                "reliability", "viewing", "followbus")
 
 
 def _modules() -> list[Path]:
@@ -72,7 +73,8 @@ def test_every_internal_import_names_a_file_of_the_repository():
 # What stays at the top of tools/: the command line and what every room uses. Anything else belongs in a room.
 TOOLS_TOP = {"__init__", "cli", "command", "errors", "connect", "identity", "launch", "demo", "models_cmd"}
 TOOLS_ROOMS = {"recording", "live", "bench", "runs"}
-LIBRARY_DIRS = ("bus", "msgs", "nodes", "tracking", "control", "vision", "evaluation")
+LIBRARY_DIRS = ("bus", "msgs", "nodes", "tracking", "control", "vision", "evaluation", "replay", "reliability",
+                "viewing")
 
 
 def test_tools_is_rooms_not_a_hall():
@@ -188,3 +190,109 @@ def test_one_box():
             if "Box" in names or (isinstance(node, ast.ClassDef) and node.name == "Box"):
                 defined.append(f"{path.relative_to(REPO)}:{node.lineno}")
     assert defined == ["msgs/box.py:" + defined[0].split(":")[1]] if len(defined) == 1 else False, defined
+
+
+# --- the import graph --------------------------------------------------------------------------------
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(REPO).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imported(path: Path, node: ast.ImportFrom) -> list[tuple[str, str]]:
+    """(module, name) pairs of a relative import: ``from .a import b`` names module a (or a.b when b is a module)."""
+    target = _target(path, node)
+    base = _module_name(target.with_suffix(".py")) if target.with_suffix(".py").is_file() else \
+        ".".join(target.relative_to(REPO).parts)
+    out = []
+    for alias in node.names:
+        module = f"{base}.{alias.name}"
+        out.append((module, "") if (target / f"{alias.name}.py").is_file() else (base, alias.name))
+    return out
+
+
+def _import_graph() -> tuple[dict[str, set[str]], list[str]]:
+    """Every first-party module -> the first-party modules it imports (at any depth of the file: a function's lazy
+    import and an ``if TYPE_CHECKING:`` import are arrows too), read with ast (nothing is imported), and the
+    imports of private names (``_x``) from another package."""
+    graph: dict[str, set[str]] = {}
+    private = []
+    for path in _modules():
+        name = _module_name(path)
+        graph.setdefault(name, set())
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not (isinstance(node, ast.ImportFrom) and node.level > 0):
+                continue
+            for module, imported in _imported(path, node):
+                if module != name:
+                    graph[name].add(module)
+                if imported.startswith("_") and module.split(".")[0] != name.split(".")[0]:
+                    private.append(f"{path.relative_to(REPO)}:{node.lineno} {imported} from {module}")
+    return graph, private
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan), each a cycle of imports."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in graph:
+                continue
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_import_cycles_and_no_private_names_across_packages():
+    graph, private = _import_graph()
+    assert len(graph) > 100 and sum(map(len, graph.values())) > 200, "the import graph should span the repository"
+    cycles = _cycles(graph)
+    assert not cycles, "import cycles (a module may not import itself through others):\n" + \
+        "\n".join(" <-> ".join(c) for c in cycles)
+    assert not private, "private names imported from another package (make them public where they live):\n" + \
+        "\n".join(private)
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+# evaluation/ scores followers without a bus; its one module that runs the graph (the in-process runtime) is named.
+EVALUATION_ON_THE_BUS = {"evaluation/graph_follower.py"}
+
+
+def test_evaluation_uses_the_bus_only_where_declared():
+    users = set()
+    for path in sorted((REPO / "evaluation").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.level > 0:
+                target = _target(path, node).resolve()
+                if target == REPO / "bus" or REPO / "bus" in target.parents:
+                    users.add(str(path.relative_to(REPO)))
+    assert users <= EVALUATION_ON_THE_BUS, f"bus imports in evaluation/ outside {sorted(EVALUATION_ON_THE_BUS)}: " \
+                                           f"{sorted(users - EVALUATION_ON_THE_BUS)}"
+    assert users == EVALUATION_ON_THE_BUS, "the declared module no longer uses the bus: drop it from the list"

@@ -21,7 +21,8 @@ from followbus.bus.session import ZenohSettings, open_session
 from followbus.bus.stats import TopicStats
 from followbus.msgs.robot import MotorCommand
 from followbus.msgs.tracking import Track
-from followbus.tools.live.monitor import SEPARATOR, BusMonitor, GraphInfo, show
+from followbus.tools.live.monitor import SEPARATOR, graph_info, show
+from followbus.viewing.monitor import BusMonitor, GraphInfo
 
 from .chromium import docs_picture, element_text, page_layout, render_dom, require_chromium, screenshot
 from .conftest import REPO, followbus_argv, free_port, wait_until
@@ -437,7 +438,7 @@ def test_group_scene_places_the_group_in_the_robot_frame():
     base_link (x forward, y left), i.e. the odometry-frame state taken through the pose of the same frame."""
     pytest.importorskip("foxglove", reason="foxglove-sdk not installed")
     from followbus.tools.live.foxglove_bridge import ROBOT_FRAME, group_scene, group_shapes
-    from followbus.tools.live.monitor import group_view
+    from followbus.viewing.views import group_view
 
     points, group = _group_messages(7, 1_000_000_000)
     view = group_view(group, (points.robot_x_m, points.robot_y_m, points.robot_theta_rad), points)
@@ -463,7 +464,7 @@ def test_foxglove_bridge_serves_the_group_scene():
     from followbus.tools.live.foxglove_bridge import FoxgloveBridge
 
     port, ws_port = free_port(), free_port()
-    bridge = FoxgloveBridge(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]), GraphInfo.load(None, "t"),
+    bridge = FoxgloveBridge(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]), graph_info(None, "t"),
                             port=ws_port)
     robot = open_session(ZenohSettings(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
     stop = threading.Event()

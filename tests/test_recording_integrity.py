@@ -18,9 +18,9 @@ from followbus.bus.recording import (
     read_summary,
 )
 from followbus.msgs.perception import Detections
+from followbus.replay.plan import ReplayOptions, ReplayPlan
 from followbus.tools.cli import main
 from followbus.tools.recording.mcap_io import RecordingWriter
-from followbus.tools.recording.replay import ReplayOptions, ReplayPlan
 
 from .conftest import REPO, run_followbus
 

@@ -116,7 +116,7 @@ def test_frames_whose_joined_feedback_the_recorder_missed_are_not_verifiable(rec
     """The recorder stopped between re-ID's last measurements and prediction's last tracks (SIGINT does that):
     the frames that joined a measurement absent from the recording cannot be reproduced, so they are counted as
     not verifiable, not as missing (the flake of the fallback test below was this)."""
-    from followbus.tools.recording.replay_feed import _header
+    from followbus.replay.feed import frame_and_stamp as _header
 
     from .conftest import copy_recording
 
@@ -147,8 +147,8 @@ def test_a_recording_started_mid_run_is_named_as_such(recording, tmp_path):
     """A recorder attached to a running graph misses the node's history: replay says so instead of leaving
     the user with an unexplained mismatch."""
     from followbus.bus.recording import bus_channels, iter_bus_messages, read_metadata
+    from followbus.replay.feed import frame_and_stamp as _header
     from followbus.tools.recording.mcap_io import RecordingWriter
-    from followbus.tools.recording.replay_feed import _header
 
     cut = 40
     late = tmp_path / "late.mcap"

@@ -12,9 +12,10 @@ from followbus.bus.recording import is_bus_channel, iter_bus_messages
 from followbus.bus.schemas import Tick
 from followbus.msgs.perception import Detections
 from followbus.msgs.tracking import Measurement, Prior
+from followbus.replay.diff import Tolerance, diff_messages
+from followbus.replay.feed import Feed
+from followbus.replay.plan import ReplayOptions, ReplayPlan
 from followbus.tools.recording.mcap_io import RecordingWriter
-from followbus.tools.recording.replay import ReplayOptions, ReplayPlan, Tolerance, diff_messages
-from followbus.tools.recording.replay_feed import Feed
 
 from .conftest import REPO
 
@@ -113,5 +114,5 @@ def test_a_replay_keeps_off_the_live_graphs_state_file(tmp_path):
     writer.finish()
     assert "state/{namespace}/template.npz" in (REPO / "graph.yaml").read_text()
     assert ReplayPlan(path, ReplayOptions(nodes=["template"])).params["template"]["state_file"] == ""
-    given = ReplayPlan(path, ReplayOptions(nodes=["template"], params={"state_file": "mine.npz"}))
+    given = ReplayPlan(path, ReplayOptions(nodes=["template"], params={"template": {"state_file": "mine.npz"}}))
     assert given.params["template"]["state_file"] == "mine.npz"

@@ -19,9 +19,10 @@ import numpy as np
 import pytest
 
 from followbus.msgs.group import GroundPoints, GroupState
-from followbus.tools.live.monitor import GraphInfo, _group_line, group_view
+from followbus.tools.live.monitor import _group_line, graph_info
 from followbus.tools.live.webview import health_rows, is_loopback_bind, screen_state, web_token
 from followbus.tracking.groundplane import floor_to_image, to_odometry_frame
+from followbus.viewing.views import group_view
 
 from .chromium import docs_picture, element_text, have_chromium, page_layout, render_dom, require_chromium, screenshot
 from .conftest import REPO, followbus_argv, free_port, wait_until
@@ -190,14 +191,14 @@ def test_web_token_is_checked_on_every_request(monkeypatch, tmp_path):
 def test_generated_token_is_printed_once_and_required(monkeypatch, capsys):
     """The non-loopback path (a generated token) on 127.0.0.1: the rule is made to see a non-loopback bind."""
     from followbus.tools.live import webview
-    from followbus.tools.live.monitor import GraphInfo, monitor_settings
+    from followbus.tools.live.monitor import monitor_settings
 
     monkeypatch.delenv("FOLLOWBUS_WEB_TOKEN", raising=False)
     monkeypatch.setattr(webview, "is_loopback_bind", lambda bind: False)
     web_port = free_port()
     settings = monitor_settings(None, [f"tcp/127.0.0.1:{free_port()}"])
     done: list[int] = []
-    server = threading.Thread(target=lambda: done.append(webview.serve(settings, GraphInfo.load(None), "127.0.0.1",
+    server = threading.Thread(target=lambda: done.append(webview.serve(settings, graph_info(None), "127.0.0.1",
                                                                        web_port, seconds=4.0)), daemon=True)
     server.start()
     out = ""
@@ -303,10 +304,10 @@ def test_page_says_unreachable_then_waiting_then_source_ended(tmp_path):
 def test_group_view_puts_the_odometry_frame_state_in_the_robot_frame():
     """GroupState is in the odometry frame; the view places it around the robot with the pose of the same
     frame's ground points (inverse of seed 004 Eq. 4), and projects the floor shapes into the image."""
-    info = GraphInfo.load(str(REPO / "graph.group.yaml"))
+    info = graph_info(str(REPO / "graph.group.yaml"))
     assert info.keys["group"] == "fb/group/group" and info.keys["points"] == "fb/groundplane/points"
     assert info.camera is not None and info.camera.focal_px == 512.0 and info.camera.camera_height_m == 1.1
-    assert GraphInfo.load(str(REPO / "graph.yaml")).camera is None  # the person graph: nothing to project
+    assert graph_info(str(REPO / "graph.yaml")).camera is None  # the person graph: nothing to project
 
     pose = (1.5, -0.4, math.radians(30))
     robot_pts = np.array([[3.0, 0.5], [3.4, -0.6], [4.1, 0.1], [2.5, -2.5]])

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .identity import load_graph  # noqa: F401  (the commands load graphs from here: identity applied)
+
 Handler = Callable[[argparse.Namespace], int]
 
 
@@ -101,14 +103,6 @@ def connect_args(p: argparse.ArgumentParser, timeout: bool = True) -> None:
 
 # --- what commands that join the bus need --------------------------------------------------------------
 
-def load_graph(path: str) -> Any:
-    """The graph file with this process's identity applied ($FOLLOWBUS_DOMAIN, ..., tools/identity.py)."""
-    from ..bus.graph import load_graph as load
-    from .identity import apply_identity
-
-    return apply_identity(load(path))
-
-
 def settings(args: argparse.Namespace) -> Any:
     """Zenoh client settings of a bus command (--connect, --user, --password, --ca, --connect-timeout)."""
     from .connect import settings_from_args
@@ -121,19 +115,9 @@ def namespace(args: argparse.Namespace) -> str:
         return args.namespace
     if Path(getattr(args, "graph", "graph.yaml")).exists():
         return load_graph(args.graph).namespace
-    from .identity import apply_identity
+    from .identity import DefaultGraph, apply_identity
 
-    return apply_identity(_DefaultGraph()).namespace
-
-
-class _DefaultGraph:
-    """What a tool assumes with no graph file: namespace fb on the default endpoint (then the identity)."""
-
-    def __init__(self) -> None:
-        from ..bus.session import ZenohSettings
-
-        self.namespace = "fb"
-        self.zenoh = ZenohSettings()
+    return apply_identity(DefaultGraph()).namespace
 
 
 def identity_args(p: argparse.ArgumentParser, auto: bool = False) -> None:

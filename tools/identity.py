@@ -100,3 +100,20 @@ def set_identity(domain: int | None = None, namespace: str | None = None, port: 
 def endpoint(graph: Any) -> str:
     """The graph's well-known endpoint, for messages."""
     return next(iter([*graph.zenoh.connect, *graph.zenoh.listen]), "(no endpoint)")
+
+
+def load_graph(path: str) -> Any:
+    """The graph file with this process's identity applied ($FOLLOWBUS_DOMAIN, ...)."""
+    from ..bus.graph import load_graph as load
+
+    return apply_identity(load(path))
+
+
+class DefaultGraph:
+    """What a tool assumes with no graph file: namespace fb on the default endpoint (then the identity)."""
+
+    def __init__(self) -> None:
+        from ..bus.session import ZenohSettings
+
+        self.namespace = "fb"
+        self.zenoh = ZenohSettings()

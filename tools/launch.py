@@ -4,7 +4,6 @@ prefixed logs, clean shutdown, children that never outlive the launcher."""
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import logging
 import os
 import re
@@ -17,6 +16,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..bus.children import die_with_parent
 from ..bus.graph import Graph, NodeSpec
 from ..bus.health import (
     LAUNCHER_PERIOD_S,
@@ -35,20 +35,11 @@ from ..bus.session import open_session
 log = logging.getLogger("followbus.launch")
 TOOL_GRACE_S = 30.0  # a tool beside the graph (the recorder) gets this long to stop after SIGTERM
 
-PR_SET_PDEATHSIG = 1
 # A node that fails again after being restarted this recently is crash-looping: its restarts are not helping.
 CRASH_LOOP_EXITS = 2
 CRASH_LOOP_WINDOW_S = 60.0
 # A line a node printed that says why it stopped: a logged ERROR, or the last line of a Python traceback.
 ERROR_LINE_RE = re.compile(r"\bERROR\b|^[A-Za-z_][\w.]*(Error|Exception|Exit)\b")
-
-
-def _die_with_parent() -> None:  # runs in the child between fork and exec
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except OSError:
-        pass
 
 
 @dataclass
@@ -155,7 +146,7 @@ class Launcher:
     def _start(self, child: Child) -> None:
         child.proc = subprocess.Popen(
             child.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=self.env,
-            preexec_fn=_die_with_parent, stdin=subprocess.DEVNULL,
+            preexec_fn=die_with_parent, stdin=subprocess.DEVNULL,
         )
         thread = threading.Thread(target=self._pump, args=(child, child.proc.stdout), daemon=True)
         thread.start()

@@ -20,6 +20,7 @@ per key, from the file's own ``recording_stats`` metadata.
 from __future__ import annotations
 
 import contextlib
+import copy
 import json
 import os
 import resource
@@ -49,28 +50,25 @@ NAMESPACE = "link"
 
 def write_robot_graph(tmp: Path, port: int, address: str, detector: str, namespace: str = NAMESPACE,
                       protect: bool = True, drop_wait_us: int | None = None) -> Path:
-    """graph.yaml and graph.robot.yaml of the repository in ``tmp``: a private port on loopback and on
+    """graph.robot.yaml of the repository (its extends resolved) in ``tmp``: a private port on loopback and on
     ``address`` (the veth end the laptop reaches), the scene looping at 30 Hz, the given detector."""
-    import yaml
+    from ...bus.graph import load_graph
 
-    base = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))
-    base["namespace"] = namespace
-    base["zenoh"]["listen"] = base["zenoh"]["connect"] = [f"tcp/127.0.0.1:{port}"]
-    base["nodes"]["capture"]["params"].update(source="scene:corridor-occlusion", pace="realtime", fps=30.0,
-                                              loop=True)
-    base["nodes"]["detection"]["params"]["backend"] = detector
-    base["nodes"]["template"]["params"]["state_file"] = ""
-    (tmp / "graph.yaml").write_text(yaml.safe_dump(base, sort_keys=False))
-    robot = yaml.safe_load((REPO / "graph.robot.yaml").read_text(encoding="utf-8"))
-    robot["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}", f"tcp/{address}:{port}"]
-    robot["zenoh"]["config"]["transport/auth/usrpwd"]["dictionary_file"] = str(USERS_FILE)
+    robot = load_graph(REPO / "graph.robot.yaml")
+    config = copy.deepcopy(robot.zenoh.config)
+    config["transport/auth/usrpwd"]["dictionary_file"] = str(USERS_FILE)
     if drop_wait_us is not None:  # how long the hub waits on a full queue before dropping (zenoh: 1 ms, 50 ms)
-        robot["zenoh"]["config"]["transport/link/tx/queue/congestion_control/drop"] = {
+        config["transport/link/tx/queue/congestion_control/drop"] = {
             "wait_before_drop": drop_wait_us, "max_wait_before_drop_fragments": drop_wait_us}
     if not protect:  # the robot's links to the laptop as before bus/netif.py: BLOCK messages block the router
-        robot["zenoh"]["config"]["qos/network"] = []
+        config["qos/network"] = []
+    robot = robot.override({
+        "capture": {"source": "scene:corridor-occlusion", "pace": "realtime", "fps": 30.0, "loop": True},
+        "detection": {"backend": detector}, "template": {"state_file": ""}}).with_namespace(namespace)
+    robot = robot.with_zenoh(listen=[f"tcp/127.0.0.1:{port}", f"tcp/{address}:{port}"],
+                             connect=[f"tcp/127.0.0.1:{port}"], config=config)
     path = tmp / "graph.robot.yaml"
-    path.write_text(yaml.safe_dump(robot, sort_keys=False))
+    path.write_text(robot.to_yaml())
     return path
 
 

@@ -21,8 +21,6 @@ from typing import Any
 
 import numpy as np
 
-from ...vision.detector_presets import apply_detector_preset
-
 log = logging.getLogger("followbus.bench")
 
 REPO = Path(__file__).resolve().parents[2]
@@ -37,28 +35,6 @@ def _cpu_ticks(pid: int) -> int | None:
         return int(fields[11]) + int(fields[12])  # utime + stime (fields 14, 15 of stat)
     except (OSError, IndexError, ValueError):
         return None
-
-
-def _graph_text(scene: str, port: int, namespace: str, detector: str, sim_delay_ms: float = 0.0,
-                resolution: tuple[int, int] | None = None, lane: bool | None = None) -> str:
-    """graph.yaml of the repository on a private port and namespace, the scene looping in real time (also the
-    graph `followbus bench chaos` launches)."""
-    import yaml
-
-    g = yaml.safe_load((REPO / "graph.yaml").read_text(encoding="utf-8"))
-    g["namespace"] = namespace
-    g["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
-    g["zenoh"]["connect"] = [f"tcp/127.0.0.1:{port}"]
-    g["nodes"]["capture"]["params"].update(source=f"scene:{scene}", pace="realtime", fps=30.0, loop=True)
-    if resolution is not None:
-        g["nodes"]["capture"]["params"].update(width_px=resolution[0], height_px=resolution[1])
-    if lane is not None:
-        g["zenoh"]["shm_lane"] = lane
-    det = apply_detector_preset(g["nodes"]["detection"]["params"], "yolox" if detector == "yolox416" else detector)
-    if sim_delay_ms:
-        det["sim_delay_ms"] = float(sim_delay_ms)
-    g["nodes"]["template"]["params"]["state_file"] = ""  # every launch starts from the same template
-    return yaml.safe_dump(g, sort_keys=False)
 
 
 def _model_present(detector: str) -> bool:
@@ -80,6 +56,7 @@ def run_bench_pipeline(args) -> int:
     from ...bus.pubsub import declare_subscriber, frame_bytes
     from ...bus.schemas import NodeStatus, decode
     from ...bus.session import open_session
+    from ...reliability.chaos import scene_graph
     from ..launch import Launcher
 
     detector = args.detector
@@ -98,7 +75,8 @@ def run_bench_pipeline(args) -> int:
     recording = threading.Event()
     with tempfile.TemporaryDirectory(prefix="followbus-bench-") as tmp:
         path = Path(tmp) / "graph.yaml"
-        path.write_text(_graph_text(args.scene, port, ns, detector, resolution=args.resolution,
+        path.write_text(scene_graph(scene=args.scene, port=port, namespace=ns, detector=detector,
+                                    resolution=args.resolution,
                                     lane=args.lane == "on"))
         graph = load_graph(path)
         session = open_session(graph.zenoh)
@@ -166,16 +144,29 @@ def run_bench_pipeline(args) -> int:
             for s in subs:
                 s.undeclare()
             session.close()
+    result = _figures(pub, _cpu_percent(cpu0, cpu1, wall), wall)
+    result.update(detector=detector, scene=args.scene, resolution="x".join(map(str, args.resolution)), lane=args.lane)
+    _print_figures(result)
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1, ensure_ascii=False))
+    return 0
+
+
+def _cpu_percent(cpu0: dict[str, int | None], cpu1: dict[str, int | None], wall: float) -> dict[str, float]:
     hz = os.sysconf("SC_CLK_TCK")
-    cpu = {n: 100.0 * (cpu1[n] - cpu0[n]) / hz / wall for n in cpu1
-           if cpu0.get(n) is not None and cpu1[n] is not None}
+    return {n: 100.0 * (cpu1[n] - cpu0[n]) / hz / wall for n in cpu1  # type: ignore[operator]
+            if cpu0.get(n) is not None and cpu1[n] is not None}
+
+
+def _figures(pub: dict[tuple[str, str], dict[int, tuple[int, int]]], cpu: dict[str, float],
+             wall: float) -> dict[str, Any]:
+    """Latency per edge and in total, frames answered, CPU per node and per frame."""
     frames = pub[("capture", "frame")]
-    result: dict[str, Any] = {"detector": detector, "scene": args.scene, "duration_s": round(wall, 2),
-                              "frames_published": len(frames), "tracks": 0, "edges_ms": {}, "cpu_percent": {}}
-    chains = [(STAGES[i], STAGES[i + 1], EDGES[i]) for i in range(len(EDGES))]
-    for a, b, name in chains:
-        d = [(pub[b][k][1] - pub[a][k][1]) / 1e6 for k in pub[b] if k in pub[a]]
-        result["edges_ms"][name] = _pct(d)
+    result: dict[str, Any] = {"duration_s": round(wall, 2), "frames_published": len(frames), "tracks": 0,
+                              "edges_ms": {}, "cpu_percent": {}}
+    for i, name in enumerate(EDGES):
+        a, b = STAGES[i], STAGES[i + 1]
+        result["edges_ms"][name] = _pct([(pub[b][k][1] - pub[a][k][1]) / 1e6 for k in pub[b] if k in pub[a]])
     total = [(v[1] - v[0]) / 1e6 for v in pub[("motor", "command")].values() if v[0] > 0]
     result["edges_ms"]["total capture→command"] = _pct(total)
     tracks = pub[("prediction", "track")]
@@ -184,18 +175,19 @@ def run_bench_pipeline(args) -> int:
     result["cpu_percent"] = {n: round(v, 1) for n, v in sorted(cpu.items())}
     # CPU of every node together per captured frame (ms of one core): what the lane can save shows here.
     result["cpu_ms_per_frame"] = round(sum(cpu.values()) / 100 * wall / max(1, len(frames)) * 1e3, 2)
-    result["resolution"], result["lane"] = "x".join(map(str, args.resolution)), args.lane
-    print(f"bench pipeline: {detector} on scene:{args.scene} {result['resolution']}, lane {args.lane}, 30 Hz, "
-          f"{wall:.1f} s")
+    return result
+
+
+def _print_figures(result: dict[str, Any]) -> None:
+    print(f"bench pipeline: {result['detector']} on scene:{result['scene']} {result['resolution']}, lane "
+          f"{result['lane']}, 30 Hz, {result['duration_s']:.1f} s")
     print("| edge | n | p50 ms | p99 ms |\n|---|---:|---:|---:|")
     for name, v in result["edges_ms"].items():
         print(f"| {name} | {v['n']} | {v['p50']:.2f} | {v['p99']:.2f} |")
-    print(f"frames published {len(frames)}, tracks {result['tracks']}, dropped {result['dropped_frames']}")
+    print(f"frames published {result['frames_published']}, tracks {result['tracks']}, "
+          f"dropped {result['dropped_frames']}")
     print("CPU per node (% of one core): " + ", ".join(f"{n} {v:.1f}" for n, v in result["cpu_percent"].items()))
     print(f"CPU of all nodes per frame: {result['cpu_ms_per_frame']:.2f} ms")
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1, ensure_ascii=False))
-    return 0
 
 
 def _pct(values: list[float]) -> dict[str, float]:

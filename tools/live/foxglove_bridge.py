@@ -17,7 +17,6 @@ topic with the annotations topic enabled (and, for a group, a 3D panel with disp
 from __future__ import annotations
 
 import logging
-import math
 import threading
 from typing import Any
 
@@ -31,26 +30,16 @@ from ...bus.session import ZenohSettings, open_session
 from ...msgs.group import GroundPoints, GroupState
 from ...msgs.robot import MotorCommand
 from ...msgs.tracking import Measurement, Prior, Track
+from ...viewing.drawing import ELLIPSE_POINTS, ellipse_outline, gate_polygon
+from ...viewing.monitor import GraphInfo
+from ...viewing.views import group_view
 from .introspect import wait_for
-from .monitor import GraphInfo, ellipse_outline, group_view
 
 log = logging.getLogger("followbus.foxglove")
 
-ELLIPSE_POINTS = 48
 ROBOT_FRAME = "base_link"  # x forward, y left (REP 103), the frame group_view places the group in
 POSES_KEPT = 64  # GroundPoints poses remembered by frame_seq, to place the GroupState of the same frame
 MEMBER_DIAMETER_M = 0.3
-
-
-def gate_points(centre: Any, cov: Any, chi2: float, scale: float, n: int = ELLIPSE_POINTS) -> list[tuple[float, float]]:
-    """The gate {z : (z-c)^T S^-1 (z-c) = chi2} as a polygon: c + V sqrt(chi2 L) u, scaled to the preview."""
-    c = np.asarray(centre, float).reshape(2)
-    s = np.asarray(cov, float).reshape(2, 2)
-    vals, vecs = np.linalg.eigh(0.5 * (s + s.T))
-    axes = vecs * np.sqrt(np.clip(vals, 0.0, None) * max(chi2, 0.0))
-    t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
-    pts = (c[:, None] + axes @ np.stack([np.cos(t), np.sin(t)])) * scale
-    return [(float(x), float(y)) for x, y in pts.T]
 
 
 GROUP_COLOURS = {"ellipse": (0.9, 0.2, 0.9), "member": (0.2, 0.9, 0.2), "other": (0.9, 0.2, 0.2),
@@ -237,7 +226,7 @@ class FoxgloveBridge:
             for c in np.asarray(meas.candidates, float).reshape(-1, 5):
                 box(c[:4], yellow, 1.0)
         if isinstance(prior, Prior) and prior.initialised and np.all(np.isfinite(prior.innovation_cov)):
-            poly(gate_points(prior.state[:2], prior.innovation_cov, prior.gate_chi2, scale), cyan, 1.5)
+            poly(gate_polygon(prior.state[:2], prior.innovation_cov, prior.gate_chi2, scale=scale), cyan, 1.5)
         if group is not None and group.get("valid"):  # the group's floor ellipses through the camera (source px)
             magenta = Color(r=0.9, g=0.2, b=0.9, a=1)
             for e in group.get("ellipses", []):
@@ -260,7 +249,7 @@ class FoxgloveBridge:
 
 
 def run_foxglove(args: Any) -> int:
-    from .monitor import monitor_settings
+    from .monitor import graph_info, monitor_settings
 
     try:
         import foxglove  # noqa: F401
@@ -268,7 +257,7 @@ def run_foxglove(args: Any) -> int:
         print("followbus foxglove needs the foxglove-sdk package: pip install foxglove-sdk")
         return 2
     settings = monitor_settings(args.graph, args.connect, args.user, args.password, args.ca)
-    info = GraphInfo.load(args.graph, args.namespace)
+    info = graph_info(args.graph, args.namespace)
     bridge = FoxgloveBridge(settings, info, args.bind, args.port)
     print(f"followbus foxglove: ws://{args.bind}:{bridge.port} (watching {', '.join(settings.connect)}; "
           "Ctrl-C to stop)", flush=True)

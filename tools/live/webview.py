@@ -41,8 +41,8 @@ from typing import Any
 from urllib.parse import parse_qs, urlencode, urlparse
 
 from ...bus.session import ZenohSettings
+from ...viewing.monitor import BusMonitor, GraphInfo
 from .introspect import wait_for
-from .monitor import BusMonitor, GraphInfo
 
 log = logging.getLogger("followbus.webview")
 
@@ -457,15 +457,11 @@ function drawOverlay() {
     ctx.setLineDash([]);
   }
   const p = state.prior;
-  if (p && p.initialised) {
-    // Gate: {z : (z-c)^T S^-1 (z-c) <= chi2}; axes sqrt(chi2*lambda_i) along S's eigenvectors.
-    const [a, b, , d] = [p.innovation_cov[0][0], p.innovation_cov[0][1], p.innovation_cov[1][0],
-                         p.innovation_cov[1][1]];
-    const tr = (a + d) / 2, det = Math.sqrt(Math.max(((a - d) / 2) ** 2 + b * b, 0));
-    const l1 = tr + det, l2 = Math.max(tr - det, 0), ang = 0.5 * Math.atan2(2 * b, a - d);
+  if (p && p.initialised && p.gate) {
+    // The gate ellipse as the server computed it (viewing/drawing.py, from tracking/kalman.py's gate).
+    const e = p.gate;
     ctx.strokeStyle = "#3cf"; ctx.beginPath();
-    ctx.ellipse(p.centre[0]*s, p.centre[1]*s, Math.sqrt(p.gate_chi2*l1)*s, Math.sqrt(p.gate_chi2*l2)*s, ang,
-                0, 2 * Math.PI);
+    ctx.ellipse(e.centre[0]*s, e.centre[1]*s, e.axes[0]*s, e.axes[1]*s, e.angle_deg * Math.PI / 180, 0, 2 * Math.PI);
     ctx.stroke();
   }
   const g = state.group;

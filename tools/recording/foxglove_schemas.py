@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import base64
 import json
-import math
 from typing import Any
 
 import numpy as np
 
 from ...msgs.perception import Detections
 from ...msgs.tracking import Prior, Track
+from ...viewing.drawing import gate_polygon
 
 SCHEMA_ENCODING = "jsonschema"
 MESSAGE_ENCODING = "json"
@@ -210,17 +210,6 @@ def _finite(values: Any) -> bool:
     return values is not None and bool(np.all(np.isfinite(np.asarray(values, dtype=np.float64))))
 
 
-def gate_ellipse(centre: Any, innovation_cov: Any, chi2: float, n: int = ELLIPSE_POINTS) -> list[tuple[float, float]]:
-    """Points of the Mahalanobis gate d^2(z) = (z-c)^T S^-1 (z-c) = chi2: c + sqrt(chi2) V sqrt(L) u."""
-    c = np.asarray(centre, dtype=np.float64).reshape(2)
-    s = np.asarray(innovation_cov, dtype=np.float64).reshape(2, 2)
-    eigvals, eigvecs = np.linalg.eigh(0.5 * (s + s.T))
-    scale = eigvecs * np.sqrt(np.clip(eigvals, 0.0, None) * max(chi2, 0.0))
-    t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
-    pts = c[:, None] + scale @ np.stack([np.cos(t), np.sin(t)])
-    return [(float(x), float(y)) for x, y in pts.T]
-
-
 def _annotations(stamp_ns: int, points: list[dict[str, Any]], texts: list[dict[str, Any]]) -> bytes:
     return json.dumps({"timestamp": stamp(stamp_ns), "circles": [], "points": points, "texts": texts}).encode()
 
@@ -245,7 +234,7 @@ def prior_annotations(msg: Prior) -> bytes:
     t = msg.header.stamp_ns
     points, texts = [], []
     if msg.initialised and _finite(msg.state[:2]) and _finite(msg.innovation_cov):
-        ellipse = gate_ellipse(msg.state[:2], msg.innovation_cov, msg.gate_chi2)
+        ellipse = gate_polygon(msg.state[:2], msg.innovation_cov, msg.gate_chi2, ELLIPSE_POINTS)
         points.append(_polygon(t, ellipse, PRIOR, 2.0))
         texts.append(_text(t, ellipse[0][0] + 4, ellipse[0][1], f"gate chi2={msg.gate_chi2:.2f}", PRIOR))
         if _finite(msg.box):

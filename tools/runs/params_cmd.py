@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 
-import yaml
-
 from ..errors import UsageError
 
 ANSWER_TIMEOUT_S = 3.0
@@ -47,10 +45,12 @@ def cmd_param_get(args) -> int:
 
 
 def cmd_param_set(args) -> int:
+    from ...bus.graph import GraphError, parse_value
+
     try:
-        value = yaml.safe_load(args.value)  # as --set reads a value: 0.8, true, [1, 2], text
-    except yaml.YAMLError as exc:
-        raise UsageError(f"{args.value!r} is not a YAML value: {exc}") from None
+        value = parse_value(args.value, f"{args.target} {args.value}")  # as --set reads a value
+    except GraphError as exc:
+        raise UsageError(exc.message) from None
     answer = _ask(args, json.dumps(value).encode())
     print(f"{args.target}: {json.dumps(answer['before'])} -> {json.dumps(answer['value'])}")
     return 0

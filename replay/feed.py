@@ -1,6 +1,6 @@
 """The recording as a replay reads it: once, outputs of the replayed nodes kept as the expected outputs and
 turned into replay hints, inputs handed out in the order they were published, frame by frame. Shared by
-the in-process and the ``--isolated`` replay (tools/recording/replay.py)."""
+the in-process and the ``--isolated`` replay (replay/engine.py)."""
 
 from __future__ import annotations
 
@@ -14,12 +14,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ...bus.codec import DecodeError, Peeked, peek
-from ...bus.recording import BusMessage, iter_bus_messages
-from ...bus.schemas import ReplayHint
+from ..bus.codec import DecodeError, Peeked, peek
+from ..bus.recording import BusMessage, iter_bus_messages
+from ..bus.schemas import ReplayHint
 
 if TYPE_CHECKING:
-    from .replay import ReplayPlan
+    from .plan import ReplayPlan
 
 log = logging.getLogger("followbus.replay")
 
@@ -28,7 +28,7 @@ PREFETCH_BATCH = 32
 LOOKAHEAD_BYTES = 256 * 1024 * 1024  # inputs held back while reading ahead for what live did with a frame
 
 
-def _peek_header(data: bytes) -> Peeked | None:
+def _peekframe_and_stamp(data: bytes) -> Peeked | None:
     """Type and header of a stored bus message without decoding its fields (None: not a followbus frame)."""
     try:
         return peek(data)
@@ -36,9 +36,9 @@ def _peek_header(data: bytes) -> Peeked | None:
         return None
 
 
-def _header(data: bytes) -> tuple[int, int]:
+def frame_and_stamp(data: bytes) -> tuple[int, int]:
     """(frame_seq, stamp_ns) of a stored bus message."""
-    head = _peek_header(data)
+    head = _peekframe_and_stamp(data)
     return (head.header.frame_seq, head.header.stamp_ns) if head is not None else (-1, 0)
 
 
@@ -49,7 +49,7 @@ def recording_first_frame(path: Path, skip_chunks: frozenset[int] = frozenset(),
     for k, msg in enumerate(iter_bus_messages(path, skip_chunks=skip_chunks)):
         if k >= look_at:
             break
-        frame_seq = _header(msg.data)[0]
+        frame_seq = frame_and_stamp(msg.data)[0]
         if frame_seq >= 0:
             seqs.append(frame_seq)
     return min(seqs) if seqs else None
@@ -165,7 +165,7 @@ class Feed:
             if msg.log_time > self._log_time:
                 self._log_time = msg.log_time
                 self._close_frames(msg.log_time)
-            head = _peek_header(msg.data)
+            head = _peekframe_and_stamp(msg.data)
             frame_seq = head.header.frame_seq if head is not None else -1
             if msg.key not in self.plan.outputs:
                 yield (Input(msg, frame_seq, head.header.stamp_ns, head.header.pub_ns) if head is not None

@@ -1,10 +1,11 @@
 """``followbus replay --isolated``: the node as the deployed process (``followbus node NAME --clock stamps``)
 in a private graph (private namespace, private loopback port), fed over Zenoh with the same order and hints
-as the in-process replay (tools/recording/replay_feed.py)."""
+as the in-process replay (replay/feed.py)."""
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import secrets
@@ -14,16 +15,16 @@ import subprocess
 import sys
 import threading
 import time
-from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from ...bus.graph import Graph, NodeSpec, load_graph
-from ...bus.schemas import ReplayHint
-from .replay import InProcessTarget, ReplayOptions, ReplayReport
-from .replay_feed import _header
+from ..bus.children import die_with_parent
+from ..bus.graph import Graph, RestartPolicy
+from ..bus.schemas import ReplayHint
+from ..bus.session import ZenohSettings
+from .feed import frame_and_stamp
+from .plan import ReplayOptions, ReplayReport
+from .targets import InProcessTarget
 
 log = logging.getLogger("followbus.replay")
 
@@ -37,35 +38,16 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def private_graph_text(graph: Graph, spec: NodeSpec, params: dict[str, Any], namespace: str, port: int) -> str:
-    """graph.yaml of the node under test plus stand-ins for its producers (their outputs only)."""
-    endpoint = f"tcp/127.0.0.1:{port}"
-    inputs = {}
-    producers: dict[str, list[str]] = defaultdict(list)
-    for inp in spec.inputs.values():
-        inputs[inp.name] = {"from": inp.topic, "queue": max(inp.queue, LOCKSTEP_QUEUE), "policy": "block",
-                            "sync": inp.sync, "offset": inp.offset, "optional": inp.optional}
-        if inp.source_output not in producers[inp.source_node]:
-            producers[inp.source_node].append(inp.source_output)
-    nodes: dict[str, Any] = {}
-    for name, outputs in producers.items():
-        if name != spec.name:
-            nodes[name] = {"run": graph.nodes[name].run, "outputs": outputs}
-    node_outputs = list(dict.fromkeys(spec.outputs + producers.get(spec.name, [])))
-    nodes[spec.name] = {"run": spec.run, "inputs": inputs, "outputs": node_outputs, "params": params,
-                        "sync_timeout_ms": spec.sync_timeout_ms, "restart": "never"}
-    doc = {"name": f"replay-{spec.name}", "namespace": namespace,
-           "zenoh": {"mode": "peer", "listen": [endpoint], "connect": [endpoint], "multicast_scouting": False,
-                     "shm": graph.zenoh.shm},
-           "nodes": nodes}
-    return yaml.safe_dump(doc, sort_keys=False)
-
-
-def _die_with_parent() -> None:  # runs in the child between fork and exec: the node never outlives us
-    import ctypes
-
-    with contextlib.suppress(OSError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+def private_graph(graph: Graph, name: str, params: dict[str, Any], namespace: str, port: int) -> Graph:
+    """The node under test alone (stand-ins for its producers), on a private peer bus: every input queues deep
+    and blocks (lockstep), the node's params as replayed, never restarted, at the replayer's own priority."""
+    spec = graph.nodes[name]
+    lockstep = {i.name: dataclasses.replace(i, queue=max(i.queue, LOCKSTEP_QUEUE), policy="block")
+                for i in spec.inputs.values()}
+    private = graph.subgraph([name], name=f"replay-{name}").override({name: params})
+    return (private.with_node(name, inputs=lockstep, restart=RestartPolicy(policy="never"), nice=None,
+                            realtime=None, host=None)
+            .with_zenoh(ZenohSettings(shm=graph.zenoh.shm)).with_port(port).with_namespace(namespace))
 
 
 class IsolatedTarget:
@@ -99,15 +81,15 @@ class IsolatedTarget:
         self.log_path = tmp / "node.log"
 
     def start(self) -> None:
-        from ...bus.health import HealthWatcher
-        from ...bus.pubsub import Publisher, ShmPool, declare_subscriber
-        from ...bus.session import open_session
+        from ..bus.health import HealthWatcher
+        from ..bus.pubsub import Publisher, ShmPool, declare_subscriber
+        from ..bus.session import open_session
 
         self.reference.start()
         graph_path = self.tmp / "graph.yaml"
-        graph_path.write_text(private_graph_text(self.plan.graph, self.spec, self.plan.params[self.name],
-                                                 self.private_ns, free_port()))
-        private = load_graph(graph_path)
+        private = private_graph(self.plan.graph, self.name, self.plan.params[self.name], self.private_ns,
+                                free_port())
+        graph_path.write_text(private.to_yaml())
         self._session = open_session(private.zenoh)  # takes the private port first; the node connects to it
         for topic in self.plan.outputs.values():
             # Direct callbacks keep the order of samples across keys (bus.pubsub.direct_callback).
@@ -123,7 +105,7 @@ class IsolatedTarget:
                 [sys.executable, "-m", "followbus.tools.cli", "node", self.name, "--graph", str(graph_path),
                  "--clock", "stamps"],
                 stdout=node_log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=_die_with_parent)
+                env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=die_with_parent)
         t0 = time.perf_counter()
         missing = self._watcher.wait_for({self.name}, self.opts.startup_timeout_s)
         self.report.startup_s = time.perf_counter() - t0
@@ -134,14 +116,14 @@ class IsolatedTarget:
 
     def _on_output(self, topic: str):
         def callback(sample) -> None:
-            from ...bus.codec import DecodeError
-            from ...bus.pubsub import frame_bytes, payload_bytes
+            from ..bus.codec import DecodeError
+            from ..bus.pubsub import frame_bytes, payload_bytes
 
             try:
                 data = frame_bytes(sample)
             except DecodeError:  # a lane message that cannot be read: kept as it came, the comparison shows it
                 data = payload_bytes(sample)
-            awaited = topic not in self.plan.timer_topics or _header(data)[0] >= 0
+            awaited = topic not in self.plan.timer_topics or frame_and_stamp(data)[0] >= 0
             with self._cond:
                 self._received[topic].append(data)
                 self._awaited[topic] += awaited
@@ -178,7 +160,7 @@ class IsolatedTarget:
             return self.reference.published(topic)
         seen, count = self._reference_seen[topic]
         payloads = self.reference.graph.payloads(*topic.split("/", 1))
-        count += sum(_header(p)[0] >= 0 for p in payloads[seen:])
+        count += sum(frame_and_stamp(p)[0] >= 0 for p in payloads[seen:])
         self._reference_seen[topic] = (len(payloads), count)
         return count
 

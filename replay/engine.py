@@ -1,0 +1,190 @@
+"""The replay itself: the recording fed into the nodes (in-process here, or the deployed process:
+replay/isolated.py) in the live order with the live run's hints, and what they produce diffed with what was
+recorded (replay/diff.py). ``followbus replay`` (tools/recording/replay.py) is its command."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+from ..bus.inproc import InProcessError
+from ..bus.recording import (
+    is_bus_channel,
+    read_summary,
+)
+from .diff import compare_output, show_value
+from .feed import Feed, frame_and_stamp, recording_first_frame
+from .plan import ReplayOptions, ReplayPlan, ReplayReport
+from .targets import InProcessTarget, Target
+
+log = logging.getLogger("followbus.replay")
+
+MAX_REPORTED = 1000  # mismatch details kept in the report (the count is always exact)
+
+
+# --- the replay ------------------------------------------------------------------------------------
+
+class Replayer:
+    def __init__(self, path: Path, options: ReplayOptions):
+        self.path = path
+        self.opts = options
+        self.plan = ReplayPlan(path, options)
+        params: dict[str, Any] = (self.plan.params[self.plan.nodes[0]] if len(self.plan.nodes) == 1
+                                  else dict(self.plan.params))
+        self.report = ReplayReport(file=str(path), node=",".join(self.plan.nodes),
+                                   mode="isolated" if options.isolated else "in-process", params=params)
+        if options.isolated and len(self.plan.nodes) != 1:
+            raise ValueError("--isolated replays one node (several run in-process only)")
+        # Built now: a --param the node does not take is the user's mistake, said before anything runs.
+        # (--isolated: the in-process run that steps the process.)
+        self._inproc = InProcessTarget(self.plan)
+
+    def run(self) -> ReplayReport:
+        with tempfile.TemporaryDirectory(prefix="followbus-replay-") as tmp:
+            target: Target = self._inproc
+            if self.opts.isolated:
+                from .isolated import IsolatedTarget
+
+                target = IsolatedTarget(self._inproc, self.report, self.opts, Path(tmp))
+            try:
+                target.start()
+                self.report.recording_first_frame = recording_first_frame(self.path, self.plan.skip_chunks)
+                self._feed(target)
+            except (RuntimeError, InProcessError) as exc:
+                self.report.error = str(exc)
+            finally:
+                target.close()
+        return self.report
+
+    def _feed(self, target: Target) -> None:
+        feed = Feed(self.plan)
+        bar = self._progress()
+        started = time.perf_counter()
+        stamps: list[int] = []  # the first and the last input stamp seen
+        done_frames: set[int] = set()
+        sent: dict[int, set[str]] = defaultdict(set)  # frame -> recorded input keys fed for it
+        try:
+            for hints, frame_seq, messages in feed.groups():
+                if self.opts.max_frames and frame_seq >= 0 and self.report.frames >= self.opts.max_frames:
+                    break
+                for node, hint in hints:
+                    target.hint(node, hint)
+                self._send(target, messages, frame_seq, sent, stamps)
+                if frame_seq >= 0:
+                    self.report.frames += 1
+                    done_frames.add(frame_seq)
+                    bar.update(1)
+        finally:
+            bar.close()
+            self._compare(feed.expected, target.produced(), done_frames, self._incomplete(feed, sent))
+            self.report.wall_s = time.perf_counter() - started
+            self.report.outputs_expected = feed.outputs_expected
+            self.report.hints, self.report.late_inputs = feed.hints_reproduced, feed.late_inputs
+        if isinstance(target, InProcessTarget):
+            self.report.handler_s, self.report.decode_s = target.handler_s, target.decode_s
+        if stamps:
+            self.report.recorded_span_s = (stamps[-1] - stamps[0]) / 1e9
+        if self.report.wall_s > 0:
+            self.report.speed_x = self.report.recorded_span_s / self.report.wall_s
+
+    def _send(self, target: Target, messages: Any, frame_seq: int, sent: dict[int, set[str]],
+              stamps: list[int]) -> None:
+        """One frame's inputs to the target; ``stamps`` keeps the lowest and the highest stamp seen."""
+        for item in messages:
+            stamp = item.stamp_ns
+            target.send(self.plan.inputs[item.msg.key], item.msg.data, stamp, frame_seq)
+            self.report.inputs_sent += 1
+            sent[item.frame_seq].add(item.msg.key)
+            if stamp:
+                stamps[:] = [min(stamps[0], stamp), max(stamps[-1], stamp)] if stamps else [stamp, stamp]
+
+    def _incomplete(self, feed: Feed, sent: dict[int, set[str]]) -> set[int]:
+        """Frames the node cannot reproduce from this recording: a required input of the frame is not in it, the
+        feedback the frame joined live is not, or an input's stream ends before the frame (the recorder stopped
+        first: prediction's track k comes from re-ID's measurement k, say)."""
+        required = self.plan.required_inputs
+        stream_end: dict[str, int] = {}
+        for fs, keys in sent.items():
+            for key in keys & self.plan.frame_inputs:
+                stream_end[key] = max(stream_end.get(key, -1), fs)
+        last_end = min(stream_end.values(), default=None)
+        return {fs for _topic, fs in feed.expected if fs >= 0 and (
+            (required and not required <= sent.get(fs, set()))
+            or any(key not in sent.get(joined, set()) for key, joined in feed.joined.get(fs, ()))
+            or (last_end is not None and last_end < fs))}
+
+    def _compare(self, expected: dict[tuple[str, int], list[bytes]], produced: dict[str, list[bytes]],
+                 done_frames: set[int], incomplete: set[int] = frozenset()) -> None:
+        """Diff what was produced with what was recorded, frame by frame and output by output; then list
+        recorded-but-never-produced and produced-but-not-recorded outputs."""
+        by_frame: dict[tuple[str, int], list[bytes]] = defaultdict(list)
+        for topic, items in produced.items():
+            self.report.outputs_received += len(items)
+            for data in items:
+                by_frame[(topic, frame_and_stamp(data)[0])].append(data)
+        for (topic, fs), recorded in sorted(expected.items()):
+            if fs < 0 and topic in self.plan.timer_topics:
+                self.report.timer_outputs += len(recorded)
+            elif not self.opts.max_frames or fs in done_frames:  # else beyond --max-frames
+                self._compare_frame(topic, fs, recorded, by_frame.get((topic, fs), []), fs in incomplete)
+        self._list_extra(expected, by_frame)
+
+    def _compare_frame(self, topic: str, fs: int, recorded: list[bytes], replayed: list[bytes],
+                       incomplete: bool) -> None:
+        """One output key's recorded and replayed messages of frame ``fs``, in order."""
+        key = self.plan.key(topic)
+        for i in range(min(len(recorded), len(replayed))):
+            self.report.outputs_compared += 1
+            diff = compare_output(recorded[i], replayed[i], self.opts.tolerance)
+            if diff is None:
+                self.report.matched += 1
+                continue
+            self.report.mismatch_count += 1
+            if len(self.report.mismatches) < MAX_REPORTED:
+                self.report.mismatches.append({"frame_seq": fs, "key": key, "index": i, "field": diff.field,
+                                               "recorded": show_value(diff.recorded),
+                                               "replayed": show_value(diff.replayed)})
+        if incomplete and len(replayed) < len(recorded):
+            self.report.unverifiable += len(recorded) - len(replayed)
+            return
+        self.report.missing += [{"frame_seq": fs, "key": key, "index": i} for i in range(len(replayed), len(recorded))]
+
+    def _list_extra(self, expected: dict[tuple[str, int], list[bytes]],
+                    by_frame: dict[tuple[str, int], list[bytes]]) -> None:
+        """Produced but not recorded: extra, unless the recording stopped before that frame's outputs."""
+        last_recorded: dict[str, int] = {}
+        for topic, fs in expected:
+            last_recorded[topic] = max(last_recorded.get(topic, -1), fs)
+        for (topic, fs), replayed in sorted(by_frame.items()):
+            if fs < 0 and topic in self.plan.timer_topics:
+                continue
+            n_exp = len(expected.get((topic, fs), []))
+            if fs > last_recorded.get(topic, -1):
+                # The recording stopped between this frame's inputs and its outputs: nothing to compare.
+                self.report.beyond_end += len(replayed) - n_exp
+                continue
+            self.report.extra += [{"frame_seq": fs, "key": self.plan.key(topic), "index": i}
+                                  for i in range(n_exp, len(replayed))]
+
+    def _progress(self):
+        from tqdm import tqdm
+
+        summary = read_summary(self.path)
+        counts = summary.statistics.channel_message_counts if summary.statistics else {}
+        primary = next((f"{self.plan.recorded_ns}/{i.topic}" for n in self.plan.nodes
+                        for i in self.plan.graph.nodes[n].inputs.values()
+                        if i.sync == "frame" and not i.offset and not i.optional
+                        and f"{self.plan.recorded_ns}/{i.topic}" in self.plan.inputs), None)
+        total = sum(counts.get(ch.id, 0) for ch in summary.channels.values()
+                    if ch.topic == primary and is_bus_channel(ch))
+        if self.opts.max_frames:
+            total = min(total, self.opts.max_frames) if total else self.opts.max_frames
+        return tqdm(total=total or None, unit="frame", desc=f"replay {self.report.node}", file=sys.stderr,
+                    disable=None if self.opts.progress else True, dynamic_ncols=True)  # None: TTY only
+
+
