@@ -56,6 +56,7 @@ LAUNCHED_NODES_ENV = "FOLLOWBUS_LAUNCHED_NODES"
 # Set by the launcher for its children: the nodes of this host that ``--only`` left out. A source does not wait
 # for them: the user said they are not running (a node the graph puts on another host is still waited for).
 LEFT_OUT_NODES_ENV = "FOLLOWBUS_LEFT_OUT_NODES"
+LEFT_OUT_DISCOVERY_S = 2.0  # how long a source looks for a left-out consumer that may run in another launch
 # Set by the launcher for its children: one id per launch, so a node can tell its own restart (same launch)
 # from a new launch (state saved by an earlier run may belong to another session: another task).
 LAUNCH_ID_ENV = "FOLLOWBUS_LAUNCH_ID"
@@ -220,13 +221,13 @@ class DownstreamBarrier:
                 frontier = fed
             if RECORDER_NAME in started:
                 self.waiting_for.add(RECORDER_NAME)
-        left_out = self.waiting_for & set(filter(None, os.environ.get(LEFT_OUT_NODES_ENV, "").split(",")))
-        if left_out:
-            self.log.info("not waiting for %s: left out of this launch by --only", ", ".join(sorted(left_out)))
-            self.waiting_for -= left_out
+        # Consumers --only left out: waited for only as long as discovery takes (one already running in another
+        # launch is seen within it and still hears frame 0), not the whole timeout for one nobody will start.
+        self.left_out = self.waiting_for & set(filter(None, os.environ.get(LEFT_OUT_NODES_ENV, "").split(",")))
         self.waiting_for.discard(name)
         self._health = HealthWatcher(runtime.session, graph.namespace, watch_status=False)
         self._deadline = time.monotonic() + timeout_s
+        self._left_out_deadline = time.monotonic() + min(timeout_s, LEFT_OUT_DISCOVERY_S)
 
     def wait_s(self) -> float:
         """Seconds to wait before the first message (0: go)."""
@@ -235,8 +236,13 @@ class DownstreamBarrier:
         if self._open_at is None:
             assert self._health is not None
             missing = self.waiting_for - self._health.alive()
-            if missing and time.monotonic() < self._deadline:
+            now = time.monotonic()
+            if missing - self.left_out and now < self._deadline or missing and now < self._left_out_deadline:
                 return 0.05
+            if missing & self.left_out:
+                self.log.info("not waiting for %s: left out of this launch by --only and not running",
+                              ", ".join(sorted(missing & self.left_out)))
+                missing -= self.left_out
             if missing:
                 self.log.warning("starting without %s (not up after %.0f s)", ", ".join(sorted(missing)),
                                  self.timeout_s)

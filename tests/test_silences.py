@@ -64,7 +64,8 @@ def test_launch_only_starts_a_source_without_waiting_for_the_consumers_it_left_o
     result = run_followbus("launch", str(graph), "--only", "capture", "--duration", "4", timeout=60)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     assert "waits for" not in result.stderr
-    assert "not waiting for detection: left out of this launch by --only" in result.stdout + result.stderr
+    said = result.stdout + result.stderr
+    assert "not waiting for detection: left out of this launch by --only and not running" in said
 
 
 def test_monitor_that_never_reached_a_graph_fails_in_one_line(tmp_path, port):
