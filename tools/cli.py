@@ -182,18 +182,9 @@ def cmd_node(args: argparse.Namespace) -> int:
 
 def cmd_schema(args) -> int:
     from ..bus.graph_schema import schema_text
+    from .errors import write_text_output
 
-    text = schema_text("followbus.nodes")
-    if not args.output:
-        sys.stdout.write(text)
-        return 0
-    try:
-        Path(args.output).write_text(text)
-    except OSError as exc:
-        print(f"followbus: cannot write {args.output}: {exc.strerror}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    print(f"wrote {args.output}")
-    return 0
+    return write_text_output(schema_text("followbus.nodes"), args.output)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -12,3 +12,20 @@ INTERRUPTED = threading.Event()
 class UsageError(Exception):
     """A mistake on the command line or in what it names (a --set, a missing password); the message is the
     whole line: what is wrong and what to do."""
+
+
+def write_text_output(text: str, output: str | None, what: str = "") -> int:
+    """A command's text to ``--output`` (saying so, with ``what`` it holds), or to stdout without one; a path that
+    cannot be written is a UsageError (one line, exit 2)."""
+    import sys
+    from pathlib import Path
+
+    if not output:
+        sys.stdout.write(text)
+        return 0
+    try:
+        Path(output).write_text(text)
+    except OSError as exc:
+        raise UsageError(f"cannot write {output}: {exc.strerror}") from exc
+    print(f"wrote {output}{f' ({what})' if what else ''}")
+    return 0

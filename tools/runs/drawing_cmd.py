@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
-from ..errors import UsageError
+from ..errors import UsageError, write_text_output
 
 
 def graph_file(which: str) -> str:
@@ -27,12 +26,4 @@ def cmd_graph(args) -> int:
 
     graph = load_graph(graph_file(args.graph))
     text = to_svg(graph) if args.svg else to_dot(graph)
-    if not args.output:
-        sys.stdout.write(text)
-        return 0
-    try:
-        Path(args.output).write_text(text)
-    except OSError as exc:
-        raise UsageError(f"cannot write {args.output}: {exc.strerror}") from exc
-    print(f"wrote {args.output} ({len(graph.nodes)} nodes)")
-    return 0
+    return write_text_output(text, args.output, f"{len(graph.nodes)} nodes")
