@@ -162,8 +162,12 @@ def _link_args(p: argparse.ArgumentParser) -> None:
                         "shows what a laptop recording raw frames did to the robot")
     p.add_argument("--log", default="state/link.log", help="the robot graph's log (default state/link.log)")
     p.add_argument("--drop-wait-us", type=int, metavar="US",
-                   help="the robot's zenoh wait_before_drop and max_wait_before_drop_fragments (default zenoh's: "
-                        "1000 and 50000 us): how long its router waits on a full link before dropping")
+                   help="the robot's zenoh wait_before_drop and max_wait_before_drop_fragments (default "
+                        "graph.robot.yaml's: 1000 us both; zenoh's own: 1000 and 50000): how long its router waits "
+                        "on a full link before dropping")
+    p.add_argument("--laptop-nice", type=int, default=19, metavar="N",
+                   help="CPU priority of the laptop's processes (default 19: on this one machine they take only "
+                        "the CPU the robot leaves, as a separate laptop would; 0: the robot's equal)")
     p.add_argument("--json", metavar="FILE", help="also write every run's figures as JSON")
 
 

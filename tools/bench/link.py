@@ -43,6 +43,9 @@ CASES = ("none", "monitor", "record-all", "record")
 USERS_FILE = REPO / "docs" / "zenoh-users.example.txt"  # robot, monitor, operator with their example passwords
 MONITOR_PASSWORD = "change-me-monitor"
 SETTLE_S = 3.0  # the laptop joins and its subscriptions reach the robot before a window opens
+# The laptop's processes share this machine's cores with the robot; a real laptop's CPU is its own. At nice 19
+# they take only what the robot leaves, which is the nearest one machine comes to that (0: as before 2026-11-26).
+LAPTOP_NICE = 19
 NAMESPACE = "link"
 
 
@@ -172,8 +175,9 @@ class LinkBench:
     """The robot graph and its probe in namespace a, one laptop case at a time in namespace b."""
 
     def __init__(self, pair: NetnsPair, tmp: Path, port: int, detector: str, protect: bool = True,
-                 log: Path | None = None, drop_wait_us: int | None = None):
+                 log: Path | None = None, drop_wait_us: int | None = None, laptop_nice: int = LAPTOP_NICE):
         self.pair, self.tmp, self.log = pair, tmp, log
+        self.laptop_nice = laptop_nice
         self.graph = write_robot_graph(tmp, port, pair.addresses[0], detector, protect=protect,
                                        drop_wait_us=drop_wait_us)
         self.endpoint = f"tcp/{pair.addresses[0]}:{port}"
@@ -215,7 +219,8 @@ class LinkBench:
         laptop = None
         cpu0 = _children_cpu_s()
         if argv is not None:
-            laptop = subprocess.Popen(self.pair.argv(1, argv), cwd=self.tmp, env=self.env, stdin=subprocess.DEVNULL,
+            niced = ["nice", "-n", str(self.laptop_nice), *argv]
+            laptop = subprocess.Popen(self.pair.argv(1, niced), cwd=self.tmp, env=self.env, stdin=subprocess.DEVNULL,
                                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
             time.sleep(SETTLE_S)
         robot = self._until_answered(seconds) if until_answered else self.window(seconds)
@@ -276,11 +281,13 @@ def _finish(proc: subprocess.Popen, timeout_s: float = 60.0) -> str:
 
 def run_link_bench(rate_mbit: float, seconds: float, rounds: int, cases: list[str], detector: str,
                    port: int = 21650, progress: Any = print, protect: bool = True,
-                   log: Path | None = None, drop_wait_us: int | None = None) -> list[CaseRun]:
+                   log: Path | None = None, drop_wait_us: int | None = None,
+                   laptop_nice: int = LAPTOP_NICE) -> list[CaseRun]:
     """Every case ``rounds`` times, alternated; the robot graph is launched once."""
     runs = []
     with tempfile.TemporaryDirectory(prefix="followbus-link-") as tmp, NetnsPair(rate_mbit=rate_mbit) as pair:
-        bench = LinkBench(pair, Path(tmp), port, detector, protect=protect, log=log, drop_wait_us=drop_wait_us)
+        bench = LinkBench(pair, Path(tmp), port, detector, protect=protect, log=log, drop_wait_us=drop_wait_us,
+                          laptop_nice=laptop_nice)
         try:
             bench.start()
             for r in range(rounds):
@@ -339,9 +346,11 @@ def cmd_bench_link(args) -> int:
         load = f.read().strip()
     print(f"bench link: {args.rate_mbit:g} Mbit/s each way, {args.seconds:g} s windows, {args.rounds} rounds of "
           f"{', '.join(cases)}; detector {args.detector}; remote links "
-          f"{'as before (BLOCK)' if args.unprotected else 'DROP (bus/netif.py)'}; load {load}", flush=True)
+          f"{'as before (BLOCK)' if args.unprotected else 'DROP (bus/netif.py)'}; laptop at nice {args.laptop_nice}; "
+          f"load {load}", flush=True)
     runs = run_link_bench(args.rate_mbit, args.seconds, args.rounds, cases, args.detector, args.port,
-                          protect=not args.unprotected, log=Path(args.log), drop_wait_us=args.drop_wait_us)
+                          protect=not args.unprotected, log=Path(args.log), drop_wait_us=args.drop_wait_us,
+                          laptop_nice=args.laptop_nice)
     with open("/proc/loadavg") as f:
         print(f"load at the end: {f.read().strip()}")
     print(table(runs))
