@@ -293,6 +293,9 @@ _ROBOT_KEYS = ["**", "**/@health/**", "**/@status/**", "**/@launcher/**", "**/@r
 ROBOT_CONFIG = {
     "transport/auth/usrpwd": {"user": "robot", "password": "change-me-robot",
                               "dictionary_file": "docs/zenoh-users.example.txt"},
+    # A full link drops after 1 ms, fragments too (zenoh waits 50 ms for those: a laptop's raw frames held the hub).
+    "transport/link/tx/queue/congestion_control/drop": {"wait_before_drop": 1000,
+                                                        "max_wait_before_drop_fragments": 1000},
     "access_control": {
         "enabled": True,
         "default_permission": "deny",
@@ -344,7 +347,10 @@ def test_robot_graph_resolves_to_the_copy_it_replaced(tmp_path):
     new = write(tmp_path, "new/graph.robot.yaml", robot_text())
     assert "extends" not in files["graph.robot.yaml"]
     new_meaning, old_meaning = meaning(load_graph(new)), meaning(load_graph(old))
-    # Since the copy, the access control became an allow-list (issue 25): the rest is the copy, field by field.
+    # Since the copy, the access control became an allow-list (issue 25) and a full link drops after 1 ms (issue
+    # 26): the rest is the copy, field by field.
+    assert new_meaning["zenoh"]["config"].pop("transport/link/tx/queue/congestion_control/drop") == {
+        "wait_before_drop": 1000, "max_wait_before_drop_fragments": 1000}
     assert new_meaning["zenoh"]["config"].pop("access_control")["default_permission"] == "deny"
     assert old_meaning["zenoh"]["config"].pop("access_control")["default_permission"] == "allow"
     assert new_meaning == old_meaning

@@ -188,20 +188,24 @@ def test_web_view_streams_previews_and_state(tracking_robot, tmp_path):
         def frames_drawn(dom: str) -> int:
             return int(dom.split('id="frames">frames: ')[1].split(" ")[0].split("<")[0])
 
-        def frame_shown(dom: str) -> str:
-            return dom.split('id="state">target ')[1].split(" frame ")[1].split(" ")[0]
+        def frame_shown(dom: str) -> str | None:
+            """The frame the state text names (None: a render caught before the first state poll)."""
+            state = dom.split('id="state">target ')
+            return state[1].split(" frame ")[1].split(" ")[0] if len(state) > 1 and " frame " in state[1][:200] \
+                else None
 
         # Virtual-time budgets are not wall time: on a loaded 2-core machine a render may catch fewer
-        # frames, so take up to three renders before judging.
-        doms = []
-        for _ in range(3):
+        # frames (or none yet), so take up to four renders before judging.
+        doms: list[str] = []
+        for _ in range(4):
             doms.append(render_dom(base + "/", tmp_path, budget_ms=5000, window="1280,900"))
-            if len(doms) >= 2 and frames_drawn(doms[-1]) >= 3 and frame_shown(doms[-1]) != frame_shown(doms[0]):
+            shown = {frame_shown(d) for d in doms} - {None}
+            if frames_drawn(doms[-1]) >= 3 and frame_shown(doms[-1]) and len(shown) >= 2:
                 break
         dom = doms[-1]
         assert frames_drawn(dom) >= 3, dom[:2000]
         assert "target " in dom.split('id="state">')[1][:200]
-        assert frame_shown(dom) != frame_shown(doms[0]), "state text did not update"
+        assert len(shown) >= 2, f"state text did not update: {shown}"
         code, text = element_text(dom, "screen")
         assert code == "live" and text.startswith("live: frame "), (code, text)
         assert element_text(dom, "banner")[0] == "live"  # hidden while live

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import time
+import threading
 
 import pytest
 
@@ -75,18 +75,21 @@ def test_monitor_that_never_reached_a_graph_fails_in_one_line(tmp_path, port):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("argv", [["echo", "t/x"], ["launch"]], ids=["echo", "launch"])
-def test_ctrl_c_exits_130(argv, graph_file, port):
+def test_ctrl_c_exits_130(argv, graph_file, router):  # noqa: F811
     graph = graph_file("  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n", namespace="o1int")
-    full = [*argv, "--connect", f"tcp/127.0.0.1:{port}"] if argv[0] == "echo" else [*argv, str(graph)]
+    # echo joins a bus with nothing on its key (a router): it waits for messages until Ctrl-C.
+    full = [*argv, "--connect", router] if argv[0] == "echo" else [*argv, str(graph)]
     proc = subprocess.Popen(followbus_argv(*full), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, stdin=subprocess.DEVNULL)
+    lines: list[str] = []
+    threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
     try:
         if argv[0] == "launch":
             assert wait_until(lambda: run_followbus("ps").stdout.count("o1int") == 1, 30)
-        else:
-            time.sleep(2.0)
+        else:  # connected and waiting: it has said why nothing came yet
+            assert wait_until(lambda: any("nothing on t/x" in line for line in lines), 30), lines
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(20) == 130, proc.stdout.read()
+        assert proc.wait(20) == 130, "".join(lines)
     finally:
         if proc.poll() is None:
             proc.kill()
