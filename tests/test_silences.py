@@ -89,7 +89,8 @@ def test_ctrl_c_exits_130(argv, graph_file, router):  # noqa: F811
         else:  # connected and waiting: it has said why nothing came yet
             assert wait_until(lambda: any("nothing on t/x" in line for line in lines), 30), lines
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(20) == 130, "".join(lines)
+        # A bound, not a timing: with two burners beside two test workers this took more than 20 s twice.
+        assert proc.wait(60) == 130, "".join(lines)
     finally:
         if proc.poll() is None:
             proc.kill()
