@@ -269,7 +269,7 @@ def cmd_launch(args) -> int:
         print(f"followbus: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     _warn_unfed(graph, [c.name for c in launcher.children if c.spec.run != "<tool>"], bool(only or args.host),
-                left_out=set(on_host) - set(only or on_host))
+                left_out=launcher.left_out)
     install_stop_signals(launcher)
     logging.getLogger("followbus.launch").setLevel(logging.INFO)
     try:

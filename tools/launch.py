@@ -97,7 +97,8 @@ class Launcher:
         # Nodes may wait for each other at start-up (capture holds frame 0 until its chain listens).
         self.env[LAUNCHED_NODES_ENV] = ",".join([spec.name for spec in selected]
                                                 + [name for name, _ in extra_children or []])
-        self.env[LEFT_OUT_NODES_ENV] = ",".join(sorted(on_host - {spec.name for spec in selected}))
+        self.left_out = on_host - {spec.name for spec in selected}  # this host's nodes --only left out
+        self.env[LEFT_OUT_NODES_ENV] = ",".join(sorted(self.left_out))
         for name, argv in extra_children or []:
             self.children.append(Child(NodeSpec(name=name, run="<tool>"), argv))
         self.health: HealthWatcher | None = None
