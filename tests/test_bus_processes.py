@@ -220,7 +220,7 @@ def test_frames_written_into_shared_memory_in_place_arrive_as_encode_writes_them
                           0.5):
                 break
         assert {decode(d).header.frame_seq for d in list(got.values())} == set(range(len(frames)))
-        for seq, data in got.items():
+        for seq, data in list(got.items()):  # a snapshot: resent copies may still be arriving on zenoh's thread
             assert data == sent[seq], f"message {seq} differs from encode()"
         assert all(shm_seen), "large payloads should have travelled through shared memory"
     finally:
