@@ -26,7 +26,7 @@ $(TEST_STAMP): $(STAMP)
 
 test: $(TEST_STAMP)
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q -ra -n 2 --durations=25
+	$(PY) -m pytest -q -ra --durations=25
 
 lint: $(STAMP)
 	$(PY) -m ruff check .
