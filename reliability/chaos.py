@@ -50,6 +50,7 @@ import numpy as np
 import zenoh
 
 from ..bus.children import die_with_parent
+from ..bus.codec import peek
 from ..bus.graph import Graph, load_graph
 from ..bus.health import HealthWatcher
 from ..bus.pubsub import Publisher, ShmPool, Subscriber, declare_subscriber, frame_bytes
@@ -103,6 +104,7 @@ class Observer:
         self.unsafe: list[tuple[CommandObs, list[str]]] = []
         self._frame: bytes | None = None
         self._frame_copied = 0.0
+        self.injected_frame_ns = 0  # when the newest frame the harness itself published arrived here
         quiet = logging.getLogger("followbus.chaos.observer")  # the harness's own malformed payloads
         quiet.setLevel(logging.ERROR)
         self._subs = [
@@ -142,15 +144,19 @@ class Observer:
             self.truth.append(TruthObs(time.time_ns(), msg.header.frame_seq, msg.header.stamp_ns, visible))
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
-        # One recent frame is all the injectors need: copy one every half second, not 27 MB/s.
+        try:
+            data = frame_bytes(sample)
+            injected = peek(data).header.source == INJECTOR
+        except Exception:  # a lane frame overwritten meanwhile, a malformed one: the next one will do
+            return
+        if injected:  # the flood is over only once the bus has delivered it (a subscriber here sees when)
+            self.injected_frame_ns = time.time_ns()
+            return
+        # One recent camera frame is all the injectors need: keep one every half second.
         now = time.monotonic()
         if now - self._frame_copied < 0.5:
             return
         self._frame_copied = now
-        try:
-            data = frame_bytes(sample)
-        except Exception:  # a lane frame overwritten meanwhile: the next one will do
-            return
         with self.lock:
             self._frame = data
 

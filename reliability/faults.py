@@ -209,9 +209,23 @@ def _flood(run: ChaosRunner) -> Injection:
         msg.header.frame_seq = truth.frame_seq + 1 + i
         msg.header.stamp_ns = time.time_ns()
         pub.put(msg)
-    end = time.time_ns()
-    return Injection(start, end, notes=[f"{run.options.flood_frames} valid frames in {(end - start) / MS:.0f} ms, "
+    sent = time.time_ns()
+    end = _delivered_ns(run, sent)
+    return Injection(start, end, notes=[f"{run.options.flood_frames} valid frames in {(sent - start) / MS:.0f} ms, "
+                                        f"delivered {(end - sent) / MS:.0f} ms later, "
                                         f"frame_seq {truth.frame_seq + 1}..."])
+
+
+def _delivered_ns(run: ChaosRunner, sent_ns: int, quiet_s: float = 0.5, bound_s: float = 15.0) -> int:
+    """When the bus delivered the last injected frame to the harness's own subscriber: put() returns once a
+    frame is queued, and without shared memory a flood's megabytes are still draining through every link
+    for seconds after that; the graph cannot recover before its inputs are its own again."""
+    deadline = time.monotonic() + bound_s
+    while time.monotonic() < deadline:
+        if time.time_ns() - max(sent_ns, run.observer.injected_frame_ns) > quiet_s * 1e9:
+            break
+        time.sleep(0.05)
+    return max(sent_ns, run.observer.injected_frame_ns)
 
 
 def _kill_recorder(run: ChaosRunner) -> Injection:
