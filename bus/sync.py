@@ -179,6 +179,7 @@ class FrameSynchronizer:
         # Optional same-frame inputs, and those not on time (not waited for): all of them until a first message.
         self.optional = [i.name for i in inputs if i.optional and not i.offset]
         self._off_time: set[str] = set(self.optional)
+        self._newest_optional: dict[str, int] = {}  # optional same-frame input -> newest frame_seq accepted
         # Recent sets that went out without an optional input: frame -> (their deadline, the inputs they lacked).
         self._lacked: dict[int, tuple[int, frozenset[str]]] = {}
         self.timeouts = 0  # sets emitted without an input they waited for (feedback included)
@@ -209,6 +210,8 @@ class FrameSynchronizer:
             return verdict
         if verdict == RESYNCED:
             self._restart()
+        if name in self.optional:
+            self._newest_optional[name] = max(self._newest_optional.get(name, -1), frame_seq)
         slot = self._slots.get(frame_seq)
         if slot is None:
             slot = self._slots[frame_seq] = _Slot(first_ns=now_ns, stamp_ns=stamp_ns)
@@ -242,6 +245,7 @@ class FrameSynchronizer:
         self._last_emitted = None
         self._feedback_lost = False
         self._lacked.clear()
+        self._newest_optional.clear()
         self._forced.clear()
         self._forced_frames.clear()
 
@@ -450,11 +454,22 @@ class FrameSynchronizer:
     def _superseded(self, seq: int, forced: bool) -> bool:
         """Should the set of frame ``seq`` stop waiting because a newer one can go? Live: a newer set has its
         same-frame inputs. Replay (a set the live run handled): a newer handled set is ready in full, as it
-        went out live (its feedback included)."""
+        went out live (its feedback included), and no optional input this set had live is still to come."""
         if not forced:
             return self._newer_complete(seq)
+        if self._optional_still_coming(seq, self._slots[seq]):
+            return False
         return any(later > seq and later in self._forced and all(self._gather(later, slot)[1:])
                    for later, slot in self._slots.items())
+
+    def _optional_still_coming(self, seq: int, slot: _Slot) -> bool:
+        """Replay: does the handled set of frame ``seq`` lack an optional input it had live whose own stream has
+        not reached the frame yet? Its producer lagged live and published it after newer frames' inputs (the
+        feed's publication order), so it is still to come, however far the other inputs ran ahead. One the
+        recorder lost shows as its stream passing the frame; with nothing after it at all, the set waits until
+        ``max_pending`` newer sets push it out (its outputs are then missing, as they would differ if made)."""
+        return any(name not in slot.msgs and self._awaited(name, seq) and self._newest_optional.get(name, -1) < seq
+                   for name in self.optional)
 
     def _newer_complete(self, seq: int) -> bool:
         return any(not self._missing_same_frame(self._slots[later], later) for later in self._slots if later > seq)

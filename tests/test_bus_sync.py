@@ -119,6 +119,34 @@ def test_a_replay_lacks_exactly_the_optional_inputs_the_live_set_lacked():
     assert sync.poll(2 * MS) == [(3, {"a": "a3", "b": None})]
 
 
+def test_a_replayed_set_waits_for_an_optional_input_its_producer_published_late():
+    """Live, egomotion lagged: its transforms of frames 2 and 3 were published after detection's frame 4, and
+    frame 4 went on without its own transform. In the replay (inputs in publication order) frame 4 is ready in
+    full first; frames 2 and 3 must still wait for the transforms they had live, since that stream has not
+    reached them yet (2026-11-26: prediction's replay differed from frame 20 of a recording made at load 20).
+    A transform the recorder lost shows as its stream passing the frame: that set then goes on without it."""
+    sync = FrameSynchronizer([SyncInput("dets"), SyncInput("transform", optional=True)], timeout_ns=10 * MS)
+    for seq in (1, 2, 3, 5, 6):
+        sync.force_feedback(seq, {})
+    sync.force_feedback(4, {"transform": -1})
+    sync.add("dets", 1, "d1", 0)
+    sync.add("transform", 1, "t1", 0)
+    assert sync.poll(0) == [(1, {"dets": "d1", "transform": "t1"})]
+    for seq in (2, 3, 4):
+        sync.add("dets", seq, f"d{seq}", seq * 33 * MS)
+    assert sync.poll(200 * MS) == []  # frame 4 is ready in full, but transform 2 is still to come
+    sync.add("transform", 2, "t2", 210 * MS)
+    sync.add("transform", 3, "t3", 211 * MS)
+    assert sync.poll(211 * MS) == [(2, {"dets": "d2", "transform": "t2"}), (3, {"dets": "d3", "transform": "t3"}),
+                                   (4, {"dets": "d4", "transform": None})]
+    # The recorder lost transform 5: once transform 6 has come, frame 5 goes on without it.
+    sync.add("dets", 5, "d5", 300 * MS)
+    sync.add("dets", 6, "d6", 333 * MS)
+    assert sync.poll(333 * MS) == []
+    sync.add("transform", 6, "t6", 340 * MS)
+    assert sync.poll(340 * MS) == [(5, {"dets": "d5", "transform": None}), (6, {"dets": "d6", "transform": "t6"})]
+
+
 def test_newer_complete_frame_supersedes_an_incomplete_one_and_late_data_is_stale():
     sync = FrameSynchronizer([SyncInput("frame"), SyncInput("dets")], timeout_ns=100 * MS)
     sync.add("frame", 1, "f1", 0)  # the detector skips frame 1
