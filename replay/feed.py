@@ -43,15 +43,18 @@ def frame_and_stamp(data: bytes) -> tuple[int, int]:
 
 
 def recording_first_frame(path: Path, skip_chunks: frozenset[int] = frozenset(), look_at: int = 200) -> int | None:
-    """The lowest frame_seq among the recording's first messages (log time = capture stamp, so the run's
-    first recorded frame is among them); None when none carries a frame."""
+    """The lowest frame_seq among the recording's first ``look_at`` messages that carry a frame (log time =
+    capture stamp, so the run's first recorded frame is among them); None when none carries a frame.
+
+    Messages of no frame are passed over, however many: on a loaded machine the motor's 100 Hz odometry fills
+    the first seconds of a recording before the camera's first frame (2026-11-26: 200 of them at load 20)."""
     seqs = []
-    for k, msg in enumerate(iter_bus_messages(path, skip_chunks=skip_chunks)):
-        if k >= look_at:
-            break
+    for msg in iter_bus_messages(path, skip_chunks=skip_chunks):
         frame_seq = frame_and_stamp(msg.data)[0]
         if frame_seq >= 0:
             seqs.append(frame_seq)
+            if len(seqs) >= look_at:
+                break
     return min(seqs) if seqs else None
 
 

@@ -220,3 +220,27 @@ def test_a_lost_optional_input_is_replayed_exactly(tmp_path):
     assert result.returncode == 0, result.stdout + result.stderr[-2000:]
     report = json.loads(report_path.read_text())
     assert report["mismatch_count"] == 0 and report["outputs_compared"] > 100
+
+
+def test_the_first_recorded_frame_is_found_behind_seconds_of_frameless_messages(tmp_path):
+    """On a loaded machine the motor's 100 Hz odometry fills a recording's first seconds before the camera's
+    frame 0: the replay must still find frame 0 there, not call the recording "started mid-run"."""
+    from followbus.bus.schemas import Tick, encode
+    from followbus.replay.feed import recording_first_frame
+    from followbus.tools.recording.mcap_io import RecordingWriter
+
+    path = tmp_path / "late-camera.mcap"
+    writer = RecordingWriter(path)
+    odometry, frames = writer.bus_channel("t/motor/odometry", "Tick"), writer.bus_channel("t/capture/frame", "Tick")
+    stamp = 1_000_000_000
+    for _ in range(500):  # 5 s of frameless messages first
+        stamp += 10_000_000
+        msg = Tick(value=0)
+        msg.header.stamp_ns = stamp
+        writer.write(odometry, stamp, encode(msg))
+    for seq in range(4):
+        msg = Tick(value=seq)
+        msg.header.stamp_ns, msg.header.frame_seq = stamp + 1 + seq, seq
+        writer.write(frames, stamp + 1 + seq, encode(msg))
+    writer.finish()
+    assert recording_first_frame(path) == 0
