@@ -24,9 +24,11 @@ $(TEST_STAMP): $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	touch $(TEST_STAMP)
 
+# Two workers; each test module runs whole on one of them, and the modules whose live graphs judge timing run
+# one after another (tests/conftest.py, TIMING_SENSITIVE_MODULES).
 test: $(TEST_STAMP)
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q -ra --durations=25
+	$(PY) -m pytest -q -ra --durations=25 -n 2 --dist loadgroup
 
 lint: $(STAMP)
 	$(PY) -m ruff check .

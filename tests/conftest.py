@@ -18,8 +18,10 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 
-# The run records of the graphs tests launch (tools/runs/claims.py) stay out of the user's ~/.local/state.
-if "FOLLOWBUS_RUNS" not in os.environ:
+# The run records of the graphs tests launch (tools/runs/claims.py) stay out of the user's ~/.local/state. Each
+# pytest-xdist worker keeps its own (it would inherit the controller's): a test's `ps`, or `down NAME`, must
+# neither see nor stop the other worker's graphs, as on two machines.
+if "FOLLOWBUS_RUNS" not in os.environ or os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ["FOLLOWBUS_RUNS"] = tempfile.mkdtemp(prefix="followbus-test-runs-")
     atexit.register(shutil.rmtree, os.environ["FOLLOWBUS_RUNS"], True)
 
@@ -118,3 +120,20 @@ def copy_recording(src: Path, dst: Path, *, keep: Callable[[object, object], boo
         for name, data in read_metadata(src).items():
             writer.add_metadata(name, data)
         writer.finish()
+
+
+# Under `pytest -n 2 --dist loadgroup` (make test) every module runs whole on one worker (its module-scoped
+# graphs and recordings are made once), and the modules whose live graphs judge timing (the watchdog's stop,
+# recovery bounds, a bench's message counts) share one group: they run one after another, never two at once on
+# a two-core machine, while the other worker runs the rest.
+TIMING_SENSITIVE_MODULES = frozenset({
+    "test_chaos", "test_graph_tracking", "test_graph_group", "test_bench_bus", "test_security", "test_ros2",
+    "test_record_replay", "test_link", "test_two_hosts",
+})
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        module = item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else item.nodeid
+        group = "timing-sensitive" if module in TIMING_SENSITIVE_MODULES else module
+        item.add_marker(pytest.mark.xdist_group(group))
