@@ -49,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from ..tracking.params import InvalidParam
 from .kinematics import bearing_rad, mecanum_wheel_speeds, width_based_range_m
 from .pid import PID
 
@@ -118,7 +119,7 @@ class FollowParams:
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"FollowParams.{name} must be finite and > 0, got {value!r}")
+                raise InvalidParam(name, f"FollowParams.{name} must be finite and > 0, got {value!r}")
         non_negative = (
             "range_kp", "range_ki", "range_kd", "yaw_kp", "yaw_ki", "yaw_kd", "strafe_kp", "strafe_ki",
             "strafe_kd", "derivative_tau_s", "max_reverse_mps",
@@ -126,9 +127,9 @@ class FollowParams:
         for name in non_negative:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"FollowParams.{name} must be finite and >= 0, got {value!r}")
+                raise InvalidParam(name, f"FollowParams.{name} must be finite and >= 0, got {value!r}")
         if not 0.0 <= self.occluded_speed_scale <= 1.0:
-            raise ValueError(f"FollowParams.occluded_speed_scale must be in [0, 1], "
+            raise InvalidParam("occluded_speed_scale", f"FollowParams.occluded_speed_scale must be in [0, 1], "
                              f"got {self.occluded_speed_scale!r}")
 
     @classmethod

@@ -209,6 +209,19 @@ def test_a_parameter_out_of_range_points_at_its_line(tmp_path, capsys):
            "[0, 1], got 1.75" in err, err
 
 
+
+@pytest.mark.parametrize(("graph", "node", "param", "message"), [
+    ("graph.yaml", "motor", "max_speed_mps: -2.0", "FollowParams.max_speed_mps must be finite and > 0, got -2.0"),
+    ("graph.group.yaml", "group", "gate_chi2: -1.0", "GroupParams.gate_chi2 must be > 0, got -1.0"),
+    ("graph.group.yaml", "groundplane", "focal_px: -1.0", "focal_px must be finite and > 0, got -1.0"),
+    ("graph.group.yaml", "groundplane", "range_from: knee", "range_from must be 'foot' or 'width', not 'knee'"),
+], ids=["follow", "group", "camera-geometry", "ground-plane"])
+def test_every_range_check_points_at_its_parameter_line(tmp_path, capsys, graph, node, param, message):
+    """The control, group and ground-plane classes check their own ranges too, naming the parameter."""
+    over = tmp_path / "over.yaml"
+    over.write_text(f"extends: {REPO / graph}\nnodes:\n  {node}:\n    params:\n      {param}\n")
+    assert f"{over}:5: node '{node}': {message}" in _check_error(capsys, over)
+
 def _attributes_read_by(module: str) -> set[str]:
     """Every attribute name the code of ``module`` and of the nodes/tracking/control/vision modules it imports
     (transitively, by relative import) reads: what a node's parameters can be read through."""

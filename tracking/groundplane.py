@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..msgs.group import GroundPoints
+from .params import InvalidParam
 
 
 @dataclass
@@ -57,9 +58,9 @@ class CameraGeometry:
         for name in ("image_width_px", "image_height_px", "focal_px", "camera_height_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be finite and > 0, got {value!r}")
+                raise InvalidParam(name, f"{name} must be finite and > 0, got {value!r}")
         if not abs(self.camera_tilt_rad) < math.pi / 2:
-            raise ValueError(f"camera_tilt_rad must be within ±90°, got {self.camera_tilt_rad!r}")
+            raise InvalidParam("camera_tilt_rad", f"camera_tilt_rad must be within ±90°, got {self.camera_tilt_rad!r}")
 
 
 @dataclass
@@ -74,13 +75,13 @@ class GroundPlaneParams:
 
     def __post_init__(self) -> None:
         if self.range_from not in ("foot", "width"):
-            raise ValueError(f"range_from must be 'foot' or 'width', not {self.range_from!r}")
+            raise InvalidParam("range_from", f"range_from must be 'foot' or 'width', not {self.range_from!r}")
         for name in ("person_width_m", "pixel_std_px", "max_range_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be finite and > 0, got {value!r}")
+                raise InvalidParam(name, f"{name} must be finite and > 0, got {value!r}")
         if not (math.isfinite(self.body_std_m) and self.body_std_m >= 0):
-            raise ValueError(f"body_std_m must be finite and >= 0, got {self.body_std_m!r}")
+            raise InvalidParam("body_std_m", f"body_std_m must be finite and >= 0, got {self.body_std_m!r}")
 
 
 def boxes_to_ground(boxes: np.ndarray, cam: CameraGeometry, params: GroundPlaneParams,

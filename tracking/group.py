@@ -37,6 +37,7 @@ import numpy as np
 
 from ..msgs.group import GroupState
 from .groundplane import to_robot_frame
+from .params import check_ranges
 
 log = logging.getLogger(__name__)
 
@@ -286,6 +287,15 @@ class GroupParams:
     vb_iterations: int = 6             # Eq. 17-21 fixed-point iterations per pass
     max_lost_frames: int = 30          # frames without a selected point before re-initialising
     default_point_std_m: float = 0.2   # when the caller gives no per-point covariance
+
+    def __post_init__(self) -> None:
+        check_ranges(
+            self,
+            positive=("n_ellipses", "dbscan_eps_m", "dbscan_min_samples", "weave_tau_s", "nu_min",
+                      "extent_floor_m2", "extent_ceiling_m2", "d_th_m", "gate_chi2", "selection_passes",
+                      "vb_iterations", "max_lost_frames", "default_point_std_m"),
+            non_negative=("accel_std_mps2", "offset_std_mps", "weave_std_m", "early_frames"),
+            unit_interval=("lambda_iw", "lambda_dirichlet", "weight_threshold_early", "weight_threshold_late"))
 
 
 class MultiEllipseGroupTracker:
