@@ -280,6 +280,11 @@ class Node:
     # Params `followbus param set` may change while the node runs (bus/live_params.py): only those the node's code
     # reads afresh on every message from its params objects.
     LIVE_PARAMS: ClassVar[frozenset[str]] = frozenset()
+    # Inputs that only feed state the node reads when another input arrives (a stream sampled by stamp): their
+    # messages do not wake the node's loop, they are handed over with the next message that does (at most the
+    # loop's idle period later, or at once when the queue is half full), still in arrival order, so what the
+    # node computes is unchanged; each wake-up of a process costs far more than the few lines of handling.
+    LAZY_INPUTS: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self, params: Any, runtime: NodeHost):
         self.params = params
@@ -740,7 +745,8 @@ class NodeRuntime(NodeHost):
         for inp in self.spec.inputs.values():
             key = graph.key(inp.source_node, inp.source_output)
             stats = TopicStats(key, "in")
-            queue = InputQueue(inp.name, inp.queue, inp.policy, stats, self._cond)
+            queue = InputQueue(inp.name, inp.queue, inp.policy, stats, self._cond,
+                               wakes=inp.name not in self.cls.LAZY_INPUTS)
             self.queues[inp.name] = queue
             self.subscribers.append(Subscriber(
                 self.session, key, self._enqueuer(queue), schema=self.cls.INPUTS[inp.name], stats=stats,
@@ -841,7 +847,7 @@ class NodeRuntime(NodeHost):
                         deadline = self.sync.next_deadline_ns()
                         if deadline is not None:
                             wait_s = min(wait_s, max(0.0, (deadline - time.time_ns()) / 1e9))
-                    if not any(len(q) for q in self.queues.values()) and wait_s > 0:
+                    if not any(len(q) for q in self.queues.values() if q.wakes) and wait_s > 0:
                         self._cond.wait(wait_s)
                     items = [(name, m) for name, q in self.queues.items() for m in q.pop_all()]
                     hints, self._hints = self._hints, []

@@ -423,10 +423,12 @@ class InputQueue:
 
     ``drop_oldest`` keeps the newest messages (live video); ``block`` makes the producer wait for
     room (control and recording paths), up to ``block_timeout_s`` so shutdown never deadlocks.
+    ``wakes``: a message notifies the consumer at once; False (a node's LAZY_INPUTS): only once the queue is half
+    full, else it waits for the consumer's next wake-up (the consumer bounds its waits).
     """
 
     def __init__(self, name: str, maxlen: int, policy: str, stats: TopicStats, wakeup: threading.Condition,
-                 block_timeout_s: float = 2.0):
+                 block_timeout_s: float = 2.0, wakes: bool = True):
         if policy not in ("drop_oldest", "block"):
             raise ValueError(f"unknown queue policy {policy!r}")
         self.name = name
@@ -434,6 +436,7 @@ class InputQueue:
         self.policy = policy
         self.stats = stats
         self.block_timeout_s = block_timeout_s
+        self.wakes = wakes
         self._items: deque[Message] = deque()
         self._cond = wakeup
 
@@ -452,7 +455,8 @@ class InputQueue:
                             return
                         self._cond.wait(remaining)
             self._items.append(msg)
-            self._cond.notify_all()
+            if self.wakes or 2 * len(self._items) >= self.maxlen:
+                self._cond.notify_all()
 
     def pop_all(self) -> list[Message]:
         """Take everything queued (caller holds the condition)."""

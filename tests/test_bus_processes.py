@@ -294,3 +294,29 @@ def test_a_publisher_sends_to_subscribers_that_come_and_go_without_asking_zenoh_
         receiver.close()
         sender.close()
 
+
+def test_a_lazy_input_queue_does_not_wake_its_consumer_until_half_full():
+    """A node's LAZY_INPUTS (prediction's 100 Hz odometry) do not wake its loop on every message; the queue still
+    wakes it before it can overflow, and an ordinary queue wakes it on each message."""
+    from followbus.bus.pubsub import InputQueue
+    from followbus.bus.stats import TopicStats
+
+    class CountingCondition(threading.Condition):
+        notified = 0
+
+        def notify_all(self) -> None:
+            self.notified += 1
+            super().notify_all()
+
+    cond = CountingCondition()
+    lazy = InputQueue("odometry", 8, "drop_oldest", TopicStats("k", "in"), cond, wakes=False)
+    for value in range(3):
+        lazy.push(Tick(value=value))
+    assert cond.notified == 0
+    lazy.push(Tick(value=3))  # half full: wake the consumer now
+    assert cond.notified == 1
+    with cond:
+        assert [m.value for m in lazy.pop_all()] == [0, 1, 2, 3]
+    eager = InputQueue("frame", 8, "drop_oldest", TopicStats("k", "in"), cond)
+    eager.push(Tick(value=0))
+    assert cond.notified == 2
