@@ -364,6 +364,12 @@ class Node:
     def has_output(self, output: str) -> bool:
         return output in self.runtime.publishers
 
+    def has_listeners(self, output: str) -> bool:
+        """Whether anyone subscribes to this output now (a publisher without ``listened``, in-process: always).
+        An output only people watch (a preview) need not be made while nobody does: publish would send nothing."""
+        publisher = self.runtime.publishers.get(output)
+        return publisher is not None and getattr(publisher, "listened", True)
+
     def now_ns(self) -> int:
         return self.runtime.clock.now_ns()
 

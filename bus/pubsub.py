@@ -240,6 +240,11 @@ class Publisher:
         return self._lane
 
     @property
+    def listened(self) -> bool:
+        """Whether anyone subscribes to the key (its lane side key included): else put sends nothing."""
+        return self._side_matched.value or self._pub_matched.value
+
+    @property
     def lane_fallbacks(self) -> int:
         """Messages that went inline because every lane segment was held by readers."""
         return self._lane.fallbacks if self._lane is not None else 0
