@@ -276,16 +276,16 @@ def test_a_publisher_sends_to_subscribers_that_come_and_go_without_asking_zenoh_
     got: list[int] = []
     pub = Publisher(sender, "match/odo", "test")
     try:
-        assert not pub._pub_matched.value  # nobody listens yet: nothing is sent
+        assert not pub.listened  # nobody listens yet: nothing is sent (capture makes no preview)
         sub = Subscriber(receiver, "match/odo", lambda m: got.append(m.value), schema=Tick)
-        assert wait_until(lambda: pub._pub_matched.value, 5)
+        assert wait_until(lambda: pub.listened, 5)
         pub.put(Tick(value=1))
         assert wait_until(lambda: got == [1], 5)
         late = Publisher(sender, "match/odo", "test")  # declared after the subscriber: matched from the start
-        assert late._pub_matched.value
+        assert late.listened
         late.undeclare()
         sub.undeclare()
-        assert wait_until(lambda: not pub._pub_matched.value, 5)
+        assert wait_until(lambda: not pub.listened, 5)
         pub.put(Tick(value=2))
         time.sleep(0.2)
         assert got == [1]
