@@ -844,15 +844,7 @@ class NodeRuntime(NodeHost):
         try:
             while not self.stop_event.is_set():
                 with self._cond:
-                    wait_s = 0.05
-                    if next_poll_wall is not None:
-                        wait_s = min(wait_s, max(0.0, next_poll_wall - time.monotonic()))
-                    if self.next_timer_ns is not None and self.clock.mode == "wall":
-                        wait_s = min(wait_s, max(0.0, (self.next_timer_ns - time.time_ns()) / 1e9))
-                    if self.sync is not None and self.clock.mode == "wall":
-                        deadline = self.sync.next_deadline_ns()
-                        if deadline is not None:
-                            wait_s = min(wait_s, max(0.0, (deadline - time.time_ns()) / 1e9))
+                    wait_s = self._idle_wait_s(next_poll_wall)
                     if not any(len(q) for q in self.queues.values() if q.wakes) and wait_s > 0:
                         self._cond.wait(wait_s)
                     items = [(name, m) for name, q in self.queues.items() for m in q.pop_all()]
@@ -871,6 +863,20 @@ class NodeRuntime(NodeHost):
                 self.check_working(polling=next_poll_wall is not None)
         finally:
             self.close()
+
+    def _idle_wait_s(self, next_poll_wall: float | None) -> float:
+        """How long the loop may wait for a message: until the next poll, timer tick or set deadline, and at most
+        50 ms (LAZY_INPUTS wait for a wake-up: this bounds how long)."""
+        wait_s = 0.05
+        if next_poll_wall is not None:
+            wait_s = min(wait_s, max(0.0, next_poll_wall - time.monotonic()))
+        if self.next_timer_ns is not None and self.clock.mode == "wall":
+            wait_s = min(wait_s, max(0.0, (self.next_timer_ns - time.time_ns()) / 1e9))
+        if self.sync is not None and self.clock.mode == "wall":
+            deadline = self.sync.next_deadline_ns()
+            if deadline is not None:
+                wait_s = min(wait_s, max(0.0, (deadline - time.time_ns()) / 1e9))
+        return wait_s
 
     def close(self) -> None:
         self.stop_event.set()
