@@ -366,7 +366,7 @@ class Node:
 
     def has_listeners(self, output: str) -> bool:
         """Whether anyone subscribes to this output now (a publisher without ``listened``, in-process: always).
-        An output only people watch (a preview) need not be made while nobody does: publish would send nothing."""
+        An output only a monitor reads (a preview) need not be made while nobody does: publish would send nothing."""
         publisher = self.runtime.publishers.get(output)
         return publisher is not None and getattr(publisher, "listened", True)
 
