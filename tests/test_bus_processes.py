@@ -320,3 +320,23 @@ def test_a_lazy_input_queue_does_not_wake_its_consumer_until_half_full():
     eager = InputQueue("frame", 8, "drop_oldest", TopicStats("k", "in"), cond)
     eager.push(Tick(value=0))
     assert cond.notified == 2
+
+
+def test_a_node_does_not_subscribe_to_an_input_its_params_never_read(graph_file):
+    """Detection reads capture's ground truth only with the simulated backend: with a real detector its runtime
+    does not subscribe to it, so capture sends nothing there (its publisher is not listened to)."""
+    from followbus.bus.graph import load_graph
+    from followbus.bus.node import NodeRuntime
+
+    nodes = ("  capture:\n    run: followbus.nodes.capture\n    outputs: [frame, ground_truth]\n"
+             "    params: {source: 'scene:wall-occlusion'}\n"
+             "  detection:\n    run: followbus.nodes.detection\n    outputs: [detections]\n"
+             "    inputs: {frame: capture/frame, ground_truth: {from: capture/ground_truth, optional: true}}\n"
+             "    params: {backend: %s}\n")
+    for backend, subscribed in (("hog", {"frame"}), ("simulated", {"frame", "ground_truth"})):
+        runtime = NodeRuntime(load_graph(graph_file(nodes % backend, name=f"{backend}.yaml")), "detection")
+        try:
+            assert set(runtime.queues) == subscribed, backend
+            assert len(runtime.subscribers) == len(subscribed)
+        finally:
+            runtime.session.close()  # never set up: nothing else to tear down
