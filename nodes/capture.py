@@ -213,7 +213,7 @@ class Capture(Node):
         # Ground truth first: a detector joining it with the frame never waits.
         self.publish("ground_truth", gt)
         self.publish("frame", frame)
-        if self.has_output("preview"):
+        if self.has_listeners("preview"):  # a resize and a JPEG encode each frame: not for nobody
             self.publish("preview", self._preview(bgr, stamp_ns, seq))
         self.published += 1
 

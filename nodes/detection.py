@@ -89,6 +89,11 @@ class Detection(Node):
             raise ParamError("sim_delay_ms", "sim_delay_ms only applies to backend 'simulated'")
         return params
 
+    @classmethod
+    def unread_inputs(cls, params: DetectionParams) -> frozenset[str]:
+        # Only the simulated backend reads ground truth (a real one looks at the image): capture then need not send it.
+        return frozenset() if params.backend == "simulated" else frozenset({"ground_truth"})
+
     def setup(self) -> None:
         try:
             self.detector = detector_from_params(self.params)

@@ -265,3 +265,78 @@ def test_a_node_whose_setup_fails_is_never_seen_alive(graph_file, port):
         sub.undeclare()
         session.close()
     assert ticker.returncode == 0
+
+
+def test_a_publisher_sends_to_subscribers_that_come_and_go_without_asking_zenoh_on_each_put(port):
+    """Publisher.put reads the matching status its listener keeps (asking Zenoh on every put cost motor a third
+    of its CPU): a subscriber that appears after the publisher gets the messages, one that left gets none, and a
+    publisher declared after its subscriber knows of it at once."""
+    sender = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    receiver = open_session(ZenohSettings(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    got: list[int] = []
+    pub = Publisher(sender, "match/odo", "test")
+    try:
+        assert not pub.listened  # nobody listens yet: nothing is sent (capture makes no preview)
+        sub = Subscriber(receiver, "match/odo", lambda m: got.append(m.value), schema=Tick)
+        assert wait_until(lambda: pub.listened, 5)
+        pub.put(Tick(value=1))
+        assert wait_until(lambda: got == [1], 5)
+        late = Publisher(sender, "match/odo", "test")  # declared after the subscriber: matched from the start
+        assert late.listened
+        late.undeclare()
+        sub.undeclare()
+        assert wait_until(lambda: not pub.listened, 5)
+        pub.put(Tick(value=2))
+        time.sleep(0.2)
+        assert got == [1]
+    finally:
+        pub.undeclare()
+        receiver.close()
+        sender.close()
+
+
+def test_a_lazy_input_queue_does_not_wake_its_consumer_until_half_full():
+    """A node's LAZY_INPUTS (prediction's 100 Hz odometry) do not wake its loop on every message; the queue still
+    wakes it before it can overflow, and an ordinary queue wakes it on each message."""
+    from followbus.bus.pubsub import InputQueue
+    from followbus.bus.stats import TopicStats
+
+    class CountingCondition(threading.Condition):
+        notified = 0
+
+        def notify_all(self) -> None:
+            self.notified += 1
+            super().notify_all()
+
+    cond = CountingCondition()
+    lazy = InputQueue("odometry", 8, "drop_oldest", TopicStats("k", "in"), cond, wakes=False)
+    for value in range(3):
+        lazy.push(Tick(value=value))
+    assert cond.notified == 0
+    lazy.push(Tick(value=3))  # half full: wake the consumer now
+    assert cond.notified == 1
+    with cond:
+        assert [m.value for m in lazy.pop_all()] == [0, 1, 2, 3]
+    eager = InputQueue("frame", 8, "drop_oldest", TopicStats("k", "in"), cond)
+    eager.push(Tick(value=0))
+    assert cond.notified == 2
+
+
+def test_a_node_does_not_subscribe_to_an_input_its_params_never_read(graph_file):
+    """Detection reads capture's ground truth only with the simulated backend: with a real detector its runtime
+    does not subscribe to it, so capture sends nothing there (its publisher is not listened to)."""
+    from followbus.bus.graph import load_graph
+    from followbus.bus.node import NodeRuntime
+
+    nodes = ("  capture:\n    run: followbus.nodes.capture\n    outputs: [frame, ground_truth]\n"
+             "    params: {source: 'scene:wall-occlusion'}\n"
+             "  detection:\n    run: followbus.nodes.detection\n    outputs: [detections]\n"
+             "    inputs: {frame: capture/frame, ground_truth: {from: capture/ground_truth, optional: true}}\n"
+             "    params: {backend: %s}\n")
+    for backend, subscribed in (("hog", {"frame"}), ("simulated", {"frame", "ground_truth"})):
+        runtime = NodeRuntime(load_graph(graph_file(nodes % backend, name=f"{backend}.yaml")), "detection")
+        try:
+            assert set(runtime.queues) == subscribed, backend
+            assert len(runtime.subscribers) == len(subscribed)
+        finally:
+            runtime.session.close()  # never set up: nothing else to tear down
