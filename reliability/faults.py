@@ -17,6 +17,7 @@ import zenoh
 
 from ..bus.codec import pack
 from ..bus.graph import Graph
+from ..bus.node import validate_node
 from ..bus.schemas import Frame, Message, Tick, encode
 from ..msgs.perception import Detections
 from ..msgs.tracking import Measurement, Track
@@ -149,8 +150,11 @@ def _malformed(run: ChaosRunner) -> Injection:
     n = run.options.malformed_per_key
     consumers: dict[str, list[str]] = {}
     for spec in graph.nodes.values():
+        cls, params = validate_node(graph, spec)
+        unread = cls.unread_inputs(params)  # not subscribed (detection's ground truth with a real detector)
         for inp in spec.inputs.values():
-            consumers.setdefault(graph.key(inp.source_node, inp.source_output), []).append(spec.name)
+            if inp.name not in unread:
+                consumers.setdefault(graph.key(inp.source_node, inp.source_output), []).append(spec.name)
     producers = {graph.key(n_, o): n_ for n_, s in graph.nodes.items() for o in s.outputs}
     before = run.statuses()
     ups = {name: h.ups for name, h in run.health.snapshot().items()}
