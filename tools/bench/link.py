@@ -43,6 +43,7 @@ CASES = ("none", "monitor", "record-all", "record")
 USERS_FILE = REPO / "docs" / "zenoh-users.example.txt"  # robot, monitor, operator with their example passwords
 MONITOR_PASSWORD = "change-me-monitor"
 SETTLE_S = 3.0  # the laptop joins and its subscriptions reach the robot before a window opens
+LAPTOP_START_S = 30.0  # at most this long for the laptop's first line (it has started) before the settle time
 # The laptop's processes share this machine's cores with the robot; a real laptop's CPU is its own. At nice 19
 # they take only what the robot leaves, which is the nearest one machine comes to that (0: as before 2026-11-26).
 LAPTOP_NICE = 19
@@ -223,13 +224,17 @@ class LinkBench:
             niced = ["nice", "-n", str(self.laptop_nice), *argv]
             laptop = subprocess.Popen(self.pair.argv(1, niced), cwd=self.tmp, env=self.env, stdin=subprocess.DEVNULL,
                                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            output = _LineReader(laptop)
+            # The window opens once the laptop has said it is there: on a loaded machine a niced laptop took longer
+            # than the settle time just to start, and was stopped before it had recorded anything.
+            output.first_line(LAPTOP_START_S)
             time.sleep(SETTLE_S)
         robot = self._until_answered(seconds) if until_answered else self.window(seconds)
         run = CaseRun(case, robot)
         if laptop is not None:
             if until_answered:
                 laptop.send_signal(signal.SIGINT)  # a recorder finalises its file and prints its report
-            out = _finish(laptop)
+            out = output.finish()
             # On this one machine the laptop's CPU is the robot's too (a real laptop's is not): say how much.
             run.laptop = {"exit": laptop.returncode, "first_lines": out.splitlines()[:2],
                           "cpu_s": round(_children_cpu_s() - cpu0, 2)}
@@ -272,13 +277,34 @@ def _children_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def _finish(proc: subprocess.Popen, timeout_s: float = 60.0) -> str:
-    try:
-        out, _ = proc.communicate(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=30)
-    return out or ""
+class _LineReader:
+    """A child's output read as it comes (so its first line can be waited for), whole at the end."""
+
+    def __init__(self, proc: subprocess.Popen):
+        self.proc = proc
+        self.lines: list[str] = []
+        self._first = threading.Event()
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line)
+            self._first.set()
+        self._first.set()  # ended without a word
+
+    def first_line(self, timeout_s: float) -> bool:
+        return self._first.wait(timeout_s)
+
+    def finish(self, timeout_s: float = 60.0) -> str:
+        try:
+            self.proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.send_signal(signal.SIGINT)
+            self.proc.wait(timeout=30)
+        self._thread.join(5.0)
+        return "".join(self.lines)
 
 
 # --- the command ---------------------------------------------------------------------------------------------
