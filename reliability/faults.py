@@ -207,14 +207,18 @@ def _flood(run: ChaosRunner) -> Injection:
         raise ChaosError("no frame seen on the bus to copy")
     pub = run.publisher("capture", "frame", congestion="block", shm=True)
     data = np.array(frame.data)
-    start = time.time_ns()
-    for i in range(run.options.flood_frames):
-        msg = Frame(width=frame.width, height=frame.height, encoding=frame.encoding, data=data)
-        msg.header.frame_seq = truth.frame_seq + 1 + i
-        msg.header.stamp_ns = time.time_ns()
-        pub.put(msg)
-    sent = time.time_ns()
-    end = _delivered_ns(run, sent)
+    run.observer.watching_injected = True
+    try:
+        start = time.time_ns()
+        for i in range(run.options.flood_frames):
+            msg = Frame(width=frame.width, height=frame.height, encoding=frame.encoding, data=data)
+            msg.header.frame_seq = truth.frame_seq + 1 + i
+            msg.header.stamp_ns = time.time_ns()
+            pub.put(msg)
+        sent = time.time_ns()
+        end = _delivered_ns(run, sent)
+    finally:
+        run.observer.watching_injected = False
     return Injection(start, end, notes=[f"{run.options.flood_frames} valid frames in {(sent - start) / MS:.0f} ms, "
                                         f"delivered {(end - sent) / MS:.0f} ms later, "
                                         f"frame_seq {truth.frame_seq + 1}..."])
