@@ -145,16 +145,50 @@ def malformed_payloads(schema: type[Message], n: int, rng: np.random.Generator) 
     return [kinds[i % len(kinds)]() for i in range(n)]
 
 
-def _malformed(run: ChaosRunner) -> Injection:
-    graph = run.graph.graph
-    n = run.options.malformed_per_key
+def _malformed_consumers(graph: Graph) -> dict[str, list[str]]:
+    """Each input key -> the nodes that subscribe to it (not detection's ground truth with a real detector)."""
     consumers: dict[str, list[str]] = {}
     for spec in graph.nodes.values():
         cls, params = validate_node(graph, spec)
-        unread = cls.unread_inputs(params)  # not subscribed (detection's ground truth with a real detector)
+        unread = cls.unread_inputs(params)
         for inp in spec.inputs.values():
             if inp.name not in unread:
                 consumers.setdefault(graph.key(inp.source_node, inp.source_output), []).append(spec.name)
+    return consumers
+
+
+def _uncounted(run: ChaosRunner, consumers: dict[str, list[str]], before: dict, n: int) -> list[tuple[str, str]]:
+    """(node, '<node> counted <k> on <key>') for each consumer that has not yet counted all n payloads of a key."""
+    now = run.statuses()
+    short = []
+    for key, names in sorted(consumers.items()):
+        for name in names:
+            counted = (now.get(name, {}).get(key, {}).get("decode_errors", 0)
+                       - before.get(name, {}).get(key, {}).get("decode_errors", 0))
+            if counted < n:
+                short.append((name, f"{name} counted {counted} on {key}"))
+    return short
+
+
+def _wait_counted(run: ChaosRunner, consumers: dict[str, list[str]], before: dict, n: int, puts_end: int) -> int:
+    """When the garbage was last seen still being worked through: the fault's end. The last put returns long
+    before a loaded node has decoded thousands of payloads (each in its receive thread, ahead of the real
+    frames); so the end is the newest status (once a second) that still showed a payload uncounted."""
+    end = puts_end
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:
+        short = _uncounted(run, consumers, before, n)
+        if not short:
+            break
+        end = max(end, *(run.status_ns(name) for name, _ in short))
+        time.sleep(0.05)
+    return end
+
+
+def _malformed(run: ChaosRunner) -> Injection:
+    graph = run.graph.graph
+    n = run.options.malformed_per_key
+    consumers = _malformed_consumers(graph)
     producers = {graph.key(n_, o): n_ for n_, s in graph.nodes.items() for o in s.outputs}
     before = run.statuses()
     ups = {name: h.ups for name, h in run.health.snapshot().items()}
@@ -170,21 +204,16 @@ def _malformed(run: ChaosRunner) -> Injection:
                 pub.put(payload)
         finally:
             pub.undeclare()
-    end = time.time_ns()
-    inj = Injection(start, end, notes=[f"{n} malformed payloads on each of {len(consumers)} input keys"])
+    puts_end = time.time_ns()
+    end = _wait_counted(run, consumers, before, n, puts_end)
+    inj = Injection(start, end, notes=[f"{n} malformed payloads on each of {len(consumers)} input keys",
+                                       f"all counted {(end - puts_end) / NS:.1f} s after the last put"])
 
     def after() -> None:
         fresh = wait_for(lambda: all(run.status_ns(name) > end + NS for ks in consumers.values() for name in ks), 6.0)
-        now = run.statuses()
-        short = []
-        for key, names in sorted(consumers.items()):
-            for name in names:
-                b = before.get(name, {}).get(key, {}).get("decode_errors", 0)
-                a = now.get(name, {}).get(key, {}).get("decode_errors", 0)
-                if a - b < n:
-                    short.append(f"{name} counted {a - b} on {key}")
+        short = _uncounted(run, consumers, before, n)
         check(inj.checks, "counted in decode_errors", bool(fresh) and not short,
-               "every consumer counted every payload" if not short else "; ".join(short[:4]))
+              "every consumer counted every payload" if not short else "; ".join(line for _, line in short[:4]))
         same_ups = {name: h.ups for name, h in run.health.snapshot().items()}
         restarted = [name for name in graph.nodes
                      if same_ups.get(name) != ups.get(name) or run.graph.pid(name) != pids.get(name)]
