@@ -6,6 +6,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import threading
+import time
 
 import pytest
 
@@ -90,7 +91,13 @@ def test_ctrl_c_exits_130(argv, graph_file, router):  # noqa: F811
             assert wait_until(lambda: any("nothing on t/x" in line for line in lines), 30), lines
         proc.send_signal(signal.SIGINT)
         # A bound, not a timing: with two burners beside two test workers this took more than 20 s twice.
-        assert proc.wait(60) == 130, "".join(lines)
+        try:
+            code = proc.wait(60)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGUSR1)  # the command's own stack dump (faulthandler): where it is stuck
+            time.sleep(2)
+            code = None
+        assert code == 130, "".join(lines)
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -9,6 +9,7 @@ run, and only the chosen command gets its arguments, so ``followbus --help`` imp
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import os
 import signal
@@ -406,7 +407,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f"followbus: {explain_connect_failure(settings(args))}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
+        if _EXIT_AT_INTERRUPT:
+            _exit_interrupted()  # here, with the traceback alive: see _exit_interrupted
         return 130
+
+
+# Set by run() (the `followbus` process): Ctrl-C ends the process from within main's handler.
+_EXIT_AT_INTERRUPT = False
+
+
+def _exit_interrupted() -> None:
+    """End the process with status 130 at once. Called while the KeyboardInterrupt is still being handled: its
+    traceback keeps the interrupted command's frames, and with them any Zenoh session or subscriber they held, alive.
+    Leaving the handler would free them, and dropping a Zenoh session can block for a long time on a loaded machine
+    (seen: echo still running 60 s after Ctrl-C, beside two burners and two test workers)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(130)
 
 
 def _note_interrupts() -> None:
@@ -427,11 +444,13 @@ def run() -> None:
     what it owns (a recorder finalises its file before it returns); the process then ends at once, without the
     interpreter's shutdown, which can wait for ever on a Zenoh session the interrupt left open (seen: echo on a
     loaded machine still running 20 s after Ctrl-C)."""
+    global _EXIT_AT_INTERRUPT
+    _EXIT_AT_INTERRUPT = True
+    # `kill -USR1 <pid>` prints every thread's Python stack on stderr: what a command that seems stuck is doing.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     code = main()
     if code == 130:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(130)
+        _exit_interrupted()
     sys.exit(code)
 
 
