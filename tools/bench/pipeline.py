@@ -9,6 +9,7 @@ dropped frames = frames published by capture that never produced a track.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -51,52 +52,64 @@ def _model_present(detector: str) -> bool:
     return True
 
 
-def run_bench_pipeline(args) -> int:
-    from ...bus.graph import load_graph
-    from ...bus.pubsub import declare_subscriber, frame_bytes
-    from ...bus.schemas import NodeStatus, decode
-    from ...bus.session import open_session
-    from ...reliability.chaos import scene_graph
-    from ..launch import Launcher
+class LaunchedPipeline:
+    """graph.yaml launched on a looping scene on a private port, with a subscriber to every stage's headers:
+    ``measure(seconds)`` gives the figures of that stretch (latency per edge, frames answered, CPU per node).
+    Use as a context manager; ``pids`` maps each node to its process (from its status messages)."""
 
-    detector = args.detector
-    if not _model_present(detector):
-        print("bench pipeline: YOLOX model not found; using hog (figures are not comparable)", flush=True)
-        detector = "hog"
-    port = args.port
-    if not port:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-    ns = args.namespace or f"bench{port}"
-    pub: dict[tuple[str, str], dict[int, tuple[int, int]]] = {st: {} for st in STAGES}
-    pids: dict[str, int] = {}
-    lock = threading.Lock()
-    recording = threading.Event()
-    with tempfile.TemporaryDirectory(prefix="followbus-bench-") as tmp:
+    def __init__(self, *, detector: str, scene: str, resolution: tuple[int, int], lane: bool, port: int = 0,
+                 namespace: str = "") -> None:
+        if not port:
+            with socket.socket() as s:
+                s.bind(("127.0.0.1", 0))
+                port = s.getsockname()[1]
+        self.detector, self.scene, self.resolution, self.lane = detector, scene, resolution, lane
+        self.port, self.namespace = port, namespace or f"bench{port}"
+        self.pids: dict[str, int] = {}
+        self._pub: dict[tuple[str, str], dict[int, tuple[int, int]]] = {st: {} for st in STAGES}
+        self._lock = threading.Lock()
+        self._recording = threading.Event()
+        self._stack = contextlib.ExitStack()
+
+    def __enter__(self) -> LaunchedPipeline:
+        try:
+            self._start()
+        except BaseException:
+            self._stack.close()
+            raise
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self._stack.close()
+
+    def _start(self) -> None:
+        from ...bus.graph import load_graph
+        from ...bus.session import open_session
+        from ...reliability.chaos import scene_graph
+        from ..launch import Launcher
+
+        tmp = self._stack.enter_context(tempfile.TemporaryDirectory(prefix="followbus-bench-"))
         path = Path(tmp) / "graph.yaml"
-        path.write_text(scene_graph(scene=args.scene, port=port, namespace=ns, detector=detector,
-                                    resolution=args.resolution,
-                                    lane=args.lane == "on"))
+        path.write_text(scene_graph(scene=self.scene, port=self.port, namespace=self.namespace,
+                                    detector=self.detector, resolution=self.resolution, lane=self.lane))
         graph = load_graph(path)
         session = open_session(graph.zenoh)
-        subs = []
+        self._stack.callback(session.close)
+        self._subscribe(session, graph)
+        launcher = Launcher(graph, quiet=True, startup_timeout_s=60.0)
+        ready = threading.Event()
+        runner = threading.Thread(target=launcher.run, kwargs={"duration_s": 10 ** 6, "on_ready": ready.set},
+                                  daemon=True)
+        runner.start()
+        self._stack.callback(runner.join, 30)
+        self._stack.callback(launcher.request_stop)
+        if not ready.wait(90):
+            raise RuntimeError("the graph did not come up")
+        time.sleep(4.0)  # warm-up: model load, first frames, status messages with pids
 
-        def header_cb(stage: tuple[str, str], schema):
-            def cb(sample) -> None:
-                if not recording.is_set():
-                    return
-                try:
-                    msg = decode(frame_bytes(sample), schema)
-                except Exception:  # a malformed sample is not a latency figure
-                    return
-                h = msg.header
-                if h.frame_seq >= 0:
-                    with lock:
-                        pub[stage].setdefault(h.frame_seq, (h.stamp_ns, h.pub_ns))
-            return cb
-
-        from ...bus.schemas import Frame
+    def _subscribe(self, session: Any, graph: Any) -> None:
+        from ...bus.pubsub import declare_subscriber, frame_bytes
+        from ...bus.schemas import Frame, NodeStatus, decode
         from ...msgs.perception import Detections
         from ...msgs.robot import MotorCommand
         from ...msgs.tracking import Measurement, Prior, Track
@@ -104,48 +117,74 @@ def run_bench_pipeline(args) -> int:
         schemas = {("capture", "frame"): Frame, ("detection", "detections"): Detections,
                    ("prediction", "prior"): Prior, ("reid", "measurement"): Measurement,
                    ("prediction", "track"): Track, ("motor", "command"): MotorCommand}
-        for st in STAGES:
-            # Frames on the lane's side key when the lane is on: a subscriber of the real key would make capture
-            # send every frame inline as well (bus/shmlane.py) and the figures would not be the lane's.
-            subs.append(declare_subscriber(session, graph.key(*st), header_cb(st, schemas[st]),
-                                           lane=graph.zenoh.shm_lane))
+
+        def header_cb(stage: tuple[str, str]):
+            def cb(sample) -> None:
+                if not self._recording.is_set():
+                    return
+                try:
+                    msg = decode(frame_bytes(sample), schemas[stage])
+                except Exception:  # a malformed sample is not a latency figure
+                    return
+                h = msg.header
+                if h.frame_seq >= 0:
+                    with self._lock:
+                        self._pub[stage].setdefault(h.frame_seq, (h.stamp_ns, h.pub_ns))
+            return cb
 
         def on_status(sample) -> None:
             try:
                 st = decode(frame_bytes(sample), NodeStatus)
             except Exception:
                 return
-            with lock:
-                pids[st.node] = st.pid
+            with self._lock:
+                self.pids[st.node] = st.pid
 
-        subs.append(declare_subscriber(session, f"{ns}/@status/*", on_status))
-        launcher = Launcher(graph, quiet=True, startup_timeout_s=60.0)
-        ready = threading.Event()
-        runner = threading.Thread(target=launcher.run, kwargs={"duration_s": args.duration + 120,
-                                                               "on_ready": ready.set}, daemon=True)
-        runner.start()
-        try:
-            if not ready.wait(90):
-                print("bench pipeline: the graph did not come up", flush=True)
-                return 1
-            time.sleep(4.0)  # warm-up: model load, first frames, status messages with pids
-            with lock:
-                cpu0 = {n: _cpu_ticks(p) for n, p in pids.items()}
-            t0 = time.monotonic()
-            recording.set()
-            time.sleep(args.duration)
-            recording.clear()
-            wall = time.monotonic() - t0
-            with lock:
-                cpu1 = {n: _cpu_ticks(p) for n, p in pids.items()}
-        finally:
-            launcher.request_stop()
-            runner.join(30)
-            for s in subs:
-                s.undeclare()
-            session.close()
-    result = _figures(pub, _cpu_percent(cpu0, cpu1, wall), wall)
-    result.update(detector=detector, scene=args.scene, resolution="x".join(map(str, args.resolution)), lane=args.lane)
+        for st in STAGES:
+            # Frames on the lane's side key when the lane is on: a subscriber of the real key would make capture
+            # send every frame inline as well (bus/shmlane.py) and the figures would not be the lane's.
+            sub = declare_subscriber(session, graph.key(*st), header_cb(st), lane=graph.zenoh.shm_lane)
+            self._stack.callback(sub.undeclare)
+        sub = declare_subscriber(session, f"{self.namespace}/@status/*", on_status)
+        self._stack.callback(sub.undeclare)
+
+    def measure(self, seconds: float) -> dict[str, Any]:
+        """The figures of the next ``seconds`` (every stage's headers of that stretch only)."""
+        with self._lock:
+            for seen in self._pub.values():
+                seen.clear()
+            cpu0 = {n: _cpu_ticks(p) for n, p in self.pids.items()}
+        t0 = time.monotonic()
+        self._recording.set()
+        time.sleep(seconds)
+        self._recording.clear()
+        wall = time.monotonic() - t0
+        with self._lock:
+            cpu1 = {n: _cpu_ticks(p) for n, p in self.pids.items()}
+            pub = {st: dict(seen) for st, seen in self._pub.items()}
+        result = _figures(pub, _cpu_percent(cpu0, cpu1, wall), wall)
+        result.update(detector=self.detector, scene=self.scene, resolution="x".join(map(str, self.resolution)),
+                      lane="on" if self.lane else "off")
+        return result
+
+
+def pipeline_detector(detector: str, command: str) -> str:
+    """``detector``, or hog (said in one line) when its model is not on the model search path."""
+    if _model_present(detector):
+        return detector
+    print(f"bench {command}: YOLOX model not found; using hog (figures are not comparable)", flush=True)
+    return "hog"
+
+
+def run_bench_pipeline(args) -> int:
+    detector = pipeline_detector(args.detector, "pipeline")
+    try:
+        with LaunchedPipeline(detector=detector, scene=args.scene, resolution=args.resolution,
+                              lane=args.lane == "on", port=args.port, namespace=args.namespace) as pipeline:
+            result = pipeline.measure(args.duration)
+    except RuntimeError as exc:
+        print(f"bench pipeline: {exc}", flush=True)
+        return 1
     _print_figures(result)
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1, ensure_ascii=False))
