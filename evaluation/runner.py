@@ -289,7 +289,7 @@ def detector_key(name: str) -> str:
     found = preset_of(params)
     if found is not None:
         return found
-    keys = ("backend", "model_file", "input_size_px", "runtime")
+    keys = ("backend", "model_file", "input_size_px", "runtime", "input_shape")
     return "graph-" + "-".join(str(params.get(k, "")) for k in keys)
 
 

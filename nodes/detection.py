@@ -18,7 +18,15 @@ import numpy as np
 from ..bus.node import Node, ParamError
 from ..bus.schemas import Frame, Message
 from ..msgs.perception import Detections, GroundTruth
-from ..vision.detectors import BACKENDS, RUNTIMES, DetectorUnavailable, SimulatedDetector, make_detector, split_by_score
+from ..vision.detectors import (
+    BACKENDS,
+    INPUT_SHAPES,
+    RUNTIMES,
+    DetectorUnavailable,
+    SimulatedDetector,
+    make_detector,
+    split_by_score,
+)
 
 
 @dataclass
@@ -26,7 +34,10 @@ class DetectionParams:
     backend: str = "auto"
     model_dir: str = ""  # first place on the model search path
     model_file: str = ""  # default: yolox_nano_<input_size_px>.onnx
-    input_size_px: int = 416  # the network's square input (letterboxed); a model per size
+    input_size_px: int = 416  # the network input's side (the long side with input_shape: fit)
+    # square: the frame letterboxed into input_size_px x input_size_px (a model per size); fit: the frame's own
+    # aspect, long side input_size_px, padded to a multiple of 32 (yolox_nano_dynamic.onnx; 4:3 at 416: 416x320)
+    input_shape: str = "square"
     score_threshold: float = 0.3
     # Boxes scoring in [low_score_threshold, score_threshold) are published apart (Detections.low_boxes) for
     # re-ID's second association stage (seed 002 §3.1 / ByteTrack; its 0.1, seed 002 §4.3); every other
@@ -49,7 +60,8 @@ def detector_from_params(p: DetectionParams):
     in-process, so both paths infer the same way)."""
     detector = make_detector(
         p.backend, model_dir=p.model_dir or None, model_file=p.model_file or None,
-        input_size=p.input_size_px, score_threshold=min(p.low_score_threshold, p.score_threshold), nms_iou=p.nms_iou,
+        input_size=p.input_size_px, input_shape=p.input_shape,
+        score_threshold=min(p.low_score_threshold, p.score_threshold), nms_iou=p.nms_iou,
         threads=p.threads or None, runtime=p.runtime, noise_px=p.sim_noise_px, miss_rate=p.sim_miss_rate,
         false_positive_rate=p.sim_false_positive_rate, seed=p.seed,
     )
@@ -78,6 +90,9 @@ class Detection(Node):
         if params.input_size_px < 32 or params.input_size_px % 32:
             raise ParamError("input_size_px", "input_size_px must be a positive multiple of 32 (the detector's "
                                               f"largest stride), e.g. 416 or 640, not {params.input_size_px!r}")
+        if params.input_shape not in INPUT_SHAPES or (params.input_shape == "fit" and params.backend == "yolov8"):
+            raise ParamError("input_shape", f"input_shape must be one of {', '.join(INPUT_SHAPES)} (fit: YOLOX "
+                                            f"only), not {params.input_shape!r}")
         if params.runtime not in RUNTIMES:
             raise ParamError("runtime", f"runtime must be one of {', '.join(RUNTIMES)}, not {params.runtime!r}")
         if not params.sim_delay_ms >= 0:

@@ -38,10 +38,10 @@ MODELS = REPO / "models"
 GRAPH_MODEL = "yolox_nano_{}.onnx".format(
     yaml.safe_load((REPO / "graph.yaml").read_text())["nodes"]["detection"]["params"]["input_size_px"])
 SHIPPED = ("osnet_x0_25_msmt17.onnx", "yolox_nano_416.onnx", "yolox_nano_512.onnx", "yolox_nano_640.onnx",
-           "yolox_nano_640_int8.onnx")
+           "yolox_nano_640_int8.onnx", "yolox_nano_dynamic.onnx")
 APACHE, MIT = "LICENSE.yolox-onnx.Apache-2.0", "LICENSE.osnet-torchreid.MIT"
 LICENCES = {"yolox_nano_416.onnx": APACHE, "yolox_nano_512.onnx": APACHE, "yolox_nano_640.onnx": APACHE,
-            "yolox_nano_640_int8.onnx": APACHE, "osnet_x0_25_msmt17.onnx": MIT}
+            "yolox_nano_640_int8.onnx": APACHE, "yolox_nano_dynamic.onnx": APACHE, "osnet_x0_25_msmt17.onnx": MIT}
 
 
 def _truncated_copy(directory: Path, name: str = "yolox_nano_416.onnx") -> Path:

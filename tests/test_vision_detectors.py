@@ -274,3 +274,58 @@ def test_presets_name_what_graph_params_amount_to() -> None:
             assert preset_of(apply_detector_preset(dict(graph_like), name)) == name
     with pytest.raises(ValueError, match="unknown detector 'yolo9'"):
         apply_detector_preset({}, "yolo9")
+
+
+# ----------------------------------------------------------------------------- input_shape: fit
+
+
+def test_letterbox_with_stride_pads_to_the_stride_not_to_a_square() -> None:
+    canvas, ratio, pad = letterbox(np.zeros((480, 640, 3), np.uint8), 416, stride=32)
+    assert canvas.shape == (320, 416, 3) and ratio == pytest.approx(0.65) and pad == (0.0, 0.0)
+    assert np.all(canvas[312:] == 114)  # 480 * 0.65 = 312 rows of image, 8 of padding
+    assert letterbox(np.zeros((720, 1280, 3), np.uint8), 640, stride=32)[0].shape == (384, 640, 3)
+    assert letterbox(np.zeros((640, 480, 3), np.uint8), 416, stride=32)[0].shape == (416, 320, 3)  # portrait
+
+
+def test_yolox_decode_of_a_rectangular_input() -> None:
+    height, width = 320, 416
+    n_anchors = sum((height // s) * (width // s) for s in (8, 16, 32))
+    assert n_anchors == 2730
+    raw = np.zeros((1, n_anchors, 85), np.float32)
+    a = 40 * 52 + 3 * 26 + 5  # the stride-16 level starts after the 40x52 stride-8 grid; cell (x=5, y=3)
+    raw[0, a, :4] = (0.5, 0.25, np.log(2.0), np.log(4.0))
+    raw[0, a, 4:6] = (0.9, 0.8)
+    out = decode_yolox(raw, (height, width), score_threshold=0.3)
+    cx, cy, w, h = (5 + 0.5) * 16, (3 + 0.25) * 16, 2.0 * 16, 4.0 * 16
+    np.testing.assert_allclose(out[0], [cx - w / 2, cy - h / 2, w, h, 0.72], rtol=1e-5)
+    with pytest.raises(ValueError, match="anchors"):
+        decode_yolox(raw, 416)
+
+
+@pytest.mark.slow
+def test_fit_input_finds_the_square_inputs_people_with_less_work() -> None:
+    bgr = _street_frame()  # 640x480
+    square = make_detector("yolox", threads=1)
+    fit = make_detector("yolox", threads=1, input_shape="fit")
+    assert fit.name == "yolox:yolox_nano_dynamic.onnx@416 fit"
+    assert fit.preprocess(bgr)[0].shape == (1, 3, 320, 416)
+    ref, dets = square.detect(bgr), fit.detect(bgr)
+    assert len(ref) >= 2 and all(best_iou(dets, r[:4]) > 0.9 for r in ref if r[4] >= 0.5), (dets, ref)
+    # The dynamic model is the 640 file's weights: square inputs give that file's raw output exactly.
+    blob = square.preprocess(bgr)[0]
+    np.testing.assert_array_equal(fit._infer(blob), square._infer(blob))
+
+
+def test_fit_needs_a_model_that_takes_any_shape() -> None:
+    with pytest.raises(DetectorUnavailable, match="input_shape 'fit' needs a model that takes any height and width"):
+        make_detector("yolox", input_shape="fit", model_file=YOLOX_416)
+
+
+def test_detection_node_refuses_an_unknown_input_shape() -> None:
+    from followbus.bus.node import ParamError
+    from followbus.nodes.detection import Detection
+
+    assert Detection.parse_params({"input_shape": "fit"}).input_shape == "fit"
+    for raw in ({"input_shape": "round"}, {"backend": "yolov8", "input_shape": "fit"}):
+        with pytest.raises(ParamError, match="input_shape must be one of square, fit"):
+            Detection.parse_params(raw)

@@ -8,16 +8,23 @@ from __future__ import annotations
 
 from typing import Any
 
+
+def _yolox(size_px: int, *, runtime: str = "onnxruntime", shape: str = "square", model_file: str = "") -> dict:
+    return {"backend": "yolox", "input_size_px": size_px, "model_file": model_file, "runtime": runtime,
+            "input_shape": shape}
+
+
 DETECTOR_PRESETS: dict[str, dict[str, Any]] = {
     "graph": {},
-    "yolox": {"backend": "yolox", "input_size_px": 416, "model_file": "", "runtime": "onnxruntime"},
-    "yolox512": {"backend": "yolox", "input_size_px": 512, "model_file": "", "runtime": "onnxruntime"},
-    "yolox640": {"backend": "yolox", "input_size_px": 640, "model_file": "", "runtime": "onnxruntime"},
-    "yolox640-int8": {"backend": "yolox", "input_size_px": 640, "model_file": "yolox_nano_640_int8.onnx",
-                      "runtime": "onnxruntime"},
-    "yolox416-openvino": {"backend": "yolox", "input_size_px": 416, "model_file": "", "runtime": "openvino"},
-    "yolox512-openvino": {"backend": "yolox", "input_size_px": 512, "model_file": "", "runtime": "openvino"},
-    "yolox640-openvino": {"backend": "yolox", "input_size_px": 640, "model_file": "", "runtime": "openvino"},
+    "yolox": _yolox(416),
+    "yolox416-fit": _yolox(416, shape="fit"),  # the frame's aspect, padded to 32 (4:3: 416x320)
+    "yolox512": _yolox(512),
+    "yolox640": _yolox(640),
+    "yolox640-fit": _yolox(640, shape="fit"),
+    "yolox640-int8": _yolox(640, model_file="yolox_nano_640_int8.onnx"),
+    "yolox416-openvino": _yolox(416, runtime="openvino"),
+    "yolox512-openvino": _yolox(512, runtime="openvino"),
+    "yolox640-openvino": _yolox(640, runtime="openvino"),
     "hog": {"backend": "hog"},
     "simulated": {"backend": "simulated"},
 }
@@ -34,7 +41,7 @@ def apply_detector_preset(params: dict[str, Any], name: str) -> dict[str, Any]:
 def preset_of(params: dict[str, Any]) -> str | None:
     """The preset name (other than ``graph``) that these detection params amount to, or None."""
     # the node's defaults; backend auto is YOLOX
-    given = {"model_file": "", "runtime": "onnxruntime", "input_size_px": 416, **params}
+    given = {"model_file": "", "runtime": "onnxruntime", "input_size_px": 416, "input_shape": "square", **params}
     if given.get("backend", "auto") == "auto":
         given["backend"] = "yolox"
     for name, preset in DETECTOR_PRESETS.items():

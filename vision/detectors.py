@@ -33,6 +33,7 @@ PERSON_CLASS = 0
 YOLOX_STRIDES = (8, 16, 32)
 LETTERBOX_PAD = 114
 DEFAULT_YOLOV8_FILE = "yolov8n.onnx"
+DYNAMIC_YOLOX_FILE = "yolox_nano_dynamic.onnx"  # any input height and width (input_shape: fit)
 
 
 
@@ -68,14 +69,15 @@ def empty_detections() -> np.ndarray:
 
 
 def letterbox(
-    bgr: np.ndarray, size: int, *, centered: bool = False, pad_value: int = LETTERBOX_PAD
+    bgr: np.ndarray, size: int, *, centered: bool = False, pad_value: int = LETTERBOX_PAD, stride: int = 0
 ) -> tuple[np.ndarray, float, tuple[float, float]]:
     """Resize keeping aspect ratio into a ``size x size`` canvas filled with ``pad_value``.
 
     ``centered=False`` reproduces YOLOX (image in the top-left corner, ``int()`` truncated size);
     ``centered=True`` reproduces ultralytics (image centred, rounded size, the odd pixel of padding
-    going to the bottom/right). Returns ``(canvas, ratio, (pad_x_px, pad_y_px))`` where an input
-    pixel p maps to ``p * ratio + pad``.
+    going to the bottom/right). ``stride`` > 0 (top-left only): the canvas is the resized image padded only up
+    to the next multiple of ``stride`` on each side, not to a square (a 640x480 frame at 416: 416x320, not
+    416x416). Returns ``(canvas, ratio, (pad_x_px, pad_y_px))`` where an input pixel p maps to ``p * ratio + pad``.
     """
     h, w = bgr.shape[:2]
     ratio = min(size / h, size / w)
@@ -86,7 +88,10 @@ def letterbox(
     else:
         new_w, new_h = int(w * ratio), int(h * ratio)
         left = top = 0
-    canvas = np.full((size, size, 3), pad_value, dtype=np.uint8)
+    canvas_h = canvas_w = size
+    if stride and not centered:
+        canvas_h, canvas_w = -(-new_h // stride) * stride, -(-new_w // stride) * stride
+    canvas = np.full((canvas_h, canvas_w, 3), pad_value, dtype=np.uint8)
     resized = bgr if (new_w, new_h) == (w, h) else cv2.resize(bgr, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
     canvas[top : top + new_h, left : left + new_w] = resized
     return canvas, ratio, (float(left), float(top))
@@ -153,18 +158,26 @@ def iou_xywh(a: Sequence[float], b: Sequence[float]) -> float:
 # ----------------------------------------------------------------------------- YOLOX
 
 
-def _yolox_grids(input_size: int, strides: Sequence[int] = YOLOX_STRIDES) -> tuple[np.ndarray, np.ndarray]:
+def _input_hw(input_size: int | tuple[int, int]) -> tuple[int, int]:
+    """(height, width) of the network input: a side (square) or the pair."""
+    return (input_size, input_size) if isinstance(input_size, int) else (int(input_size[0]), int(input_size[1]))
+
+
+def _yolox_grids(input_size: int | tuple[int, int],
+                 strides: Sequence[int] = YOLOX_STRIDES) -> tuple[np.ndarray, np.ndarray]:
+    height, width = _input_hw(input_size)
     grids, expanded = [], []
     for s in strides:
-        n = input_size // s
-        xv, yv = np.meshgrid(np.arange(n), np.arange(n))  # row-major: y outer, x inner, as YOLOX
+        ny, nx = height // s, width // s
+        xv, yv = np.meshgrid(np.arange(nx), np.arange(ny))  # row-major: y outer, x inner, as YOLOX
         grids.append(np.stack((xv, yv), axis=2).reshape(-1, 2))
-        expanded.append(np.full((n * n, 1), s))
+        expanded.append(np.full((ny * nx, 1), s))
     return np.concatenate(grids).astype(np.float32), np.concatenate(expanded).astype(np.float32)
 
 
-def decode_yolox(raw: np.ndarray, input_size: int, score_threshold: float = 0.0) -> np.ndarray:
-    """Decode a raw YOLOX head output ``[1, A, 5 + C]`` into person boxes in input pixels.
+def decode_yolox(raw: np.ndarray, input_size: int | tuple[int, int], score_threshold: float = 0.0) -> np.ndarray:
+    """Decode a raw YOLOX head output ``[1, A, 5 + C]`` into person boxes in input pixels (``input_size``: the
+    side of a square input, or its (height, width)).
 
     Per anchor: ``xy = (raw_xy + grid) * stride``, ``wh = exp(raw_wh) * stride`` (centre form),
     ``score = objectness * person score`` (the exported head already applied the sigmoids).
@@ -189,7 +202,7 @@ def decode_yolox(raw: np.ndarray, input_size: int, score_threshold: float = 0.0)
 
 def yolox_postprocess(
     raw: np.ndarray,
-    input_size: int,
+    input_size: int | tuple[int, int],
     ratio: float,
     image_shape: tuple[int, ...],
     score_threshold: float = 0.3,
@@ -276,6 +289,14 @@ def _static_square_size(shape: Sequence[Any]) -> int | None:
     return None
 
 
+def _free_spatial_dims(shape: Sequence[Any]) -> bool:
+    """Whether an NCHW model takes any height and width (both dims symbolic)."""
+    return len(shape) == 4 and not isinstance(shape[2], int) and not isinstance(shape[3], int)
+
+
+INPUT_SHAPES = ("square", "fit")  # the network input: input_size_px square, or the frame's shape fitted to it
+
+
 class _OnnxDetector:
     """Shared set-up of the ONNX person detectors: session, input name and side, thresholds."""
 
@@ -290,21 +311,27 @@ class _OnnxDetector:
         nms_iou: float = 0.45,
         threads: int | None = None,
         runtime: str = "onnxruntime",
+        input_shape: str = "square",
     ) -> None:
         self.model_path = Path(model_path)
         verify_model(self.model_path)  # a corrupt file must not reach onnxruntime (or worse, load and misdetect)
         self.session = _inference_session(self.model_path, threads, runtime)
         inp = self.session.get_inputs()[0]
         self.input_name = inp.name
+        if input_shape == "fit" and not _free_spatial_dims(inp.shape):
+            raise ModelError(f"input_shape 'fit' needs a model that takes any height and width "
+                             f"(yolox_nano_dynamic.onnx); {self.model_path.name} takes {inp.shape[2:]}")
         model_size = _static_square_size(inp.shape)
         if model_size is not None and input_size is not None and input_size != model_size:
             log.warning("%s has fixed input %d; ignoring requested input_size=%d",
                         self.model_path.name, model_size, input_size)
         self.input_size = model_size or input_size or self.default_size
+        self.input_shape = input_shape
         self.score_threshold = float(score_threshold)
         self.nms_iou = float(nms_iou)
         suffix = "" if runtime == "onnxruntime" else f" ({runtime})"
-        self.name = f"{self.kind}:{self.model_path.name}@{self.input_size}{suffix}"
+        fit = " fit" if input_shape == "fit" else ""
+        self.name = f"{self.kind}:{self.model_path.name}@{self.input_size}{fit}{suffix}"
         self.last_infer_ms = 0.0
 
     def _infer(self, blob: np.ndarray) -> np.ndarray:
@@ -325,14 +352,18 @@ class YoloxDetector(_OnnxDetector):
     default_size = 416
 
     def preprocess(self, bgr: np.ndarray) -> tuple[np.ndarray, float]:
-        canvas, ratio, _ = letterbox(bgr, self.input_size, centered=False)
+        # "fit": the frame's own aspect padded to the largest stride (32), not to a square: a 4:3 frame at 416
+        # infers 416x320, 23 % less work than 416x416, with the same scale and the same boxes but at the border.
+        stride = max(YOLOX_STRIDES) if self.input_shape == "fit" else 0
+        canvas, ratio, _ = letterbox(bgr, self.input_size, centered=False, stride=stride)
         blob = np.ascontiguousarray(canvas.transpose(2, 0, 1)[None], dtype=np.float32)
         return blob, ratio
 
     def detect(self, bgr: np.ndarray) -> np.ndarray:
         blob, ratio = self.preprocess(bgr)
         raw = self._infer(blob)
-        return yolox_postprocess(raw, self.input_size, ratio, bgr.shape, self.score_threshold, self.nms_iou)
+        return yolox_postprocess(raw, (blob.shape[2], blob.shape[3]), ratio, bgr.shape, self.score_threshold,
+                                 self.nms_iou)
 
 
 # ----------------------------------------------------------------------------- YOLOv8
@@ -542,8 +573,10 @@ class SimulatedDetector:
 # ----------------------------------------------------------------------------- factory
 
 
-def _default_model_file(backend: str, input_size: int) -> str:
-    return f"yolox_nano_{input_size}.onnx" if backend == "yolox" else DEFAULT_YOLOV8_FILE
+def _default_model_file(backend: str, input_size: int, input_shape: str = "square") -> str:
+    if backend != "yolox":
+        return DEFAULT_YOLOV8_FILE
+    return DYNAMIC_YOLOX_FILE if input_shape == "fit" else f"yolox_nano_{input_size}.onnx"
 
 
 def resolve_detector_model(
@@ -552,6 +585,7 @@ def resolve_detector_model(
     model_dir: str | os.PathLike[str] | None = None,
     model_file: str | None = None,
     input_size: int = 416,
+    input_shape: str = "square",
 ) -> Path | None:
     """The checked model file an ONNX backend would load (``None`` for ``hog``/``simulated``).
 
@@ -562,7 +596,7 @@ def resolve_detector_model(
     if backend in ("hog", "simulated"):
         return None
     kind = "yolox" if backend == "auto" else backend
-    filename = model_file or _default_model_file(kind, input_size)
+    filename = model_file or _default_model_file(kind, input_size, input_shape)
     try:
         return resolve_model(filename, model_dir)
     except ModelNotFound as exc:
@@ -591,6 +625,7 @@ def make_detector(
     nms_iou: float = 0.45,
     threads: int | None = None,
     runtime: str = "onnxruntime",
+    input_shape: str = "square",
     noise_px: float = 4.0,
     miss_rate: float = 0.05,
     false_positive_rate: float = 0.02,
@@ -615,12 +650,17 @@ def make_detector(
     if backend == "simulated":
         return SimulatedDetector(noise_px, miss_rate, false_positive_rate, seed)
 
-    path = resolve_detector_model(backend, model_dir=model_dir, model_file=model_file, input_size=input_size)
+    path = resolve_detector_model(backend, model_dir=model_dir, model_file=model_file, input_size=input_size,
+                                  input_shape=input_shape)
     assert path is not None
-    cls = YoloV8Detector if backend == "yolov8" else YoloxDetector
+    if backend == "yolov8":
+        det_cls: type[_OnnxDetector] = YoloV8Detector
+        shape_kw: dict[str, str] = {}
+    else:
+        det_cls, shape_kw = YoloxDetector, {"input_shape": input_shape}
     try:
-        det = cls(path, input_size=input_size, score_threshold=score_threshold, nms_iou=nms_iou, threads=threads,
-                  runtime=runtime)
+        det = det_cls(path, input_size=input_size, score_threshold=score_threshold, nms_iou=nms_iou, threads=threads,
+                      runtime=runtime, **shape_kw)
     except ModelError as exc:
         raise DetectorUnavailable(str(exc)) from exc
     log.info("detector %s -> %s (model %s; search path: %s)",

@@ -46,7 +46,8 @@ def _model_present(detector: str) -> bool:
     p = detection_params(detector)
     try:
         resolve_detector_model(str(p.get("backend", "auto")), model_dir=p.get("model_dir") or None,
-                               model_file=p.get("model_file") or None, input_size=int(p.get("input_size_px", 416)))
+                               model_file=p.get("model_file") or None, input_size=int(p.get("input_size_px", 416)),
+                               input_shape=str(p.get("input_shape", "square")))
     except DetectorUnavailable:
         return False
     return True
