@@ -19,6 +19,7 @@ DETECTOR_PRESETS: dict[str, dict[str, Any]] = {
     "yolox": _yolox(416),
     "yolox416-fit": _yolox(416, shape="fit"),  # the frame's aspect, padded to 32 (4:3: 416x320)
     "yolox512": _yolox(512),
+    "yolox512-fit": _yolox(512, shape="fit"),  # 4:3: 512x384, 14 % more inference than 416x416
     "yolox640": _yolox(640),
     "yolox640-fit": _yolox(640, shape="fit"),
     "yolox640-int8": _yolox(640, model_file="yolox_nano_640_int8.onnx"),
