@@ -47,7 +47,7 @@ DEFAULT_MAX_LAG_MS = 150.0  # a frame set further behind the newest complete one
 NODE_KEYS = {"run", "inputs", "outputs", "params", "restart", "host", "sync_timeout_ms", "max_lag_ms", "nice",
              "realtime", "description"}
 INPUT_KEYS = {"from", "queue", "policy", "sync", "offset", "optional"}
-RESTART_KEYS = {"policy", "max_restarts", "backoff_ms", "max_backoff_ms"}
+RESTART_KEYS = {"policy", "max_restarts", "backoff_ms", "max_backoff_ms", "window_s"}
 POLICIES = ("drop_oldest", "block")
 SYNC_MODES = ("frame", "latest", "none")
 RESTART_POLICIES = ("never", "on-failure", "always")
@@ -97,10 +97,16 @@ class InputSpec:
 
 @dataclass
 class RestartPolicy:
+    """When the launcher restarts a node. The budget is per window, as systemd's StartLimitBurst per
+    StartLimitIntervalSec: more than ``max_restarts`` failures within ``window_s`` and the node has failed for
+    good; a node that fails once a day is restarted every day. The backoff doubles with the failures in the
+    window, from ``backoff_ms`` up to ``max_backoff_ms``."""
+
     policy: str = "on-failure"
     max_restarts: int = 5
     backoff_ms: int = 500
     max_backoff_ms: int = 10_000
+    window_s: int = 60
 
 
 @dataclass
@@ -755,7 +761,7 @@ def _parse_restart(node: str, value_node: yaml.Node, path: str) -> RestartPolicy
         policy.policy = _expect(value["policy"], str, path, lines["policy"], f"{where}: policy")
         if policy.policy not in RESTART_POLICIES:
             raise GraphError(path, lines["policy"], f"{where}: policy must be one of {', '.join(RESTART_POLICIES)}")
-    for key in ("max_restarts", "backoff_ms", "max_backoff_ms"):
+    for key in ("max_restarts", "backoff_ms", "max_backoff_ms", "window_s"):
         if key in value:
             setattr(policy, key, _expect(value[key], int, path, lines[key], f"{where}: {key}"))
             if getattr(policy, key) < 0:

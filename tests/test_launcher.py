@@ -105,5 +105,20 @@ def test_node_that_keeps_failing_makes_launch_exit_nonzero(graph_file):
                             text=True, timeout=60, stdin=subprocess.DEVNULL)
     output = result.stdout + result.stderr
     assert result.returncode == 1, output
-    assert "ticker failed for good after 1 restarts" in output
+    assert "ticker failed for good: 2 failures within 60 s (restart budget 1)" in output
     assert "restarting ticker" in output
+
+
+def test_failures_older_than_the_restart_window_do_not_spend_the_budget(graph_file):
+    # Each run lasts longer than the 1 s window: every failure is the only one in its window, so a budget of one
+    # restart never runs out, as a robot's node that fails once an hour must be restarted every hour.
+    graph = graph_file(
+        "  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n"
+        "    params: {rate_hz: 10, fail_after_s: 1.5}\n"
+        "    restart: {policy: on-failure, max_restarts: 1, window_s: 1, backoff_ms: 100}\n"
+    )
+    result = subprocess.run(followbus_argv("launch", str(graph), "--duration", "12"), capture_output=True,
+                            text=True, timeout=60, stdin=subprocess.DEVNULL)
+    output = result.stdout + result.stderr
+    assert output.count("restarting ticker in 100 ms (failure 1 of at most 1 within 1 s") >= 3, output
+    assert "failed for good" not in output, output

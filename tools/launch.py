@@ -171,16 +171,19 @@ class Launcher:
             if child.failed:
                 log.error("%s failed for good (status %d, restart policy %s)", child.name, code, policy.policy)
             return
-        if child.restarts >= policy.max_restarts:
+        # The budget is per window (RestartPolicy): only the failures of the last window_s count.
+        in_window = sum(1 for t, _ in child.failures if child.changed_at - t <= policy.window_s) or 1
+        if in_window > policy.max_restarts:
             child.failed = True
             child.finished = True
-            log.error("%s failed for good after %d restarts", child.name, child.restarts)
+            log.error("%s failed for good: %d failures within %d s (restart budget %d)", child.name, in_window,
+                      policy.window_s, policy.max_restarts)
             return
-        backoff_ms = min(policy.backoff_ms * (2 ** child.restarts), policy.max_backoff_ms)
+        backoff_ms = min(policy.backoff_ms * (2 ** (in_window - 1)), policy.max_backoff_ms)
         child.restarts += 1
         child.next_start = time.monotonic() + backoff_ms / 1000
-        log.warning("restarting %s in %d ms (restart %d of %d)", child.name, backoff_ms, child.restarts,
-                    policy.max_restarts)
+        log.warning("restarting %s in %d ms (failure %d of at most %d within %d s; %d restarts so far)", child.name,
+                    backoff_ms, in_window, policy.max_restarts, policy.window_s, child.restarts)
 
     def _publish_table(self, stopped: bool = False) -> None:
         """Publish the process table now; ``stopped`` retracts it (the launcher is going away)."""
