@@ -151,6 +151,7 @@ def watchdog_report(tracks: Sequence[TrackObs], commands: Sequence[CommandObs], 
     report = WatchdogReport()
     seq = sorted((t for t in tracks if t0_ns <= t.recv_ns <= t1_ns), key=lambda t: t.pub_ns)
     zeros = sorted(c.pub_ns for c in commands if c.is_zero and c.recv_ns > t0_ns)
+    issued = sorted((c.pub_ns, c.is_zero) for c in commands)
     end = max([t1_ns, *(t.pub_ns for t in seq)])
     for i, last in enumerate(seq):
         nxt = seq[i + 1].pub_ns if i + 1 < len(seq) else end
@@ -162,11 +163,20 @@ def watchdog_report(tracks: Sequence[TrackObs], commands: Sequence[CommandObs], 
         stop = next((z for z in zeros if last.pub_ns < z <= nxt), None)
         if stop is not None:
             report.stops_ms.append((stop - last.pub_ns) / MS)
+        elif not _moving_after(issued, last.pub_ns + int(bound_ms * MS), nxt):
+            continue  # stopped before this track and did not move on it (a stale one, say): nothing to stop
         if gap_ms > bound_ms and (stop is None or (stop - last.pub_ns) / MS > bound_ms):
             what = "no zero command" if stop is None else f"zero command after {(stop - last.pub_ns) / MS:.0f} ms"
             report.violations.append(f"tracks paused {gap_ms:.0f} ms after a {last.state} track: {what} "
                                      f"(bound {bound_ms:.0f} ms)")
     return report
+
+
+def _moving_after(issued: Sequence[tuple[int, bool]], from_ns: int, to_ns: int) -> bool:
+    """Whether the motor was commanded to move at any time in [from_ns, to_ns): its newest command by then was not
+    a zero, or one issued in the window was not. ``issued``: (pub_ns, is_zero) of every command, in order."""
+    before = [zero for t, zero in issued if t <= from_ns]
+    return (bool(before) and not before[-1]) or any(not zero for t, zero in issued if from_ns < t < to_ns)
 
 
 def hidden_ns(truth: Sequence[TruthObs], t0_ns: int, t1_ns: int) -> int:

@@ -88,6 +88,12 @@ def test_watchdog_report_wants_a_stop_within_the_bound_of_the_last_track():
     # After a LOST track the motor has already stopped: a pause then needs no watchdog.
     lost = [*tracks[:-1], _track((last - T0) / MS, "LOST")]
     assert not watchdog_report(lost, commands, T0, T0 + 3000 * MS, 130, 200).violations
+    # A motor already stopped that does not move on the last track (it found it stale, say) has nothing to stop;
+    # one that moved on it, or moves later in the pause, has.
+    stopped_before = [*commands[:-1], _cmd((last - T0) / MS - 20, vx=0.0, wz=0.0, reason="watchdog", seq=-1)]
+    assert not watchdog_report(tracks, stopped_before, T0, T0 + 3000 * MS, 130, 200).violations
+    moves_later = [*stopped_before, _cmd((last - T0) / MS + 500)]
+    assert watchdog_report(tracks, moves_later, T0, T0 + 3000 * MS, 130, 200).violations
     # While the motor process itself is dead (kill-motor) no stop can reach the bus: the MCU's hold_ms covers it.
     down = (last - 50 * MS, last + 2000 * MS)
     assert not watchdog_report(tracks, commands, T0, T0 + 3000 * MS, 130, 200, motor_down=down).violations
