@@ -54,7 +54,10 @@ class SoakBounds:
     rss_growth_mb: float = 30.0  # per node, last window against the first
     fd_growth: int = 0
     thread_growth: int = 0
-    min_answered: float = 0.95  # of the frames capture published, in every window
+    # Frames answered may not fall more than this below the first window's (a fraction of those published): the
+    # soak judges drift; how many a machine answers at all is `bench pipeline`'s figure, and this VM's own speed
+    # moves it by several points from one hour to the next.
+    answered_drop: float = 0.05
     p99_growth_ms: float = 50.0  # the last window's p99 against the first's
 
 
@@ -82,10 +85,10 @@ def judge_soak(windows: list[SoakWindow], bounds: SoakBounds = SoakBounds()) -> 
     failures = []
     for name, start in first.processes.items():
         failures += _process_failures(name, start, [w.processes.get(name) for w in windows[1:]], bounds)
-    for w in windows:
-        if w.answered < bounds.min_answered:
-            failures.append(f"window {w.index}: {w.answered:.1%} of frames answered "
-                            f"(bound {bounds.min_answered:.0%}, load {w.load1:.1f})")
+    for w in windows[1:]:
+        if w.answered < first.answered - bounds.answered_drop:
+            failures.append(f"window {w.index}: {w.answered:.1%} of frames answered against {first.answered:.1%} "
+                            f"in the first (bound -{bounds.answered_drop:.0%}, load {w.load1:.1f})")
     if last.p99_ms > first.p99_ms + bounds.p99_growth_ms:
         failures.append(f"p99 grew from {first.p99_ms:.0f} to {last.p99_ms:.0f} ms "
                         f"(bound +{bounds.p99_growth_ms:.0f} ms)")
