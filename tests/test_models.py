@@ -35,8 +35,9 @@ from .conftest import REPO, followbus_argv, run_followbus
 
 MODELS = REPO / "models"
 # the model graph.yaml's detection node loads (the demo's and eval's default detector)
-GRAPH_MODEL = "yolox_nano_{}.onnx".format(
-    yaml.safe_load((REPO / "graph.yaml").read_text())["nodes"]["detection"]["params"]["input_size_px"])
+_DETECTION = yaml.safe_load((REPO / "graph.yaml").read_text())["nodes"]["detection"]["params"]
+GRAPH_MODEL = ("yolox_nano_dynamic.onnx" if _DETECTION.get("input_shape") == "fit"
+               else "yolox_nano_{}.onnx".format(_DETECTION["input_size_px"]))
 SHIPPED = ("osnet_x0_25_msmt17.onnx", "yolox_nano_416.onnx", "yolox_nano_512.onnx", "yolox_nano_640.onnx",
            "yolox_nano_640_int8.onnx", "yolox_nano_dynamic.onnx")
 APACHE, MIT = "LICENSE.yolox-onnx.Apache-2.0", "LICENSE.osnet-torchreid.MIT"

@@ -25,11 +25,12 @@ CHECKSUMS_FILE = "SHA256SUMS"
 
 # What each shipped file is for (the checksums themselves live in models/SHA256SUMS only).
 MODEL_ROLES = {
-    "yolox_nano_416.onnx": "YOLOX-nano person detector, 416 px input (detection backend auto/yolox, the default)",
+    "yolox_nano_416.onnx": "YOLOX-nano person detector, 416 px square input (detection backend auto/yolox, "
+                           "input_shape: square)",
     "yolox_nano_512.onnx": "YOLOX-nano person detector, 512 px input (input_size_px: 512, --detector yolox512)",
     "yolox_nano_640.onnx": "YOLOX-nano person detector, 640 px input (input_size_px: 640, --detector yolox640)",
-    "yolox_nano_dynamic.onnx": "YOLOX-nano person detector taking any input height and width (input_shape: fit; "
-                               "the weights of yolox_nano_640.onnx)",
+    "yolox_nano_dynamic.onnx": "YOLOX-nano person detector taking any input height and width (input_shape: fit, "
+                               "graph.yaml's; the weights of yolox_nano_640.onnx)",
     "yolox_nano_640_int8.onnx": "YOLOX-nano@640 statically quantized to INT8 (--detector yolox640-int8; recipe: "
                                 "vision/quantize.py; measured, not for use: ceiling 38.8 %, BENCHMARKS.md)",
     "osnet_x0_25_msmt17.onnx": "OSNet-x0.25 person re-ID embedding (MSMT17)",
