@@ -106,7 +106,10 @@ class LaunchedPipeline:
         self._stack.callback(launcher.request_stop)
         if not ready.wait(90):
             raise RuntimeError("the graph did not come up")
-        time.sleep(4.0)  # warm-up: model load, first frames, status messages with pids
+        time.sleep(4.0)  # warm-up: model load, first frames
+        deadline = time.monotonic() + 30.0  # every node's pid (from its status, once a second) before measuring
+        while set(graph.nodes) - set(self.pids) and time.monotonic() < deadline:
+            time.sleep(0.1)
 
     def _subscribe(self, session: Any, graph: Any) -> None:
         from ...bus.pubsub import declare_subscriber, frame_bytes
