@@ -232,10 +232,13 @@ def _input_schema() -> dict[str, Any]:
 def _restart_schema() -> dict[str, Any]:
     described: dict[str, dict[str, Any]] = {
         "policy": {"enum": list(RESTART_POLICIES), "default": _default(RestartPolicy, "policy")},
-        "max_restarts": {"type": "integer", "minimum": 0, "default": _default(RestartPolicy, "max_restarts")},
+        "max_restarts": {"type": "integer", "minimum": 0, "default": _default(RestartPolicy, "max_restarts"),
+                         "description": "failures within window_s after which the node has failed for good"},
         "backoff_ms": {"type": "integer", "minimum": 0, "default": _default(RestartPolicy, "backoff_ms"),
-                       "description": "wait before the first restart; doubles with each one"},
+                       "description": "wait before the first restart; doubles with each failure in the window"},
         "max_backoff_ms": {"type": "integer", "minimum": 0, "default": _default(RestartPolicy, "max_backoff_ms")},
+        "window_s": {"type": "integer", "minimum": 0, "default": _default(RestartPolicy, "window_s"),
+                     "description": "only the failures within this many seconds count against max_restarts"},
     }
     return {"description": "what the launcher does when the node's process exits",
             "default": _default(NodeSpec, "restart"),

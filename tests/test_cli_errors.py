@@ -355,9 +355,11 @@ def test_eval_without_a_model_points_at_the_simulated_detector(tmp_path):
                              str(tmp_path / "out"), "--max-frames", "3"], capture_output=True, text=True,
                             timeout=120, cwd=tmp_path, env=env, stdin=subprocess.DEVNULL)
     line = one_error_line(result)
-    size = yaml.safe_load((REPO / "graph.yaml").read_text())["nodes"]["detection"]["params"]["input_size_px"]
+    params = yaml.safe_load((REPO / "graph.yaml").read_text())["nodes"]["detection"]["params"]
+    model = ("yolox_nano_dynamic.onnx" if params.get("input_shape") == "fit"
+             else f"yolox_nano_{params['input_size_px']}.onnx")
     # eval's default detector is graph.yaml's (backend auto)
-    assert line.startswith(f"followbus: detector backend 'auto' needs the YOLOX model yolox_nano_{size}.onnx, "
+    assert line.startswith(f"followbus: detector backend 'auto' needs the YOLOX model {model}, "
                            "which is missing"), line
     assert line.endswith("; or score without a model: --detector simulated (ground truth + noise)"), line
 
