@@ -94,15 +94,21 @@ def _child_env(pid: int, name: str) -> str:
     return next((item[len(prefix):].decode() for item in environ if item.startswith(prefix)), "")
 
 
-def test_node_that_keeps_failing_makes_launch_exit_nonzero(graph_file):
+def _launch_failing_ticker(graph_file, fail_after_s: float, restart: str, duration_s: int,
+                           extra: str = "") -> subprocess.CompletedProcess:
+    """`launch --duration` of a diagnostics ticker that fails after ``fail_after_s``, with ``restart`` policy."""
     graph = graph_file(
         "  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n"
-        "    params: {rate_hz: 10, fail_after_s: 0.5}\n"
-        "    restart: {policy: on-failure, max_restarts: 1, backoff_ms: 100}\n"
-        "  sink:\n    run: followbus.nodes.diagnostics_sink\n    inputs: {tick: ticker/tick}\n"
+        f"    params: {{rate_hz: 10, fail_after_s: {fail_after_s}}}\n"
+        f"    restart: {restart}\n" + extra
     )
-    result = subprocess.run(followbus_argv("launch", str(graph), "--duration", "30"), capture_output=True,
-                            text=True, timeout=60, stdin=subprocess.DEVNULL)
+    return subprocess.run(followbus_argv("launch", str(graph), "--duration", str(duration_s)), capture_output=True,
+                          text=True, timeout=60, stdin=subprocess.DEVNULL)
+
+
+def test_node_that_keeps_failing_makes_launch_exit_nonzero(graph_file):
+    sink = "  sink:\n    run: followbus.nodes.diagnostics_sink\n    inputs: {tick: ticker/tick}\n"
+    result = _launch_failing_ticker(graph_file, 0.5, "{policy: on-failure, max_restarts: 1, backoff_ms: 100}", 30, sink)
     output = result.stdout + result.stderr
     assert result.returncode == 1, output
     assert "ticker failed for good: 2 failures within 60 s (restart budget 1)" in output
@@ -112,13 +118,8 @@ def test_node_that_keeps_failing_makes_launch_exit_nonzero(graph_file):
 def test_failures_older_than_the_restart_window_do_not_spend_the_budget(graph_file):
     # Each run lasts longer than the 1 s window: every failure is the only one in its window, so a budget of one
     # restart never runs out, as a robot's node that fails once an hour must be restarted every hour.
-    graph = graph_file(
-        "  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n"
-        "    params: {rate_hz: 10, fail_after_s: 1.5}\n"
-        "    restart: {policy: on-failure, max_restarts: 1, window_s: 1, backoff_ms: 100}\n"
-    )
-    result = subprocess.run(followbus_argv("launch", str(graph), "--duration", "12"), capture_output=True,
-                            text=True, timeout=60, stdin=subprocess.DEVNULL)
+    restart = "{policy: on-failure, max_restarts: 1, window_s: 1, backoff_ms: 100}"
+    result = _launch_failing_ticker(graph_file, 1.5, restart, 12)
     output = result.stdout + result.stderr
     assert output.count("restarting ticker in 100 ms (failure 1 of at most 1 within 1 s") >= 3, output
     assert "failed for good" not in output, output

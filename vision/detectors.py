@@ -653,14 +653,10 @@ def make_detector(
     path = resolve_detector_model(backend, model_dir=model_dir, model_file=model_file, input_size=input_size,
                                   input_shape=input_shape)
     assert path is not None
-    if backend == "yolov8":
-        det_cls: type[_OnnxDetector] = YoloV8Detector
-        shape_kw: dict[str, str] = {}
-    else:
-        det_cls, shape_kw = YoloxDetector, {"input_shape": input_shape}
+    cls = YoloV8Detector if backend == "yolov8" else YoloxDetector
     try:
-        det = det_cls(path, input_size=input_size, score_threshold=score_threshold, nms_iou=nms_iou, threads=threads,
-                      runtime=runtime, **shape_kw)
+        det = cls(path, input_size=input_size, score_threshold=score_threshold, nms_iou=nms_iou, threads=threads,
+                  runtime=runtime, input_shape=input_shape)
     except ModelError as exc:
         raise DetectorUnavailable(str(exc)) from exc
     log.info("detector %s -> %s (model %s; search path: %s)",
