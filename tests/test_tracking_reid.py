@@ -10,7 +10,15 @@ import pytest
 from followbus.msgs.tracking import Prior
 from followbus.tracking.appearance import hs_histogram
 from followbus.tracking.params import KalmanParams, ReidParams
-from followbus.tracking.reid import ReIdentifier, ReidResult, TrackState, appearance_weight, fuse, geometric_score
+from followbus.tracking.reid import (
+    ReIdentifier,
+    ReidResult,
+    TrackState,
+    appearance_weight,
+    complete_partial_view,
+    fuse,
+    geometric_score,
+)
 
 W, H = 320, 240
 BG = (40, 90, 40)
@@ -351,3 +359,38 @@ def test_low_score_stage_keeps_bytetracks_caution() -> None:
     loose.step(frame, dets(TARGET), None, None, 0, init_box=TARGET)
     assert loose.step(draw((beside, RED)), dets(), prior_at(TARGET, 33 * MS), template, 33 * MS,
                       low_detections=weak).accepted
+
+
+def test_a_box_cut_at_the_legs_or_the_head_is_completed_to_the_predicted_height() -> None:
+    predicted = (100.0, 100.0, 30.0, 90.0)  # top 100, bottom 190, aspect 3
+    # legs hidden (a car): the top agrees, the bottom falls short; completed downwards, width kept
+    assert complete_partial_view((102.0, 103.0, 28.0, 45.0), predicted) == (102.0, 103.0, 28.0, 90.0)
+    # head and shoulders hidden: the bottom agrees; completed upwards
+    assert complete_partial_view((101.0, 140.0, 29.0, 48.0), predicted) == (101.0, 98.0, 29.0, 90.0)
+
+
+@pytest.mark.parametrize("box, why", [
+    ((102.0, 103.0, 28.0, 80.0), "at 0.8 of the predicted height or more: not cut"),
+    ((98.0, 110.0, 35.0, 70.0), "both edges moved in: nothing to anchor on"),
+    ((100.0, 130.0, 25.0, 40.0), "neither edge agrees"),
+    ((104.0, 101.0, 20.0, 60.0), "a whole person's shape (aspect 3): the prediction's height was wrong"),
+])
+def test_what_is_not_a_partial_view_is_kept(box: tuple[float, float, float, float], why: str) -> None:
+    assert complete_partial_view(box, (100.0, 100.0, 30.0, 90.0)) == box, why
+
+
+def test_a_partial_view_is_measured_and_output_whole_and_never_learnt_from() -> None:
+    """The target walks behind a car: its detection covers the upper half. Re-ID scores the colour on what is seen,
+    the geometry on the whole person, accepts it as the whole person (the prediction node then measures that centre
+    and height, and outputs it), and takes no training sample from it (its box covers the car)."""
+    params = ReidParams()
+    reid, template = started(params)
+    upper = (TARGET[0], TARGET[1], TARGET[2], 28.0)
+    frame = draw((upper, RED))
+    res = reid.step(frame, dets(upper), prior_at(TARGET, 33 * MS), template, 33 * MS)
+    assert res.accepted and res.box == pytest.approx(TARGET)
+    assert not res.secure
+    assert res.candidates[0].box == upper and res.candidates[0].whole == pytest.approx(TARGET)
+    off, template_off = started(ReidParams(partial_view_completion=False))
+    res = off.step(frame, dets(upper), prior_at(TARGET, 33 * MS), template_off, 33 * MS)
+    assert res.box is None or res.box == pytest.approx(upper)

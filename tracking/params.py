@@ -143,6 +143,13 @@ class ReidParams(_FramePeriod, _ColourHistogram):
     # (mot17-mini-13 100 -> 40 % TSR@20px).
     low_score_stage: bool = True
     low_score_min_iou: float = 0.5
+    # Partial views (reid.complete_partial_view): a detector box under partial_max_extent_ratio of the predicted
+    # height, its top or bottom within partial_edge_tolerance (of the predicted height) of the prediction's and
+    # the other edge short of it, is the visible part of the target: it is scored, measured and output as the
+    # whole person (the predicted height from the agreeing edge), never as a training sample.
+    partial_view_completion: bool = True
+    partial_max_extent_ratio: float = 0.8
+    partial_edge_tolerance: float = 0.15
     # Learned appearance (seed 001, tracking/identity.py): an OSNet descriptor and an online ridge-regression
     # classifier of the target against the other people decide when colour + geometry cannot: between
     # candidates within identity_margin of the best M_fuse, and on a re-lock after an occlusion.

@@ -74,6 +74,42 @@ def geometric_score(
     return s_gate * s_dist * s_size
 
 
+def _complete_extent(lo: float, extent: float, prior_lo: float, prior_extent: float, max_ratio: float,
+                     edge_tolerance: float) -> tuple[float, float]:
+    """One axis of :func:`complete_partial_view`: (start, extent) along it."""
+    if prior_extent <= 0.0 or extent >= max_ratio * prior_extent:
+        return lo, extent
+    tolerance_px = edge_tolerance * prior_extent
+    start_agrees = abs(lo - prior_lo) <= tolerance_px
+    end_agrees = abs((lo + extent) - (prior_lo + prior_extent)) <= tolerance_px
+    if start_agrees and not end_agrees:
+        return lo, prior_extent  # the far side is hidden
+    if end_agrees and not start_agrees:
+        return lo + extent - prior_extent, prior_extent  # the near side is hidden
+    return lo, extent  # both edges moved in (a smaller person) or neither agrees: nothing to anchor on
+
+
+def complete_partial_view(box: Sequence[float], predicted_box: Sequence[float], max_ratio: float = 0.8,
+                          edge_tolerance: float = 0.15) -> Box:
+    """The whole person behind a partial view: a detector box shorter than the prediction (under ``max_ratio`` of
+    its height) whose top or bottom agrees with the prediction's (within ``edge_tolerance`` of the predicted
+    height) while the other edge falls short is the visible part of a person cut by an occluder (a car or a table
+    hiding the legs) or by the image border. Its height is extended to the predicted one from the agreeing edge;
+    otherwise the box is kept.
+
+    Why: the detector boxes what it sees, while the tracker, its ground truth and the motor want the whole
+    person. Taken as it is, a cut box drags the Kalman centre towards the visible part and gives it a velocity
+    the occlusion then carries on (the prior drifts away while the person is hidden), and its height makes the
+    person look farther away than they are. Only the height: a walking person's width changes with every
+    stride and swing of the arms, so a narrow box is no evidence of an occluder (completing widths anchored the
+    wrong side of a person walking behind a pillar), while the height of a standing or walking person holds."""
+    w, pw, ph = float(box[2]), float(predicted_box[2]), float(predicted_box[3])
+    if w <= 0.0 or pw <= 0.0 or float(box[3]) / w >= max_ratio * ph / pw:
+        return tuple(float(v) for v in box)  # type: ignore[return-value]  # a whole person's shape
+    y, h = _complete_extent(float(box[1]), float(box[3]), float(predicted_box[1]), ph, max_ratio, edge_tolerance)
+    return (float(box[0]), y, w, h)
+
+
 def appearance_weight(c_t: float, tau_occ: float = 0.60, gamma: float = 10.0) -> float:
     """Eq. 3: ω(t) = 1 / (1 + exp(-γ (C_t - τ_occ))); exactly 0.5 at C_t = τ_occ."""
     z = gamma * (float(c_t) - tau_occ)
@@ -97,6 +133,14 @@ class Candidate:
     s_geo: float
     m_fuse: float = 0.0
     hist: np.ndarray | None = field(default=None, repr=False)
+    # A partial view's whole person (complete_partial_view): what is measured and output; the visible ``box`` is
+    # what the appearance is scored on. None: the box is the whole person.
+    whole: Box | None = None
+
+    @property
+    def located(self) -> Box:
+        """Where the candidate puts the whole target."""
+        return self.whole if self.whole is not None else self.box
 
 
 @dataclass
@@ -297,7 +341,7 @@ class ReIdentifier:
         if first.accepted or not low:
             return first
         second = [c for c in self._gate_candidates(low, prior, "low-score")
-                  if box_iou(c.box, prior.box) >= p.low_score_min_iou]
+                  if box_iou(c.located, prior.box) >= p.low_score_min_iou]
         match = self._match(frame_bgr, second, prior, template_hist)
         candidates = first.candidates + second
         if match.accepted:
@@ -331,13 +375,15 @@ class ReIdentifier:
         ambiguous = any(
             c is not best and c.m_fuse >= best.m_fuse - self.params.ambiguity_margin for c in match.candidates
         )
-        result.best_box = best.box
+        result.best_box = best.located
         result.source = best.source
         result.m_fuse, result.s_color, result.s_geo = best.m_fuse, best.s_color, best.s_geo
         result.candidate_hist = best.hist
         if match.accepted:
-            result.box = best.box
-            result.secure = self.state is TrackState.TRACKING and not ambiguous and best.source == "detection"
+            result.box = best.located
+            # A partial view is no training sample: its whole box covers the occluder.
+            result.secure = (self.state is TrackState.TRACKING and not ambiguous and best.source == "detection"
+                             and best.whole is None)
         return result
 
     def _score(self, frame_bgr: np.ndarray, candidates: list[Candidate], prior: Prior,
@@ -348,7 +394,7 @@ class ReIdentifier:
         for c in candidates:
             c.hist = hs_histogram(frame_bgr, c.box, p.bins_h, p.bins_s)
             c.s_color = bhattacharyya(c.hist, template_hist)  # Eq. 1, Alg. 1 line 4
-            c.s_geo = (geometric_score(c.box, prior.box, c.maha_sq, prior.gate_chi2, p.geo_scale)
+            c.s_geo = (geometric_score(c.located, prior.box, c.maha_sq, prior.gate_chi2, p.geo_scale)
                        if p.use_geometry else 0.0)  # Alg. 1 line 5
         c_t = max((c.s_color for c in candidates), default=0.0)
         omega = appearance_weight(c_t, p.tau_occ, p.gamma) if p.use_geometry else 1.0  # Eq. 3
@@ -410,8 +456,8 @@ class ReIdentifier:
             # Nobody here looks like the target: on a re-lock, wait; while tracking, keep colour's choice, unless
             # the classifier just told these people apart (a crossing: the target is hidden behind them): wait.
             return best, not (relock or self._crowded_recently())
-        if relock and p.far_relock_needs_identity and self._far(contenders[i].box, prior):
-            return contenders[i], self._confirmed(contenders[i].box, float(scores[i]))
+        if relock and p.far_relock_needs_identity and self._far(contenders[i].located, prior):
+            return contenders[i], self._confirmed(contenders[i].located, float(scores[i]))
         return contenders[i], True
 
     def _score_contenders(self, frame_bgr: np.ndarray, candidates: list[Candidate], best: Candidate,
@@ -560,14 +606,25 @@ class ReIdentifier:
         return boxes[i] if scores[i] > p.reid_threshold else None
 
     def _gate_candidates(self, boxes: list[Box], prior: Prior, source: str) -> list[Candidate]:
+        p = self.params
         out = []
         for box in boxes:
-            d2 = prior.mahalanobis_sq(box_centre(box))
-            gated = self.params.use_gate and not (self.params.global_search_when_lost and self.state is TrackState.LOST)
+            whole = self._whole(box, prior, source)
+            d2 = prior.mahalanobis_sq(box_centre(whole or box))
+            gated = p.use_gate and not (p.global_search_when_lost and self.state is TrackState.LOST)
             if gated and not d2 <= prior.gate_chi2:  # Eq. 8 (also drops NaN)
                 continue
-            out.append(Candidate(box=box, source=source, maha_sq=d2, s_color=0.0, s_geo=0.0))
+            out.append(Candidate(box=box, source=source, maha_sq=d2, s_color=0.0, s_geo=0.0, whole=whole))
         return out
+
+    def _whole(self, box: Box, prior: Prior, source: str) -> Box | None:
+        """A detector box's whole person when it is a partial view (complete_partial_view), else None. A motion
+        blob is partial by nature (the moving limbs) and says nothing of where the edges are: never completed."""
+        p = self.params
+        if not p.partial_view_completion or source == "motion":
+            return None
+        whole = complete_partial_view(box, prior.box, p.partial_max_extent_ratio, p.partial_edge_tolerance)
+        return whole if whole != tuple(float(v) for v in box) else None
 
     @staticmethod
     def _search_window(prior: Prior, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
