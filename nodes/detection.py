@@ -28,6 +28,8 @@ from ..vision.detectors import (
     split_by_score,
 )
 
+WARM_UP_INFERENCES = 2
+
 
 @dataclass
 class DetectionParams:
@@ -120,6 +122,11 @@ class Detection(Node):
             self.log.error("backend 'simulated' needs the ground_truth input wired (capture/ground_truth)")
             raise SystemExit(1)
         self.log.info("detector backend: %s", self.detector.name)
+        if not self.simulated:
+            # The first inferences allocate the runtime's buffers (2x a frame's time): on a blank VGA frame here,
+            # before the node is up, not on the camera's first frames.
+            for _ in range(WARM_UP_INFERENCES):
+                self.detector.detect(np.zeros((480, 640, 3), np.uint8))
         self.frames = 0
         self.infer_ms_total = 0.0
 

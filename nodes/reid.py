@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from ..bus.background import BackgroundJob
 from ..bus.node import Node, ParamError
 from ..bus.schemas import Frame, Message
 from ..msgs.perception import Detections
@@ -63,6 +64,10 @@ class Reid(Node):
         self.frames = 0
         self.epoch_ns: int | None = None  # the capture session of the frames handled so far
         self.last: Measurement | None = None
+        # The learned appearance's training sample (OSNet descriptors of several people: a 20-30 ms burst every
+        # identity_sample_every_frames frames) below the loop's priority: at the loop's, on two cores, the
+        # detector skipped a frame at each burst (bus/background.py).
+        self.learner = BackgroundJob("reid-learning")
 
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         frame, dets, prior = inputs["frame"], inputs["detections"], inputs["prior"]
@@ -70,6 +75,7 @@ class Reid(Node):
         template = inputs.get("template")
         if isinstance(template, Template):
             self.template_hist = None if not template.initialised or template.hist is None else np.array(template.hist)
+        self.learner.wait()  # the previous frame's sample is learnt before this frame is decided: results as in order
         new_source = frame.header.epoch_ns != self.epoch_ns
         self.epoch_ns = frame.header.epoch_ns
         init_box = None
@@ -83,7 +89,10 @@ class Reid(Node):
         self.last = msg
         self.publish("measurement", msg, like=frame)
         # The learned appearance's sample (OSNet descriptors) after the measurement is out: off the motor's path.
-        self.reid.learn_pending()
+        self.learner.submit(self.reid.learn_pending)
+
+    def teardown(self) -> None:
+        self.learner.wait()
 
     def status_extra(self) -> dict[str, Any]:
         if self.last is None:

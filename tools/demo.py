@@ -84,12 +84,16 @@ class DemoWatcher:
 
     def summary(self) -> dict:
         with self.lock:
-            frames = sorted(self.truth)
             processed = set(self.tracks)
+            # Frames captured after the last one processed were still in the pipeline when the graph stopped:
+            # neither processed nor skipped.
+            last = max(processed, default=-1)
+            frames = [i for i in sorted(self.truth) if i <= last]
+            in_flight = len(self.truth) - len(frames)
             preds = [None if (t := self.tracks.get(i)) is None or t.box is None else tuple(t.box) for i in frames]
             gts = [None if self.truth[i].box is None else tuple(self.truth[i].box) for i in frames]
             lat = np.array(self.latencies_ms)
-        out: dict = {"frames": len(frames), "tracked_frames": sum(p is not None for p in preds),
+        out: dict = {"frames": len(frames), "in_flight": in_flight, "tracked_frames": sum(p is not None for p in preds),
                      "processed_frames": sum(i in processed for i in frames)}
         if frames and any(g is not None for g in gts):
             metrics = evaluate_single_target(preds, gts)
@@ -201,8 +205,9 @@ def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: 
     summary = watcher.summary()
     watcher.close()
     print()
-    print(f"summary: {summary['frames']} frames captured, {summary['processed_frames']} processed end to end "
-          f"(the rest skipped by a detector that could not keep up), {summary['tracked_frames']} with a target box")
+    in_flight = f" (and {summary['in_flight']} still in the pipeline at the stop)" if summary["in_flight"] else ""
+    print(f"summary: {summary['frames']} frames captured{in_flight}, {summary['processed_frames']} processed end to "
+          f"end (the rest skipped by a detector that could not keep up), {summary['tracked_frames']} with a target box")
     if "tsr" in summary:
         print(f"  TSR@20px {summary['tsr'] * 100:.1f} % (a skipped frame counts as a failure)   "
               f"CLE {summary['cle']:.1f} px   precision {summary['precision'] * 100:.1f} %")

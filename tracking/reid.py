@@ -32,7 +32,7 @@ import numpy as np
 from ..msgs.box import Box, box_array, box_centre, box_iou
 from ..msgs.tracking import Measurement, Prior, TrackState
 from .appearance import bhattacharyya, hs_histogram
-from .identity import IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
+from .identity import CROP_H_PX, CROP_W_PX, IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
 from .params import ReidParams
 
@@ -429,6 +429,8 @@ class ReIdentifier:
         load must not delay a frame). True when the learned appearance is on and its model loaded."""
         if self.params.learned_appearance and not self._embedder_loaded:
             self._embedder, self._embedder_loaded = load_embedder(), True
+            if self._embedder is not None:  # the first inference allocates: not on a frame's time
+                self._embedder.embed(np.zeros((CROP_H_PX, CROP_W_PX, 3), np.uint8), [(0.0, 0.0, CROP_W_PX, CROP_H_PX)])
         return self._embedder is not None
 
     def _embed(self, frame_bgr: np.ndarray, boxes: list[Box]) -> np.ndarray | None:
