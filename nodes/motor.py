@@ -42,10 +42,6 @@ class MotorParams:
     # hold_ms, control/drivers.py): the stop that holds when this process is not scheduled. At most 200 ms
     # minus the serial line's time (a 40-byte line at 115200 baud: 3.5 ms).
     mcu_stop_ms: float = 190.0
-    # Odometry goes out at most this often (the watchdog still ticks at 100 Hz): prediction reads the sample of
-    # each camera frame's stamp (Eq. 7), so 50 Hz is ahead of a 30 Hz camera, and 100 Hz cost the motor and
-    # prediction processes a tenth of a core between them on a two-core computer.
-    odometry_period_ms: float = 20.0
 
 
 class Motor(Node):
@@ -59,7 +55,7 @@ class Motor(Node):
     # in Zenoh's real-time lane, ahead of any backlog of frames or bad payloads on the same link.
     CONGESTION = {"command": "drop", "odometry": "drop"}
     PRIORITY = {"command": "real_time"}
-    TIMER_PERIOD_MS = 10.0  # watchdog tick (100 Hz); odometry every odometry_period_ms
+    TIMER_PERIOD_MS = 10.0  # watchdog and odometry tick (100 Hz)
     # A standing stop is re-published at this period (not every tick): a stop dropped on a congested link
     # reaches the bus, a monitor that joins late sees it, and the bus carries 10 stops/s, not 100.
     STOP_REPEAT_MS = 100.0
@@ -73,8 +69,6 @@ class Motor(Node):
             raise ParamError("driver", f"driver must be 'sim' or 'serial', not {motor.driver!r}")
         if motor.driver == "serial" and not motor.port:
             raise ParamError("driver", "driver 'serial' needs a port")
-        if not motor.odometry_period_ms > 0:
-            raise ParamError("odometry_period_ms", f"odometry_period_ms must be > 0, not {motor.odometry_period_ms!r}")
         if not 0 < motor.mcu_stop_ms <= 200:
             raise ParamError("mcu_stop_ms", f"mcu_stop_ms must be in (0, 200] (the stop promise), "
                                             f"not {motor.mcu_stop_ms!r}")
@@ -152,9 +146,7 @@ class Motor(Node):
         return bound - (self.monotonic_ns() - received_ns) / 1e6
 
     def _odometry(self, sample: Odometry) -> None:
-        # Half a tick of slack: a tick late by a little does not push the sample to the next tick.
-        min_gap_ns = max(self.motor_params.odometry_period_ms - self.TIMER_PERIOD_MS / 2, 0.0) * 1e6
-        if sample.header.stamp_ns <= self.last_odom_ns or sample.header.stamp_ns - self.last_odom_ns < min_gap_ns:
+        if sample.header.stamp_ns <= self.last_odom_ns:
             return
         self.last_odom_ns = sample.header.stamp_ns
         self.publish("odometry", sample)

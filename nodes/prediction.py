@@ -44,7 +44,7 @@ class Prediction(Node):
     INPUTS = {"detections": Detections, "measurement": Measurement, "odometry": Odometry, "transform": CameraMotion}
     REQUIRED_INPUTS = frozenset({"detections", "measurement"})
     OUTPUTS = {"prior": Prior, "track": Track}
-    # Odometry (50 Hz) is only read by stamp when a frame or a measurement comes: no wake-up of its own.
+    # Odometry (100 Hz) is only read by stamp when a frame or a measurement comes: no wake-up of its own.
     LAZY_INPUTS = frozenset({"odometry"})
     Params = (PredictionNodeParams, KalmanParams)
 
