@@ -122,8 +122,11 @@ def method_factories(methods: Sequence[str], ablations: bool = False, trace: boo
         elif m.startswith("peer:"):
             kind = peer_kind(m.split(":", 1)[1])
             out[m] = lambda fps, k=kind: _NoEgo(PeerFollower(k, fps))
+        elif m in ABLATIONS:  # one ablation on its own
+            out[m] = lambda fps, s=ABLATIONS[m]: GraphFollower(s, trace=trace)
         else:
-            raise ValueError(f"unknown method {m!r} (followbus, kalman, peer:bytetrack|ocsort|botsort)")
+            raise ValueError(f"unknown method {m!r} (followbus, kalman, peer:bytetrack|ocsort|botsort, or an "
+                             f"ablation: {', '.join(repr(a) for a in ABLATIONS)})")
     if ablations:
         for name, switches in ABLATIONS.items():
             out[name] = lambda fps, s=switches: GraphFollower(s, trace=trace)

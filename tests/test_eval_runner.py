@@ -51,6 +51,13 @@ def test_ablations_change_measurable_behaviour():
     assert run.runs["followbus w/o update suspension"].metrics.cle > run.runs["followbus"].metrics.cle + 1.0
 
 
+def test_one_ablation_runs_on_its_own_by_name():
+    factories = method_factories(["followbus w/o partial-view completion"])
+    assert list(factories) == ["followbus w/o partial-view completion"]
+    with pytest.raises(ValueError, match="followbus w/o gate"):  # the error lists the names
+        method_factories(["followbus w/o everything"])
+
+
 SOT_SEQ = SHARED / "data" / "sot" / "otb-crossing"
 
 

@@ -220,7 +220,9 @@ def _eval_args(p: argparse.ArgumentParser) -> None:
                    help="with --group: the same methods on the camera group sequences (SEQ dirs, default "
                         "sot/uav-group* and every mot/ clip): image-plane group-centre error; group_camera.md/json")
     p.add_argument("--method", action="append", metavar="M",
-                   help="followbus | kalman | peer:bytetrack|ocsort|botsort; repeatable (default followbus + kalman)")
+                   help="followbus | kalman | peer:bytetrack|ocsort|botsort | one ablation by its name (as --ablations "
+                        "lists them, e.g. 'followbus w/o partial-view completion'); repeatable (default followbus + "
+                        "kalman)")
     p.add_argument("--ablations", action="store_true", help="also run the paper's Table 6 ablations of followbus")
     p.add_argument("--detector", default=None, choices=tuple(DETECTOR_PRESETS),
                    help="detections for every method (default graph: graph.yaml's own detection params, what the "
