@@ -118,6 +118,10 @@ class Launcher:
                 argv += ["--set", item]
         return argv
 
+    def _progress(self, fmt: str, *args: object) -> None:
+        """Start-up progress: INFO, or DEBUG for a quiet launcher (a bench's own output stays its figures)."""
+        log.log(logging.DEBUG if self.quiet else logging.INFO, fmt, *args)
+
     def _print(self, text: str) -> None:
         if self.quiet:
             return
@@ -154,7 +158,7 @@ class Launcher:
         child.threads.append(thread)
         child.pid, child.exit_code, child.changed_at = child.proc.pid, None, time.monotonic()
         self._table_due = 0.0
-        log.info("started %s (pid %d)", child.name, child.proc.pid)
+        self._progress("started %s (pid %d)", child.name, child.proc.pid)
 
     def _on_exit(self, child: Child, code: int) -> None:
         child.exit_code, child.changed_at = code, time.monotonic()
@@ -276,8 +280,8 @@ class Launcher:
                         if duration_s is not None:
                             deadline = now + duration_s
                         self.ready_event.set()
-                        log.info("graph %r ready: %d nodes up in %.1f s", self.graph.name, len(node_names),
-                                 now - started)
+                        self._progress("graph %r ready: %d nodes up in %.1f s", self.graph.name, len(node_names),
+                                       now - started)
                         if on_ready is not None:
                             on_ready()
                     elif now - started > self.startup_timeout_s:
