@@ -3,6 +3,8 @@ published messages out, on a simulated clock. No processes, no Zenoh."""
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -542,3 +544,15 @@ def test_two_graphs_launched_from_one_directory_keep_their_own_template_file(tmp
             g.start()  # the node's setup
             paths.append(g.node("template")._state_path())
     assert paths == [Path("state/r2a/template.npz"), Path("state/r2b/template.npz")]
+
+
+def test_a_reset_reid_keeps_its_one_learning_thread():
+    """A node reset runs setup again; re-ID's background learner is one thread per process, not one per reset."""
+    with InProcessGraph(tracking_graph(), nodes=["reid"]) as g:
+        g.start()
+        node = g.node("reid")
+        learner = node.learner
+        threads = threading.active_count()
+        for _ in range(3):
+            node.reset()
+        assert node.learner is learner and threading.active_count() == threads
