@@ -9,6 +9,8 @@ small arrays travel inline as ext type 1, arrays of 4 KiB and more out of band a
 referencing the blob area, so a 720p frame is copied once on encode (into the joined frame, or, through
 :func:`pack_parts`, by bus/pubsub.py straight into a shared-memory buffer) and decoded zero-copy
 (``np.frombuffer``): decoded arrays are read-only views of the bytes given to :func:`unpack`.
+A recording stores a frame as plain MessagePack, the array ``[head, blob area]`` (:data:`RECORD_FORMAT`,
+:func:`frame_to_record`), and gets the frame back byte for byte (:func:`record_to_frame`).
 """
 
 from __future__ import annotations
