@@ -9,6 +9,8 @@ small arrays travel inline as ext type 1, arrays of 4 KiB and more out of band a
 referencing the blob area, so a 720p frame is copied once on encode (into the joined frame, or, through
 :func:`pack_parts`, by bus/pubsub.py straight into a shared-memory buffer) and decoded zero-copy
 (``np.frombuffer``): decoded arrays are read-only views of the bytes given to :func:`unpack`.
+A recording stores a frame as plain MessagePack, the array ``[head, blob area]`` (:data:`RECORD_FORMAT`,
+:func:`frame_to_record`), and gets the frame back byte for byte (:func:`record_to_frame`).
 """
 
 from __future__ import annotations
@@ -381,3 +383,74 @@ def frame_parts(data: bytes | bytearray | memoryview) -> tuple[memoryview, memor
     """(head, blob area) views of an encoded message, neither decoded (a malformed one: DecodeError): what a
     comparison of two messages' bytes needs (replay/diff.py)."""
     return _split(data)
+
+
+# --- a frame as a recording stores it: one MessagePack document --------------------------------------
+
+RECORD_ARRAY = b"\x92"  # MessagePack fixarray of 2 elements: [head, blob area]
+BIN32 = 0xC6
+_BLOB_BIN = struct.Struct(">BI")  # bin32 marker and length (MessagePack is big-endian)
+_HEAD_FEED_BYTES = 64 * 1024  # the head is small; the blob area behind it is never fed to the unpacker
+
+RECORD_FORMAT = f"""\
+RECORD FORMAT (a followbus frame in a recording, message_encoding "msgpack")
+
+Each message of a bus channel is exactly one MessagePack value, an array of 2 elements [head, blob area]:
+  0x{RECORD_ARRAY.hex()}   the array marker (fixarray of 2 elements)
+  head   the frame's head (below), its very bytes: a map, which any MessagePack library reads
+  0x{BIN32:02x}   bin 32 marker, then the blob area's byte length as uint32 big-endian (this form always,
+         even when the blob area is empty), then the blob area's bytes (below)
+The head's arrays are MessagePack ext values (types {NDARRAY_EXT} and {NDARRAY_REF_EXT} below); the offset of an
+ext type {NDARRAY_REF_EXT} array counts from the start of the blob area, the bin's bytes.
+The followbus frame is the bytes "{MAGIC.decode()}", the head's byte length as uint32 little-endian, the head
+and the blob area: followbus replays it byte for byte. Recordings made before stored that frame itself
+(message_encoding "x-followbus-frame/1", or "msgpack" on bytes starting with "{MAGIC.decode()}"): they still read.
+"""
+
+
+def _value_length(view: memoryview) -> int:
+    """The byte length of the one MessagePack value ``view`` starts with, fed to the unpacker a piece at a time
+    (what follows a frame's head is its blobs, megabytes of them); DecodeError when it is not one."""
+    unpacker = msgpack.Unpacker()
+    fed, piece = 0, _HEAD_FEED_BYTES
+    while True:
+        unpacker.feed(view[fed:fed + piece])
+        fed += piece
+        try:
+            unpacker.skip()
+            return unpacker.tell()
+        except msgpack.OutOfData:
+            if fed >= len(view):
+                raise DecodeError("truncated: the head is not a complete MessagePack value") from None
+            piece *= 2
+        except Exception as exc:  # msgpack raises a zoo of exception types on garbage
+            raise DecodeError(f"not msgpack: {exc!r}") from exc
+
+
+def frame_to_record(frame: bytes | bytearray | memoryview) -> bytes:
+    """The MessagePack array ``[head, blob area]`` a recording stores for a frame (:data:`RECORD_FORMAT`): the
+    head's bytes as they are (never decoded and written again), the blobs copied once. DecodeError when
+    ``frame`` is not a frame whose head is one MessagePack value (such bytes cannot be stored this way)."""
+    head, blobs = _split(frame)
+    if _value_length(head) != len(head):
+        raise DecodeError("the head holds more than one MessagePack value")
+    return b"".join((RECORD_ARRAY, head, _BLOB_BIN.pack(BIN32, len(blobs)), blobs))
+
+
+def record_to_frame(data: bytes | bytearray | memoryview) -> bytes:
+    """The frame a bus channel's message holds, byte for byte as it was published: a ``[head, blob area]``
+    array (:func:`frame_to_record`) made a frame again; a frame (recordings made before) as it is.
+    DecodeError for anything else (a truncated or foreign message)."""
+    if data[:len(MAGIC)] == MAGIC:
+        return bytes(data)
+    view = memoryview(data)
+    if view[:1] != RECORD_ARRAY:
+        raise DecodeError("neither a followbus frame nor a recorded [head, blob area] array")
+    head_end = 1 + _value_length(view[1:])
+    if len(view) < head_end + _BLOB_BIN.size:
+        raise DecodeError("truncated: no blob area after the head")
+    marker, size = _BLOB_BIN.unpack_from(view, head_end)
+    blobs_at = head_end + _BLOB_BIN.size
+    if marker != BIN32 or blobs_at + size != len(view):
+        raise DecodeError(f"the blob area is not a bin 32 of the {len(view) - blobs_at} bytes after the head")
+    return b"".join((_PREFIX.pack(MAGIC, head_end - 1), view[1:head_end], view[blobs_at:]))

@@ -5,14 +5,16 @@ tools/recording/mcap_io.py writes and repairs) and nodes (capture reads a record
 so it lives in bus/: it knows the frame (bus/codec.py) and the message registry, no application type. The
 record-level parsing of the file (a chunk's fields, the records of an unfinalised file) is here too, once.
 
-A bus channel is labelled ``message_encoding: x-followbus-frame/1``: a custom encoding in the MCAP
-spec's sense (custom values take the ``x-`` prefix), because the bytes are a followbus frame (magic,
-length, MessagePack head, array blobs), not plain MessagePack: ``msgpack.unpackb`` of one raises
-ExtraData. Its schema ``followbus.<Type>``, encoding ``x-followbus-schema/1``, is a UTF-8 text
-document: the frame layout (:data:`followbus.bus.codec.FRAME_FORMAT`) and the type's fields, enough to
-write a decoder from. Recordings made before this carried ``msgpack`` (schema encoding
-``followbus-msgpack``) on the same bytes: read as an alias on channels the recorder made (``bus_key``
-in the channel metadata).
+A bus channel is labelled ``message_encoding: msgpack`` (the MCAP registry's well-known value): each message
+is one MessagePack array ``[head, blob area]`` (:data:`followbus.bus.codec.RECORD_FORMAT`), the frame's head
+bytes as they were published and its blobs in a bin, so any MessagePack library decodes it and followbus gets
+the frame back byte for byte (:func:`followbus.bus.codec.record_to_frame`, the one conversion, used by every
+reader here; the writer, tools/recording/mcap_io.py, makes the array). Its schema ``followbus.<Type>``,
+encoding ``x-followbus-schema/1``, is a UTF-8 text document: the array, the frame layout
+(:data:`followbus.bus.codec.FRAME_FORMAT`) and the type's fields, enough to write a decoder from.
+Recordings made before stored the frame itself: labelled ``x-followbus-frame/1``, or earlier ``msgpack``
+(schema encoding ``followbus-msgpack``) on channels the recorder made (``bus_key`` in the channel metadata).
+Both still read: a message is told by its first bytes (``FB1``: a frame, 0x92: the array).
 """
 
 from __future__ import annotations
@@ -38,15 +40,15 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, ChunkIndex, Footer, Metadata, MetadataIndex, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from .codec import FRAME_FORMAT
+from .codec import FRAME_FORMAT, RECORD_FORMAT, DecodeError, record_to_frame
 from .schemas import SCHEMA_VERSION, SCHEMAS
 
 log = logging.getLogger("followbus.recording")
 
-BUS_MESSAGE_ENCODING = "x-followbus-frame/1"
+BUS_MESSAGE_ENCODING = "msgpack"  # on a channel with "bus_key" metadata: a followbus frame, as RECORD_FORMAT says
 BUS_SCHEMA_ENCODING = "x-followbus-schema/1"
 BUS_SCHEMA_PREFIX = "followbus."
-LEGACY_MESSAGE_ENCODING = "msgpack"  # what recordings said before; the bytes were the same frame
+FRAME_MESSAGE_ENCODING = "x-followbus-frame/1"  # what recordings said before: the frame's own bytes
 
 
 class RecordingError(Exception):
@@ -112,7 +114,7 @@ def schema_document(type_name: str) -> bytes:
     cls = SCHEMAS.get(type_name)
     lines = [f"{BUS_SCHEMA_PREFIX}{type_name}",
              f"Messages of channels with message_encoding \"{BUS_MESSAGE_ENCODING}\" and this schema "
-             f"(encoding \"{BUS_SCHEMA_ENCODING}\": this text).", "", FRAME_FORMAT]
+             f"(encoding \"{BUS_SCHEMA_ENCODING}\": this text).", "", RECORD_FORMAT, FRAME_FORMAT]
     if cls is None:
         lines.append(f"FIELDS of {type_name}: unknown to the recorder (a type of a newer or other build).")
     else:
@@ -126,9 +128,20 @@ def schema_document(type_name: str) -> bytes:
 
 
 def is_bus_channel(channel: Channel) -> bool:
-    """A channel of followbus frames: the current label, or the old one on a channel our recorder made."""
-    return channel.message_encoding == BUS_MESSAGE_ENCODING or (
-        channel.message_encoding == LEGACY_MESSAGE_ENCODING and "bus_key" in channel.metadata)
+    """A channel of followbus messages: ``msgpack`` on a channel our recorder made (``bus_key`` names the bus key;
+    its views carry it too, with their own encodings), or the label of recordings made before."""
+    return channel.message_encoding == FRAME_MESSAGE_ENCODING or (
+        channel.message_encoding == BUS_MESSAGE_ENCODING and "bus_key" in channel.metadata)
+
+
+def stored_frame(data: bytes | memoryview) -> bytes:
+    """The frame a bus channel's message holds (:func:`followbus.bus.codec.record_to_frame`, any form a
+    recording has used); bytes that are none of them come back as they are, so that whoever decodes them
+    counts a message that does not decode, as for a corrupt frame."""
+    try:
+        return record_to_frame(data)
+    except DecodeError:
+        return bytes(data)
 
 
 # --- reading ---------------------------------------------------------------------------------------
@@ -264,8 +277,8 @@ def iter_bus_messages(path: str | Path, keys: Iterable[str] | None = None,
     with open_recording(path) as f:
         for _schema, channel, msg in make_reader(f).iter_messages(topics=topics, log_time_order=True):
             if is_bus_channel(channel):  # not a Foxglove channel that shares the topic
-                yield BusMessage(channel.topic, channel.metadata.get("type", ""), msg.log_time, msg.data,
-                                 msg.sequence)
+                yield BusMessage(channel.topic, channel.metadata.get("type", ""), msg.log_time,
+                                 stored_frame(msg.data), msg.sequence)
 
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -428,7 +441,7 @@ def _parse_records(data: memoryview, summary: Any, channel_ids: set[int]) -> Ite
         if channel_id in channel_ids:
             channel = summary.channels[channel_id]
             yield BusMessage(channel.topic, channel.metadata.get("type", ""), log_time,
-                             bytes(data[body + _MESSAGE_HEAD.size:pos]), sequence)
+                             stored_frame(data[body + _MESSAGE_HEAD.size:pos]), sequence)
 
 
 # --- salvaging a damaged file ----------------------------------------------------------------------

@@ -88,10 +88,11 @@ def graph_file(tmp_path: Path, port: int) -> Callable[[str], Path]:
 
 def copy_recording(src: Path, dst: Path, *, keep: Callable[[object, object], bool] | None = None,
                    relabel: Callable[[object, object], tuple[str, bytes, str]] | None = None,
-                   library: str = "test") -> None:
+                   rewrite: Callable[[object, bytes], bytes] | None = None, library: str = "test") -> None:
     """Rewrite an MCAP recording as a test needs it: ``keep(channel, message)`` drops messages (a recorder that
     missed some), ``relabel(schema, channel)`` gives (schema encoding, schema data, message encoding) for a
-    channel with a schema (older labels); metadata is copied as it is."""
+    channel with a schema (older labels), ``rewrite(channel, data)`` a message's data (the bytes older
+    recordings stored); metadata is copied as it is."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
@@ -115,7 +116,8 @@ def copy_recording(src: Path, dst: Path, *, keep: Callable[[object, object], boo
                         schema_ids[schema.id] = writer.register_schema(schema.name, schema_encoding, data)
                     sid = schema_ids[schema.id]
                 channel_ids[channel.id] = writer.register_channel(channel.topic, encoding, sid, dict(channel.metadata))
-            writer.add_message(channel_ids[channel.id], message.log_time, message.data, message.publish_time,
+            data = message.data if rewrite is None else rewrite(channel, message.data)
+            writer.add_message(channel_ids[channel.id], message.log_time, data, message.publish_time,
                                message.sequence)
         for name, data in read_metadata(src).items():
             writer.add_metadata(name, data)

@@ -151,6 +151,8 @@ def test_while_recording_the_recorder_gets_the_real_frames_and_nodes_keep_the_la
     frame, never a descriptor."""
     from mcap.reader import make_reader
 
+    from followbus.bus.recording import stored_frame
+
     session = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
     lane_seen: list[bool] = []
     sub = Subscriber(session, "lr/frame", lambda m: m.header.frame_seq >= 0 and lane_seen.append(_lane_view(m.data)),
@@ -182,8 +184,9 @@ def test_while_recording_the_recorder_gets_the_real_frames_and_nodes_keep_the_la
     with open(out, "rb") as f:
         for _schema, channel, message in make_reader(f).iter_messages():
             assert channel.topic == "lr/frame"
-            assert message.data[:3] == MAGIC, "a recording holds frames, never lane descriptors"
-            msg = decode(message.data, Frame)
+            data = stored_frame(message.data)
+            assert data[:3] == MAGIC, "a recording holds frames, never lane descriptors"
+            msg = decode(data, Frame)
             frames[msg.header.frame_seq] = msg
     assert set(range(10)) <= set(frames), sorted(frames)
     for i in range(10):

@@ -6,6 +6,7 @@ recorder, and check the Foxglove channels with an independent reader (the offici
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -23,7 +24,7 @@ from mcap.reader import make_reader
 
 from followbus.bus.health import HealthWatcher
 from followbus.bus.pubsub import Publisher
-from followbus.bus.recording import read_metadata
+from followbus.bus.recording import is_bus_channel, read_metadata, stored_frame
 from followbus.bus.schemas import Frame, Tick, decode
 from followbus.bus.session import ZenohSettings, open_session
 from followbus.msgs.perception import Detections
@@ -163,10 +164,13 @@ def recorded(tmp_path_factory) -> Recorded:
 
 
 def read_all(path: Path) -> dict[str, list]:
-    """Every message by topic, read with the mcap package's own reader."""
+    """Every message by topic, read with the mcap package's own reader; a bus channel's message data is its frame
+    (bus/recording.stored_frame: the one conversion of what a bus channel holds)."""
     out: dict[str, list] = {}
     with open(path, "rb") as f:
         for _schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            if is_bus_channel(channel):
+                message = dataclasses.replace(message, data=stored_frame(message.data))
             out.setdefault(channel.topic, []).append((channel, message))
     return out
 
@@ -181,7 +185,7 @@ def test_record_holds_every_published_message(recorded: Recorded):
     assert len(relayed) == recorded.relay_published == recorded.sink_received == TICKS
     for channel, message in topics["t/ticker/tick"] + topics["t/relay/tick"]:
         msg = decode(message.data)
-        assert channel.message_encoding == "x-followbus-frame/1" and channel.metadata["type"] == "Tick"
+        assert channel.message_encoding == "msgpack" and channel.metadata["type"] == "Tick"
         assert message.log_time == message.publish_time == msg.header.stamp_ns > 0
         assert message.sequence == msg.header.seq
     for key in ("t/capture/frame", "t/detection/detections", "t/prediction/prior", "t/prediction/track"):
@@ -199,7 +203,7 @@ def test_record_holds_every_published_message(recorded: Recorded):
     info = run_followbus("info", str(recorded.path))
     assert info.returncode == 0, info.stderr
     row = next(line.split() for line in info.stdout.splitlines() if line.startswith("t/ticker/tick "))
-    assert row[1:4] == ["followbus.Tick", "x-followbus-frame/1", str(TICKS)]
+    assert row[1:4] == ["followbus.Tick", "msgpack", str(TICKS)]
     assert "compression none" in info.stdout  # the default: raw frames do not compress
 
 
@@ -269,7 +273,7 @@ def test_sigkilled_recorder_file_is_recovered(graph_file, port, tmp_path):
     assert len(ticks) > 0, result.stdout
     assert ticks == list(range(ticks[0], ticks[0] + len(ticks)))  # complete chunks: no hole in the middle
     assert all(decode(m.data).header.stamp_ns == m.log_time for msgs in topics.values() for c, m in msgs
-               if c.message_encoding == "x-followbus-frame/1")  # the bus channels (views: tests/test_record_views.py)
+               if is_bus_channel(c))  # the bus channels (views: tests/test_record_views.py)
     assert read_metadata(fixed)["followbus"]["namespace"] == "t"
     assert f"recovered {sum(len(v) for v in topics.values())} messages" in result.stdout
 

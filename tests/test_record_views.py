@@ -1,7 +1,8 @@
-"""Recordings read without followbus: every view channel decodes with third-party readers only (the mcap
-package's reader with mcap-ros2-support's decoder factory, JSON validated against the JSON Schema stored in the
-file, and rosbags reading the ROS 2 companion file by the message definitions stored in it), and --split-size /
---split-duration cut a recording into files that each open on their own."""
+"""Recordings read without followbus: every channel decodes with third-party readers only (the bus channels by
+the mcap package's reader and msgpack, the views by the mcap reader with mcap-ros2-support's decoder factory,
+JSON validated against the JSON Schema stored in the file, and rosbags reading the ROS 2 companion file by the
+message definitions stored in it), and --split-size / --split-duration cut a recording into files that each open
+on their own."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import time
 from pathlib import Path
 
 import jsonschema
+import msgpack
 import numpy as np
 import pytest
 from mcap.reader import make_reader
@@ -18,7 +20,7 @@ from mcap_ros2.decoder import DecoderFactory
 from rosbags.rosbag2 import Reader as RosbagsReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from followbus.bus.recording import BUS_MESSAGE_ENCODING
+from followbus.bus.recording import BUS_MESSAGE_ENCODING, stored_frame
 from followbus.bus.schemas import SCHEMAS, Frame, decode
 from followbus.msgs.perception import Detections
 from followbus.msgs.robot import MotorCommand, Odometry
@@ -31,15 +33,40 @@ ROS2_TYPES = {"image": "sensor_msgs/msg/CompressedImage", "twist": "geometry_msg
               "odometry": "nav_msgs/msg/Odometry", "detections2d": "vision_msgs/msg/Detection2DArray"}
 
 
-def decode_every_view(path: Path) -> dict[str, list]:
-    """Every message of every channel but the bus ones, decoded by third-party code: cdr by mcap-ros2-support,
-    json by json.loads checked against the channel's JSON Schema. Fails on a channel nothing decodes."""
+def ext_values(value: object) -> list[msgpack.ExtType]:
+    """The MessagePack ext values anywhere in a decoded value (the arrays of a bus message's head)."""
+    if isinstance(value, msgpack.ExtType):
+        return [value]
+    items = value.values() if isinstance(value, dict) else value if isinstance(value, list) else []
+    return [ext for item in items for ext in ext_values(item)]
+
+
+def decode_bus_message(data: bytes) -> dict:
+    """A bus channel's message read by msgpack alone, as its schema document says: the array [head, blob area];
+    the head a map with the type name; the out-of-band arrays (ext type 2: [dtype, shape, offset, nbytes]) lie
+    one after the other in the blob area and fill it."""
+    head, blobs = msgpack.unpackb(data, strict_map_key=False)
+    assert isinstance(head, dict) and isinstance(head["_t"], str) and isinstance(blobs, bytes), head
+    refs = [msgpack.unpackb(ext.data) for ext in ext_values(head) if ext.code == 2]
+    assert [offset for _dtype, _shape, offset, _n in refs] == [sum(r[3] for r in refs[:i]) for i in range(len(refs))]
+    assert sum(nbytes for _dtype, _shape, _offset, nbytes in refs) == len(blobs), (head["_t"], refs, len(blobs))
+    return head
+
+
+def decode_every_channel(path: Path) -> tuple[dict[str, list], dict[str, list]]:
+    """(bus messages by key, views by topic): every message of every channel decoded by third-party code, bus
+    ones by msgpack (their head: type name and schema name agree), cdr by mcap-ros2-support, json by json.loads
+    checked against the channel's JSON Schema. Fails on a channel nothing decodes."""
+    bus: dict[str, list] = {}
     out: dict[str, list] = {}
     cdr_topics = set()
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         for schema, channel, message in reader.iter_messages():
             if channel.message_encoding == BUS_MESSAGE_ENCODING:
+                head = decode_bus_message(message.data)
+                assert head["_t"] == channel.metadata["type"] and schema.name == f"followbus.{head['_t']}", channel
+                bus.setdefault(channel.topic, []).append(head)
                 continue
             if channel.message_encoding == "cdr":
                 assert schema.encoding == "ros2msg", channel.topic
@@ -51,7 +78,13 @@ def decode_every_view(path: Path) -> dict[str, list]:
             out.setdefault(channel.topic, []).append(value)
         for _schema, channel, _message, decoded in reader.iter_decoded_messages(topics=sorted(cdr_topics)):
             out.setdefault(channel.topic, []).append(decoded)
-    return out
+        assert {c.topic for c in reader.get_summary().channels.values()} == set(bus) | set(out)
+    return bus, out
+
+
+def decode_every_view(path: Path) -> dict[str, list]:
+    """Every view channel's messages, decoded by third-party code (and every bus channel's, checked)."""
+    return decode_every_channel(path)[1]
 
 
 def bus_keys(path: Path) -> dict[str, list]:
@@ -167,7 +200,7 @@ def test_split_size_and_duration_cut_the_recording_into_files_that_open_alone(tm
             reader = make_reader(f)
             assert reader.get_summary() is not None  # finalised: summary and index
             assert {m.name for m in reader.iter_metadata()} >= {"followbus", "split", "recording_stats"}
-            seqs += [decode(m.data).header.frame_seq for _s, c, m in reader.iter_messages()
+            seqs += [decode(stored_frame(m.data)).header.frame_seq for _s, c, m in reader.iter_messages()
                      if c.message_encoding == BUS_MESSAGE_ENCODING]
         assert decode_every_view(file)["n1s/capture/frame/image"]
         assert read_with_rosbags(ros2_path(file))["n1s/capture/frame/image"]
@@ -184,13 +217,17 @@ def test_record_refuses_a_negative_split(tmp_path):
 
 @pytest.mark.slow
 def test_a_recorded_demo_run_decodes_without_followbus(tmp_path):
-    """The tracking graph (demo scene, simulated detector) launched with --record for ~40 frames: every bus key has
-    views, every view decodes by third-party readers, and the Twist view carries the command's own velocities."""
+    """The tracking graph (demo scene, simulated detector) launched with --record for ~40 frames: every channel
+    decodes by third-party readers, every bus key has views, and the Twist view carries the command's own
+    velocities, as the bus message (read by msgpack) does."""
     from .test_replay_tracking import _record
 
     path = _record(tmp_path, "n1demo", 100)  # (_record counts 60 fewer: ~40 frames of re-ID)
-    views = decode_every_view(path)
+    bus, views = decode_every_channel(path)
     keys = bus_keys(path)
+    assert set(bus) == set(keys) and all(bus[key] for key in keys)
+    frames = bus["n1demo/capture/frame"]
+    assert frames and all(f["data"].code == 2 for f in frames)  # the image: out of band, in the blob area
     assert {"n1demo/motor/command", "n1demo/motor/odometry", "n1demo/reid/measurement",
             "n1demo/prediction/track", "n1demo/capture/frame"} <= set(keys)
     for key in keys:
@@ -198,6 +235,8 @@ def test_a_recorded_demo_run_decodes_without_followbus(tmp_path):
     commands = [views["n1demo/motor/command/json"], views["n1demo/motor/command/twist"]]
     assert len(commands[0]) == len(commands[1]) > 0
     assert [(c["vx_mps"], c["wz_radps"]) for c in commands[0]] == [(t.linear.x, t.angular.z) for t in commands[1]]
+    assert [(c["vx_mps"], c["wz_radps"]) for c in bus["n1demo/motor/command"]] == [(t.linear.x, t.angular.z)
+                                                                                 for t in commands[1]]
     states = {t["state"] for t in views["n1demo/prediction/track/json"]}
     assert states and states <= {"TRACKING", "OCCLUDED", "REACQUIRED", "LOST", "UNINITIALISED"}, states
     ros2 = read_with_rosbags(ros2_path(path))

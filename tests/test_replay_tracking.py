@@ -116,6 +116,7 @@ def test_frames_whose_joined_feedback_the_recorder_missed_are_not_verifiable(rec
     """The recorder stopped between re-ID's last measurements and prediction's last tracks (SIGINT does that):
     the frames that joined a measurement absent from the recording cannot be reproduced, so they are counted as
     not verifiable, not as missing (the flake of the fallback test below was this)."""
+    from followbus.bus.recording import stored_frame
     from followbus.replay.feed import frame_and_stamp as _header
 
     from .conftest import copy_recording
@@ -124,7 +125,7 @@ def test_frames_whose_joined_feedback_the_recorder_missed_are_not_verifiable(rec
     cut = last - 5
 
     def keep(channel, message) -> bool:
-        return not (channel.topic == "rt/reid/measurement" and _header(message.data)[0] >= cut)
+        return not (channel.topic == "rt/reid/measurement" and _header(stored_frame(message.data))[0] >= cut)
 
     lacking = tmp_path / "lacking.mcap"
     copy_recording(recording, lacking, keep=keep, library="test: the recorder stopped before re-ID's last outputs")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from followbus.bus.recording import is_bus_channel, iter_bus_messages
+from followbus.bus.recording import is_bus_channel, iter_bus_messages, stored_frame
 from followbus.bus.schemas import Tick
 from followbus.msgs.perception import Detections
 from followbus.msgs.tracking import Measurement, Prior
@@ -42,7 +42,7 @@ def test_chunk_reader_gives_what_the_mcap_reader_gives(tmp_path, compression):
 
     def reference(topics):
         with open(path, "rb") as f:
-            return [(c.topic, m.log_time, m.sequence, m.data) for _s, c, m in
+            return [(c.topic, m.log_time, m.sequence, stored_frame(m.data)) for _s, c, m in
                     make_reader(f).iter_messages(topics=topics, log_time_order=True) if is_bus_channel(c)]
 
     ours = [(m.key, m.log_time, m.sequence, m.data) for m in iter_bus_messages(path)]

@@ -4,12 +4,13 @@ the Foxglove channels beside them, metadata; finalising a cut file in place, ``f
 
 Layout of a recording:
 
-- bus channels: topic = the bus key (``fb/capture/frame``), message encoding ``x-followbus-frame/1``
-  (the exact bytes of the followbus frame), schema ``followbus.<TYPE>`` with encoding
-  ``x-followbus-schema/1`` whose data is a text document of the frame layout and the type's fields
-  (bus/recording.py). ``sequence`` = header.seq,
+- bus channels: topic = the bus key (``fb/capture/frame``), message encoding ``msgpack``: the MessagePack
+  array ``[head, blob area]`` of the followbus frame (bus/codec.py RECORD_FORMAT; callers of ``write`` give
+  the frame, the writer converts it, readers get the exact frame back), schema ``followbus.<TYPE>`` with
+  encoding ``x-followbus-schema/1`` whose data is a text document of the array, the frame layout and the
+  type's fields (bus/recording.py). ``sequence`` = header.seq,
   log_time = publish_time = header.stamp_ns (receive time only when the stamp is 0). Recordings made
-  before carry ``msgpack`` on the same bytes, read as an alias.
+  before stored the frame itself (``x-followbus-frame/1``, earlier ``msgpack``): they still read.
 - view channels beside them, so every message decodes without followbus (tools/recording/views.py):
   ``<key>/image`` (sensor_msgs/msg/CompressedImage or Image), ``<key>/twist``, ``<key>/odometry``,
   ``<key>/detections2d`` (ROS 2 CDR, ``ros2msg`` schemas), ``<key>/json`` (JSON + JSON Schema) and
@@ -52,6 +53,7 @@ from mcap.records import (
 )
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
+from ...bus.codec import DecodeError, frame_to_record
 from ...bus.recording import (
     BUS_MESSAGE_ENCODING,
     BUS_SCHEMA_ENCODING,
@@ -179,11 +181,14 @@ class RecordingWriter:
 
     def write(self, channel_id: int, log_time: int, data: bytes, publish_time: int | None = None,
               sequence: int = 0) -> None:
+        """``data``: a view's payload, or on a bus channel the message's frame as it travelled on the bus."""
+        key = self._bus_topics.get(channel_id)
+        if key is not None:
+            data = _bus_record(data)
         self._writer.add_message(channel_id=channel_id, log_time=log_time, data=data,
                                  publish_time=log_time if publish_time is None else publish_time,
                                  sequence=sequence & 0xFFFFFFFF)
         self.messages += 1
-        key = self._bus_topics.get(channel_id)
         if key is not None:
             self._pending_counts[key] = self._pending_counts.get(key, 0) + 1
         self._pending_bytes += len(data) + 31  # + the Message record's own fields
@@ -227,6 +232,15 @@ class RecordingWriter:
             self._file.close()
         return finalise_in_place(self.path, self.durable_offset, self._schema_records.values(),
                                  self._channel_records.values(), metadata)
+
+
+def _bus_record(frame: bytes) -> bytes:
+    """What a bus channel stores for ``frame``: its MessagePack array; a payload that is no frame (a foreign
+    publisher's bytes on a recorded key) is kept as it came, and reads back as such, counted as undecodable."""
+    try:
+        return frame_to_record(frame)
+    except DecodeError:
+        return frame
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """The views a recording stores beside each bus message, so every message decodes without followbus.
 
-A bus channel keeps the exact bytes of the followbus frame (``x-followbus-frame/1``: what replay and play use,
+A bus channel keeps the followbus frame losslessly (``msgpack``, [head, blob area]: what replay and play use,
 bit-exact). Beside it, per bus key:
 
 - ``<key>/image``: a Frame as ``sensor_msgs/msg/CompressedImage`` (JPEG; a jpeg Frame's own bytes), or with
