@@ -60,7 +60,9 @@ def _record(tmp, namespace: str, frames: int, during=None, *extra: str):
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
-    return _record(tmp_path_factory.mktemp("rec"), "rt", 220)
+    # 330 frames: beside two CPU burners the recorder drops some of them under its queue bound and the live nodes
+    # skip some, and the tests below compare more than 100 outputs (220 left 42-98 under load).
+    return _record(tmp_path_factory.mktemp("rec"), "rt", 330)
 
 
 @pytest.mark.parametrize("node", ["reid", "prediction"])
