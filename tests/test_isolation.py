@@ -120,6 +120,7 @@ def test_two_demos_at_once_each_run_their_own_graph(tmp_path):
     assert sum("running in domain 1:" in out for out in outs) == 1, outs
     for out in outs:
         assert re.search(r"TSR@20px \d", out), out
+        assert re.search(r"detector: \d+\.\d ms a frame \(p90 \d+\.\d\) for a 33\.3 ms frame period", out), out
 
 
 def test_demo_from_another_directory_runs_the_checkouts_graph(tmp_path, monkeypatch, capsys):

@@ -492,12 +492,18 @@ def test_foxglove_bridge_serves_the_group_scene():
             if opcode == 1 and (msg := json.loads(data)).get("op") == "advertise":
                 channels.update({c["topic"]: c for c in msg["channels"]})
         assert channels["/t/group/scene"]["schemaName"] == "foxglove.SceneUpdate", channels
-        ws.send_text(json.dumps({"op": "subscribe", "subscriptions": [
-            {"id": 1, "channelId": channels["/t/group/scene"]["id"]}]}))
+        subscription = 0
+        scene_id = None
         while time.monotonic() < deadline:
+            if channels["/t/group/scene"]["id"] != scene_id:  # (re-)advertised: subscribe as a Foxglove client does
+                scene_id, subscription = channels["/t/group/scene"]["id"], subscription + 1
+                ws.send_text(json.dumps({"op": "subscribe", "subscriptions": [
+                    {"id": subscription, "channelId": scene_id}]}))
             opcode, data = ws.recv()
-            if opcode == 2 and data[0] == 1:
-                assert int.from_bytes(data[1:5], "little") == 1 and b"base_link" in data[13:]
+            if opcode == 1 and (msg := json.loads(data)).get("op") == "advertise":
+                channels.update({c["topic"]: c for c in msg["channels"]})
+            elif opcode == 2 and data[0] == 1 and int.from_bytes(data[1:5], "little") == subscription:
+                assert b"base_link" in data[13:]
                 break
         else:
             raise AssertionError("no group scene through the Foxglove server")

@@ -38,6 +38,7 @@ class DemoWatcher:
         self.template: Template | None = None
         self.command: MotorCommand | None = None
         self.latencies_ms: list[float] = []
+        self.infer_ms: list[float] = []  # the detector's time per frame: what decides the skipped frames
         self.backend = ""
         self.session = open_session(graph.zenoh)  # a peer like the nodes: it may start first
         key = graph.key
@@ -64,6 +65,8 @@ class DemoWatcher:
 
     def _on_dets(self, msg: Detections) -> None:
         self.backend = msg.backend
+        with self.lock:
+            self.infer_ms.append(msg.infer_ms)
 
     def _on_command(self, msg: MotorCommand) -> None:
         with self.lock:
@@ -93,6 +96,7 @@ class DemoWatcher:
             preds = [None if (t := self.tracks.get(i)) is None or t.box is None else tuple(t.box) for i in frames]
             gts = [None if self.truth[i].box is None else tuple(self.truth[i].box) for i in frames]
             lat = np.array(self.latencies_ms)
+            infer = np.array(self.infer_ms)
         out: dict = {"frames": len(frames), "in_flight": in_flight, "tracked_frames": sum(p is not None for p in preds),
                      "processed_frames": sum(i in processed for i in frames)}
         if frames and any(g is not None for g in gts):
@@ -100,6 +104,8 @@ class DemoWatcher:
             out.update(tsr=metrics.tsr, cle=metrics.cle, precision=metrics.precision, reid=metrics.reid_events)
         if lat.size:
             out.update(latency_p50_ms=float(np.percentile(lat, 50)), latency_p99_ms=float(np.percentile(lat, 99)))
+        if infer.size:
+            out.update(infer_ms_mean=float(infer.mean()), infer_ms_p90=float(np.percentile(infer, 90)))
         return out
 
     def close(self) -> None:
@@ -109,6 +115,7 @@ class DemoWatcher:
 
 
 DEMO_LOG_DIR = Path("state")
+CAMERA_HZ = 30.0  # the synthetic scenes' frame rate
 CHECKOUT = Path(__file__).resolve().parents[1]  # the repository (followbus is installed editable from it)
 
 
@@ -155,6 +162,26 @@ def last_error_lines(log_path: Path, count: int = ERROR_LINES_SHOWN) -> list[str
             if len(hits) == count:
                 break
     return hits[::-1]
+
+
+def print_summary(summary: dict) -> None:
+    """The demo's closing lines: frames, TSR@20px against the scene's truth, re-ID events, latency, detector time."""
+    in_flight = f" (and {summary['in_flight']} still in the pipeline at the stop)" if summary["in_flight"] else ""
+    print(f"summary: {summary['frames']} frames captured{in_flight}, {summary['processed_frames']} processed end to "
+          f"end (the rest skipped by a detector that could not keep up), {summary['tracked_frames']} with a target box")
+    if "tsr" in summary:
+        print(f"  TSR@20px {summary['tsr'] * 100:.1f} % (a skipped frame counts as a failure)   "
+              f"CLE {summary['cle']:.1f} px   precision {summary['precision'] * 100:.1f} %")
+        for event in summary["reid"]:
+            lat = f"{event.latency_ms:.0f} ms" if event.latency_ms is not None else "not re-locked"
+            print(f"  occlusion of {event.occluded_frames} frames: re-identified {lat} after reappearance")
+    if "latency_p50_ms" in summary:
+        print(f"  capture -> motor command latency: p50 {summary['latency_p50_ms']:.1f} ms, "
+              f"p99 {summary['latency_p99_ms']:.1f} ms")
+    if "infer_ms_mean" in summary:
+        # Skipped frames come from here: the detector's frame time against the camera's period.
+        print(f"  detector: {summary['infer_ms_mean']:.1f} ms a frame (p90 {summary['infer_ms_p90']:.1f}) "
+              f"for a {1000 / CAMERA_HZ:.1f} ms frame period")
 
 
 def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: list[str] | None = None) -> int:
@@ -205,18 +232,7 @@ def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: 
     summary = watcher.summary()
     watcher.close()
     print()
-    in_flight = f" (and {summary['in_flight']} still in the pipeline at the stop)" if summary["in_flight"] else ""
-    print(f"summary: {summary['frames']} frames captured{in_flight}, {summary['processed_frames']} processed end to "
-          f"end (the rest skipped by a detector that could not keep up), {summary['tracked_frames']} with a target box")
-    if "tsr" in summary:
-        print(f"  TSR@20px {summary['tsr'] * 100:.1f} % (a skipped frame counts as a failure)   "
-              f"CLE {summary['cle']:.1f} px   precision {summary['precision'] * 100:.1f} %")
-        for event in summary["reid"]:
-            lat = f"{event.latency_ms:.0f} ms" if event.latency_ms is not None else "not re-locked"
-            print(f"  occlusion of {event.occluded_frames} frames: re-identified {lat} after reappearance")
-    if "latency_p50_ms" in summary:
-        print(f"  capture -> motor command latency: p50 {summary['latency_p50_ms']:.1f} ms, "
-              f"p99 {summary['latency_p99_ms']:.1f} ms")
+    print_summary(summary)
     problems = launcher.problems()
     if summary["frames"] == 0 and not launcher.interrupted:
         problems.insert(0, "0 frames captured")

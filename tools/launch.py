@@ -118,10 +118,6 @@ class Launcher:
                 argv += ["--set", item]
         return argv
 
-    def _progress(self, fmt: str, *args: object) -> None:
-        """Start-up progress: INFO, or DEBUG for a quiet launcher (a bench's own output stays its figures)."""
-        log.log(logging.DEBUG if self.quiet else logging.INFO, fmt, *args)
-
     def _print(self, text: str) -> None:
         if self.quiet:
             return
@@ -158,7 +154,7 @@ class Launcher:
         child.threads.append(thread)
         child.pid, child.exit_code, child.changed_at = child.proc.pid, None, time.monotonic()
         self._table_due = 0.0
-        self._progress("started %s (pid %d)", child.name, child.proc.pid)
+        log.info("started %s (pid %d)", child.name, child.proc.pid)
 
     def _on_exit(self, child: Child, code: int) -> None:
         child.exit_code, child.changed_at = code, time.monotonic()
@@ -280,8 +276,9 @@ class Launcher:
                         if duration_s is not None:
                             deadline = now + duration_s
                         self.ready_event.set()
-                        self._progress("graph %r ready: %d nodes up in %.1f s", self.graph.name, len(node_names),
-                                       now - started)
+                        # `followbus up` waits for this line in a detached run's launch.log (READY_MARK).
+                        log.info("graph %r ready: %d nodes up in %.1f s", self.graph.name, len(node_names),
+                                 now - started)
                         if on_ready is not None:
                             on_ready()
                     elif now - started > self.startup_timeout_s:

@@ -97,6 +97,7 @@ class LaunchedPipeline:
         session = open_session(graph.zenoh)
         self._stack.callback(session.close)
         self._subscribe(session, graph)
+        logging.getLogger("followbus.launch").setLevel(logging.WARNING)  # the bench's output is its figures
         launcher = Launcher(graph, quiet=True, startup_timeout_s=60.0)
         ready = threading.Event()
         runner = threading.Thread(target=launcher.run, kwargs={"duration_s": 10 ** 6, "on_ready": ready.set},
