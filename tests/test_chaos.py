@@ -208,8 +208,10 @@ def runner(tmp_path_factory):
     options = ChaosOptions(detector="simulated", port=free_port(), workdir=workdir, log_file=workdir / "nodes.log",
                            hold_s=2.0, malformed_per_key=400, warmup_s=6.0,
                            # The test proves the loop comes back; how fast is the bench's figure (2 s bar,
-                           # RELIABILITY.md). Beside another test worker on 2 cores it may take longer.
-                           recovery_bound_s=5.0)
+                           # RELIABILITY.md). Beside another test worker on 2 cores, in a slow hour of this VM,
+                           # a recovery that ran into the scene's own occlusion took 5-7 s (fresh-clone suites,
+                           # 2026-11-26); never coming back still fails.
+                           recovery_bound_s=10.0)
     with ChaosRunner(options, launch=ChaosGraph) as r:
         yield r
 

@@ -394,7 +394,8 @@ def test_foxglove_bridge_serves_previews_and_annotations(tracking_robot):
                                            "monitor-secret", "--port", str(ws_port), "--seconds", "30"),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO)
     try:
-        assert wait_until(lambda: _port_open(ws_port), 15), proc.stdout.read() if proc.poll() is not None else ""
+        # 30 s: beside the other test worker's graph the bridge's start (its imports, a Zenoh session) took over 15.
+        assert wait_until(lambda: _port_open(ws_port), 30), proc.stdout.read() if proc.poll() is not None else ""
         ws = _WsClient(ws_port)
         channels: dict[str, dict] = {}
         deadline = time.monotonic() + 15
