@@ -286,9 +286,18 @@ def test_after_a_prediction_restart_reid_reinitialises_where_its_target_just_was
     moved = (44.0, 61.0, 40.0, 100.0)
     res = reid.step(frame, dets(moved, passer), None, None, 100 * MS)
     assert res.accepted and res.box == moved and res.source == "last"
+    # Frames shown without the target for longer than lost_after_ms: too old to trust.
     later = ReIdentifier(ReidParams(lost_after_ms=500.0))
     later.step(frame, dets(target), None, None, 0, init_box=target)
-    assert later.step(frame, dets(moved, passer), None, None, 900 * MS).box == passer  # too old to trust
+    for t_ms in range(33, 600, 33):
+        later.step(frame, dets(), None, None, t_ms * MS)
+    assert later.step(frame, dets(moved, passer), None, None, 627 * MS).box == passer
+    # But no frame at all for 900 ms (prediction restarting: no prior, so re-ID is given no input set) is no
+    # evidence against the box: re-ID re-locks where its target just was.
+    starved = ReIdentifier(ReidParams(lost_after_ms=500.0))
+    starved.step(frame, dets(target), None, None, 0, init_box=target)
+    res = starved.step(frame, dets(moved, passer), None, None, 900 * MS)
+    assert res.box == moved and res.source == "last"
 
 
 def test_adaptive_gate_grows_for_fast_or_weakly_detected_targets() -> None:

@@ -245,6 +245,8 @@ class ReIdentifier:
         self.state = TrackState.UNINITIALISED
         self._prev_grey: np.ndarray | None = None
         self._t_last_accept_ns = 0
+        self._t_last_frame_ns: int | None = None  # the last frame this re-ID was given (any outcome)
+        self._unseen_ns = 0  # the gap before the current frame in which it was given none (its inputs were down)
         self._reacquired_count = 0
         self._last_box: Box | None = None  # the last accepted box: where a re-initialisation looks first
         self._confirming: tuple[Box, int] | None = None  # a far re-lock candidate and its δ_id confirmations
@@ -258,6 +260,9 @@ class ReIdentifier:
         sample of the frame (descriptors: a few ms) is taken at the end, or with ``defer_learning`` when the
         caller calls :meth:`learn_pending` (the node: after publishing the measurement, off the motor's path)."""
         self._pending = None
+        previous, self._t_last_frame_ns = self._t_last_frame_ns, int(t_ns)
+        period_ns = int(self.params.dt_ms * 1e6)
+        self._unseen_ns = 0 if previous is None else max(int(t_ns) - previous - period_ns, 0)
         result = self._step(frame_bgr, detections, prior, template_hist, t_ns, init_box, low_detections)
         if result.accepted and result.box is not None:
             self._last_box = tuple(float(v) for v in result.box)
@@ -593,7 +598,12 @@ class ReIdentifier:
         )
 
     def _recent_last_box(self, t_ns: int) -> Box | None:
-        if self._last_box is None or t_ns - self._t_last_accept_ns > self.params.lost_after_ms * 1e6:
+        """The last accepted box, if accepted within lost_after_ms of the frames this re-ID was shown: a gap in
+        which it was given no frame at all (prediction restarting: no prior, so no input set) is not time the
+        target was looked for and not seen. A prediction that took 3.3 s to restart made the box look 3 s
+        stale, and re-ID re-initialised on the person nearest the image bottom instead."""
+        seen_ns = t_ns - self._t_last_accept_ns - self._unseen_ns
+        if self._last_box is None or seen_ns > self.params.lost_after_ms * 1e6:
             return None
         return self._last_box
 
