@@ -123,14 +123,19 @@ def method_factories(methods: Sequence[str], ablations: bool = False, trace: boo
             kind = peer_kind(m.split(":", 1)[1])
             out[m] = lambda fps, k=kind: _NoEgo(PeerFollower(k, fps))
         elif m in ABLATIONS:  # one ablation on its own
-            out[m] = lambda fps, s=ABLATIONS[m]: GraphFollower(s, trace=trace)
+            out[m] = _ablation(ABLATIONS[m], trace)
         else:
             raise ValueError(f"unknown method {m!r} (followbus, kalman, peer:bytetrack|ocsort|botsort, or an "
                              f"ablation: {', '.join(repr(a) for a in ABLATIONS)})")
     if ablations:
         for name, switches in ABLATIONS.items():
-            out[name] = lambda fps, s=switches: GraphFollower(s, trace=trace)
+            out[name] = _ablation(switches, trace)
     return out
+
+
+def _ablation(switches: dict[str, Any], trace: bool) -> Callable[[float], Follower]:
+    """The factory of followbus with ``switches`` (an ABLATIONS entry) applied."""
+    return lambda fps: GraphFollower(switches, trace=trace)
 
 
 def _kalman_baseline() -> KalmanFollower:

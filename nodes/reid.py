@@ -67,13 +67,15 @@ class Reid(Node):
         # The learned appearance's training sample (OSNet descriptors of several people: a 20-30 ms burst every
         # identity_sample_every_frames frames) below the loop's priority: at the loop's, on two cores, the
         # detector skipped a frame at each burst (bus/background.py).
-        if getattr(self, "learner", None) is None:  # a reset runs setup again: one worker thread per process
+        if not hasattr(self, "learner"):  # setup runs again on a reset (below): one worker thread per process
             self.learner = BackgroundJob("reid-learning")
-        else:
-            try:
-                self.learner.wait()  # the old identifier's last sample: dropped with it
-            except Exception as exc:  # noqa: BLE001 - a reset is already the recovery from a failure
-                self.log.warning("reset: the last learning sample failed: %s", exc)
+
+    def reset(self) -> None:
+        try:
+            self.learner.wait()  # the old identifier's last sample: dropped with it
+        except Exception as exc:  # noqa: BLE001 - a reset is already the recovery from a failure
+            self.log.warning("reset: the last learning sample failed: %s", exc)
+        super().reset()
 
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         frame, dets, prior = inputs["frame"], inputs["detections"], inputs["prior"]

@@ -298,6 +298,12 @@ def test_after_a_prediction_restart_reid_reinitialises_where_its_target_just_was
     starved.step(frame, dets(target), None, None, 0, init_box=target)
     res = starved.step(frame, dets(moved, passer), None, None, 900 * MS)
     assert res.box == moved and res.source == "last"
+    # Nor when the first frame after the gap shows no one: the gap still does not count, the shown frame does.
+    gap = ReIdentifier(ReidParams(lost_after_ms=500.0))
+    gap.step(frame, dets(target), None, None, 0, init_box=target)
+    gap.step(frame, dets(), None, None, 900 * MS)
+    res = gap.step(frame, dets(moved, passer), None, None, 933 * MS)
+    assert res.box == moved and res.source == "last"
 
 
 def test_adaptive_gate_grows_for_fast_or_weakly_detected_targets() -> None:

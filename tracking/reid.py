@@ -246,7 +246,8 @@ class ReIdentifier:
         self._prev_grey: np.ndarray | None = None
         self._t_last_accept_ns = 0
         self._t_last_frame_ns: int | None = None  # the last frame this re-ID was given (any outcome)
-        self._unseen_ns = 0  # the gap before the current frame in which it was given none (its inputs were down)
+        # Since the last accept: time in which it was given no frame at all (its inputs were down)
+        self._unseen_since_accept_ns = 0
         self._reacquired_count = 0
         self._last_box: Box | None = None  # the last accepted box: where a re-initialisation looks first
         self._confirming: tuple[Box, int] | None = None  # a far re-lock candidate and its δ_id confirmations
@@ -261,8 +262,8 @@ class ReIdentifier:
         caller calls :meth:`learn_pending` (the node: after publishing the measurement, off the motor's path)."""
         self._pending = None
         previous, self._t_last_frame_ns = self._t_last_frame_ns, int(t_ns)
-        period_ns = int(self.params.dt_ms * 1e6)
-        self._unseen_ns = 0 if previous is None else max(int(t_ns) - previous - period_ns, 0)
+        if previous is not None:
+            self._unseen_since_accept_ns += max(int(t_ns) - previous - int(self.params.dt_ms * 1e6), 0)
         result = self._step(frame_bgr, detections, prior, template_hist, t_ns, init_box, low_detections)
         if result.accepted and result.box is not None:
             self._last_box = tuple(float(v) for v in result.box)
@@ -583,7 +584,7 @@ class ReIdentifier:
             self._secure_frames = 0
             self._frames_since_crowd, self._crowd_told_apart = None, False
         self.state = TrackState.TRACKING
-        self._t_last_accept_ns = t_ns
+        self._t_last_accept_ns, self._unseen_since_accept_ns = t_ns, 0
         self._reacquired_count = 0
         logger.info("target initialised at %s (%s)", tuple(round(v, 1) for v in box), source)
         return ReidResult(
@@ -602,7 +603,7 @@ class ReIdentifier:
         which it was given no frame at all (prediction restarting: no prior, so no input set) is not time the
         target was looked for and not seen. A prediction that took 3.3 s to restart made the box look 3 s
         stale, and re-ID re-initialised on the person nearest the image bottom instead."""
-        seen_ns = t_ns - self._t_last_accept_ns - self._unseen_ns
+        seen_ns = t_ns - self._t_last_accept_ns - self._unseen_since_accept_ns
         if self._last_box is None or seen_ns > self.params.lost_after_ms * 1e6:
             return None
         return self._last_box
@@ -663,7 +664,7 @@ class ReIdentifier:
                 self._reacquired_count += 1
             else:
                 self.state = TrackState.TRACKING
-            self._t_last_accept_ns = t_ns
+            self._t_last_accept_ns, self._unseen_since_accept_ns = t_ns, 0
         else:
             lost_after_ns = int(round(self.params.lost_after_ms * 1e6))
             occluded_ns = t_ns - self._t_last_accept_ns
