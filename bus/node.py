@@ -285,6 +285,10 @@ class Node:
     # loop's idle period later, or at once when the queue is half full), still in arrival order, so what the
     # node computes is unchanged; each wake-up of a process costs far more than the few lines of handling.
     LAZY_INPUTS: ClassVar[frozenset[str]] = frozenset()
+    # Notes (:meth:`note`) whose value is the stamp of a message of an unsynchronised input: note key -> input
+    # name. A replay whose recording lacks that message (the recorder dropped it) cannot repeat the choice,
+    # and calls that frame not verifiable instead of a mismatch.
+    NOTED_STAMPS: ClassVar[dict[str, str]] = {}
 
     def __init__(self, params: Any, runtime: NodeHost):
         self.params = params

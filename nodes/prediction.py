@@ -46,6 +46,7 @@ class Prediction(Node):
     OUTPUTS = {"prior": Prior, "track": Track}
     # Odometry (100 Hz) is only read by stamp when a frame or a measurement comes: no wake-up of its own.
     LAZY_INPUTS = frozenset({"odometry"})
+    NOTED_STAMPS = {"odometry": "odometry", "odometry_update": "odometry"}  # _v_ego's choices
     Params = (PredictionNodeParams, KalmanParams)
 
     def setup(self) -> None:

@@ -161,6 +161,11 @@ class Feed:
         self._warned = False
         # frame -> (recorded input key, frame it joined) of the outside feedback each handled frame joined live
         self.joined: dict[int, set[tuple[str, int]]] = defaultdict(set)
+        # frame -> (recorded key, stamp) of each unsynchronised message a handled frame chose live (NOTED_STAMPS),
+        # and the stamps of those keys' messages the recording holds
+        self.noted: dict[int, set[tuple[str, int]]] = defaultdict(set)
+        self.stamps_recorded: dict[str, set[int]] = defaultdict(set)
+        self._noted_keys = set(plan.noted_stamp_keys.values())
 
     # outputs -> expected and hints
     def _read(self, messages: Iterable[BusMessage]) -> Iterator[Input]:
@@ -170,6 +175,8 @@ class Feed:
                 self._close_frames(msg.log_time)
             head = _peekframe_and_stamp(msg.data)
             frame_seq = head.header.frame_seq if head is not None else -1
+            if msg.key in self._noted_keys and head is not None:
+                self.stamps_recorded[msg.key].add(head.header.stamp_ns)
             if msg.key not in self.plan.outputs:
                 yield (Input(msg, frame_seq, head.header.stamp_ns, head.header.pub_ns) if head is not None
                        else Input(msg, -1, 0, 0))
@@ -224,6 +231,9 @@ class Feed:
                 key = self.plan.feedback_keys.get((node, name))
                 if key is not None and joined >= 0:
                     self.joined[frame_seq].add((key, joined))
+                noted_key = self.plan.noted_stamp_keys.get((node, name))
+                if noted_key is not None and joined >= 0:
+                    self.noted[frame_seq].add((noted_key, joined))
 
     def _known(self, frame_seq: int) -> bool:
         """Does the reader know what each node did up to the next frame after ``frame_seq`` it handled?"""

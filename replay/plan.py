@@ -125,6 +125,8 @@ class ReplayPlan:
         self.feedback_inputs = {n: names for n, names in feedback.items() if names}
         # (node, feedback input) -> recorded key, for feedback produced outside the replayed nodes
         self.feedback_keys = {where: self.key(t) for where, t in edge.feedback().items()}
+        # (node, note) -> recorded key of the outside input whose message stamp the note names (NOTED_STAMPS)
+        self.noted_stamp_keys = self._noted_stamp_keys()
         # Outputs of no frame from a node with a timer (motor's odometry and watchdog stops) come from ticks of
         # the wall clock live and of the stamps in a replay: not comparable, counted apart.
         self.timer_topics = {topic for key, topic in self.outputs.items()
@@ -160,6 +162,20 @@ class ReplayPlan:
     def key(self, topic: str) -> str:
         """The recorded key of a graph topic (node/output)."""
         return f"{self.recorded_ns}/{topic}"
+
+    def _noted_stamp_keys(self) -> dict[tuple[str, str], str]:
+        found: dict[tuple[str, str], str] = {}
+        for node in self.nodes:
+            spec = self.graph.nodes[node]
+            try:
+                noted = load_node_class(spec.run).NOTED_STAMPS
+            except ImportError:
+                continue  # said as a graph error (file:line) when the node is built
+            for note, input_name in noted.items():
+                inp = spec.inputs.get(input_name)
+                if inp is not None and self.key(inp.topic) in self.inputs:
+                    found[(node, note)] = self.key(inp.topic)
+        return found
 
     def _has_timer(self, node: str) -> bool:
         try:

@@ -134,6 +134,8 @@ TIMING_SENSITIVE_MODULES = frozenset({
 })
 
 
+# tryfirst: xdist's own hook reads the xdist_group marks to name each test's group (pytest < 9.2: pyproject.toml).
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         module = item.module.__name__.rsplit(".", 1)[-1] if item.module is not None else item.nodeid

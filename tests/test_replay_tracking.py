@@ -140,6 +140,36 @@ def test_frames_whose_joined_feedback_the_recorder_missed_are_not_verifiable(rec
     assert "not verifiable:" in result.stdout
 
 
+def test_frames_whose_chosen_odometry_the_recorder_dropped_are_not_verifiable(recording, tmp_path):
+    """Prediction notes which odometry sample (by stamp) each frame used; when the recorder dropped that sample
+    under load (a CI run: two samples missing from a 100 Hz stream), the replay cannot repeat the choice, and
+    calls the frame not verifiable instead of a mismatch."""
+    from followbus.bus.recording import stored_frame
+    from followbus.replay.feed import _peekframe_and_stamp
+
+    from .conftest import copy_recording
+
+    chosen = set()
+    for message in _bus(recording, "rt/prediction/prior"):
+        head = _peekframe_and_stamp(message.data)
+        if 100 <= head.header.frame_seq < 104 and head.header.feedback.get("odometry", -1) >= 0:
+            chosen.add(head.header.feedback["odometry"])
+    assert chosen, "no prior noted an odometry sample"
+
+    def keep(channel, message) -> bool:
+        return not (channel.topic == "rt/motor/odometry"
+                    and _peekframe_and_stamp(stored_frame(message.data)).header.stamp_ns in chosen)
+
+    lacking = tmp_path / "lacking.mcap"
+    copy_recording(recording, lacking, keep=keep, library="test: the recorder dropped odometry samples")
+    report_path = tmp_path / "report.json"
+    result = run_followbus("replay", str(lacking), "--node", "prediction", "--verify", "--report",
+                           str(report_path), timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr[-2000:]
+    report = json.loads(report_path.read_text())
+    assert report["unverifiable"] >= 1 and not report["missing"] and report["mismatch_count"] == 0
+
+
 def _bus(path, key: str):
     from followbus.bus.recording import iter_bus_messages
 
