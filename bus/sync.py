@@ -264,9 +264,20 @@ class FrameSynchronizer:
         frames = self._forced_frames
         for i in range(bisect_right(frames, seq), len(frames)):  # indices: no copy of a long list
             j = self._forced[frames[i]].get(name)
-            if j is not None:
+            if j is not None and not self._doomed(frames[i]):
                 return j < seq
         return False
+
+    def _doomed(self, seq: int) -> bool:
+        """Replay: will the handled set of frame ``seq`` never go out? It lacks a required input (the recorder
+        lost it) while a newer handled set has all of its own. Such a set must not hold feedback back: the newer
+        set may be waiting for exactly that feedback before it can supersede it (a wait on each other until
+        max_pending pushed them out, the newer set's outputs missing or made with no feedback)."""
+        slot = self._slots.get(seq)
+        if slot is None or not self._missing_required(slot):
+            return False
+        return any(later > seq and later in self._forced and not self._missing_required(other)
+                   for later, other in self._slots.items())
 
     def skip(self, frame_seq: int) -> None:
         """Replay: frame ``frame_seq`` is not handled, as the live run did not handle it."""

@@ -346,3 +346,21 @@ def test_a_replayed_set_waits_for_what_the_live_set_had_whatever_the_replay_cloc
     sync.add("template", 2, "t2", 5001 * MS)
     assert sync.poll(5001 * MS) == [(4, {"dets": "d4", "prior": "p4", "template": "t2"})]
     assert sync.dropped == 1 and sync.timeouts == 0
+
+
+def test_replay_does_not_hold_feedback_back_for_a_set_the_recorder_lost_a_required_input_of():
+    """Replay: set 5 joined template 3 live, set 6 template 4. The recorder lost frame 5's image, so set 5 can never
+    go out; holding template 4 back until set 5 went out (as live, 4 came after set 5) left set 6 waiting for it
+    and set 5 waiting for set 6 (a CI recording: every output after it missing or made without feedback)."""
+    sync = FrameSynchronizer([SyncInput("frame"), SyncInput("dets"), SyncInput("template", offset=-1, optional=True)],
+                             300 * MS)
+    sync.force_feedback(5, {"template": 3})
+    sync.force_feedback(6, {"template": 4})
+    sync.add("template", 3, "t3", 0)
+    sync.add("dets", 5, "d5", 1 * MS, stamp_ns=5 * 33 * MS)
+    assert sync.holds_back("template", 4)  # set 5 may still come whole: 4 waits, as live
+    sync.add("frame", 6, "f6", 2 * MS, stamp_ns=6 * 33 * MS)
+    sync.add("dets", 6, "d6", 3 * MS, stamp_ns=6 * 33 * MS)
+    assert not sync.holds_back("template", 4)  # set 6 is whole: set 5 will never go out
+    sync.add("template", 4, "t4", 4 * MS)
+    assert sync.poll(5 * MS) == [(6, {"frame": "f6", "dets": "d6", "template": "t4"})]
