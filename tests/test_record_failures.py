@@ -239,6 +239,9 @@ def test_recorder_queue_bound_drops_counts_per_key_and_warns_once(graph_file, po
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL, cwd=REPO)
     try:
         assert _wait_for_recorder(session, "t"), "the recorder never came up"
+        # Its token can reach this session before its subscriptions do (a loaded machine): a put before then
+        # goes to nobody. The recorded keys' publishers wait until they match the recorder.
+        assert wait_until(lambda: pubs["t/capture/frame"].listened and pubs["t/ticker/tick"].listened, 30)
         rng = np.random.default_rng(2)
         for seq in range(5):
             pubs["t/capture/frame"].put(_noise_frame(rng, seq))  # 230 kB > the 105 kB bound
