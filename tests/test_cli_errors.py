@@ -196,6 +196,11 @@ def test_demo_that_captured_nothing_fails_with_its_own_log(tmp_path):
 
 def test_demo_names_the_node_that_crashed_and_why(tmp_path):
     graph = private_graph_copy(tmp_path)
+    # Two restarts rather than graph.yaml's ten with a doubling backoff (~25 s): the verdict is the same.
+    text = graph.read_text()
+    motor_restart = "restart: {policy: on-failure, max_restarts: 10, backoff_ms: 200}"
+    assert motor_restart in text
+    graph.write_text(text.replace(motor_restart, "restart: {policy: on-failure, max_restarts: 2, backoff_ms: 200}"))
     result = run_followbus("demo", "--graph", str(graph), "--set", "detection.backend=simulated", "--set",
                            "motor.driver=serial", "--set", f"motor.port={tmp_path / 'ttyNOPE'}", "--set",
                            f"template.state_file={tmp_path / 'template.npz'}", "--duration", "6", cwd=tmp_path,
