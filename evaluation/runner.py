@@ -59,6 +59,8 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o low-score stage": {"low_score_stage": False},
     # a partly hidden person's box taken as it is, not completed to the whole person from the prediction
     "followbus w/o partial-view completion": {"partial_view_completion": False},
+    # a box merging the target with someone in line with it taken whole, not trimmed to the target's height
+    "followbus w/o merged-view trimming": {"merged_view_trimming": False},
     # issue 22, one part at a time (each switch goes to the node that reads it: egomotion, prediction or reid):
     # the per-cell static-content map; the rival hypothesis and the temporal choice between the two; the
     # reference kept across a failed fit; the prior widened by (and held against) the fit's uncertainty

@@ -9,7 +9,7 @@ import pytest
 
 from followbus.msgs.tracking import Prior
 from followbus.tracking.appearance import hs_histogram
-from followbus.tracking.params import KalmanParams, ReidParams
+from followbus.tracking.params import InvalidParam, KalmanParams, ReidParams
 from followbus.tracking.reid import (
     ReIdentifier,
     ReidResult,
@@ -18,6 +18,7 @@ from followbus.tracking.reid import (
     complete_partial_view,
     fuse,
     geometric_score,
+    trim_merged_view,
 )
 
 W, H = 320, 240
@@ -409,3 +410,30 @@ def test_a_partial_view_is_measured_and_output_whole_and_never_learnt_from() -> 
     off, template_off = started(ReidParams(partial_view_completion=False))
     res = off.step(frame, dets(upper), prior_at(TARGET, 33 * MS), template_off, 33 * MS)
     assert res.box is None or res.box == pytest.approx(upper)
+
+
+def test_a_box_merging_the_target_with_someone_in_line_is_trimmed_to_the_predicted_height() -> None:
+    """From a high camera, the person behind the target is boxed with it: one edge agrees with the prediction, the
+    other reaches far beyond; the target is the predicted height from the agreeing edge (width kept)."""
+    predicted = (100.0, 100.0, 30.0, 90.0)  # top 100, bottom 190
+    assert trim_merged_view((98.0, 102.0, 40.0, 170.0), predicted) == (98.0, 102.0, 40.0, 90.0)  # someone below
+    assert trim_merged_view((97.0, 40.0, 45.0, 148.0), predicted) == (97.0, 98.0, 45.0, 90.0)  # someone above
+
+
+@pytest.mark.parametrize("box, why", [
+    ((100.0, 101.0, 30.0, 110.0), "under the ratio: a stride, raised arms, a detector's jitter"),
+    ((95.0, 80.0, 40.0, 130.0), "both edges moved out: the person came closer"),
+    ((100.0, 130.0, 30.0, 150.0), "neither edge agrees"),
+])
+def test_what_is_not_a_merged_view_is_kept(box: tuple[float, float, float, float], why: str) -> None:
+    assert trim_merged_view(box, (100.0, 100.0, 30.0, 90.0), min_ratio=1.3) == box, why
+
+
+def test_a_merged_view_is_measured_as_the_target_and_never_learnt_from() -> None:
+    params = ReidParams()
+    reid, template = started(params)
+    merged = (TARGET[0], TARGET[1], TARGET[2], TARGET[3] * 1.8)  # someone below the target, boxed with it
+    res = reid.step(draw((TARGET, RED)), dets(merged), prior_at(TARGET, 33 * MS), template, 33 * MS)
+    assert res.accepted and res.box == pytest.approx(TARGET) and not res.secure
+    with pytest.raises(InvalidParam, match="merged_min_extent_ratio"):
+        ReidParams(merged_min_extent_ratio=1.0)

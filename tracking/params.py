@@ -150,6 +150,11 @@ class ReidParams(_FramePeriod, _ColourHistogram):
     partial_view_completion: bool = True
     partial_max_extent_ratio: float = 0.8
     partial_edge_tolerance: float = 0.15
+    # Merged views (reid.trim_merged_view): a detector box over merged_min_extent_ratio of the predicted height with
+    # one edge agreeing (partial_edge_tolerance) boxes the target with someone in line: it is measured and output
+    # as the predicted height from that edge, never as a training sample.
+    merged_view_trimming: bool = True
+    merged_min_extent_ratio: float = 1.5
     # Learned appearance (seed 001, tracking/identity.py): an OSNet descriptor and an online ridge-regression
     # classifier of the target against the other people decide when colour + geometry cannot: between
     # candidates within identity_margin of the best M_fuse, and on a re-lock after an occlusion.
@@ -206,7 +211,11 @@ class ReidParams(_FramePeriod, _ColourHistogram):
                       "n_id_frames"),
             non_negative=("diff_threshold", "geo_scale", "ambiguity_margin", "min_blob_area_px",
                           "reacquired_hold_frames", "identity_margin", "identity_veto_after_crowd_frames"),
-            unit_interval=("reid_threshold", "tau_occ", "delta_iou", "delta_id", "delta_switch", "low_score_min_iou"))
+            unit_interval=("reid_threshold", "tau_occ", "delta_iou", "delta_id", "delta_switch", "low_score_min_iou",
+                           "partial_max_extent_ratio", "partial_edge_tolerance"))
+        if not self.merged_min_extent_ratio > 1.0:  # at 1 or under, every box taller than predicted would be cut
+            raise InvalidParam("merged_min_extent_ratio", "ReidParams.merged_min_extent_ratio must be > 1, "
+                               f"got {self.merged_min_extent_ratio!r}")
 
 
 # --- template ------------------------------------------------------------------------------------

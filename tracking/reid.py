@@ -110,6 +110,32 @@ def complete_partial_view(box: Sequence[float], predicted_box: Sequence[float], 
     return (float(box[0]), y, w, h)
 
 
+def trim_merged_view(box: Sequence[float], predicted_box: Sequence[float], min_ratio: float = 1.5,
+                     edge_tolerance: float = 0.15) -> Box:
+    """The target inside a merged view: a detector box taller than the prediction (over ``min_ratio`` of its height)
+    whose top or bottom agrees with the prediction's (within ``edge_tolerance`` of the predicted height) while the
+    other edge reaches well beyond it boxes the target together with someone in line with it (a person behind
+    them from a high camera, a group seen from above). The target is the predicted height from the agreeing edge;
+    otherwise the box is kept. The mirror of :func:`complete_partial_view`, and only the height for its reasons.
+
+    Why: taken whole, such a box moves the Kalman centre by half the other person's height in one frame and gives
+    it a velocity of that size; once the two part again the prior runs on in that direction, the gate leaves the
+    target behind, and the coasting prediction ends on someone else (uav-group1-3 frames 289-326, EVALUATION.md).
+    A person coming closer grows at both edges, so no edge agrees and nothing is trimmed."""
+    ph = float(predicted_box[3])
+    h, y, py = float(box[3]), float(box[1]), float(predicted_box[1])
+    if ph <= 0.0 or h <= min_ratio * ph:
+        return tuple(float(v) for v in box)  # type: ignore[return-value]
+    tolerance_px = edge_tolerance * ph
+    top_agrees = abs(y - py) <= tolerance_px
+    bottom_agrees = abs((y + h) - (py + ph)) <= tolerance_px
+    if top_agrees and not bottom_agrees:
+        return (float(box[0]), y, float(box[2]), ph)  # someone below the target
+    if bottom_agrees and not top_agrees:
+        return (float(box[0]), y + h - ph, float(box[2]), ph)  # someone above it
+    return tuple(float(v) for v in box)  # type: ignore[return-value]
+
+
 def appearance_weight(c_t: float, tau_occ: float = 0.60, gamma: float = 10.0) -> float:
     """Eq. 3: ω(t) = 1 / (1 + exp(-γ (C_t - τ_occ))); exactly 0.5 at C_t = τ_occ."""
     z = gamma * (float(c_t) - tau_occ)
@@ -133,8 +159,9 @@ class Candidate:
     s_geo: float
     m_fuse: float = 0.0
     hist: np.ndarray | None = field(default=None, repr=False)
-    # A partial view's whole person (complete_partial_view): what is measured and output; the visible ``box`` is
-    # what the appearance is scored on. None: the box is the whole person.
+    # The target's own whole box when the detector box is a partial view (complete_partial_view) or a merged one
+    # (trim_merged_view): what is measured and output; the ``box`` is what the appearance is scored on. None: the
+    # box is the target's.
     whole: Box | None = None
 
     @property
@@ -634,10 +661,15 @@ class ReIdentifier:
         """A detector box's whole person when it is a partial view (complete_partial_view), else None. A motion
         blob is partial by nature (the moving limbs) and says nothing of where the edges are: never completed."""
         p = self.params
-        if not p.partial_view_completion or source == "motion":
+        if source == "motion":
             return None
-        whole = complete_partial_view(box, prior.box, p.partial_max_extent_ratio, p.partial_edge_tolerance)
-        return whole if whole != tuple(float(v) for v in box) else None
+        as_is = tuple(float(v) for v in box)
+        whole = as_is
+        if p.partial_view_completion:
+            whole = complete_partial_view(box, prior.box, p.partial_max_extent_ratio, p.partial_edge_tolerance)
+        if whole == as_is and p.merged_view_trimming:
+            whole = trim_merged_view(box, prior.box, p.merged_min_extent_ratio, p.partial_edge_tolerance)
+        return whole if whole != as_is else None
 
     @staticmethod
     def _search_window(prior: Prior, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
