@@ -183,22 +183,26 @@ class Feed:
                 continue
             self.expected[(self.plan.outputs[msg.key], frame_seq)].append(msg.data)
             self.outputs_expected += 1
-            node = self.plan.output_node(msg.key)
-            if frame_seq < 0 or node not in self.plan.feedback_inputs or head is None:
-                continue
-            used = dict(head.header.feedback) if head.provenance else None
-            open_ = self._open.get(node)
-            if open_ is not None and open_[0] == frame_seq:
-                if used:  # a frame's outputs together: the prior's feedback and notes, the track's notes
-                    self._open[node] = (frame_seq, open_[1], {**(open_[2] or {}), **used})
-            elif frame_seq > self._handled.get(node, -1) and (open_ is None or frame_seq > open_[0]):
-                if open_ is not None:
-                    self._finish(node, *open_)
-                self._open[node] = (frame_seq, head.header.stamp_ns, used or None)
+            if head is not None:
+                self._output_seen(self.plan.output_node(msg.key), frame_seq, head)
         self.eof = True
         for node, open_ in list(self._open.items()):
             self._finish(node, *open_)
         self._open.clear()
+
+    def _output_seen(self, node: str, frame_seq: int, head: Any) -> None:
+        """A recorded output of ``node``: it opens the frame's hint, or adds its notes to the open one."""
+        if frame_seq < 0 or node not in self.plan.feedback_inputs:
+            return
+        used = dict(head.header.feedback) if head.provenance else None
+        open_ = self._open.get(node)
+        if open_ is not None and open_[0] == frame_seq:
+            if used:  # a frame's outputs together: the prior's feedback and notes, the track's notes
+                self._open[node] = (frame_seq, open_[1], {**(open_[2] or {}), **used})
+        elif frame_seq > self._handled.get(node, -1) and (open_ is None or frame_seq > open_[0]):
+            if open_ is not None:
+                self._finish(node, *open_)
+            self._open[node] = (frame_seq, head.header.stamp_ns, used or None)
 
     def _close_frames(self, log_time: int) -> None:
         for node, open_ in list(self._open.items()):
