@@ -170,8 +170,10 @@ def test_while_recording_the_recorder_gets_the_real_frames_and_nodes_keep_the_la
         proc = _publisher(port, "lr/frame", 10, "lane")
         report = json.loads(proc.stdout.readline())
         assert report["ready"], report  # the recorder announces no lane subscription
-        assert wait_until(lambda: len(lane_seen) == 10, 10)
-        assert all(lane_seen), lane_seen
+        # Every frame reaches this lane subscriber or is counted dropped: the 10 come 10 ms apart, and a reader
+        # starved past a segment's reuse (beside two CPU burners) finds it rewritten (the lane's loss mode, counted).
+        assert wait_until(lambda: len(lane_seen) + sub.stats.drops >= 10, 10), (len(lane_seen), sub.stats.drops)
+        assert lane_seen and all(lane_seen), lane_seen  # and those it got came by the lane, not inline
         time.sleep(1.0)
     finally:
         if proc is not None:
