@@ -131,21 +131,14 @@ def test_frames_whose_joined_feedback_the_recorder_missed_are_not_verifiable(rec
     from followbus.bus.recording import stored_frame
     from followbus.replay.feed import frame_and_stamp as _header
 
-    from .conftest import copy_recording
-
     last = max(_header(m.data)[0] for m in _bus(recording, "rt/reid/measurement"))
     cut = last - 5
 
     def keep(channel, message) -> bool:
         return not (channel.topic == "rt/reid/measurement" and _header(stored_frame(message.data))[0] >= cut)
 
-    lacking = tmp_path / "lacking.mcap"
-    copy_recording(recording, lacking, keep=keep, library="test: the recorder stopped before re-ID's last outputs")
-    report_path = tmp_path / "report.json"
-    result = run_followbus("replay", str(lacking), "--node", "prediction", "--verify", "--report",
-                           str(report_path), timeout=120)
-    assert result.returncode == 0, result.stdout + result.stderr[-2000:]
-    report = json.loads(report_path.read_text())
+    result, report = _verify_prediction_without(recording, tmp_path, keep,
+                                                "test: the recorder stopped before re-ID's last outputs")
     assert report["unverifiable"] >= 5 and not report["missing"] and report["mismatch_count"] == 0
     assert "not verifiable:" in result.stdout
 
@@ -154,30 +147,37 @@ def test_frames_whose_chosen_odometry_the_recorder_dropped_are_not_verifiable(re
     """Prediction notes which odometry sample (by stamp) each frame used; when the recorder dropped that sample
     under load (a CI run: two samples missing from a 100 Hz stream), the replay cannot repeat the choice, and
     calls the frame not verifiable instead of a mismatch."""
+    from followbus.bus.codec import peek
     from followbus.bus.recording import stored_frame
-    from followbus.replay.feed import _peekframe_and_stamp
-
-    from .conftest import copy_recording
 
     chosen = set()
     for message in _bus(recording, "rt/prediction/prior"):
-        head = _peekframe_and_stamp(message.data)
+        head = peek(message.data)
         if 100 <= head.header.frame_seq < 104 and head.header.feedback.get("odometry", -1) >= 0:
             chosen.add(head.header.feedback["odometry"])
     assert chosen, "no prior noted an odometry sample"
 
     def keep(channel, message) -> bool:
         return not (channel.topic == "rt/motor/odometry"
-                    and _peekframe_and_stamp(stored_frame(message.data)).header.stamp_ns in chosen)
+                    and peek(stored_frame(message.data)).header.stamp_ns in chosen)
+
+    _result, report = _verify_prediction_without(recording, tmp_path, keep,
+                                                 "test: the recorder dropped odometry samples")
+    assert report["unverifiable"] >= 1 and not report["missing"] and report["mismatch_count"] == 0
+
+
+def _verify_prediction_without(recording, tmp_path, keep, library: str) -> tuple[subprocess.CompletedProcess, dict]:
+    """`replay --node prediction --verify` of a copy of ``recording`` holding only what ``keep`` keeps (messages a
+    recorder lost): it must pass; returns the run and its report."""
+    from .conftest import copy_recording
 
     lacking = tmp_path / "lacking.mcap"
-    copy_recording(recording, lacking, keep=keep, library="test: the recorder dropped odometry samples")
+    copy_recording(recording, lacking, keep=keep, library=library)
     report_path = tmp_path / "report.json"
     result = run_followbus("replay", str(lacking), "--node", "prediction", "--verify", "--report",
                            str(report_path), timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr[-2000:]
-    report = json.loads(report_path.read_text())
-    assert report["unverifiable"] >= 1 and not report["missing"] and report["mismatch_count"] == 0
+    return result, json.loads(report_path.read_text())
 
 
 def _bus(path, key: str):

@@ -74,19 +74,28 @@ def geometric_score(
     return s_gate * s_dist * s_size
 
 
+def _anchor_to_agreeing_edge(lo: float, extent: float, prior_lo: float, prior_extent: float,
+                             edge_tolerance: float) -> tuple[float, float]:
+    """(start, extent) along one axis: the predicted extent from the one edge that agrees with the prediction's
+    (within ``edge_tolerance`` of the predicted extent), the other being where someone else or an occluder is; as
+    it is when both edges moved (a smaller or a nearer person) or neither agrees: nothing to anchor on. Shared by
+    :func:`complete_partial_view` (a box too short) and :func:`trim_merged_view` (a box too long)."""
+    tolerance_px = edge_tolerance * prior_extent
+    start_agrees = abs(lo - prior_lo) <= tolerance_px
+    end_agrees = abs((lo + extent) - (prior_lo + prior_extent)) <= tolerance_px
+    if start_agrees and not end_agrees:
+        return lo, prior_extent
+    if end_agrees and not start_agrees:
+        return lo + extent - prior_extent, prior_extent
+    return lo, extent
+
+
 def _complete_extent(lo: float, extent: float, prior_lo: float, prior_extent: float, max_ratio: float,
                      edge_tolerance: float) -> tuple[float, float]:
     """One axis of :func:`complete_partial_view`: (start, extent) along it."""
     if prior_extent <= 0.0 or extent >= max_ratio * prior_extent:
         return lo, extent
-    tolerance_px = edge_tolerance * prior_extent
-    start_agrees = abs(lo - prior_lo) <= tolerance_px
-    end_agrees = abs((lo + extent) - (prior_lo + prior_extent)) <= tolerance_px
-    if start_agrees and not end_agrees:
-        return lo, prior_extent  # the far side is hidden
-    if end_agrees and not start_agrees:
-        return lo + extent - prior_extent, prior_extent  # the near side is hidden
-    return lo, extent  # both edges moved in (a smaller person) or neither agrees: nothing to anchor on
+    return _anchor_to_agreeing_edge(lo, extent, prior_lo, prior_extent, edge_tolerance)
 
 
 def complete_partial_view(box: Sequence[float], predicted_box: Sequence[float], max_ratio: float = 0.8,
@@ -123,17 +132,10 @@ def trim_merged_view(box: Sequence[float], predicted_box: Sequence[float], min_r
     target behind, and the coasting prediction ends on someone else (uav-group1-3 frames 289-326, EVALUATION.md).
     A person coming closer grows at both edges, so no edge agrees and nothing is trimmed."""
     ph = float(predicted_box[3])
-    h, y, py = float(box[3]), float(box[1]), float(predicted_box[1])
-    if ph <= 0.0 or h <= min_ratio * ph:
+    if ph <= 0.0 or float(box[3]) <= min_ratio * ph:
         return tuple(float(v) for v in box)  # type: ignore[return-value]
-    tolerance_px = edge_tolerance * ph
-    top_agrees = abs(y - py) <= tolerance_px
-    bottom_agrees = abs((y + h) - (py + ph)) <= tolerance_px
-    if top_agrees and not bottom_agrees:
-        return (float(box[0]), y, float(box[2]), ph)  # someone below the target
-    if bottom_agrees and not top_agrees:
-        return (float(box[0]), y + h - ph, float(box[2]), ph)  # someone above it
-    return tuple(float(v) for v in box)  # type: ignore[return-value]
+    y, h = _anchor_to_agreeing_edge(float(box[1]), float(box[3]), float(predicted_box[1]), ph, edge_tolerance)
+    return (float(box[0]), y, float(box[2]), h)
 
 
 def appearance_weight(c_t: float, tau_occ: float = 0.60, gamma: float = 10.0) -> float:
