@@ -343,3 +343,25 @@ def test_a_motion_spanning_a_frame_without_one_is_applied() -> None:
     pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED).to_message())
     prior = pred.predict(66_000_000, camera_motion=_motion_of(np.array([[1.0, 0, 0], [0, 1.0, 45.0]]), 0, 66_000_000))
     assert prior.centre[1] == pytest.approx(250.0 + 45.0, abs=1e-6) and pred.motion_mismatched == 0
+
+
+def test_measure_then_advance_is_step_and_measure_alone_keeps_the_reference() -> None:
+    """The node publishes between measure() and advance(): the split must not change a motion."""
+    base = textured(4)
+    blank = np.full_like(base, 128)
+    frames = [*panning_frames(4, 10.0), blank, warp(base, similarity(0, 1, 5, 40))]
+    stepped, _ = run(frames)
+    est = EgoMotionEstimator()
+    split = []
+    for k, f in enumerate(frames):
+        split.append(est.measure(f, None, (k + 1) * 33_000_000))
+        est.advance()
+    for a, b in zip(stepped, split, strict=True):
+        assert (a is None) == (b is None)
+        if a is not None:
+            np.testing.assert_array_equal(a.matrix, b.matrix)
+    est = EgoMotionEstimator()
+    est.step(base, None, 33_000_000)
+    first = est.measure(warp(base, similarity(0, 1, 5, 0)), None, 66_000_000)
+    again = est.measure(warp(base, similarity(0, 1, 5, 0)), None, 99_000_000)  # no advance in between
+    assert first is not None and again is not None and again.from_stamp_ns == first.from_stamp_ns == 33_000_000

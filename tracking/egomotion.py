@@ -158,6 +158,8 @@ class EgoMotionEstimator:
         self._ref_age = 0  # frames the reference has been kept after failed fits
         self._prev_shift: np.ndarray | None = None  # last fitted displacement of the work image's centre
         self.static_map = np.zeros((p.static_grid_rows, p.static_grid_cols))  # evidence per cell
+        # measure()'s frame waiting for advance(): (grey, mask, full shape, stamp), None when it keeps the old one
+        self._pending: tuple[np.ndarray, np.ndarray, tuple[int, ...], int] | None = None
 
     def _downscale(self, frame_bgr: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
         """Grey work frame and the (sx, sy) that maps full-resolution px to it."""
@@ -212,7 +214,15 @@ class EgoMotionEstimator:
 
         ``detections``: this frame's person boxes (N x 4+, full-resolution px); corners are taken
         outside them on both frames (the previous frame's corners were masked with its own boxes).
+        :meth:`measure` then :meth:`advance`, in one call.
         """
+        motion = self.measure(frame_bgr, detections, t_ns)
+        self.advance()
+        return motion
+
+    def measure(self, frame_bgr: np.ndarray, detections: np.ndarray | None, t_ns: int) -> CameraMotion | None:
+        """The motion of :meth:`step` without preparing the next step: a node publishes it, then calls
+        :meth:`advance` (the next frame's corners, about a third of a step, are then off the loop's path)."""
         p = self.params
         grey, s = self._downscale(frame_bgr)
         mask = background_mask(grey.shape[:2], detections, s, p.box_margin)
@@ -225,13 +235,22 @@ class EgoMotionEstimator:
             self._prev_shift = None
         else:
             result = self._fit(grey, mask, s, t_ns)
+        self._pending = None
         if result is None and not fresh and self._ref_age < p.max_reference_age_frames:
             self._ref_age += 1  # keep the last fitted frame: the next motion spans this one too
             return None
-        self._ref_age = 0
-        self._prev_grey, self._prev_shape, self._prev_t_ns = grey, frame_bgr.shape, int(t_ns)
-        self._prev_corners = self._corners(grey, mask)
+        self._pending = (grey, mask, frame_bgr.shape, int(t_ns))
         return result
+
+    def advance(self) -> None:
+        """Make the frame :meth:`measure` just saw the reference of the next one (unless it kept the old one)."""
+        if self._pending is None:
+            return
+        grey, mask, shape, t_ns = self._pending
+        self._pending = None
+        self._ref_age = 0
+        self._prev_grey, self._prev_shape, self._prev_t_ns = grey, shape, t_ns
+        self._prev_corners = self._corners(grey, mask)
 
     def _degenerate(self, reason: str) -> None:
         self.counts[reason] += 1
