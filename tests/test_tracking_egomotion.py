@@ -365,3 +365,26 @@ def test_measure_then_advance_is_step_and_measure_alone_keeps_the_reference() ->
     first = est.measure(warp(base, similarity(0, 1, 5, 0)), None, 66_000_000)
     again = est.measure(warp(base, similarity(0, 1, 5, 0)), None, 99_000_000)  # no advance in between
     assert first is not None and again is not None and again.from_stamp_ns == first.from_stamp_ns == 33_000_000
+
+
+@pytest.mark.parametrize("early", [0, 1])
+def test_prepared_frames_give_the_same_motions(early: int) -> None:
+    """prepare() on a frame's arrival (the node, before its boxes) changes no motion: also when the next frame
+    arrives before this one is measured (early=1: its preparation follows a reference that is then replaced)."""
+    base = textured(4)
+    frames = [*panning_frames(5, 10.0), np.full_like(base, 128), warp(base, similarity(0, 1, 5, 40))]
+    plain, _ = run(frames)
+    est = EgoMotionEstimator()
+    stamps = [(k + 1) * 33_000_000 for k in range(len(frames))]
+    prepared = []
+    for k, f in enumerate(frames):
+        est.prepare(f, stamps[k])
+        if early and k + 1 < len(frames):
+            est.prepare(frames[k + 1], stamps[k + 1])
+        prepared.append(est.measure(f, None, stamps[k]))
+        est.advance()
+    for a, b in zip(plain, prepared, strict=True):
+        assert (a is None) == (b is None)
+        if a is not None:
+            np.testing.assert_array_equal(a.matrix, b.matrix)
+            assert a.inliers == b.inliers and a.std_px == b.std_px

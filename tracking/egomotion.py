@@ -160,6 +160,10 @@ class EgoMotionEstimator:
         self.static_map = np.zeros((p.static_grid_rows, p.static_grid_cols))  # evidence per cell
         # measure()'s frame waiting for advance(): (grey, mask, full shape, stamp), None when it keeps the old one
         self._pending: tuple[np.ndarray, np.ndarray, tuple[int, ...], int] | None = None
+        # prepare()'s work on a frame before its detections came: (stamp, full shape, grey, scale, the
+        # reference corners it followed, where LK put them, LK status)
+        self._prepared: tuple[int, tuple[int, ...], np.ndarray, tuple[float, float], np.ndarray | None,
+                              np.ndarray | None, np.ndarray | None] | None = None
 
     def _downscale(self, frame_bgr: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
         """Grey work frame and the (sx, sy) that maps full-resolution px to it."""
@@ -224,7 +228,7 @@ class EgoMotionEstimator:
         """The motion of :meth:`step` without preparing the next step: a node publishes it, then calls
         :meth:`advance` (the next frame's corners, about a third of a step, are then off the loop's path)."""
         p = self.params
-        grey, s = self._downscale(frame_bgr)
+        grey, s = self._work_frame(frame_bgr, int(t_ns))
         mask = background_mask(grey.shape[:2], detections, s, p.box_margin)
         result: CameraMotion | None = None
         fresh = self._prev_grey is None or self._prev_shape != frame_bgr.shape or int(t_ns) <= self._prev_t_ns
@@ -241,6 +245,31 @@ class EgoMotionEstimator:
             return None
         self._pending = (grey, mask, frame_bgr.shape, int(t_ns))
         return result
+
+    def prepare(self, frame_bgr: np.ndarray, t_ns: int) -> None:
+        """Optional, on a frame's arrival, before its person boxes: the grey work frame and the reference's
+        corners followed into it by LK (what needs no boxes, most of :meth:`measure`). :meth:`measure` of the
+        same frame then starts from there, if the reference has not changed since; the motion is the same."""
+        grey, s = self._downscale(frame_bgr)
+        p0, p1, status = self._prev_corners, None, None
+        if p0 is not None and len(p0) >= self.params.min_inliers and self._prev_grey is not None \
+                and self._prev_grey.shape == grey.shape:
+            p1, status = self._flow(grey, p0)
+        self._prepared = (int(t_ns), frame_bgr.shape, grey, s, p0, p1, status)
+
+    def _work_frame(self, frame_bgr: np.ndarray, t_ns: int) -> tuple[np.ndarray, tuple[float, float]]:
+        """The grey work frame, from :meth:`prepare` when it saw this frame."""
+        if self._prepared is not None and self._prepared[:2] == (t_ns, frame_bgr.shape):
+            return self._prepared[2], self._prepared[3]
+        return self._downscale(frame_bgr)  # not prepared, or prepared for a later frame: kept for that one
+
+    def _flow(self, grey: np.ndarray, p0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where LK puts the reference's corners ``p0`` in ``grey``, and its per-corner status."""
+        p = self.params
+        win = (p.lk_window_px, p.lk_window_px)
+        p1, status, _err = cv2.calcOpticalFlowPyrLK(self._prev_grey, grey, p0, None, winSize=win,
+                                                    maxLevel=p.lk_levels)
+        return p1, status
 
     def advance(self) -> None:
         """Make the frame :meth:`measure` just saw the reference of the next one (unless it kept the old one)."""
@@ -264,9 +293,12 @@ class EgoMotionEstimator:
         if p0 is None or len(p0) < p.min_inliers:
             self._degenerate("few_corners")
             return None
-        win = (p.lk_window_px, p.lk_window_px)
-        p1, status, _err = cv2.calcOpticalFlowPyrLK(self._prev_grey, grey, p0, None, winSize=win,
-                                                    maxLevel=p.lk_levels)
+        prepared = self._prepared
+        if prepared is not None and prepared[4] is p0 and prepared[5] is not None and prepared[2] is grey:
+            p1, status = prepared[5], prepared[6]  # prepare() followed these very corners into this frame
+            self._prepared = None
+        else:
+            p1, status = self._flow(grey, p0)
         ok = status.reshape(-1) == 1
         a, b = p0.reshape(-1, 2)[ok], p1.reshape(-1, 2)[ok]
         # A corner that lands on a person in frame k is not background there (a walker stepped over it).
