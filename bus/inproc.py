@@ -331,9 +331,10 @@ class InProcessGraph:
         self.start()
         return self._publish(topic, msg, None, handover=handover)
 
-    def inject_bytes(self, topic: str, payload: bytes, stamp_ns: int | None = None) -> bool:
+    def inject_bytes(self, topic: str, payload: bytes, stamp_ns: int | None = None, *, record: bool = True) -> bool:
         """Publish an encoded message (a recording's) on ``topic``; a malformed one is counted by each
-        subscriber as a decode error and dropped, as on the bus. ``stamp_ns``: its header's, if known."""
+        subscriber as a decode error and dropped, as on the bus. ``stamp_ns``: its header's, if known.
+        ``record=False``: not kept among the topic's publications (a stand-in for a node's own output)."""
         if topic not in self.topics:
             raise ValueError(f"no topic {topic!r} in the graph (topics: {', '.join(sorted(self.topics))})")
         self.start()
@@ -342,7 +343,7 @@ class InProcessGraph:
                 stamp_ns = peek(payload).header.stamp_ns  # the header only: each subscriber decodes the rest
             except DecodeError:
                 stamp_ns = 0
-        return self._route(topic, payload, stamp_ns, None)
+        return self._route(topic, payload, stamp_ns, None, keep=record)
 
     def hint(self, node: str, hint: ReplayHint) -> None:
         """Replay: what the live run did with frame ``hint.header.frame_seq`` (skip it, or join exactly these
@@ -364,9 +365,11 @@ class InProcessGraph:
         return self._route(topic, copied, msg.header.stamp_ns, stats, size=size, payload=payload)
 
     def _route(self, topic: str, sent: bytes | memoryview | Message | DecodeError, stamp_ns: int,
-               stats: TopicStats | None, *, size: int | None = None, payload: bytes | None = None) -> bool:
+               stats: TopicStats | None, *, size: int | None = None, payload: bytes | None = None,
+               keep: bool = True) -> bool:
         """Deliver ``sent`` (an encoded message, or the runtime's copy of one) to the subscribed nodes.
-        ``size``: the encoded size (an estimate when only the copy exists); ``payload``: the bytes to record."""
+        ``size``: the encoded size (an estimate when only the copy exists); ``payload``: the bytes to record;
+        ``keep=False``: not recorded."""
         copied = isinstance(sent, (Message, DecodeError))
         if not copied:
             size, payload = len(sent), sent  # type: ignore[arg-type]
@@ -380,7 +383,7 @@ class InProcessGraph:
         if stats is not None:
             stats.record(stamp_ns, size, now_ns=self.now_ns)
         self.published[topic] += 1
-        recorded = self._recorded.get(topic)
+        recorded = self._recorded.get(topic) if keep else None
         if recorded is not None:
             recorded.append((payload, sent if copied else None))  # type: ignore[arg-type]
         checked: dict[Any, Message | DecodeError] = {}  # one check per expected type, not per subscriber

@@ -4,6 +4,7 @@ recorded (replay/diff.py). ``followbus replay`` (tools/recording/replay.py) is i
 
 from __future__ import annotations
 
+import bisect
 import logging
 import sys
 import tempfile
@@ -17,6 +18,7 @@ from ..bus.recording import (
     is_bus_channel,
     read_summary,
 )
+from ..bus.schemas import ReplayHint
 from .diff import compare_output, show_value
 from .feed import Feed, frame_and_stamp, recording_first_frame
 from .plan import ReplayOptions, ReplayPlan, ReplayReport
@@ -25,6 +27,10 @@ from .targets import InProcessTarget, Target
 log = logging.getLogger("followbus.replay")
 
 MAX_REPORTED = 1000  # mismatch details kept in the report (the count is always exact)
+# After a frame the recording lacks inputs of, the nodes' outputs may differ for a while (re-ID compares each frame
+# with the previous one; the filter took that frame's measurement): differences are forgiven for this many frames,
+# on each output until it matches again. A second at 30 Hz; what still differs after it is a mismatch.
+RESYNC_FRAMES = 30
 
 
 # --- the replay ------------------------------------------------------------------------------------
@@ -74,7 +80,11 @@ class Replayer:
                     break
                 for node, hint in hints:
                     target.hint(node, hint)
+                unable = self._unable(feed, frame_seq, messages)
+                for node in unable:
+                    target.hint(node, _skip_hint(frame_seq))
                 self._send(target, messages, frame_seq, sent, stamps)
+                self._stand_in(target, feed, frame_seq, unable)
                 if frame_seq >= 0:
                     self.report.frames += 1
                     done_frames.add(frame_seq)
@@ -103,6 +113,25 @@ class Replayer:
             if stamp:
                 stamps[:] = [min(stamps[0], stamp), max(stamps[-1], stamp)] if stamps else [stamp, stamp]
 
+    def _unable(self, feed: Feed, frame_seq: int, messages: list[Any]) -> list[str]:
+        """The replayed nodes that handled frame ``frame_seq`` live but cannot here: the recording lacks one of their
+        required inputs of that frame (a recorder that dropped it under load)."""
+        if frame_seq < 0:
+            return []
+        have = {item.msg.key for item in messages if item.frame_seq == frame_seq}
+        return [node for node, required in self.plan.required_by_node.items()
+                if required and not required <= have and self.plan.internal_outputs[node]
+                and any((t, frame_seq) in feed.expected for t in self.plan.internal_outputs[node])]
+
+    def _stand_in(self, target: Target, feed: Feed, frame_seq: int, unable: list[str]) -> None:
+        """What the nodes that cannot handle the frame sent the other replayed nodes live, from the recording: a
+        two-node replay must not leave prediction waiting for a measurement re-ID cannot make."""
+        for node in unable:
+            for topic in self.plan.internal_outputs[node]:
+                for data in feed.expected.get((topic, frame_seq), ()):
+                    target.stand_in(topic, data, frame_and_stamp(data)[1])
+                    self.report.stand_ins += 1
+
     def _incomplete(self, feed: Feed, sent: dict[int, set[str]]) -> set[int]:
         """Frames the node cannot reproduce from this recording: a required input of the frame is not in it, the
         feedback the frame joined live is not, nor the unsynchronised sample it chose (NOTED_STAMPS: the odometry
@@ -129,21 +158,40 @@ class Replayer:
             self.report.outputs_received += len(items)
             for data in items:
                 by_frame[(topic, frame_and_stamp(data)[0])].append(data)
+        gaps = sorted(incomplete)
+        resync: dict[str, int] = {}  # topic -> last frame of its open re-convergence window (-1: none open)
+        opened: dict[str, int] = {}  # topic -> the gap whose window it opened last
         for (topic, fs), recorded in sorted(expected.items()):
             if fs < 0 and topic in self.plan.timer_topics:
                 self.report.timer_outputs += len(recorded)
-            elif not self.opts.max_frames or fs in done_frames:  # else beyond --max-frames
-                self._compare_frame(topic, fs, recorded, by_frame.get((topic, fs), []), fs in incomplete)
+                continue
+            if self.opts.max_frames and fs not in done_frames:  # beyond --max-frames
+                continue
+            before = bisect.bisect_right(gaps, fs)
+            gap = gaps[before - 1] if before else None  # the latest gap at or before this frame
+            if gap is not None and gap + RESYNC_FRAMES >= fs and opened.get(topic, -1) < gap:
+                resync[topic], opened[topic] = gap + RESYNC_FRAMES, gap  # a gap new to this output opens its window
+            forgive = "incomplete" if fs in incomplete else "after_gap" if resync.get(topic, -1) >= fs else ""
+            matched = self._compare_frame(topic, fs, recorded, by_frame.get((topic, fs), []), forgive)
+            if matched and fs not in incomplete:
+                resync[topic] = -1  # matched again: later differences are mismatches
         self._list_extra(expected, by_frame)
 
     def _compare_frame(self, topic: str, fs: int, recorded: list[bytes], replayed: list[bytes],
-                       incomplete: bool) -> None:
-        """One output key's recorded and replayed messages of frame ``fs``, in order."""
+                       forgive: str = "") -> bool:
+        """One output key's recorded and replayed messages of frame ``fs``, in order; True when all match.
+        ``forgive``: "incomplete" (the frame lacks an input the live run had) or "after_gap" (the nodes are
+        re-converging after such a frame): differences are counted apart, not as mismatches."""
         key = self.plan.key(topic)
+        all_match = len(replayed) == len(recorded)
         for i in range(min(len(recorded), len(replayed))):
             diff = compare_output(recorded[i], replayed[i], self.opts.tolerance)
-            if diff is not None and incomplete:  # made without a message the live run had (a dropped sample)
+            all_match = all_match and diff is None
+            if diff is not None and forgive == "incomplete":  # made without a message the live run had
                 self.report.unverifiable += 1
+                continue
+            if diff is not None and forgive == "after_gap":
+                self.report.after_gap += 1
                 continue
             self.report.outputs_compared += 1
             if diff is None:
@@ -154,10 +202,14 @@ class Replayer:
                 self.report.mismatches.append({"frame_seq": fs, "key": key, "index": i, "field": diff.field,
                                                "recorded": show_value(diff.recorded),
                                                "replayed": show_value(diff.replayed)})
-        if incomplete and len(replayed) < len(recorded):
-            self.report.unverifiable += len(recorded) - len(replayed)
-            return
+        if forgive and len(replayed) < len(recorded):
+            if forgive == "incomplete":
+                self.report.unverifiable += len(recorded) - len(replayed)
+            else:
+                self.report.after_gap += len(recorded) - len(replayed)
+            return False
         self.report.missing += [{"frame_seq": fs, "key": key, "index": i} for i in range(len(replayed), len(recorded))]
+        return all_match
 
     def _list_extra(self, expected: dict[tuple[str, int], list[bytes]],
                     by_frame: dict[tuple[str, int], list[bytes]]) -> None:
@@ -193,3 +245,9 @@ class Replayer:
                     disable=None if self.opts.progress else True, dynamic_ncols=True)  # None: TTY only
 
 
+
+
+def _skip_hint(frame_seq: int) -> ReplayHint:
+    hint = ReplayHint(skip=True, feedback={})
+    hint.header.frame_seq = frame_seq
+    return hint

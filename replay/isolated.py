@@ -135,6 +135,9 @@ class IsolatedTarget:
         self.reference.hint(node, hint)
         self._hint_pub.put(hint)
 
+    def stand_in(self, topic: str, data: bytes, stamp_ns: int) -> None:
+        raise NotImplementedError("--isolated replays one node: it has no replayed reader to stand in for")
+
     def send(self, topic: str, data: bytes, stamp_ns: int, frame_seq: int) -> None:
         self.reference.send(topic, data, stamp_ns, frame_seq)
         self._pubs[topic].put_bytes(data, stamp_ns)

@@ -57,6 +57,11 @@ class ReplayReport:
     # recorded outputs of frames whose required same-frame inputs are not all in the recording (a recorder that
     # joined late): the replayed node cannot have produced them; not verifiable, so neither compared nor missing
     unverifiable: int = 0
+    # differing outputs while the nodes re-converged after such a frame (replay/engine.py RESYNC_FRAMES): a frame's
+    # missing input also shapes the next frames (re-ID compares each frame with the one before); not failures
+    after_gap: int = 0
+    # recorded outputs handed to the next replayed node in place of those a node could not make (such a frame)
+    stand_ins: int = 0
     extra: list[dict[str, Any]] = field(default_factory=list)  # produced, not in the recording
     beyond_end: int = 0  # produced for frames after the recording's last output on that key (not compared)
     timer_outputs: int = 0  # recorded outputs of a node's timer (no frame): wall-clock ticks live, not compared
@@ -116,6 +121,11 @@ class ReplayPlan:
         # those of outside inputs that belong to a frame (any offset, optional or not)
         self.required_inputs = {self.key(t) for t in edge.input_topics(required=True)}
         self.frame_inputs = {self.key(t) for t in edge.input_topics(frame=True)}
+        # node -> its own required same-frame inputs from outside (recorded keys): without one, that node cannot
+        # handle the frame; and node -> its outputs another replayed node reads (the recorded message then stands
+        # in for the one it cannot make, or the reader waits for it in vain)
+        self.required_by_node = {n: self._required_of(n) for n in self.nodes}
+        self.internal_outputs = self._read_inside(edge.outputs)
         self._check_inputs(path, recorded)
         # Before the node sees anything: a corrupt chunk would make --verify blame the node for the damage.
         self.skip_chunks = chunks_to_skip(path, set(self.inputs) | set(self.outputs), options.on_corrupt)
@@ -158,6 +168,16 @@ class ReplayPlan:
                 log.warning("the recording has no messages on %s", key)
         if not any(key in recorded for key in self.inputs):
             raise RecordingError(f"{path}: none of the inputs were recorded ({', '.join(self.inputs)})")
+
+    def _read_inside(self, outputs: tuple[str, ...]) -> dict[str, list[str]]:
+        """node -> its outputs (topics) that another replayed node reads."""
+        read = {i.topic for n in self.nodes for i in self.graph.nodes[n].inputs.values()}
+        return {n: [t for t in outputs if t.split("/", 1)[0] == n and t in read] for n in self.nodes}
+
+    def _required_of(self, node: str) -> set[str]:
+        """Recorded keys of ``node``'s required same-frame inputs from outside."""
+        return {self.key(i.topic) for i in self.graph.nodes[node].inputs.values()
+                if i.sync == "frame" and not i.offset and not i.optional and self.key(i.topic) in self.inputs}
 
     def key(self, topic: str) -> str:
         """The recorded key of a graph topic (node/output)."""

@@ -16,6 +16,7 @@ class Target(Protocol):
     def start(self) -> None: ...
     def hint(self, node: str, hint: ReplayHint) -> None: ...
     def send(self, topic: str, data: bytes, stamp_ns: int, frame_seq: int) -> None: ...
+    def stand_in(self, topic: str, data: bytes, stamp_ns: int) -> None: ...
     def produced(self) -> dict[str, list[bytes]]: ...
     def close(self) -> None: ...
 
@@ -42,6 +43,12 @@ class InProcessTarget:
         self.graph.deliver()
         self.decode_s += t1 - t0
         self.handler_s += time.perf_counter() - t1
+
+    def stand_in(self, topic: str, data: bytes, stamp_ns: int) -> None:
+        """A replayed node's recorded output to the other replayed nodes, in place of one it cannot make; not
+        counted as produced."""
+        self.graph.inject_bytes(topic, data, stamp_ns, record=False)
+        self.graph.deliver()
 
     def published(self, topic: str) -> int:
         return self.graph.published[topic]

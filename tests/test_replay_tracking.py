@@ -14,7 +14,7 @@ import pytest
 
 from followbus.bus.recording import read_metadata
 
-from .conftest import REPO, followbus_argv, processes_matching, run_followbus
+from .conftest import REPO, copy_recording, followbus_argv, processes_matching, run_followbus
 
 pytestmark = pytest.mark.slow
 
@@ -66,8 +66,7 @@ def recording(tmp_path_factory):
     # skip some, and the tests below compare more than 100 outputs (220 left 42-98 under load).
     # A recording that lost messages upstream (Zenoh drops frames to a recorder that falls behind) is made again,
     # up to twice: these tests are about exact replay; what a lossy recording replays as is tested below with
-    # messages removed on purpose. (Two-node replay of a recording without capture frame k left prediction
-    # waiting for re-ID's measurement k, which nothing can make: its later outputs missing.)
+    # messages removed on purpose (test_two_nodes_replay_through_a_frame_the_recorder_dropped and others).
     for _attempt in range(3):
         path = _record(tmp_path_factory.mktemp("rec"), "rt", 330)
         if read_metadata(path)["recording_stats"]["seq_gaps"] == "0":
@@ -114,6 +113,29 @@ def test_two_nodes_replay_together(recording, tmp_path):
     changed = run_followbus("replay", str(recording), "--node", "reid,prediction", "--verify", "--param",
                             "prediction.gate_chi2=0.5", timeout=180)
     assert changed.returncode == 1, changed.stdout
+
+
+def test_two_nodes_replay_through_a_frame_the_recorder_dropped(recording, tmp_path):
+    """A recorder under load dropped capture frame k: re-ID cannot handle k, so its recorded measurement k stands
+    in for prediction (which else waited for it, and every later output went missing), and re-ID's next outputs,
+    which compare frame k+1 with k, may differ while it re-converges; the replay passes."""
+    from followbus.bus.recording import stored_frame
+    from followbus.replay.feed import frame_and_stamp as _header
+
+    measured = sorted(_header(m.data)[0] for m in _bus(recording, "rt/reid/measurement"))
+    dropped = measured[len(measured) // 2]
+    lacking = tmp_path / "lacking.mcap"
+    copy_recording(recording, lacking, library="test: the recorder dropped a frame",
+                   keep=lambda channel, message: not (channel.topic == "rt/capture/frame"
+                                                      and _header(stored_frame(message.data))[0] == dropped))
+    report_path = tmp_path / "report.json"
+    result = run_followbus("replay", str(lacking), "--node", "reid,prediction", "--verify", "--report",
+                           str(report_path), timeout=180)
+    assert result.returncode == 0, result.stdout + result.stderr[-2000:]
+    report = json.loads(report_path.read_text())
+    assert report["stand_ins"] >= 1 and report["unverifiable"] >= 1 and "stood in:" in result.stdout
+    assert report["outputs_compared"] > 300 and report["mismatch_count"] == 0
+    assert not report["missing"] and not report["extra"]
 
 
 def test_changed_parameter_is_reported_as_a_mismatch(recording, tmp_path):
@@ -169,7 +191,6 @@ def test_frames_whose_chosen_odometry_the_recorder_dropped_are_not_verifiable(re
 def _verify_prediction_without(recording, tmp_path, keep, library: str) -> tuple[subprocess.CompletedProcess, dict]:
     """`replay --node prediction --verify` of a copy of ``recording`` holding only what ``keep`` keeps (messages a
     recorder lost): it must pass; returns the run and its report."""
-    from .conftest import copy_recording
 
     lacking = tmp_path / "lacking.mcap"
     copy_recording(recording, lacking, keep=keep, library=library)

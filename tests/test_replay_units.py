@@ -116,3 +116,29 @@ def test_a_replay_keeps_off_the_live_graphs_state_file(tmp_path):
     assert ReplayPlan(path, ReplayOptions(nodes=["template"])).params["template"]["state_file"] == ""
     given = ReplayPlan(path, ReplayOptions(nodes=["template"], params={"template": {"state_file": "mine.npz"}}))
     assert given.params["template"]["state_file"] == "mine.npz"
+
+
+def test_differences_after_a_gap_are_forgiven_until_the_output_matches_again():
+    """A frame the recording lacks inputs of (frame 10) also shapes the next ones: differences there count as
+    re-converging, not as mismatches, but only until the output matches once, and only for RESYNC_FRAMES."""
+    from types import SimpleNamespace
+
+    from followbus.bus.schemas import encode
+    from followbus.replay.engine import RESYNC_FRAMES, Replayer
+    from followbus.replay.plan import ReplayReport
+
+    def measurement(k: int, accepted: bool) -> bytes:
+        return encode(_stamped(Measurement(state="TRACKING", accepted=accepted), k))
+
+    topic = "reid/measurement"
+    differs = {11, 13, 10 + RESYNC_FRAMES + 5}  # 11: re-converging; 13: after a match; the last: past the window
+    expected = {(topic, k): [measurement(k, True)] for k in range(10, 10 + RESYNC_FRAMES + 10)}
+    produced = {topic: [measurement(k, k not in differs) for k in range(11, 10 + RESYNC_FRAMES + 10)]}
+    replayer = Replayer.__new__(Replayer)
+    replayer.plan = SimpleNamespace(timer_topics=set(), key=lambda t: f"rt/{t}")
+    replayer.opts = ReplayOptions(nodes=["reid"])
+    replayer.report = ReplayReport(file="-", node="reid")
+    replayer._compare(expected, produced, set(), incomplete={10})
+    report = replayer.report
+    assert report.unverifiable == 1 and report.after_gap == 1  # frame 10 itself, then frame 11
+    assert report.mismatch_count == 2 and {m["frame_seq"] for m in report.mismatches} == differs - {11}

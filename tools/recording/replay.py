@@ -32,7 +32,7 @@ from pathlib import Path
 from ...bus.graph import GraphError, parse_assignments
 from ...bus.recording import RecordingError
 from ...replay.diff import Tolerance
-from ...replay.engine import Replayer
+from ...replay.engine import RESYNC_FRAMES, Replayer
 from ...replay.plan import ReplayOptions, ReplayReport
 
 # --- command ---------------------------------------------------------------------------------------
@@ -59,6 +59,12 @@ def _print_summary(report: ReplayReport, verify: bool) -> None:
         print(f"not verifiable: {report.unverifiable} recorded outputs of frames whose inputs are not all in "
               "the recording (the recorder joined late, dropped them, or stopped before them); "
               "the node cannot produce them")
+    if report.stand_ins:
+        print(f"stood in: {report.stand_ins} recorded outputs handed to the next replayed node for frames a node "
+              "could not handle (an input missing from the recording)")
+    if report.after_gap:
+        print(f"re-converging: {report.after_gap} outputs differed within {RESYNC_FRAMES} frames after a frame the "
+              "recording lacks inputs of, before matching again (the node's state missed that frame); not failures")
     if report.hints:
         print(f"live fallbacks reproduced: {report.hints} frames skipped or joined older feedback live "
               "(a late feedback, a skipped backlog), and were replayed the same way")
