@@ -9,6 +9,7 @@ run, and only the chosen command gets its arguments, so ``followbus --help`` imp
 from __future__ import annotations
 
 import argparse
+import contextlib
 import faulthandler
 import logging
 import os
@@ -451,7 +452,19 @@ def run() -> None:
     code = main()
     if code == 130:
         _exit_interrupted()
-    sys.exit(code)
+    _exit_now(code)
+
+
+def _exit_now(code: int) -> None:
+    """End the process with ``code`` once the command has closed what it opened, without the interpreter's
+    shutdown: Zenoh's runtime threads outlive the command's sessions for a moment, and one that touches the
+    interpreter while it is being torn down aborts the process (a laptop's `echo` ended with SIGABRT after printing
+    its two messages, in a test beside two burners). Log handlers and the standard streams are flushed first."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):  # a closed pipe (`| head`): nothing more can reach it
+            stream.flush()
+    os._exit(int(code or 0))
 
 
 if __name__ == "__main__":
