@@ -102,3 +102,18 @@ def test_without_the_model_reid_says_so_and_falls_back_to_colour(monkeypatch, ca
         assert load_embedder() is None
     assert any("learned appearance is off" in r.getMessage() and "osnet_x0_25_msmt17.onnx" in r.getMessage()
                for r in caplog.records), caplog.text
+
+
+def test_crops_are_the_imagenet_normalised_rgb_of_each_box() -> None:
+    """The table lookup gives exactly the float32 arithmetic it replaced: (v / 255 - mean) / std, RGB, CHW."""
+    import cv2
+
+    from followbus.tracking.identity import CROP_H_PX, CROP_W_PX, IMAGENET_MEAN, IMAGENET_STD, PersonEmbedder
+
+    frame = np.random.default_rng(3).integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    boxes = [(10, 20, 40, 100), (200.5, 50.2, 33, 90), (300, 100, 60, 160), (-5, -5, 8, 8)]
+    crops = PersonEmbedder.crops(frame, boxes)
+    assert crops.shape == (4, 3, CROP_H_PX, CROP_W_PX) and crops.dtype == np.float32
+    patch = cv2.resize(frame[20:120, 10:50], (CROP_W_PX, CROP_H_PX), interpolation=cv2.INTER_LINEAR)
+    expected = ((patch[:, :, ::-1].astype(np.float32) / 255.0 - IMAGENET_MEAN) / IMAGENET_STD).transpose(2, 0, 1)
+    np.testing.assert_array_equal(crops[0], expected)

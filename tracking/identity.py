@@ -32,6 +32,10 @@ OSNET_MODEL = "osnet_x0_25_msmt17.onnx"
 CROP_W_PX, CROP_H_PX = 128, 256
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+# The normalised value of each 8-bit level per RGB channel, computed as the crop would be ((v / 255 - mean) / std in
+# float32): a crop is then three table lookups, the same values at a quarter of the arithmetic's cost.
+_LEVELS = ((np.arange(256, dtype=np.uint8).astype(np.float32) / 255.0)[:, None] - IMAGENET_MEAN) / IMAGENET_STD
+_RGB_LEVELS = [np.ascontiguousarray(_LEVELS[:, c]) for c in range(3)]
 
 
 class PersonEmbedder:
@@ -59,8 +63,8 @@ class PersonEmbedder:
             x1 = int(max(x0 + 1, min(box[0] + box[2], w)))
             y1 = int(max(y0 + 1, min(box[1] + box[3], h)))
             patch = cv2.resize(frame_bgr[y0:y1, x0:x1], (CROP_W_PX, CROP_H_PX), interpolation=cv2.INTER_LINEAR)
-            rgb = patch[:, :, ::-1].astype(np.float32) / 255.0
-            out[i] = ((rgb - IMAGENET_MEAN) / IMAGENET_STD).transpose(2, 0, 1)
+            for c in range(3):  # RGB plane c from BGR channel 2 - c
+                np.take(_RGB_LEVELS[c], patch[:, :, 2 - c], out=out[i, c])
         return out
 
     def embed(self, frame_bgr: np.ndarray, boxes: Sequence[Sequence[float]]) -> np.ndarray:
