@@ -36,6 +36,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import logging
+import time
 from collections import deque
 from collections.abc import Iterable, Iterator
 from typing import Any
@@ -245,6 +246,8 @@ class InProcessGraph:
         self._recorded: dict[str, list[tuple[bytes | None, Message | DecodeError | None]]] = {
             t: [] for t in record_set}
         self.published: dict[str, int] = dict.fromkeys(self.topics, 0)
+        # seconds each node spent on the messages delivered to it (its handlers and routing what they publish)
+        self.handler_s: dict[str, float] = dict.fromkeys(self.hosts, 0.0)
         self.started = False
         self.closed = False
 
@@ -402,6 +405,7 @@ class InProcessGraph:
             if not batch:
                 return handled
             for host, items in batch:
+                started = time.perf_counter()
                 with _exit_is_an_error(host):
                     for name, msg in items:
                         if host.stopped:
@@ -413,6 +417,7 @@ class InProcessGraph:
                         if self.clock_mode == "stamps":  # as NodeRuntime: the timer follows the newest stamp
                             host.run_timer(host.clock.now_ns())
                         self._check_stopped(host)
+                self.handler_s[host.spec.name] += time.perf_counter() - started
                 handled += len(items)
         raise InProcessError(f"messages still flowing after {MAX_ROUNDS} delivery rounds at one instant "
                              "(a cycle of nodes that answer every message with another?)")

@@ -183,6 +183,7 @@ class GraphFollower:
              low_detections: np.ndarray | None = None) -> tuple[tuple[float, ...] | None, dict[str, Any]]:
         self.prepare(init_box)  # the first step builds the graph, unless the caller prepared it
         g, k = self.graph, self.k
+        spent = dict(g.handler_s)
         stamp = CLOCK_BASE_NS + int(t_ns)
         g.run_until(stamp)
 
@@ -206,7 +207,9 @@ class GraphFollower:
         self.k += 1
         box = None if out.track.box is None else tuple(float(v) for v in out.track.box)
         info: dict[str, Any] = {"state": out.track.state,
-                                "eta": 0.0 if out.template is None else float(out.template.eta)}
+                                "eta": 0.0 if out.template is None else float(out.template.eta),
+                                # each node's share of this step (the report's tracker time per part)
+                                "part_ms": {n: (s - spent[n]) * 1e3 for n, s in g.handler_s.items()}}
         if self.trace:
             info["trace"] = frame_record(out, self.capture, self.transforms.pop(k, None))
         return box, info

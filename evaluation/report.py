@@ -36,6 +36,22 @@ def _fmt(v: float, spec: str = ".2f") -> str:
     return "–" if not math.isfinite(v) else format(v, spec)
 
 
+def _parts_line(runs: list[SequenceRun], method: str) -> str:
+    """The tracker's time per node over every frame of ``method`` (graph methods only): where the ms/frame go."""
+    infos = [i for r in runs if method in r.runs for i in r.runs[method].infos]
+    if not any("part_ms" in i for i in infos):
+        return ""
+    parts: dict[str, float] = {}
+    for info in infos:
+        for node, ms in info.get("part_ms", {}).items():
+            parts[node] = parts.get(node, 0.0) + ms
+    total = sum(t for r in runs if method in r.runs for t in r.runs[method].tracker_ms)
+    n = len(infos)
+    shares = ", ".join(f"{node} {ms / n:.2f}" for node, ms in parts.items())
+    return (f"\n{method}, tracker ms/frame per part over all {n} frames: {shares}; the rest (the evaluation feeding "
+            f"the graph and collecting its outputs) {(total - sum(parts.values())) / n:.2f}.")
+
+
 def timing_table(runs: list[SequenceRun], methods: list[str]) -> str:
     """Re-ID latency in frames, censored events, detector and tracker ms per frame."""
     lines = ["### Re-ID latency and timing", "",
@@ -58,6 +74,7 @@ def timing_table(runs: list[SequenceRun], methods: list[str]) -> str:
         lines.append(f"| overall | {total} | {_fmt(det / total if total else math.nan)} | {m} | "
                      f"{_fmt(agg.reid_latency_frames_mean, '.1f')} | {agg.reid_censored} | "
                      f"{_fmt(float(np.mean(ms)) if ms else math.nan)} |")
+    lines += [line for m in methods if (line := _parts_line(runs, m))]
     return "\n".join(lines) + "\n"
 
 

@@ -556,3 +556,20 @@ def test_a_reset_reid_keeps_its_one_learning_thread():
         for _ in range(3):
             node.reset()
         assert node.learner is learner and threading.active_count() == threads
+
+
+def test_the_in_process_graph_times_each_node_on_its_own():
+    """handler_s: each node's time on the messages delivered to it, what `followbus eval` reports per part."""
+    from followbus.evaluation.graph_follower import GraphFollower
+
+    follower = GraphFollower()
+    frame = np.random.default_rng(0).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    box = (60.0, 30.0, 20.0, 60.0)
+    for k in range(3):
+        _box, info = follower.step(frame, np.array([[*box, 0.9]], np.float32), k * 33_333_333,
+                                   init_box=box if k == 0 else None)
+    parts = info["part_ms"]
+    assert {"egomotion", "prediction", "reid", "template"} <= set(parts)
+    assert all(ms >= 0.0 for ms in parts.values()) and parts["reid"] > 0.0
+    assert sum(follower.graph.handler_s.values()) > 0.0
+    follower.close()
