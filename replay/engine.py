@@ -9,13 +9,14 @@ import logging
 import sys
 import tempfile
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
 from pathlib import Path
 from typing import Any
 
 from ..bus.inproc import InProcessError
 from ..bus.recording import (
     is_bus_channel,
+    iter_bus_messages,
     read_summary,
 )
 from ..bus.schemas import ReplayHint
@@ -74,21 +75,24 @@ class Replayer:
         stamps: list[int] = []  # the first and the last input stamp seen
         done_frames: set[int] = set()
         sent: dict[int, set[str]] = defaultdict(set)  # frame -> recorded input keys fed for it
+        waiting: deque[int] = deque()  # frames fed, not yet checked for inputs the recording lacks
+        present = self._recorded_inputs() if any(self.plan.internal_outputs.values()) else {}
         try:
             for hints, frame_seq, messages in feed.groups():
                 if self.opts.max_frames and frame_seq >= 0 and self.report.frames >= self.opts.max_frames:
                     break
                 for node, hint in hints:
                     target.hint(node, hint)
-                unable = self._unable(feed, frame_seq, messages)
-                for node in unable:
-                    target.hint(node, _skip_hint(frame_seq))
                 self._send(target, messages, frame_seq, sent, stamps)
-                self._stand_in(target, feed, frame_seq, unable)
                 if frame_seq >= 0:
                     self.report.frames += 1
                     done_frames.add(frame_seq)
                     bar.update(1)
+                    waiting.append(frame_seq)
+                while waiting and present.get(waiting[0], set()) <= sent.get(waiting[0], set()):
+                    self._stand_in(target, feed, waiting.popleft(), present)
+            while waiting:
+                self._stand_in(target, feed, waiting.popleft(), present)
         finally:
             bar.close()
             self._compare(feed.expected, target.produced(), done_frames, self._incomplete(feed, sent))
@@ -113,20 +117,30 @@ class Replayer:
             if stamp:
                 stamps[:] = [min(stamps[0], stamp), max(stamps[-1], stamp)] if stamps else [stamp, stamp]
 
-    def _unable(self, feed: Feed, frame_seq: int, messages: list[Any]) -> list[str]:
-        """The replayed nodes that handled frame ``frame_seq`` live but cannot here: the recording lacks one of their
-        required inputs of that frame (a recorder that dropped it under load)."""
-        if frame_seq < 0:
-            return []
-        have = {item.msg.key for item in messages if item.frame_seq == frame_seq}
+    def _unable(self, feed: Feed, frame_seq: int, have: set[str]) -> list[str]:
+        """The replayed nodes that handled frame ``frame_seq`` live but cannot here: of their required inputs of that
+        frame, the recording lacks one (``have``: those fed; a recorder that dropped it under load)."""
         return [node for node, required in self.plan.required_by_node.items()
                 if required and not required <= have and self.plan.internal_outputs[node]
                 and any((t, frame_seq) in feed.expected for t in self.plan.internal_outputs[node])]
 
-    def _stand_in(self, target: Target, feed: Feed, frame_seq: int, unable: list[str]) -> None:
-        """What the nodes that cannot handle the frame sent the other replayed nodes live, from the recording: a
-        two-node replay must not leave prediction waiting for a measurement re-ID cannot make."""
+    def _recorded_inputs(self) -> dict[int, set[str]]:
+        """frame -> the input keys the recording holds a message of that frame on (one pass over the inputs)."""
+        present: dict[int, set[str]] = defaultdict(set)
+        for msg in iter_bus_messages(self.path, list(self.plan.inputs), self.plan.skip_chunks):
+            frame_seq = frame_and_stamp(msg.data)[0]
+            if frame_seq >= 0:
+                present[frame_seq].add(msg.key)
+        return present
+
+    def _stand_in(self, target: Target, feed: Feed, frame_seq: int, present: dict[int, set[str]]) -> None:
+        """Once every recorded input of the frame has been fed (under load some come out of the recording behind
+        the next frame's, and the other nodes must have done their part of the frame, prediction its prior): a node
+        that cannot handle it skips it, and what it sent the other replayed nodes live comes from the recording
+        instead; a two-node replay must not leave prediction waiting for a measurement re-ID cannot make."""
+        unable = self._unable(feed, frame_seq, present.get(frame_seq, set()))
         for node in unable:
+            target.hint(node, _skip_hint(frame_seq))
             for topic in self.plan.internal_outputs[node]:
                 for data in feed.expected.get((topic, frame_seq), ()):
                     target.stand_in(topic, data, frame_and_stamp(data)[1])
