@@ -101,6 +101,10 @@ def tracking_robot(tmp_path_factory):
 
 def test_monitor_once_sees_every_node_and_rates(tracking_robot):
     graph, port, launch = tracking_robot
+    # `--once` prints each node's first status: right after "ready" (this module's first test) capture's may cover
+    # its first frame alone (0.0 Hz: a rate needs two frames in the 5 s window; seen once on a loaded machine).
+    # Here the rate is the point, not the start-up: the graph first runs 5 s of frames.
+    _wait_for_frames(port, 150)
     result = subprocess.run(followbus_argv("monitor", "--graph", str(graph), "--user", "monitor", "--password",
                                            "monitor-secret", "--once", "--seconds", "15"),
                             capture_output=True, text=True, timeout=40, cwd=REPO)
@@ -116,6 +120,21 @@ def test_monitor_once_sees_every_node_and_rates(tracking_robot):
     frame_row = next(line for line in out.splitlines() if line.startswith("t/capture/frame @capture"))
     assert float(frame_row.split()[3]) > 10.0, frame_row
     assert "t/motor/command @motor" in out
+
+
+def _wait_for_frames(port: int, count: int) -> None:
+    """Until ``count`` frames' ground truth (one small message per frame) went by, as the monitor identity sees."""
+    from followbus.bus.pubsub import Subscriber
+    from followbus.msgs.perception import GroundTruth
+
+    seen: list[int] = []
+    session = open_session(client(port, "monitor", "monitor-secret"))
+    sub = Subscriber(session, "t/capture/ground_truth", lambda m: seen.append(m.header.frame_seq), schema=GroundTruth)
+    try:
+        assert wait_until(lambda: len(seen) >= count, timeout=60), f"{len(seen)} frames in 60 s"
+    finally:
+        sub.undeclare()
+        session.close()
 
 
 def test_monitor_identity_cannot_publish_commands(tracking_robot):
