@@ -119,7 +119,7 @@ class Replayer:
 
     def _unable(self, feed: Feed, frame_seq: int, have: set[str]) -> list[str]:
         """The replayed nodes that handled frame ``frame_seq`` live but cannot here: of their required inputs of that
-        frame, the recording lacks one (``have``: those fed; a recorder that dropped it under load)."""
+        frame, the recording lacks one (``have``: the keys it holds of that frame; a recorder dropped it under load)."""
         return [node for node, required in self.plan.required_by_node.items()
                 if required and not required <= have and self.plan.internal_outputs[node]
                 and any((t, frame_seq) in feed.expected for t in self.plan.internal_outputs[node])]
@@ -257,8 +257,6 @@ class Replayer:
             total = min(total, self.opts.max_frames) if total else self.opts.max_frames
         return tqdm(total=total or None, unit="frame", desc=f"replay {self.report.node}", file=sys.stderr,
                     disable=None if self.opts.progress else True, dynamic_ncols=True)  # None: TTY only
-
-
 
 
 def _skip_hint(frame_seq: int) -> ReplayHint:

@@ -37,6 +37,7 @@ import logging
 import math
 from collections import Counter
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -137,6 +138,18 @@ def background_mask(shape: tuple[int, int], boxes: np.ndarray | None, scale: tup
     return mask
 
 
+class _Prepared(NamedTuple):
+    """:meth:`EgoMotionEstimator.prepare`'s work on a frame, for its :meth:`~EgoMotionEstimator.measure`."""
+
+    t_ns: int
+    shape: tuple[int, ...]  # the full frame's
+    grey: np.ndarray  # the work frame
+    scale: tuple[float, float]
+    corners: np.ndarray | None  # the reference's corners it followed
+    flow: np.ndarray | None  # where LK put them (None: nothing to follow)
+    status: np.ndarray | None  # LK's per-corner status
+
+
 CORNER_REGIONS = (4, 3)  # columns, rows of the corner budget's regions
 
 
@@ -160,10 +173,7 @@ class EgoMotionEstimator:
         self.static_map = np.zeros((p.static_grid_rows, p.static_grid_cols))  # evidence per cell
         # measure()'s frame waiting for advance(): (grey, mask, full shape, stamp), None when it keeps the old one
         self._pending: tuple[np.ndarray, np.ndarray, tuple[int, ...], int] | None = None
-        # prepare()'s work on a frame before its detections came: (stamp, full shape, grey, scale, the
-        # reference corners it followed, where LK put them, LK status)
-        self._prepared: tuple[int, tuple[int, ...], np.ndarray, tuple[float, float], np.ndarray | None,
-                              np.ndarray | None, np.ndarray | None] | None = None
+        self._prepared: _Prepared | None = None  # prepare()'s work on a frame before its detections came
 
     def _downscale(self, frame_bgr: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
         """Grey work frame and the (sx, sy) that maps full-resolution px to it."""
@@ -255,12 +265,13 @@ class EgoMotionEstimator:
         if p0 is not None and len(p0) >= self.params.min_inliers and self._prev_grey is not None \
                 and self._prev_grey.shape == grey.shape:
             p1, status = self._flow(grey, p0)
-        self._prepared = (int(t_ns), frame_bgr.shape, grey, s, p0, p1, status)
+        self._prepared = _Prepared(int(t_ns), frame_bgr.shape, grey, s, p0, p1, status)
 
     def _work_frame(self, frame_bgr: np.ndarray, t_ns: int) -> tuple[np.ndarray, tuple[float, float]]:
         """The grey work frame, from :meth:`prepare` when it saw this frame."""
-        if self._prepared is not None and self._prepared[:2] == (t_ns, frame_bgr.shape):
-            return self._prepared[2], self._prepared[3]
+        prepared = self._prepared
+        if prepared is not None and (prepared.t_ns, prepared.shape) == (t_ns, frame_bgr.shape):
+            return prepared.grey, prepared.scale
         return self._downscale(frame_bgr)  # not prepared, or prepared for a later frame: kept for that one
 
     def _flow(self, grey: np.ndarray, p0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -294,8 +305,8 @@ class EgoMotionEstimator:
             self._degenerate("few_corners")
             return None
         prepared = self._prepared
-        if prepared is not None and prepared[4] is p0 and prepared[5] is not None and prepared[2] is grey:
-            p1, status = prepared[5], prepared[6]  # prepare() followed these very corners into this frame
+        if prepared is not None and prepared.corners is p0 and prepared.flow is not None and prepared.grey is grey:
+            p1, status = prepared.flow, prepared.status  # prepare() followed these very corners into this frame
             self._prepared = None
         else:
             p1, status = self._flow(grey, p0)
