@@ -320,12 +320,19 @@ class EgoMotionEstimator:
         return a[inside], b[inside]
 
     def _cells(self, pts: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-        """Flat static-grid cell index of each (x, y) work-image point."""
+        """Flat static-grid cell index of each (x, y) work-image point (computed once a frame: _fit's helpers
+        take them, not the points)."""
         p = self.params
         h, w = shape[:2]
-        cx = np.clip((pts[:, 0] * p.static_grid_cols / w).astype(int), 0, p.static_grid_cols - 1)
-        cy = np.clip((pts[:, 1] * p.static_grid_rows / h).astype(int), 0, p.static_grid_rows - 1)
+        # np.minimum/np.maximum rather than np.clip: the same values, without np.clip's per-call cost
+        cx = np.minimum(np.maximum((pts[:, 0] * p.static_grid_cols / w).astype(int), 0), p.static_grid_cols - 1)
+        cy = np.minimum(np.maximum((pts[:, 1] * p.static_grid_rows / h).astype(int), 0), p.static_grid_rows - 1)
         return cy * p.static_grid_cols + cx
+
+    def _cover(self, cells: np.ndarray) -> int:
+        """How many distinct grid cells ``cells`` fall in."""
+        p = self.params
+        return int(np.count_nonzero(np.bincount(cells, minlength=p.static_grid_cols * p.static_grid_rows)))
 
     def _hypotheses(self, a: np.ndarray, b: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         """Up to two (matrix, inlier mask) fits: RANSAC's consensus, then the largest among its outliers."""
@@ -346,13 +353,13 @@ class EgoMotionEstimator:
             rest &= ~mask
         return out
 
-    def _choose(self, hyps: list[tuple[np.ndarray, np.ndarray]], a: np.ndarray,
+    def _choose(self, hyps: list[tuple[np.ndarray, np.ndarray]], cover: list[int],
                 shape: tuple[int, ...]) -> tuple[int, int | None]:
-        """Index of the chosen hypothesis and of its rival (None): the one covering more grid cells, unless
-        both cover rival_cover_ratio of the larger and the other agrees better with the previous motion."""
+        """Index of the chosen hypothesis and of its rival (None): the one covering more grid cells (``cover``,
+        one count per hypothesis), unless both cover rival_cover_ratio of the larger and the other agrees
+        better with the previous motion."""
         if len(hyps) < 2:
             return 0, None
-        cover = [len(np.unique(self._cells(a[m], shape))) for _, m in hyps]
         best, other = (0, 1) if cover[0] >= cover[1] else (1, 0)
         close = cover[other] >= self.params.rival_cover_ratio * cover[best]
         if close and self._prev_shift is not None:
@@ -362,15 +369,15 @@ class EgoMotionEstimator:
                 best, other = other, best
         return best, other
 
-    def _moving_cover(self, hyps: list[tuple[np.ndarray, np.ndarray]], a: np.ndarray,
+    def _moving_cover(self, hyps: list[tuple[np.ndarray, np.ndarray]], cover: list[int],
                       shape: tuple[int, ...]) -> int:
         """Grid cells covered by the widest hypothesis that moves the image centre (0: none moves)."""
         centre = np.array([shape[1] / 2.0, shape[0] / 2.0])
-        covers = [len(np.unique(self._cells(a[m], shape))) for mat, m in hyps
+        moving = [n for (mat, _), n in zip(hyps, cover, strict=True)
                   if float(np.linalg.norm(_shift(mat, centre))) >= self.params.static_min_motion_px]
-        return max(covers, default=0)
+        return max(moving, default=0)
 
-    def _update_static(self, a: np.ndarray, b: np.ndarray, moving_cover: int, shape: tuple[int, ...]) -> None:
+    def _update_static(self, a: np.ndarray, b: np.ndarray, cells: np.ndarray, moving_cover: int) -> None:
         """Decay the static map; then, when a hypothesis moves the image, the corners that stayed put add to
         their cells and those that moved take off, provided the moving hypothesis covers at least
         rival_cover_ratio as many cells as the still corners (a walker the detector missed, moving over a
@@ -380,8 +387,7 @@ class EgoMotionEstimator:
         if not p.static_evidence or not moving_cover or not len(a):
             return
         still = np.linalg.norm(b - a, axis=1) < p.static_still_px
-        cells = self._cells(a, shape)
-        if moving_cover < p.rival_cover_ratio * len(np.unique(cells[still])):
+        if moving_cover < p.rival_cover_ratio * self._cover(cells[still]):
             return
         flat = self.static_map.reshape(-1)
         np.add.at(flat, cells[still], 1.0)
@@ -394,10 +400,11 @@ class EgoMotionEstimator:
         if tracked is None:
             return None
         a, b = tracked
-        static = self.static_map.reshape(-1)[self._cells(a, grey.shape)] >= p.static_evidence_min
+        cells = self._cells(a, grey.shape)
+        static = self.static_map.reshape(-1)[cells] >= p.static_evidence_min
         if not p.static_evidence:
             static[:] = False
-        fa, fb = a[~static], b[~static]
+        fa, fb, fcells = a[~static], b[~static], cells[~static]
         if len(fa) < p.min_inliers:
             self._degenerate("few_tracked")
             return None
@@ -405,7 +412,8 @@ class EgoMotionEstimator:
         if not hyps or len(np.flatnonzero(hyps[0][1])) < p.min_inlier_fraction * len(fa):
             self._degenerate("few_inliers" if hyps else "no_fit")
             return None
-        best, rival = self._choose(hyps, fa, grey.shape)
+        cover = [self._cover(fcells[mask]) for _, mask in hyps]
+        best, rival = self._choose(hyps, cover, grey.shape)
         m, inl = hyps[best]
         det = float(np.linalg.det(m[:, :2]))
         if det <= 0.0 or abs(math.sqrt(det) - 1.0) > p.max_scale_change:
@@ -413,8 +421,9 @@ class EgoMotionEstimator:
             return None
         centre = np.array([grey.shape[1] / 2.0, grey.shape[0] / 2.0])
         shift = _shift(m, centre)
-        self._update_static(a, b, self._moving_cover(hyps, fa, grey.shape), grey.shape)
-        motion = self._motion(m, fa, fb, inl, hyps[rival] if rival is not None else None, s, t_ns, grey.shape)
+        self._update_static(a, b, cells, self._moving_cover(hyps, cover, grey.shape))
+        motion = self._motion(m, fa, fb, inl, hyps[rival] if rival is not None else None, s, t_ns, grey.shape,
+                              cover[best])
         motion = _replace_static(motion, int((self.static_map >= p.static_evidence_min).sum()))
         self._prev_shift = shift
         self.counts["transform"] += 1
@@ -423,8 +432,8 @@ class EgoMotionEstimator:
 
     def _motion(self, m: np.ndarray, a: np.ndarray, b: np.ndarray, inl: np.ndarray,
                 rival: tuple[np.ndarray, np.ndarray] | None, s: tuple[float, float], t_ns: int,
-                shape: tuple[int, ...]) -> CameraMotion:
-        """The chosen fit in full-resolution px with its uncertainty."""
+                shape: tuple[int, ...], cover: int) -> CameraMotion:
+        """The chosen fit in full-resolution px with its uncertainty; ``cover``: the grid cells its inliers span."""
         d = np.array(s, dtype=np.float64)
         full = _to_full(m, d)
         unit = 1.0 / float(d[0])  # work px -> full px
@@ -432,7 +441,7 @@ class EgoMotionEstimator:
         resid = b[inl] - (a[inl] @ m[:, :2].T + m[:, 2])
         residual = float(np.sqrt(np.mean(np.sum(resid**2, axis=1)))) * unit
         p = self.params
-        spread = len(np.unique(self._cells(a[inl], shape))) / float(p.static_grid_cols * p.static_grid_rows)
+        spread = cover / float(p.static_grid_cols * p.static_grid_rows)
         centre = np.array([shape[1] / 2.0, shape[0] / 2.0])
         shift = _shift(m, centre)
         rival_px, rival_n, var = 0.0, 0, residual**2 * 2.0 / max(n_in, 1)  # the fitted shift's own variance
