@@ -301,3 +301,14 @@ def test_graph_file_itself_must_be_a_regular_file(tmp_path):
     os.mkfifo(fifo)
     result = run_followbus("check", str(fifo), timeout=30)
     assert result.returncode == 2 and "not a regular file" in result.stderr, result.stderr
+
+
+@pytest.mark.parametrize("name", ["graph.yaml", "graph.group.yaml", "graph.robot.yaml"])
+def test_every_node_of_a_shipped_graph_has_a_reader(name):
+    """A node no other node reads only takes CPU from those that matter: graph.group.yaml ran graph.yaml's
+    egomotion for nobody, and on a loaded machine that starved the group node into skipping seconds of frames."""
+    from followbus.bus.graph import load_graph
+
+    graph = load_graph(REPO / name)
+    read = {spec.source_node for node in graph.nodes.values() for spec in node.inputs.values()}
+    assert not [n for n in graph.nodes if n not in read], f"{name}: nodes nobody reads"
