@@ -31,42 +31,60 @@ def conform(value: Any, hint: Any) -> Any:
     (a nested message type, say) are the caller's business: the value passes unchanged."""
     origin = typing.get_origin(hint)
     if origin in (Union, types.UnionType):
-        args = typing.get_args(hint)
-        if value is None and type(None) in args:
-            return None
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return conform(value, arg)
-            except TypeMismatch:
-                continue
-        raise TypeMismatch(" or ".join(type_name(a) for a in args), value)
+        return _conform_union(value, typing.get_args(hint))
     if hint is Any:
         return value
     if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise TypeMismatch("float", value)
-        return float(value)
+        return _conform_float(value)
     if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise TypeMismatch("int", value)
-        return value
+        return _conform_int(value)
     if hint in (bool, str):
-        if not isinstance(value, hint):
-            raise TypeMismatch(hint.__name__, value)
-        return value
+        return _conform_instance(value, hint, hint.__name__)
     if hint is np.ndarray:
-        if not isinstance(value, np.ndarray):
-            raise TypeMismatch("array", value)
-        return value
-    container = origin or hint
+        return _conform_instance(value, np.ndarray, "array")
+    return _conform_container(value, origin or hint)
+
+
+def _conform_union(value: Any, args: tuple[Any, ...]) -> Any:
+    """The first member of the union that ``value`` fits wins; None passes only an optional."""
+    if value is None and type(None) in args:
+        return None
+    for arg in args:
+        if arg is type(None):
+            continue
+        try:
+            return conform(value, arg)
+        except TypeMismatch:
+            continue
+    raise TypeMismatch(" or ".join(type_name(a) for a in args), value)
+
+
+def _conform_float(value: Any) -> float:
+    # bool is a subclass of int, but True is never a number here
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeMismatch("float", value)
+    return float(value)
+
+
+def _conform_int(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeMismatch("int", value)
+    return value
+
+
+def _conform_instance(value: Any, kind: type, expected: str) -> Any:
+    if not isinstance(value, kind):
+        raise TypeMismatch(expected, value)
+    return value
+
+
+def _conform_container(value: Any, container: Any) -> Any:
+    """Lists, tuples and maps (bare or parameterised: their items are not checked here); anything
+    else passes unchanged."""
     if container in (list, tuple):
         if not isinstance(value, (list, tuple)):
             raise TypeMismatch(container.__name__, value)
         return list(value) if container is list else tuple(value)
     if container is dict:
-        if not isinstance(value, dict):
-            raise TypeMismatch("map", value)
-        return value
+        return _conform_instance(value, dict, "map")
     return value
