@@ -58,7 +58,7 @@ import threading
 import time
 import weakref
 from collections.abc import Iterable
-from typing import Any
+from typing import Any, NamedTuple
 
 import msgpack
 import numpy as np
@@ -422,6 +422,25 @@ def sweep_idle() -> None:
             _sweep(now)
 
 
+class _Descriptor(NamedTuple):
+    """A lane descriptor that passed :func:`_parse_descriptor` (each field a non-negative int)."""
+
+    pid: int
+    fd: int
+    ino: int
+    generation: int
+    length: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.pid}/{self.fd}"
+
+    @property
+    def size(self) -> int:
+        """The segment size the data needs: header, then the data from DATA_OFFSET."""
+        return DATA_OFFSET + self.length
+
+
 def open_blob_area(desc: Any) -> memoryview:
     """A read-only view of the data a descriptor names, the segment locked shared for as long as the view
     (or anything made from it) lives. DecodeError for a descriptor that is not acceptable, LaneStale when
@@ -430,45 +449,68 @@ def open_blob_area(desc: Any) -> memoryview:
     A segment stays mapped between messages (no open, mmap and page-table set-up per message) while
     descriptors name it with the same inode and size; a cached mapping whose generation does not match is
     dropped and the name opened afresh once (its file may have been replaced under the same name)."""
-    if not (isinstance(desc, list) and len(desc) == 5):
-        raise DecodeError("lane descriptor: expected [pid, fd, inode, generation, length]")
-    pid, fd, ino, generation, length = desc
-    if not all(type(v) is int and v >= 0 for v in desc) or length > MAX_LANE_BYTES or pid == 0:
-        raise DecodeError("lane descriptor: bad pid, fd, inode, generation or length")
-    name = f"{pid}/{fd}"
-    size = DATA_OFFSET + length
+    lane = _parse_descriptor(desc)
     now = time.monotonic()
     while True:
-        with _cache_lock:
-            if now - _last_sweep > CACHE_IDLE_S:
-                _sweep(now)
-            mapped = _cache.get(name)
-            if mapped is not None and (mapped.ino != ino or mapped.size < size):
-                del _cache[name]
-                mapped.evict()
-                mapped = None
-            fresh = mapped is None
-            if mapped is None:
-                mapped = _cache[name] = _open_segment(pid, fd, ino, size)
-            mapped.used = now
-            if mapped.refs == 0:  # else another message of ours holds it: no writer can have it
-                try:
-                    fcntl.flock(mapped.fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-                except BlockingIOError:
-                    raise LaneStale(f"lane segment {name} is being rewritten") from None
-            mapped.refs += 1
+        mapped, fresh = _lock_mapping(lane, now)
         magic, gen, written = _SEG_HEADER.unpack_from(mapped.mm)
-        if magic == SEGMENT_MAGIC and gen == generation and written == length:
-            return mapped.hold(DATA_OFFSET, size)
+        if magic == SEGMENT_MAGIC and gen == lane.generation and written == lane.length:
+            return mapped.hold(DATA_OFFSET, lane.size)
         mapped.release()
         if magic != SEGMENT_MAGIC:
-            raise DecodeError(f"lane segment {name}: bad magic")
+            raise DecodeError(f"lane segment {lane.name}: bad magic")
         if fresh:
-            raise LaneStale(f"lane segment {name} was rewritten (generation {gen}, wanted {generation})")
-        with _cache_lock:
-            if _cache.get(name) is mapped:
-                del _cache[name]
-                mapped.evict()
+            raise LaneStale(f"lane segment {lane.name} was rewritten (generation {gen}, wanted {lane.generation})")
+        _forget_mapping(lane.name, mapped)
+
+
+def _parse_descriptor(desc: Any) -> _Descriptor:
+    """The untrusted descriptor checked for shape and range before anything is opened (DecodeError)."""
+    if not (isinstance(desc, list) and len(desc) == 5):
+        raise DecodeError("lane descriptor: expected [pid, fd, inode, generation, length]")
+    lane = _Descriptor(*desc)
+    if not all(type(v) is int and v >= 0 for v in desc) or lane.length > MAX_LANE_BYTES or lane.pid == 0:
+        raise DecodeError("lane descriptor: bad pid, fd, inode, generation or length")
+    return lane
+
+
+def _lock_mapping(lane: _Descriptor, now: float) -> tuple[_Mapped, bool]:
+    """The mapping of the segment ``lane`` names (cached, else opened and checked), locked shared and
+    counted as held by one more message; and whether it was opened just now."""
+    with _cache_lock:
+        if now - _last_sweep > CACHE_IDLE_S:
+            _sweep(now)
+        mapped = _cached_mapping(lane)
+        fresh = mapped is None
+        if mapped is None:
+            mapped = _cache[lane.name] = _open_segment(lane.pid, lane.fd, lane.ino, lane.size)
+        mapped.used = now
+        if mapped.refs == 0:  # else another message of ours holds it: no writer can have it
+            try:
+                fcntl.flock(mapped.fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise LaneStale(f"lane segment {lane.name} is being rewritten") from None
+        mapped.refs += 1
+    return mapped, fresh
+
+
+def _cached_mapping(lane: _Descriptor) -> _Mapped | None:
+    """The cached mapping of ``lane``'s name if it is of the same inode and large enough; a mismatching one is
+    dropped (caller holds _cache_lock)."""
+    mapped = _cache.get(lane.name)
+    if mapped is not None and (mapped.ino != lane.ino or mapped.size < lane.size):
+        del _cache[lane.name]
+        mapped.evict()
+        return None
+    return mapped
+
+
+def _forget_mapping(name: str, mapped: _Mapped) -> None:
+    """Drop ``mapped`` from the cache unless another message already replaced it there."""
+    with _cache_lock:
+        if _cache.get(name) is mapped:
+            del _cache[name]
+            mapped.evict()
 
 
 def materialize(data: bytes | bytearray | memoryview) -> bytes:
