@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -582,6 +583,113 @@ def _group_walk_actors() -> list[_Actor]:
 
 # ----------------------------------------------------------------------------- scene
 
+WALKING_SPEED_MPS = 0.15  # slower than this a figure stands: no gait, no bob, seen as from behind
+
+
+class _View(NamedTuple):
+    """Where one frame's camera looks: the crop of the wide background canvas and what follows from it."""
+
+    ox: int  # crop origin on the canvas (px)
+    oy: int
+    shift: tuple[float, float]  # whole-image shift applied this frame (px)
+    person_offset: tuple[float, float]  # rotation part of the shift only; the strafe moves people via x_m - x_cam
+    x_cam: float  # camera lateral offset (m)
+    vy: float  # camera lateral velocity (m/s)
+
+
+class _Placed(NamedTuple):
+    """A person drawn this frame: depth, actor index, integer figure box (x, y, w, h), BGR patch and mask."""
+
+    z_m: float
+    k: int
+    box: tuple[int, int, int, int]
+    patch: np.ndarray
+    mask: np.ndarray
+
+
+class _Gait:
+    """Every actor's walk across frames: gait phase (rad) and floor position on the previous frame."""
+
+    def __init__(self, phases: list[float]) -> None:
+        self.phases = phases
+        self.prev_pos: list[tuple[float, float] | None] = [None] * len(phases)
+
+    def lose(self, k: int) -> None:
+        """Actor ``k`` is not in the world this frame: its speed restarts from zero when it is back."""
+        self.prev_pos[k] = None
+
+    def step(self, k: int, pos: tuple[float, float], dt: float) -> tuple[float, float]:
+        """Advance actor ``k`` to ``pos``: its (head bob m, lateral 0..1) for :func:`render_figure`."""
+        x_m, z_m = pos
+        speed = lateral = 0.0
+        prev = self.prev_pos[k]
+        if prev is not None:
+            vx_m, vz_m = (x_m - prev[0]) / dt, (z_m - prev[1]) / dt
+            speed = math.hypot(vx_m, vz_m)
+            lateral = abs(vx_m) / (abs(vx_m) + abs(vz_m) + 1e-6) if speed > WALKING_SPEED_MPS else 0.0
+        self.prev_pos[k] = pos
+        if speed > WALKING_SPEED_MPS:
+            self.phases[k] += 2 * math.pi * 0.9 * dt * min(1.5, 0.5 + speed)
+        bob = 0.015 * abs(math.sin(self.phases[k])) if speed > WALKING_SPEED_MPS else 0.0
+        return bob, lateral
+
+
+def _clip_box(box: tuple[int, int, int, int], width: int, height: int) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)`` of an ``(x, y, w, h)`` box clipped to the image (empty when x1 <= x0 or y1 <= y0)."""
+    bx, by, bw, bh = box
+    return max(bx, 0), max(by, 0), min(bx + bw, width), min(by + bh, height)
+
+
+def _visible_fractions(placed: list[_Placed], occ_views: list[tuple[float, np.ndarray]], width: int,
+                       height: int) -> dict[int, float]:
+    """Visible pixels / figure pixels per actor index, nearest first: occluders and nearer people hide farther
+    people, and so does the image border."""
+    layers = [(z, "occ", m) for z, m in occ_views] + [(p.z_m, "person", p) for p in placed]
+    layers.sort(key=lambda it: it[0])
+    cover = np.zeros((height, width), bool)
+    vis: dict[int, float] = {}
+    for _, kind, obj in layers:
+        if kind == "occ":
+            np.logical_or(cover, obj, out=cover)
+            continue
+        bx, by = obj.box[:2]
+        x0, y0, x1, y1 = _clip_box(obj.box, width, height)
+        total = int(np.count_nonzero(obj.mask))
+        if x1 <= x0 or y1 <= y0 or total == 0:
+            vis[obj.k] = 0.0
+            continue
+        m = obj.mask[y0 - by : y1 - by, x0 - bx : x1 - bx] > 0
+        vis[obj.k] = float(np.count_nonzero(m & ~cover[y0:y1, x0:x1])) / total
+        cover[y0:y1, x0:x1] |= m
+    return vis
+
+
+def _composite(frame: np.ndarray, bg_view: np.ndarray, placed: list[_Placed],
+               occ_views: list[tuple[float, np.ndarray]]) -> None:
+    """Draw the people into ``frame`` in place, farthest first, then occluders over everything behind them."""
+    height, width = frame.shape[:2]
+    draw = [(p.z_m, "person", p) for p in placed] + [(z, "occ", m) for z, m in occ_views]
+    draw.sort(key=lambda it: -it[0])
+    for _, kind, obj in draw:
+        if kind == "occ":
+            cv2.copyTo(bg_view, obj.view(np.uint8), frame)  # in place (same-size dst)
+            continue
+        bx, by = obj.box[:2]
+        x0, y0, x1, y1 = _clip_box(obj.box, width, height)
+        if x1 <= x0 or y1 <= y0:
+            continue
+        cv2.copyTo(obj.patch[y0 - by : y1 - by, x0 - bx : x1 - bx], obj.mask[y0 - by : y1 - by, x0 - bx : x1 - bx],
+                   frame[y0:y1, x0:x1])
+
+
+def _optics_and_sensor(frame: np.ndarray, bank: list[tuple[np.ndarray, np.ndarray]], noise_idx: int,
+                       rng: np.random.Generator) -> tuple[np.ndarray, int]:
+    """Slight defocus, then fresh sensor noise (never the same bank entry twice): the frame and the entry used."""
+    frame = cv2.GaussianBlur(frame, (3, 3), 0.7)
+    noise_idx = (noise_idx + 1 + int(rng.integers(0, len(bank) - 1))) % len(bank)
+    pos_n, neg_n = bank[noise_idx]
+    return cv2.subtract(cv2.add(frame, pos_n), neg_n), noise_idx
+
 
 class Scene:
     """A named synthetic sequence; :meth:`frames` re-renders it identically on every call."""
@@ -728,110 +836,28 @@ class Scene:
         """Render every frame (about 2-4 ms each at 640x480)."""
         self._ensure_background()
         assert self._background is not None
-        spec, cam = self._spec, self.camera
-        W, H = self.width, self.height
-        mx, my = self._margin
         bank, rng = self._noise_bank()
         noise_idx = 0
         jit = np.zeros(2)
-        phases = [p0 for _, p0 in self._actors]
-        prev_pos: list[tuple[float, float] | None] = [None] * len(self._actors)
+        gait = _Gait([p0 for _, p0 in self._actors])
         dt = 1.0 / self.fps
 
         for i in range(self.n_frames):
             t = i * dt
-            if spec.camera in VIBRATION_PX:
-                jit = 0.6 * jit + rng.normal(0.0, VIBRATION_PX[spec.camera])  # vibration: correlated jitter
-            x_cam, rot_dx, rot_dy, vy = self._ego(t)
-            strafe_px = -cam.f_px * x_cam / self.EGO_BACKGROUND_DEPTH_M
-            # Crop the wide background so its content moves by the whole-image shift.
-            ox = int(np.clip(round(mx - (strafe_px + rot_dx + jit[0])), 0, 2 * mx))
-            oy = int(np.clip(round(my - (rot_dy + jit[1])), 0, 2 * my))
-            shift = (float(mx - ox), float(my - oy))
-            person_offset = (shift[0] - strafe_px, shift[1])  # rotation part only; strafe via x_m - x_cam
-            frame = self._background[oy : oy + H, ox : ox + W].copy()
-
-            # Place people: (depth, actor index, box, patch, mask).
-            placed = []
-            for k, (actor, _) in enumerate(self._actors):
-                pos = actor.position(t)
-                if pos is None:
-                    prev_pos[k] = None
-                    continue
-                x_m, z_m = pos
-                speed = lateral = 0.0
-                if prev_pos[k] is not None:
-                    vx_m, vz_m = (x_m - prev_pos[k][0]) / dt, (z_m - prev_pos[k][1]) / dt
-                    speed = math.hypot(vx_m, vz_m)
-                    lateral = abs(vx_m) / (abs(vx_m) + abs(vz_m) + 1e-6) if speed > 0.15 else 0.0
-                prev_pos[k] = pos
-                if speed > 0.15:
-                    phases[k] += 2 * math.pi * 0.9 * dt * min(1.5, 0.5 + speed)
-                bob = 0.015 * abs(math.sin(phases[k])) if speed > 0.15 else 0.0
-                bx, by, bw, bh = cam.figure_box(x_m - x_cam, z_m, actor.style.height_m, bob, person_offset)
-                patch, mask = render_figure(bh, bw, actor.style, phases[k], lateral, self._illumination(x_m, z_m))
-                placed.append((z_m, k, (bx, by, bw, bh), patch, mask))
-
-            # Visibility, nearest first: occluders and nearer people hide farther people.
-            occ_views = [(z, m[oy : oy + H, ox : ox + W]) for m, z in self._occluders]
-            layers = [(z, "occ", m) for z, m in occ_views] + [(p[0], "person", p) for p in placed]
-            layers.sort(key=lambda it: it[0])
-            cover = np.zeros((H, W), bool)
-            vis: dict[int, float] = {}
-            for _, kind, obj in layers:
-                if kind == "occ":
-                    np.logical_or(cover, obj, out=cover)
-                    continue
-                _, k, (bx, by, bw, bh), _, mask = obj
-                x0, y0, x1, y1 = max(bx, 0), max(by, 0), min(bx + bw, W), min(by + bh, H)
-                total = int(np.count_nonzero(mask))
-                if x1 <= x0 or y1 <= y0 or total == 0:
-                    vis[k] = 0.0
-                    continue
-                m = mask[y0 - by : y1 - by, x0 - bx : x1 - bx] > 0
-                vis[k] = float(np.count_nonzero(m & ~cover[y0:y1, x0:x1])) / total
-                cover[y0:y1, x0:x1] |= m
-
-            # Draw farthest first, then occluders over everything behind them.
-            draw = [(p[0], "person", p) for p in placed] + [(z, "occ", m) for z, m in occ_views]
-            draw.sort(key=lambda it: -it[0])
-            bg_view = self._background[oy : oy + H, ox : ox + W]
-            for _, kind, obj in draw:
-                if kind == "occ":
-                    cv2.copyTo(bg_view, obj.view(np.uint8), frame)  # in place (same-size dst)
-                    continue
-                _, k, (bx, by, bw, bh), patch, mask = obj
-                x0, y0, x1, y1 = max(bx, 0), max(by, 0), min(bx + bw, W), min(by + bh, H)
-                if x1 <= x0 or y1 <= y0:
-                    continue
-                cv2.copyTo(patch[y0 - by : y1 - by, x0 - bx : x1 - bx], mask[y0 - by : y1 - by, x0 - bx : x1 - bx],
-                           frame[y0:y1, x0:x1])
-
+            jit = self._vibrate(jit, rng)
+            view = self._view(t, jit)
+            bg_view = self._crop(self._background, view)
+            frame = bg_view.copy()
+            placed = self._place_people(t, dt, view, gait)
+            occ_views = [(z, self._crop(m, view)) for m, z in self._occluders]
+            vis = _visible_fractions(placed, occ_views, self.width, self.height)
+            _composite(frame, bg_view, placed, occ_views)
             frame, blur_px = self._screen_effects(frame, t, dt)
-            # Optics and sensor: slight defocus, then fresh noise (never the same bank entry twice).
-            frame = cv2.GaussianBlur(frame, (3, 3), 0.7)
-            noise_idx = (noise_idx + 1 + int(rng.integers(0, len(bank) - 1))) % len(bank)
-            pos_n, neg_n = bank[noise_idx]
-            frame = cv2.subtract(cv2.add(frame, pos_n), neg_n)
-
-            target_box: Box | None = None
-            target_vis = 0.0
-            d_boxes: list[Box] = []
-            d_vis: list[float] = []
-            for _, k, (bx, by, bw, bh), _, _ in sorted(placed, key=lambda p: p[1]):
-                v = vis.get(k, 0.0)
-                if v <= 0.0:
-                    continue
-                x0, y0 = max(bx, 0), max(by, 0)
-                box = (float(x0), float(y0), float(min(bx + bw, W) - x0), float(min(by + bh, H) - y0))
-                if self._actors[k][0].role == "target":
-                    target_box, target_vis = box, v
-                else:
-                    d_boxes.append(box)
-                    d_vis.append(v)
+            frame, noise_idx = _optics_and_sensor(frame, bank, noise_idx, rng)
+            target_box, target_vis, d_boxes, d_vis = self._ground_truth(placed, vis)
             target_vis, d_vis = _detectable(target_vis, d_vis, blur_px)
             # Ego velocity: forward speed of a robot keeping pace with the walker, plus the strafe.
-            ego_v = {"ego": (0.9, vy), "bumpy": (0.5, 0.0)}.get(spec.camera, (0.0, 0.0))
+            ego_v = {"ego": (0.9, view.vy), "bumpy": (0.5, 0.0)}.get(self._spec.camera, (0.0, 0.0))
             yield SceneFrame(
                 index=i,
                 t_ns=round(i * 1e9 / self.fps),
@@ -841,9 +867,67 @@ class Scene:
                 distractor_boxes=d_boxes,
                 ego_velocity_mps=ego_v,
                 distractor_visible_fractions=[round(v, 4) for v in d_vis],
-                camera_offset_px=shift,
+                camera_offset_px=view.shift,
                 motion_blur_px=blur_px,
             )
+
+    def _vibrate(self, jit: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The next image jitter (px) of a vibrating camera (correlated from frame to frame); others keep zero
+        and draw nothing from ``rng`` (the sensor noise draws from it too)."""
+        if self._spec.camera in VIBRATION_PX:
+            jit = 0.6 * jit + rng.normal(0.0, VIBRATION_PX[self._spec.camera])
+        return jit
+
+    def _view(self, t: float, jit: np.ndarray) -> _View:
+        x_cam, rot_dx, rot_dy, vy = self._ego(t)
+        strafe_px = -self.camera.f_px * x_cam / self.EGO_BACKGROUND_DEPTH_M
+        mx, my = self._margin
+        # Crop the wide background so its content moves by the whole-image shift.
+        ox = int(np.clip(round(mx - (strafe_px + rot_dx + jit[0])), 0, 2 * mx))
+        oy = int(np.clip(round(my - (rot_dy + jit[1])), 0, 2 * my))
+        shift = (float(mx - ox), float(my - oy))
+        return _View(ox, oy, shift, (shift[0] - strafe_px, shift[1]), x_cam, vy)
+
+    def _crop(self, canvas: np.ndarray, view: _View) -> np.ndarray:
+        """The frame-sized window of a background-sized canvas (the background, an occluder mask) this frame."""
+        return canvas[view.oy : view.oy + self.height, view.ox : view.ox + self.width]
+
+    def _place_people(self, t: float, dt: float, view: _View, gait: _Gait) -> list[_Placed]:
+        """Every actor in the world at ``t``, projected and rendered (not yet drawn into the frame)."""
+        placed = []
+        for k, (actor, _) in enumerate(self._actors):
+            pos = actor.position(t)
+            if pos is None:
+                gait.lose(k)
+                continue
+            bob, lateral = gait.step(k, pos, dt)
+            x_m, z_m = pos
+            bx, by, bw, bh = self.camera.figure_box(x_m - view.x_cam, z_m, actor.style.height_m, bob,
+                                                    view.person_offset)
+            patch, mask = render_figure(bh, bw, actor.style, gait.phases[k], lateral, self._illumination(x_m, z_m))
+            placed.append(_Placed(z_m, k, (bx, by, bw, bh), patch, mask))
+        return placed
+
+    def _ground_truth(self, placed: list[_Placed],
+                      vis: dict[int, float]) -> tuple[Box | None, float, list[Box], list[float]]:
+        """(target box, its visible fraction, distractor boxes, theirs) of everyone with a visible pixel, boxes
+        clipped to the image, distractors in actor order."""
+        target_box: Box | None = None
+        target_vis = 0.0
+        d_boxes: list[Box] = []
+        d_vis: list[float] = []
+        for person in sorted(placed, key=lambda p: p.k):
+            v = vis.get(person.k, 0.0)
+            if v <= 0.0:
+                continue
+            x0, y0, x1, y1 = _clip_box(person.box, self.width, self.height)
+            box = (float(x0), float(y0), float(x1 - x0), float(y1 - y0))
+            if self._actors[person.k][0].role == "target":
+                target_box, target_vis = box, v
+            else:
+                d_boxes.append(box)
+                d_vis.append(v)
+        return target_box, target_vis, d_boxes, d_vis
 
     def __iter__(self) -> Iterator[SceneFrame]:
         return self.frames()
