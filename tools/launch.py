@@ -238,17 +238,11 @@ class Launcher:
     def run(self, duration_s: float | None = None, on_ready=None) -> int:
         """Run until duration elapses (counted from the moment every node is up, so start-up on a busy
         machine does not eat the run), Ctrl-C/SIGTERM, or every node has finished. Returns the exit status."""
-        self.session = open_session(self.graph.zenoh)
-        self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=False)
-        self._table_pub = Publisher(self.session, launcher_key(self.graph.namespace, self.launcher_id),
-                                    self.launcher_id, congestion="drop")
-        if self.watch_outputs:
-            self._watch_outputs()
+        self._open_bus()
         for child in self.children:
             self._start(child)
         node_names = {c.name for c in self.children if c.spec.run != "<tool>"}
         started = time.monotonic()
-        ready = False
         deadline = None  # set when the graph is ready
         ready_at: float | None = None
         try:
@@ -256,42 +250,18 @@ class Launcher:
                 now = time.monotonic()
                 if deadline is not None and now >= deadline:
                     break
-                for child in self.children:
-                    if child.proc is not None:
-                        code = child.proc.poll()
-                        if code is not None:
-                            child.proc = None
-                            self._on_exit(child, code)
-                    elif not child.finished and now >= child.next_start:
-                        self._start(child)
-                if now >= self._table_due:
-                    self._publish_table()
-                if self.watch_outputs:
-                    self._unwatch()
-                if not ready:
+                self._tend(now)
+                if ready_at is None:
                     missing = node_names - self.health.alive()
                     if not missing:
-                        ready = True
                         ready_at = now
-                        if duration_s is not None:
-                            deadline = now + duration_s
-                        self.ready_event.set()
-                        # `followbus up` waits for this line in a detached run's launch.log (READY_MARK).
-                        log.info("graph %r ready: %d nodes up in %.1f s", self.graph.name, len(node_names),
-                                 now - started)
-                        if on_ready is not None:
-                            on_ready()
+                        deadline = None if duration_s is None else now + duration_s
+                        self._announce_ready(len(node_names), now - started, on_ready)
                     elif now - started > self.startup_timeout_s:
-                        log.error("startup timeout after %.0f s: no liveliness from %s", self.startup_timeout_s,
-                                  ", ".join(sorted(missing)))
+                        self._report_startup_timeout(missing)
                         self.ran_s = now - started
                         return self._shutdown(1)
-                if all(c.finished for c in self.children):
-                    break
-                if any(c.failed for c in self.children if c.spec.run != "<tool>"):
-                    # A graph missing a node for good (its motor, say) must not limp on. A tool beside it (the
-                    # recorder on a full disk) failing is reported, but the robot keeps following.
-                    log.error("stopping the graph: a node failed for good")
+                if self._should_stop():
                     break
                 time.sleep(0.05)
         except KeyboardInterrupt:
@@ -303,6 +273,56 @@ class Launcher:
         self.ran_s = time.monotonic() - (ready_at if ready_at is not None else started)
         status = 1 if any(c.failed for c in self.children) else 0
         return self._shutdown(status)
+
+    def _open_bus(self) -> None:
+        """Open the session, the liveliness watch, the process table and (with watch_outputs) the output watch."""
+        self.session = open_session(self.graph.zenoh)
+        self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=False)
+        self._table_pub = Publisher(self.session, launcher_key(self.graph.namespace, self.launcher_id),
+                                    self.launcher_id, congestion="drop")
+        if self.watch_outputs:
+            self._watch_outputs()
+
+    def _tend(self, now: float) -> None:
+        """One turn of the loop's upkeep: reap exited children, start the ones due, publish the process
+        table when due, and drop the output watch of nodes already heard from."""
+        for child in self.children:
+            if child.proc is not None:
+                self._reap(child)
+            elif not child.finished and now >= child.next_start:
+                self._start(child)
+        if now >= self._table_due:
+            self._publish_table()
+        if self.watch_outputs:
+            self._unwatch()
+
+    def _reap(self, child: Child) -> None:
+        code = child.proc.poll()
+        if code is not None:
+            child.proc = None
+            self._on_exit(child, code)
+
+    def _announce_ready(self, n_nodes: int, startup_s: float, on_ready) -> None:
+        self.ready_event.set()
+        # `followbus up` waits for this line in a detached run's launch.log (READY_MARK).
+        log.info("graph %r ready: %d nodes up in %.1f s", self.graph.name, n_nodes, startup_s)
+        if on_ready is not None:
+            on_ready()
+
+    def _report_startup_timeout(self, missing: set[str]) -> None:
+        log.error("startup timeout after %.0f s: no liveliness from %s", self.startup_timeout_s,
+                  ", ".join(sorted(missing)))
+
+    def _should_stop(self) -> bool:
+        """Every child has finished, or a node (not a tool) failed for good."""
+        if all(c.finished for c in self.children):
+            return True
+        if any(c.failed for c in self.children if c.spec.run != "<tool>"):
+            # A graph missing a node for good (its motor, say) must not limp on. A tool beside it (the
+            # recorder on a full disk) failing is reported, but the robot keeps following.
+            log.error("stopping the graph: a node failed for good")
+            return True
+        return False
 
     def _shutdown(self, status: int) -> int:
         self.stop_event.set()
