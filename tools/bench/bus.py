@@ -441,47 +441,22 @@ def _summary(per_round: list[dict[str, Any]], plan: dict[str, Any]) -> list[dict
 
 def run_bench_bus(args: Any) -> int:
     args.rounds = getattr(args, "rounds", 3)
-    paths = list(PATHS)
-    if getattr(args, "against", None) == "dora":
-        why = dora_available()
-        if why:
-            print(f"bench bus --against dora: {why}")
-            return 2
-        paths.append("dora")
-    sizes = args.sizes.split(",") if getattr(args, "sizes", None) else list(SIZES)
-    try:
-        rates = [float(r) for r in args.rates.split(",")] if getattr(args, "rates", None) else list(RATES)
-    except ValueError:
-        rates = []
-    unknown = [s for s in sizes if s not in SIZES]
-    if unknown or not rates or any(not r > 0 for r in rates) or args.count < 2 or args.rounds < 1:
+    paths, why_not = _paths_to_bench(args)
+    if why_not:
+        print(f"bench bus --against dora: {why_not}")
+        return 2
+    grid = _sizes_and_rates(args)
+    if grid is None:
         print(f"bench bus: sizes are {', '.join(SIZES)}; rates > 0; --count >= 2; --rounds >= 1")
         return 2
-    plan = _plan(sizes, rates, args.count)
+    plan = _plan(*grid, args.count)
     per_cell_s = sum((_warmup(plan, ci) + args.count) / rate + 0.3 for ci, (_l, _s, rate) in enumerate(plan["cells"]))
     load0 = os.getloadavg()
-    results: dict[str, list[dict[str, Any]]] = {p: [] for p in paths}
     print(f"bench bus: {len(paths)} paths x {args.rounds} rounds x {len(plan['cells'])} cells, "
           f"~{per_cell_s * len(paths) * args.rounds / 60:.1f} min", flush=True)
-    with tempfile.TemporaryDirectory(prefix="followbus-bench-bus-") as tmp_name:
-        tmp = Path(tmp_name)
-        plan_file = tmp / "plan.json"
-        plan_file.write_text(json.dumps(plan))
-        for rnd in range(args.rounds):
-            order = paths[rnd % len(paths):] + paths[:rnd % len(paths)]  # rotated: no path always first
-            for path in order:
-                t0 = time.monotonic()
-                try:
-                    if path == "dora":
-                        res = _run_dora(plan_file, tmp, per_cell_s + 120)
-                    else:
-                        res = _run_zenoh_pair(path, plan_file, tmp, per_cell_s + 120)
-                except RuntimeError as exc:
-                    print(f"bench bus: failed: {exc}", file=sys.stderr)
-                    return 1
-                results[path].append(res)
-                print(f"  round {rnd + 1} {path}: {time.monotonic() - t0:.0f} s, load {os.getloadavg()[0]:.2f}",
-                      flush=True)
+    results = _run_rounds(paths, plan, args.rounds, per_cell_s + 120)
+    if results is None:
+        return 1
     load1 = os.getloadavg()
     table = {p: _summary(results[p], plan) for p in paths}
     _print_table(table, paths, args, load0, load1)
@@ -489,7 +464,66 @@ def run_bench_bus(args: Any) -> int:
         Path(args.json).write_text(json.dumps({
             "machine": platform.node(), "date": time.strftime("%Y-%m-%d"), "count": args.count,
             "rounds": args.rounds, "load_before": load0, "load_after": load1, "paths": table}, indent=1))
-    # Exit 1 when bus/ lost messages (what the bench is for); a loss of raw zenoh or dora shows in the table only.
+    return _bus_loss_status(table, load1)
+
+
+def _paths_to_bench(args: Any) -> tuple[list[str], str | None]:
+    """The paths to measure, and why not when --against dora asks for a dora-rs that cannot run here."""
+    paths = list(PATHS)
+    if getattr(args, "against", None) == "dora":
+        why = dora_available()
+        if why:
+            return paths, why
+        paths.append("dora")
+    return paths, None
+
+
+def _sizes_and_rates(args: Any) -> tuple[list[str], list[float]] | None:
+    """The sizes and rates to measure (the defaults unless given), or None when any of them, --count or
+    --rounds is out of range."""
+    sizes = args.sizes.split(",") if getattr(args, "sizes", None) else list(SIZES)
+    try:
+        rates = [float(r) for r in args.rates.split(",")] if getattr(args, "rates", None) else list(RATES)
+    except ValueError:
+        rates = []
+    unknown = [s for s in sizes if s not in SIZES]
+    if unknown or not rates or any(not r > 0 for r in rates) or args.count < 2 or args.rounds < 1:
+        return None
+    return sizes, rates
+
+
+def _run_rounds(paths: list[str], plan: dict[str, Any], rounds: int,
+                timeout_s: float) -> dict[str, list[dict[str, Any]]] | None:
+    """Every path once a round, its result per round; None when a run failed (said on stderr)."""
+    results: dict[str, list[dict[str, Any]]] = {p: [] for p in paths}
+    with tempfile.TemporaryDirectory(prefix="followbus-bench-bus-") as tmp_name:
+        tmp = Path(tmp_name)
+        plan_file = tmp / "plan.json"
+        plan_file.write_text(json.dumps(plan))
+        for rnd in range(rounds):
+            order = paths[rnd % len(paths):] + paths[:rnd % len(paths)]  # rotated: no path always first
+            for path in order:
+                t0 = time.monotonic()
+                try:
+                    res = _run_path(path, plan_file, tmp, timeout_s)
+                except RuntimeError as exc:
+                    print(f"bench bus: failed: {exc}", file=sys.stderr)
+                    return None
+                results[path].append(res)
+                print(f"  round {rnd + 1} {path}: {time.monotonic() - t0:.0f} s, load {os.getloadavg()[0]:.2f}",
+                      flush=True)
+    return results
+
+
+def _run_path(path: str, plan_file: Path, tmp: Path, timeout_s: float) -> dict[str, Any]:
+    if path == "dora":
+        return _run_dora(plan_file, tmp, timeout_s)
+    return _run_zenoh_pair(path, plan_file, tmp, timeout_s)
+
+
+def _bus_loss_status(table: dict[str, list[dict[str, Any]]], load1: tuple[float, ...]) -> int:
+    """Exit 1 when bus/ lost messages (what the bench is for); a loss of raw zenoh or dora shows in the table
+    only."""
     short = [f"{row['size']} at {row['rate_hz']:.0f} Hz: {row['n']} of {row['expected']} received"
              for row in table["bus"] if row["n"] < row["expected"]]
     if short:
