@@ -125,9 +125,7 @@ def check_models(args: argparse.Namespace) -> int:
     """The listing: the search path and every copy of every shipped model, checked."""
     model_dir: str | None = args.model_dir
     dirs = search_path(model_dir)
-    print("model search path (first match wins):")
-    for i, d in enumerate(dirs, 1):
-        print(f"  {i}. {d}{_origin(d, model_dir)}")
+    _print_search_path(dirs, model_dir)
 
     sums = known_checksums()
     if not sums:
@@ -137,37 +135,53 @@ def check_models(args: argparse.Namespace) -> int:
 
     problems: list[str] = []
     for name in sorted(sums):
-        role = MODEL_ROLES.get(name, "")
-        print(f"{name}: {role}" if role else name)
-        copies = find_all_copies(name, model_dir)
-        if not copies:
-            print("  MISSING: in no directory of the search path; restore it with "
-                  f"`git checkout -- models/{name}`")
-            problems.append(f"{name} missing")
-            continue
-        for k, path in enumerate(copies):
-            try:
-                check = check_model(path, sums)
-            except OSError as exc:
-                print(f"  {'used' if k == 0 else 'also'}  {path}  unreadable: {exc.strerror or exc}")
-                if k == 0:
-                    problems.append(f"{path} unreadable")
-                continue
-            label = "used" if k == 0 else "also"
-            print(f"  {label}  {path}  {_mb(check.size_bytes)}  {_describe(check)}")
-            if not check.ok:
-                print(f"        {restore_hint(path)}")
-                if k == 0:
-                    problems.append(f"{path} corrupt")
-
-    others = sorted({p for d in dirs if d.is_dir() for p in d.glob("*.onnx") if p.name not in sums})
-    if others:
-        print("\nother ONNX files on the search path (loaded without a checksum when named by model_file):")
-        for p in others:
-            print(f"  {p}  {_mb(p.stat().st_size)}")
+        problems += _check_shipped_model(name, sums, model_dir)
+    _print_other_onnx(dirs, sums)
 
     if problems:
         print(f"\n{len(problems)} problem(s): {'; '.join(problems)}")
         return EXIT_PROBLEM
     print(f"\nall {len(sums)} shipped models present and intact")
     return 0
+
+
+def _print_search_path(dirs: list[Path], model_dir: str | None) -> None:
+    print("model search path (first match wins):")
+    for i, d in enumerate(dirs, 1):
+        print(f"  {i}. {d}{_origin(d, model_dir)}")
+
+
+def _check_shipped_model(name: str, sums: dict[str, str], model_dir: str | None) -> list[str]:
+    """List every copy of one shipped model on the search path, checked; its problems (none when intact)."""
+    role = MODEL_ROLES.get(name, "")
+    print(f"{name}: {role}" if role else name)
+    copies = find_all_copies(name, model_dir)
+    if not copies:
+        print("  MISSING: in no directory of the search path; restore it with "
+              f"`git checkout -- models/{name}`")
+        return [f"{name} missing"]
+    problems = [_check_copy(path, sums, used=k == 0) for k, path in enumerate(copies)]
+    return [problem for problem in problems if problem]
+
+
+def _check_copy(path: Path, sums: dict[str, str], *, used: bool) -> str | None:
+    """One line (and a restore hint) for one copy; a problem only for the copy in use: the others are shadowed."""
+    label = "used" if used else "also"
+    try:
+        check = check_model(path, sums)
+    except OSError as exc:
+        print(f"  {label}  {path}  unreadable: {exc.strerror or exc}")
+        return f"{path} unreadable" if used else None
+    print(f"  {label}  {path}  {_mb(check.size_bytes)}  {_describe(check)}")
+    if check.ok:
+        return None
+    print(f"        {restore_hint(path)}")
+    return f"{path} corrupt" if used else None
+
+
+def _print_other_onnx(dirs: list[Path], sums: dict[str, str]) -> None:
+    others = sorted({p for d in dirs if d.is_dir() for p in d.glob("*.onnx") if p.name not in sums})
+    if others:
+        print("\nother ONNX files on the search path (loaded without a checksum when named by model_file):")
+        for p in others:
+            print(f"  {p}  {_mb(p.stat().st_size)}")
