@@ -38,6 +38,18 @@ from ...replay.plan import ReplayOptions, ReplayReport
 # --- command ---------------------------------------------------------------------------------------
 
 def _print_summary(report: ReplayReport, verify: bool) -> None:
+    """What `followbus replay` says after a run, in this order: timing, output counts, notes, first
+    differences, verdict."""
+    _print_timing(report)
+    _print_output_counts(report)
+    _print_notes(report)
+    _print_first_differences(report)
+    _print_verdict(report, verify)
+    sys.stdout.flush()
+
+
+def _print_timing(report: ReplayReport) -> None:
+    """How much was replayed, how fast, and where the time went."""
     print(f"replayed {report.frames} frames ({report.inputs_sent} input messages) into {report.node} "
           f"({report.mode}) in {report.wall_s:.2f} s: {report.speed_x:.1f}x real time over "
           f"{report.recorded_span_s:.2f} s recorded")
@@ -48,10 +60,17 @@ def _print_summary(report: ReplayReport, verify: bool) -> None:
               f"(the rest: reading the recording, ordering, diffing)")
     elif report.startup_s:
         print(f"node process up in {report.startup_s:.2f} s (not counted above)")
+
+
+def _print_output_counts(report: ReplayReport) -> None:
     print(f"outputs: {report.outputs_expected} recorded, {report.outputs_received} produced, "
           f"{report.outputs_compared} compared, {report.matched} identical, {report.mismatch_count} differing, "
           f"{len(report.missing)} missing, {len(report.extra)} extra"
           + (f"; {len(report.timeouts)} frame timeouts" if report.mode == "isolated" else ""))
+
+
+def _print_notes(report: ReplayReport) -> None:
+    """Recorded outputs not compared, or differing for a known reason: each said with why."""
     if report.timer_outputs:
         print(f"not compared: {report.timer_outputs} recorded outputs of the node's timer (no frame: odometry, "
               "watchdog stops); live it ticks on the wall clock, a replay on the message stamps")
@@ -72,6 +91,10 @@ def _print_summary(report: ReplayReport, verify: bool) -> None:
         print(f"note: the recording starts at frame {report.recording_first_frame} of the run (recorded mid-run): "
               "the node starts without the state it had built before (template, track state, filter), so its first "
               "outputs can differ until that state converges; `followbus launch --record` records from frame 0")
+
+
+def _print_first_differences(report: ReplayReport) -> None:
+    """The first mismatch, missing and extra output (where to start looking), and the run's error."""
     if report.mismatches:
         first = min(report.mismatches, key=lambda m: (m["frame_seq"], m["key"], m["index"]))
         print(f"first mismatch: frame {first['frame_seq']}, key {first['key']} (#{first['index']}), field "
@@ -84,12 +107,14 @@ def _print_summary(report: ReplayReport, verify: bool) -> None:
         print(f"first extra output: frame {m['frame_seq']}, key {m['key']}")
     if report.error:
         print(f"error: {report.error}")
+
+
+def _print_verdict(report: ReplayReport, verify: bool) -> None:
     if verify and not report.outputs_compared and not report.error:
         print(f"verify: FAILED: nothing compared (the recording holds no output of {report.node} for the frames "
               "replayed; record the node's outputs too, e.g. `followbus launch --record`)")
     elif verify:
         print("verify: " + ("OK" if report.ok(True) else "FAILED"))
-    sys.stdout.flush()
 
 
 def cmd_replay(args) -> int:
