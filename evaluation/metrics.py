@@ -220,6 +220,72 @@ def _reid_events(gt_present: np.ndarray, success: np.ndarray, min_occlusion_fram
     return events
 
 
+def _check_run_shapes(pred_boxes: Sequence[Box | None], gt_boxes: Sequence[Box | None],
+                      other_gt: Sequence[Sequence[Box]] | None, fps: float) -> None:
+    if len(pred_boxes) != len(gt_boxes):
+        raise ValueError(f"pred has {len(pred_boxes)} frames, gt has {len(gt_boxes)}")
+    if other_gt is not None and len(other_gt) != len(gt_boxes):
+        raise ValueError(f"other_gt has {len(other_gt)} frames, gt has {len(gt_boxes)}")
+    if fps <= 0:
+        raise ValueError("fps must be positive")
+
+
+def _per_frame_errors(pred_boxes: Sequence[Box | None],
+                      gt_boxes: Sequence[Box | None]) -> tuple[np.ndarray, np.ndarray]:
+    """Centre error ``e_t`` and IoU per frame; NaN where the output or the ground truth is missing."""
+    errors = np.full(len(gt_boxes), math.nan)
+    ious = np.full(len(gt_boxes), math.nan)
+    for t, (p, g) in enumerate(zip(pred_boxes, gt_boxes, strict=True)):
+        if p is not None and g is not None:
+            errors[t] = _center_dist(p, g)
+            ious[t] = box_iou(p, g)
+    return errors, ious
+
+
+def _mean_or_nan(values: np.ndarray) -> float:
+    return float(values.mean()) if values.size else math.nan
+
+
+def _std_or_nan(values: np.ndarray) -> float:
+    return float(values.std()) if values.size else math.nan  # numpy std is 1/N
+
+
+def _cle_all(cle: float, errors_scored: np.ndarray, missing: int, n_gt: int, diagonal: float | None) -> float:
+    """Mean error over all gt frames, a missing output charged the image diagonal (NaN if that is unknown)."""
+    if missing == 0:
+        return cle
+    if diagonal is None:
+        return math.nan
+    return float((errors_scored.sum() + missing * diagonal) / n_gt)
+
+
+def _target_switches(pred_boxes: Sequence[Box | None], gt_boxes: Sequence[Box | None],
+                     other_gt: Sequence[Sequence[Box]] | None, tsr_px: float,
+                     iou_threshold: float) -> tuple[int, int]:
+    """(target → distractor transitions, frames on a distractor); both 0 without ``other_gt``."""
+    if other_gt is None:
+        return 0, 0
+    switches = 0
+    on_distractor = 0
+    last = "none"
+    for t in range(len(gt_boxes)):
+        owner = _frame_owner(pred_boxes[t], gt_boxes[t], other_gt[t], tsr_px, iou_threshold)
+        if owner == "distractor":
+            on_distractor += 1
+            if last == "target":
+                switches += 1
+        if owner != "none":  # a lost/absent frame does not break a target → distractor transition
+            last = owner
+    return switches, on_distractor
+
+
+def _rates(n_succ: int, n_out: int, n_gt: int, iou_hits: int) -> dict[str, float]:
+    """The rate fields of :class:`SingleTargetMetrics`, from its counts (module docstring)."""
+    return {"precision": _ratio(n_succ, n_out), "recall": _ratio(n_succ, n_gt),
+            "f1": _ratio(2 * n_succ, n_out + n_gt), "tsr": _ratio(n_succ, n_gt),
+            "iou_success": _ratio(iou_hits, n_gt)}
+
+
 def evaluate_single_target(
     pred_boxes: Sequence[Box | None],
     gt_boxes: Sequence[Box | None],
@@ -236,63 +302,27 @@ def evaluate_single_target(
     ``other_gt[t]`` lists the boxes of the *other* people on frame t (needed for target switches; without it
     the switch count is 0). ``image_size`` = (width, height) enables ``cle_all``.
     """
-    if len(pred_boxes) != len(gt_boxes):
-        raise ValueError(f"pred has {len(pred_boxes)} frames, gt has {len(gt_boxes)}")
-    if other_gt is not None and len(other_gt) != len(gt_boxes):
-        raise ValueError(f"other_gt has {len(other_gt)} frames, gt has {len(gt_boxes)}")
-    if fps <= 0:
-        raise ValueError("fps must be positive")
-    n = len(gt_boxes)
-    errors = np.full(n, math.nan)
-    ious = np.full(n, math.nan)
+    _check_run_shapes(pred_boxes, gt_boxes, other_gt, fps)
+    errors, ious = _per_frame_errors(pred_boxes, gt_boxes)
     gt_present = np.array([g is not None for g in gt_boxes], dtype=bool)
     has_out = np.array([p is not None for p in pred_boxes], dtype=bool)
-    for t, (p, g) in enumerate(zip(pred_boxes, gt_boxes, strict=True)):
-        if p is not None and g is not None:
-            errors[t] = _center_dist(p, g)
-            ious[t] = box_iou(p, g)
     both = gt_present & has_out
     # NaN compares False, so frames without an error are never successes.
     with np.errstate(invalid="ignore"):
         success = both & (errors < tsr_px)
+        iou_hits = int((both & (ious >= iou_threshold)).sum())
     n_gt = int(gt_present.sum())
     n_out = int(has_out.sum())
     n_succ = int(success.sum())
-    n_both = int(both.sum())
     missing = int((gt_present & ~has_out).sum())
-
-    cle = float(errors[both].mean()) if n_both else math.nan
+    cle = _mean_or_nan(errors[both])
     diag = math.hypot(*image_size) if image_size is not None else None
-    if missing == 0:
-        cle_all = cle
-    elif diag is not None:
-        cle_all = float((errors[both].sum() + missing * diag) / n_gt)
-    else:
-        cle_all = math.nan
-    stability = float(errors[success].std()) if n_succ else math.nan  # numpy std is 1/N
-    with np.errstate(invalid="ignore"):
-        iou_hits = int((both & (ious >= iou_threshold)).sum())
-
-    switches = 0
-    on_distractor = 0
-    if other_gt is not None:
-        last = "none"
-        for t in range(n):
-            owner = _frame_owner(pred_boxes[t], gt_boxes[t], other_gt[t], tsr_px, iou_threshold)
-            if owner == "distractor":
-                on_distractor += 1
-                if last == "target":
-                    switches += 1
-            if owner != "none":  # a lost/absent frame does not break a target → distractor transition
-                last = owner
-
+    switches, on_distractor = _target_switches(pred_boxes, gt_boxes, other_gt, tsr_px, iou_threshold)
     return SingleTargetMetrics(
-        frames=n, frames_with_gt=n_gt, outputs=n_out, successes=n_succ, false_positives=n_out - n_succ,
-        missing_outputs=missing, precision=_ratio(n_succ, n_out), recall=_ratio(n_succ, n_gt),
-        f1=_ratio(2 * n_succ, n_out + n_gt), cle=cle, cle_frames=n_both, cle_all=cle_all,
-        tsr=_ratio(n_succ, n_gt), stability=stability,
-        mean_iou=float(ious[both].mean()) if n_both else math.nan, iou_success=_ratio(iou_hits, n_gt),
-        iou_hits=iou_hits,
+        frames=len(gt_boxes), frames_with_gt=n_gt, outputs=n_out, successes=n_succ,
+        false_positives=n_out - n_succ, missing_outputs=missing, **_rates(n_succ, n_out, n_gt, iou_hits),
+        cle=cle, cle_frames=int(both.sum()), cle_all=_cle_all(cle, errors[both], missing, n_gt, diag),
+        stability=_std_or_nan(errors[success]), mean_iou=_mean_or_nan(ious[both]), iou_hits=iou_hits,
         target_switches=switches, frames_on_distractor=on_distractor,
         reid_events=_reid_events(gt_present, success, min_occlusion_frames, fps),
         wrong_relocks=wrong_relock_episodes(ious, has_out, gt_present),
