@@ -331,44 +331,43 @@ def evaluate_single_target(
     )
 
 
-def aggregate(metrics: Iterable[SingleTargetMetrics]) -> SingleTargetMetrics:
-    """Frame-weighted overall: counts are summed and rates recomputed from them (so long sequences weigh
-    more); CLE / mean IoU pool the per-frame values, stability is the std of the pooled successful errors,
-    re-ID events are concatenated (their frame indices stay per-sequence)."""
-    items = list(metrics)
+# The counts of SingleTargetMetrics that add up across sequences (the rates are recomputed from them).
+_SUMMED_COUNTS = ("frames", "frames_with_gt", "outputs", "successes", "missing_outputs", "cle_frames", "iou_hits",
+                  "target_switches", "frames_on_distractor", "wrong_relocks")
+
+
+def _common_tsr_px(items: Sequence[SingleTargetMetrics]) -> float:
     if not items:
         raise ValueError("aggregate() needs at least one SingleTargetMetrics")
     taus = {m.tsr_px for m in items}
     if len(taus) > 1:
         raise ValueError(f"cannot aggregate runs scored with different tsr_px: {sorted(taus)}")
-    tau = items[0].tsr_px
+    return items[0].tsr_px
+
+
+def _pooled_cle_all(items: Sequence[SingleTargetMetrics], n_gt: int) -> float:
+    # cle_all is the gt-frame-weighted mean of the per-sequence values (each already charges its own diagonal).
+    parts = [(m.cle_all, m.frames_with_gt) for m in items if m.frames_with_gt]
+    return float(sum(v * w for v, w in parts) / n_gt) if parts and n_gt else math.nan
+
+
+def aggregate(metrics: Iterable[SingleTargetMetrics]) -> SingleTargetMetrics:
+    """Frame-weighted overall: counts are summed and rates recomputed from them (so long sequences weigh
+    more); CLE / mean IoU pool the per-frame values, stability is the std of the pooled successful errors,
+    re-ID events are concatenated (their frame indices stay per-sequence)."""
+    items = list(metrics)
+    tau = _common_tsr_px(items)
     errors = np.concatenate([m.center_errors for m in items])
     ious = np.concatenate([m.ious for m in items])
     with np.errstate(invalid="ignore"):
         succ_err = errors[errors < tau]
-    n_gt = sum(m.frames_with_gt for m in items)
-    n_out = sum(m.outputs for m in items)
-    n_succ = sum(m.successes for m in items)
-    n_both = sum(m.cle_frames for m in items)
-    missing = sum(m.missing_outputs for m in items)
-    iou_hits = sum(m.iou_hits for m in items)
-    # cle_all is the gt-frame-weighted mean of the per-sequence values (each already charges its own diagonal).
-    cle_all_parts = [(m.cle_all, m.frames_with_gt) for m in items if m.frames_with_gt]
-    cle_all = (sum(v * w for v, w in cle_all_parts) / n_gt) if cle_all_parts and n_gt else math.nan
-    finite = errors[np.isfinite(errors)]
-    finite_iou = ious[np.isfinite(ious)]
+    counts = {name: sum(getattr(m, name) for m in items) for name in _SUMMED_COUNTS}
+    n_gt, n_out, n_succ = counts["frames_with_gt"], counts["outputs"], counts["successes"]
     return SingleTargetMetrics(
-        frames=sum(m.frames for m in items), frames_with_gt=n_gt, outputs=n_out, successes=n_succ,
-        false_positives=n_out - n_succ, missing_outputs=missing, precision=_ratio(n_succ, n_out),
-        recall=_ratio(n_succ, n_gt), f1=_ratio(2 * n_succ, n_out + n_gt),
-        cle=float(finite.mean()) if finite.size else math.nan, cle_frames=n_both, cle_all=float(cle_all),
-        tsr=_ratio(n_succ, n_gt), stability=float(succ_err.std()) if succ_err.size else math.nan,
-        mean_iou=float(finite_iou.mean()) if finite_iou.size else math.nan,
-        iou_success=_ratio(iou_hits, n_gt), iou_hits=iou_hits,
-        target_switches=sum(m.target_switches for m in items),
-        frames_on_distractor=sum(m.frames_on_distractor for m in items),
-        reid_events=[e for m in items for e in m.reid_events],
-        wrong_relocks=sum(m.wrong_relocks for m in items), center_errors=errors, ious=ious,
+        **counts, false_positives=n_out - n_succ, **_rates(n_succ, n_out, n_gt, counts["iou_hits"]),
+        cle=_mean_or_nan(errors[np.isfinite(errors)]), cle_all=_pooled_cle_all(items, n_gt),
+        stability=_std_or_nan(succ_err), mean_iou=_mean_or_nan(ious[np.isfinite(ious)]),
+        reid_events=[e for m in items for e in m.reid_events], center_errors=errors, ious=ious,
         tsr_px=tau, iou_threshold=items[0].iou_threshold, fps=items[0].fps, image_diagonal=None,
     )
 
