@@ -23,7 +23,6 @@ included); the orientation is the heading of the nominal group path, its velocit
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -114,21 +113,45 @@ def _double_column(n: int) -> np.ndarray:
 
 
 @dataclass
-class _Walker:
-    """One person: a function of time to a world position, and when they are in the scene / a member."""
+class _GroupPath:
+    """The nominal group path, per frame: time, position, velocity and its forward / left unit axes."""
 
-    pos: Callable[[np.ndarray], np.ndarray]
-    present: Callable[[np.ndarray], np.ndarray]
-    member: Callable[[np.ndarray], np.ndarray]
+    t: np.ndarray                         # (T,)
+    pos: np.ndarray                       # (T, 2)
+    vel: np.ndarray                       # (T, 2)
+    fwd: np.ndarray                       # (T, 2)
+    left: np.ndarray                      # (T, 2)
+
+
+def _path_axes(path_vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Forward and left unit vectors along a path, from its velocity."""
+    head = np.arctan2(path_vel[:, 1], path_vel[:, 0])
+    return np.stack([np.cos(head), np.sin(head)], axis=1), np.stack([-np.sin(head), np.cos(head)], axis=1)
+
+
+@dataclass
+class _Cast:
+    """Everyone in a scenario as it is built: per person, its positions (T, 2) and when it is a member / present."""
+
+    positions: list[np.ndarray] = field(default_factory=list)
+    member: list[np.ndarray] = field(default_factory=list)
+    present: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, pos: np.ndarray, member: np.ndarray, present: np.ndarray) -> None:
+        self.positions.append(pos)
+        self.member.append(member)
+        self.present.append(present)
+
+    def add_non_member(self, pos: np.ndarray) -> None:
+        """Someone in the scene all along who never joins the group."""
+        self.add(pos, np.zeros(len(pos), bool), np.ones(len(pos), bool))
 
 
 def _slot_walker(path_pos: np.ndarray, path_vel: np.ndarray, slot: np.ndarray, scale: np.ndarray,
                  rng: np.random.Generator) -> np.ndarray:
     """World positions of a member holding ``slot`` (forward, left) with its own lateral weave."""
     t = np.arange(len(path_pos)) * DT_S
-    head = np.arctan2(path_vel[:, 1], path_vel[:, 0])
-    fwd = np.stack([np.cos(head), np.sin(head)], axis=1)
-    left = np.stack([-np.sin(head), np.cos(head)], axis=1)
+    fwd, left = _path_axes(path_vel)
     amp, period, phase = rng.uniform(0.2, 0.5), rng.uniform(4.0, 8.0), rng.uniform(0, 2 * math.pi)
     weave = amp * np.sin(2 * math.pi * t / period + phase)
     surge = 0.15 * np.sin(2 * math.pi * t / rng.uniform(5, 9) + rng.uniform(0, 2 * math.pi))
@@ -156,135 +179,183 @@ def make_scenario(name: str, seed: int = 0, duration_s: float = 30.0, p_miss: fl
     """Build one scenario with all its frames. Same (name, seed) → same numbers."""
     if name not in SCENARIOS:
         raise ValueError(f"unknown group scenario {name!r}; available: {', '.join(SCENARIOS)}")
+    # One generator for every draw, in a fixed order (formation, walkers, obstacles, then frame by frame):
+    # reordering the phases below changes every number.
     rng = np.random.default_rng([seed, SCENARIOS.index(name)])
-    n_t = int(round(duration_s / DT_S))
-    t = np.arange(n_t) * DT_S
-    always = np.ones(n_t, bool)
-    follow_m = 4.0
-    occ = 3.0 if occlusion_deg is None else occlusion_deg
-    scale = np.ones(n_t)
-    if name == "turning":
-        path_pos, path_vel = _turning(t)
-    else:
-        path_pos, path_vel = _straight(t)
-    head = np.arctan2(path_vel[:, 1], path_vel[:, 0])
-    fwd = np.stack([np.cos(head), np.sin(head)], axis=1)
-    left = np.stack([-np.sin(head), np.cos(head)], axis=1)
+    path = _nominal_path(name, np.arange(int(round(duration_s / DT_S))) * DT_S)
+    slots, scale, follow_m = _formation(name, path.t, rng)
+    sc = _scenario_truth(name, path, _build_cast(name, path, slots, scale, rng), follow_m)
+    obstacles = _place_obstacles(path, rng)
+    _simulate_frames(sc, obstacles, _occlusion_deg(name, occlusion_deg), p_miss, clutter_per_s, rng)
+    return sc
 
+
+def _nominal_path(name: str, t: np.ndarray) -> _GroupPath:
+    pos, vel = _turning(t) if name == "turning" else _straight(t)
+    fwd, left = _path_axes(vel)
+    return _GroupPath(t, pos, vel, fwd, left)
+
+
+def _formation(name: str, t: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+    """The 8 members' slots (forward, left) m, the formation's scale over time, and how far behind the group's
+    centre the robot follows (0: among the group, between the columns)."""
     n_members = 8
+    if name == "double-column":
+        return _double_column(n_members), np.ones(len(t)), 0.0
+    slots = _blob(n_members, rng)
+    if name == "formation":
+        return slots, np.interp(t, [0, 8, 12, 16, 22, 60], [1.0, 1.0, 0.5, 0.5, 1.5, 1.5]), 4.0
+    return slots, np.ones(len(t)), 4.0
+
+
+def _occlusion_deg(name: str, occlusion_deg: float | None) -> float:
+    """The occlusion angle: the caller's, else 10° for the occlusion scenario (Table 3), 3° elsewhere."""
+    if occlusion_deg is not None:
+        return occlusion_deg
+    return 10.0 if name == "occlusion" else 3.0
+
+
+def _build_cast(name: str, path: _GroupPath, slots: np.ndarray, scale: np.ndarray,
+                rng: np.random.Generator) -> _Cast:
+    cast = _Cast()
+    for s in slots:
+        cast.add(_slot_walker(path.pos, path.vel, s, scale, rng), np.ones(len(path.t), bool),
+                 np.ones(len(path.t), bool))
     # Seed 004 runs its disturbance and occlusion experiments on the Fig. 2a scenario (Table 3's n = 2 / 5° rows
     # are Table 2's numbers): the same squad, joiner and leaver, with disturbers added or the angle widened.
-    base_straight = name in ("straight", "disturbance", "occlusion")
-    if name == "occlusion":
-        occ = 10.0 if occlusion_deg is None else occlusion_deg
-    if name == "double-column":
-        slots = _double_column(n_members)
-        follow_m = 0.0
-    else:
-        slots = _blob(n_members, rng)
-    if name == "formation":
-        scale = np.interp(t, [0, 8, 12, 16, 22, 60], [1.0, 1.0, 0.5, 0.5, 1.5, 1.5])
-
-    positions: list[np.ndarray] = []
-    member: list[np.ndarray] = []
-    present: list[np.ndarray] = []
-    for s in slots:
-        positions.append(_slot_walker(path_pos, path_vel, s, scale, rng))
-        member.append(always.copy())
-        present.append(always.copy())
-
-    if base_straight:
-        # Joiner: walks in from 9 m to the left, reaches its slot (rear-left) at 12 s, member from then.
-        slot = np.array([-3.6, 1.4])
-        own = _slot_walker(path_pos, path_vel, slot, scale, rng)
-        lateral = np.interp(t, [0, 8, 12, 60], [9.0, 9.0, 0.0, 0.0])
-        positions.append(own + left * lateral[:, None])
-        member.append(t >= 12.0)
-        present.append(t >= 4.0)
-        # Leaver: member 2 peels off to the right from 18 s, at 1 m/s sideways and slowing down.
-        k = 2
-        off = np.clip(t - 18.0, 0, None)
-        positions[k] = positions[k] - left * (1.0 * off)[:, None] - fwd * (0.6 * off)[:, None]
-        member[k] = t < 18.0
+    if name in ("straight", "disturbance", "occlusion"):
+        _add_joiner_and_leaver(cast, path, scale, rng)
     if name == "disturbance":
-        def add(pos: np.ndarray) -> None:
-            positions.append(pos)
-            member.append(np.zeros(n_t, bool))
-            present.append(always.copy())
-        # Two crossing the path through the group's front and rear at 1.3 m/s.
-        for t_cross, dx in ((9.0, 2.5), (19.0, -2.0)):
-            x0 = SPEED_MPS * t_cross + dx
-            add(np.stack([np.full(n_t, x0), 1.3 * (t - t_cross) * (1 if dx > 0 else -1)], axis=1))
-        # Oncoming at 3.5 m to the right.
-        add(np.stack([40.0 - 1.1 * t, np.full(n_t, -3.5)], axis=1))
-        # A bystander standing 4 m left of the path.
-        add(np.tile([16.0, 4.0], (n_t, 1)))
-        # Walking the same way at 0.6 m/s, 4.5 m to the right: overtaken.
-        add(np.stack([6.0 + 0.6 * t, np.full(n_t, -4.5)], axis=1))
+        _add_disturbers(cast, path.t)
+    return cast
 
-    people = np.stack(positions)                     # (P, T, 2)
-    member_a = np.stack(member)
-    present_a = np.stack(present)
-    robot = path_pos - fwd * follow_m
 
-    gt_centre = np.array([people[member_a[:, k], k].mean(axis=0) for k in range(n_t)])
-    sc = Scenario(name, _DESCRIPTIONS[name], t, gt_centre, path_vel.copy(), robot, people, member_a, present_a)
+def _add_joiner_and_leaver(cast: _Cast, path: _GroupPath, scale: np.ndarray, rng: np.random.Generator) -> None:
+    t = path.t
+    # Joiner: walks in from 9 m to the left, reaches its slot (rear-left) at 12 s, member from then.
+    own = _slot_walker(path.pos, path.vel, np.array([-3.6, 1.4]), scale, rng)
+    lateral = np.interp(t, [0, 8, 12, 60], [9.0, 9.0, 0.0, 0.0])
+    cast.add(own + path.left * lateral[:, None], t >= 12.0, t >= 4.0)
+    # Leaver: member 2 peels off to the right from 18 s, at 1 m/s sideways and slowing down.
+    k = 2
+    off = np.clip(t - 18.0, 0, None)
+    cast.positions[k] = cast.positions[k] - path.left * (1.0 * off)[:, None] - path.fwd * (0.6 * off)[:, None]
+    cast.member[k] = t < 18.0
 
+
+def _add_disturbers(cast: _Cast, t: np.ndarray) -> None:
+    n_t = len(t)
+    # Two crossing the path through the group's front and rear at 1.3 m/s.
+    for t_cross, dx in ((9.0, 2.5), (19.0, -2.0)):
+        x0 = SPEED_MPS * t_cross + dx
+        cast.add_non_member(np.stack([np.full(n_t, x0), 1.3 * (t - t_cross) * (1 if dx > 0 else -1)], axis=1))
+    # Oncoming at 3.5 m to the right.
+    cast.add_non_member(np.stack([40.0 - 1.1 * t, np.full(n_t, -3.5)], axis=1))
+    # A bystander standing 4 m left of the path.
+    cast.add_non_member(np.tile([16.0, 4.0], (n_t, 1)))
+    # Walking the same way at 0.6 m/s, 4.5 m to the right: overtaken.
+    cast.add_non_member(np.stack([6.0 + 0.6 * t, np.full(n_t, -4.5)], axis=1))
+
+
+def _scenario_truth(name: str, path: _GroupPath, cast: _Cast, follow_m: float) -> Scenario:
+    """The scenario without its frames: everyone's true positions, the robot's and the group centre's."""
+    people = np.stack(cast.positions)                # (P, T, 2)
+    member = np.stack(cast.member)
+    present = np.stack(cast.present)
+    robot = path.pos - path.fwd * follow_m
+    gt_centre = np.array([people[member[:, k], k].mean(axis=0) for k in range(len(path.t))])
+    return Scenario(name, _DESCRIPTIONS[name], path.t, gt_centre, path.vel.copy(), robot, people, member, present)
+
+
+def _place_obstacles(path: _GroupPath, rng: np.random.Generator) -> list[np.ndarray]:
     # Static false positives: obstacles beside the path detected as people half of the time (§5.2).
-    path_len = float(np.sum(np.linalg.norm(np.diff(path_pos, axis=0), axis=1)))
+    steps_m = np.linalg.norm(np.diff(path.pos, axis=0), axis=1)
+    path_len = float(np.sum(steps_m))
+    arc_m = np.cumsum(np.r_[0, steps_m])
     obstacles = []
     for s_m in np.linspace(10, max(12.0, path_len - 5), 3):
-        k = int(np.argmin(np.abs(np.cumsum(np.r_[0, np.linalg.norm(np.diff(path_pos, axis=0), axis=1)]) - s_m)))
+        k = int(np.argmin(np.abs(arc_m - s_m)))
         side = rng.choice([-1, 1]) * rng.uniform(5.0, 7.0)
-        obstacles.append(path_pos[k] + left[k] * side)
+        obstacles.append(path.pos[k] + path.left[k] * side)
+    return obstacles
 
+
+@dataclass
+class _FrameDetections:
+    """One frame's detections as they are gathered, each measured with its covariance on the way in."""
+
+    points: list[np.ndarray] = field(default_factory=list)
+    covs: list[np.ndarray] = field(default_factory=list)
+    source: list[int] = field(default_factory=list)
+    is_member: list[bool] = field(default_factory=list)
+
+    def add(self, rel_m: np.ndarray, robot_m: np.ndarray, rng: np.random.Generator, source: int,
+            is_member: bool) -> None:
+        z, R = _measure(rel_m, robot_m, rng)
+        self.points.append(z)
+        self.covs.append(R)
+        self.source.append(source)
+        self.is_member.append(is_member)
+
+    def shuffled(self, t_s: float, rng: np.random.Generator) -> SimFrame:
+        order = rng.permutation(len(self.points))  # detectors give no order; neither should the input
+        return SimFrame(
+            t_s,
+            np.array(self.points, dtype=float).reshape(-1, 2)[order],
+            np.array(self.covs, dtype=float).reshape(-1, 2, 2)[order],
+            np.array(self.source, dtype=int)[order],
+            np.array(self.is_member, dtype=bool)[order])
+
+
+def _simulate_frames(sc: Scenario, obstacles: list[np.ndarray], occlusion_deg: float, p_miss: float,
+                     clutter_per_s: float, rng: np.random.Generator) -> None:
+    """Fill ``sc.frames`` (people, then obstacles, then clutter, shuffled) and ``sc.occlusion_rate``."""
     hidden_members = 0
     shown_members = 0
-    for k in range(n_t):
-        pts, covs, src, mem = [], [], [], []
-        who = np.flatnonzero(present_a[:, k])
-        rel = people[who, k] - robot[k]
-        rng_m = np.linalg.norm(rel, axis=1)
-        bearing = np.arctan2(rel[:, 1], rel[:, 0])
-        for a, i in enumerate(who):
-            if rng_m[a] > 25.0:
-                continue
-            nearer = rng_m < rng_m[a] - 0.3
-            dbear = np.abs((bearing - bearing[a] + math.pi) % (2 * math.pi) - math.pi)
-            occluded = bool(np.any(nearer & (dbear < math.radians(occ))))
-            if member_a[i, k]:
-                hidden_members += occluded
-                shown_members += 1
-            if occluded or rng.random() < p_miss:
-                continue
-            z, R = _measure(rel[a], robot[k], rng)
-            pts.append(z)
-            covs.append(R)
-            src.append(i)
-            mem.append(bool(member_a[i, k]))
+    for k in range(len(sc.t_s)):
+        dets = _FrameDetections()
+        hidden, shown = _sense_people(sc, k, occlusion_deg, p_miss, rng, dets)
+        hidden_members += hidden
+        shown_members += shown
+        robot = sc.robot_m[k]
         for ob in obstacles:
-            if np.linalg.norm(ob - robot[k]) < 25.0 and rng.random() < 0.5:
-                z, R = _measure(ob - robot[k], robot[k], rng)
-                pts.append(z)
-                covs.append(R)
-                src.append(-1)
-                mem.append(False)
+            if np.linalg.norm(ob - robot) < 25.0 and rng.random() < 0.5:
+                dets.add(ob - robot, robot, rng, -1, False)
         for _ in range(rng.poisson(clutter_per_s * DT_S)):
             r, b = rng.uniform(2.0, 20.0), rng.uniform(-math.pi, math.pi)
-            z, R = _measure(np.array([r * math.cos(b), r * math.sin(b)]), robot[k], rng)
-            pts.append(z)
-            covs.append(R)
-            src.append(-1)
-            mem.append(False)
-        order = rng.permutation(len(pts))  # detectors give no order; neither should the input
-        sc.frames.append(SimFrame(
-            float(t[k]),
-            np.array(pts, dtype=float).reshape(-1, 2)[order],
-            np.array(covs, dtype=float).reshape(-1, 2, 2)[order],
-            np.array(src, dtype=int)[order],
-            np.array(mem, dtype=bool)[order]))
+            dets.add(np.array([r * math.cos(b), r * math.sin(b)]), robot, rng, -1, False)
+        sc.frames.append(dets.shuffled(float(sc.t_s[k]), rng))
     sc.occlusion_rate = hidden_members / max(1, shown_members)
-    return sc
+
+
+def _sense_people(sc: Scenario, k: int, occlusion_deg: float, p_miss: float, rng: np.random.Generator,
+                  dets: _FrameDetections) -> tuple[int, int]:
+    """Measure the people in range at frame k who are neither occluded nor missed. Returns (members occluded,
+    members in range): the occlusion rate counts occluded members whether or not a miss would have hidden them."""
+    hidden = shown = 0
+    robot = sc.robot_m[k]
+    who = np.flatnonzero(sc.present[:, k])
+    rel = sc.people_m[who, k] - robot
+    range_m = np.linalg.norm(rel, axis=1)
+    bearing = np.arctan2(rel[:, 1], rel[:, 0])
+    for a, i in enumerate(who):
+        if range_m[a] > 25.0:
+            continue
+        occluded = _is_occluded(a, range_m, bearing, occlusion_deg)
+        if sc.member[i, k]:
+            hidden += occluded
+            shown += 1
+        if occluded or rng.random() < p_miss:
+            continue
+        dets.add(rel[a], robot, rng, i, bool(sc.member[i, k]))
+    return hidden, shown
+
+
+def _is_occluded(a: int, range_m: np.ndarray, bearing: np.ndarray, occlusion_deg: float) -> bool:
+    """Someone nearer the sensor (by more than 0.3 m) lies within ``occlusion_deg`` of person a's bearing."""
+    nearer = range_m < range_m[a] - 0.3
+    dbear = np.abs((bearing - bearing[a] + math.pi) % (2 * math.pi) - math.pi)
+    return bool(np.any(nearer & (dbear < math.radians(occlusion_deg))))
 
 
 def _measure(rel_m: np.ndarray, robot_m: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
