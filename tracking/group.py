@@ -747,6 +747,15 @@ class SingleTargetFollower:
                              lost=self.missed > 0)
 
 
+@dataclass
+class _PersonTrack:
+    """One person's track in :class:`MotFusionTracker`."""
+
+    kf: _CentreKalman
+    hits: int = 1
+    missed: int = 0  # frames in a row without an associated point
+
+
 class MotFusionTracker:
     """MOT with decision-level fusion (Table 1): one Kalman track per person (greedy gated nearest-neighbour
     association, births from unassigned points, deaths after a coast), then the group = the mean position
@@ -760,56 +769,68 @@ class MotFusionTracker:
         self.d_th = d_th_m
         self.confirm = confirm_hits
         self.eps = dbscan_eps_m
-        self.tracks: list[dict] = []
+        self.tracks: list[_PersonTrack] = []
         self.centre: np.ndarray | None = None
         self.v = np.zeros(2)
 
     def step(self, t_s: float, points_m: np.ndarray, covs_m2: np.ndarray | None = None) -> GroupEstimate:
         pts, covs = _as_points(points_m, covs_m2, 0.2)
         for tr in self.tracks:
-            tr["kf"].predict(t_s)
-        free = set(range(len(pts)))
-        if self.tracks and len(pts):
-            cost = np.array([[tr["kf"].mahalanobis_sq(pts[i], covs[i]) for i in range(len(pts))]
-                             for tr in self.tracks])
-            for flat in np.argsort(cost, axis=None):
-                ti, pi = divmod(int(flat), len(pts))
-                if cost[ti, pi] >= self.p.gate_chi2:
-                    break
-                tr = self.tracks[ti]
-                if tr.get("_hit") or pi not in free:
-                    continue
-                tr["kf"].update(pts[pi], covs[pi])
-                tr["_hit"] = True
-                free.discard(pi)
-        for tr in self.tracks:
-            if tr.pop("_hit", False):
-                tr["hits"] += 1
-                tr["missed"] = 0
-            else:
-                tr["missed"] += 1
-        self.tracks = [tr for tr in self.tracks if tr["missed"] <= self.p.max_coast_frames]
+            tr.kf.predict(t_s)
+        hit, free = self._associate(pts, covs)
+        self._age_and_prune(hit)
         for i in sorted(free):
-            self.tracks.append({"kf": _CentreKalman(pts[i], t_s, self.p.accel_std_mps2, 0.3), "hits": 1, "missed": 0})
-        confirmed = [tr for tr in self.tracks if tr["hits"] >= self.confirm or self.centre is None]
-        if self.centre is None:
-            xs = np.array([tr["kf"].x[:2] for tr in confirmed]).reshape(-1, 2)
-            idx = pick_group(xs, self.eps, 2)
-            if len(idx) == 0:
-                return GroupEstimate(valid=False)
-            members = [confirmed[i] for i in idx]
-        else:
-            members = [tr for tr in confirmed if np.linalg.norm(tr["kf"].x[:2] - self.centre) < self.d_th]
+            self.tracks.append(_PersonTrack(_CentreKalman(pts[i], t_s, self.p.accel_std_mps2, 0.3)))
+        members = self._group_members()
+        if members is None:
+            return GroupEstimate(valid=False)
         if members:
-            xs = np.array([tr["kf"].x for tr in members])
+            xs = np.array([tr.kf.x for tr in members])
             self.centre = xs[:, :2].mean(axis=0)
             self.v = xs[:, 2:4].mean(axis=0)
-            lost = False
-        else:
-            assert self.centre is not None
-            lost = True
+        assert self.centre is not None
         sel = np.zeros(len(pts), bool)
-        return GroupEstimate(True, self.centre.copy(), self.v.copy(), selected=sel, lost=lost)
+        return GroupEstimate(True, self.centre.copy(), self.v.copy(), selected=sel, lost=not members)
+
+    def _associate(self, pts: np.ndarray, covs: np.ndarray) -> tuple[set[int], set[int]]:
+        """Greedy gated nearest neighbour: (track, point) pairs cheapest first, each track and each point used
+        once, each pair's track updated. Returns (indices of the updated tracks, indices of the unused points)."""
+        hit: set[int] = set()
+        free = set(range(len(pts)))
+        if not self.tracks or not len(pts):
+            return hit, free
+        cost = np.array([[tr.kf.mahalanobis_sq(pts[i], covs[i]) for i in range(len(pts))] for tr in self.tracks])
+        for flat in np.argsort(cost, axis=None):
+            ti, pi = divmod(int(flat), len(pts))
+            if cost[ti, pi] >= self.p.gate_chi2:
+                break
+            if ti in hit or pi not in free:
+                continue
+            self.tracks[ti].kf.update(pts[pi], covs[pi])
+            hit.add(ti)
+            free.discard(pi)
+        return hit, free
+
+    def _age_and_prune(self, hit: set[int]) -> None:
+        for ti, tr in enumerate(self.tracks):
+            if ti in hit:
+                tr.hits += 1
+                tr.missed = 0
+            else:
+                tr.missed += 1
+        self.tracks = [tr for tr in self.tracks if tr.missed <= self.p.max_coast_frames]
+
+    def _group_members(self) -> list[_PersonTrack] | None:
+        """The tracks the group is made of: the confirmed ones within D_th of the previous centre; before there
+        is a centre, the DBSCAN-picked cluster of all tracks (None while there is no cluster)."""
+        confirmed = [tr for tr in self.tracks if tr.hits >= self.confirm or self.centre is None]
+        if self.centre is not None:
+            return [tr for tr in confirmed if np.linalg.norm(tr.kf.x[:2] - self.centre) < self.d_th]
+        xs = np.array([tr.kf.x[:2] for tr in confirmed]).reshape(-1, 2)
+        idx = pick_group(xs, self.eps, 2)
+        if len(idx) == 0:
+            return None
+        return [confirmed[i] for i in idx]
 
 
 METHODS = {
