@@ -149,27 +149,47 @@ def watchdog_report(tracks: Sequence[TrackObs], commands: Sequence[CommandObs], 
     cannot be answered by a stop on the bus; the MCU's own stop covers it (each command's hold_ms, README).
     """
     report = WatchdogReport()
-    seq = sorted((t for t in tracks if t0_ns <= t.recv_ns <= t1_ns), key=lambda t: t.pub_ns)
     zeros = sorted(c.pub_ns for c in commands if c.is_zero and c.recv_ns > t0_ns)
     issued = sorted((c.pub_ns, c.is_zero) for c in commands)
-    end = max([t1_ns, *(t.pub_ns for t in seq)])
-    for i, last in enumerate(seq):
-        nxt = seq[i + 1].pub_ns if i + 1 < len(seq) else end
-        gap_ms = (nxt - last.pub_ns) / MS
-        if gap_ms <= timeout_ms or last.state not in MOVING_STATES:
+    for last, nxt in _track_pauses(tracks, t0_ns, t1_ns):
+        if not _watched_pause(last, nxt, timeout_ms, bound_ms, motor_down):
             continue
-        if motor_down is not None and motor_down[0] - bound_ms * MS <= last.pub_ns <= motor_down[1]:
-            continue
-        stop = next((z for z in zeros if last.pub_ns < z <= nxt), None)
+        stop = next((z for z in zeros if last.pub_ns < z <= nxt), None)  # the first zero command in the pause
+        if stop is None and not _moving_after(issued, last.pub_ns + int(bound_ms * MS), nxt):
+            continue  # stopped before this track and did not move on it (a stale one, say): nothing to stop
         if stop is not None:
             report.stops_ms.append((stop - last.pub_ns) / MS)
-        elif not _moving_after(issued, last.pub_ns + int(bound_ms * MS), nxt):
-            continue  # stopped before this track and did not move on it (a stale one, say): nothing to stop
-        if gap_ms > bound_ms and (stop is None or (stop - last.pub_ns) / MS > bound_ms):
-            what = "no zero command" if stop is None else f"zero command after {(stop - last.pub_ns) / MS:.0f} ms"
-            report.violations.append(f"tracks paused {gap_ms:.0f} ms after a {last.state} track: {what} "
-                                     f"(bound {bound_ms:.0f} ms)")
+        violation = _late_stop(last, nxt, stop, bound_ms)
+        if violation is not None:
+            report.violations.append(violation)
     return report
+
+
+def _track_pauses(tracks: Sequence[TrackObs], t0_ns: int, t1_ns: int) -> list[tuple[TrackObs, int]]:
+    """Every track received in [t0, t1], in publish order, with the ``pub_ns`` that ends the pause after it: the
+    next track's, after the last one t1 (or that track's own, if later)."""
+    seq = sorted((t for t in tracks if t0_ns <= t.recv_ns <= t1_ns), key=lambda t: t.pub_ns)
+    end = max([t1_ns, *(t.pub_ns for t in seq)])
+    return [(last, seq[i + 1].pub_ns if i + 1 < len(seq) else end) for i, last in enumerate(seq)]
+
+
+def _watched_pause(last: TrackObs, next_ns: int, timeout_ms: float, bound_ms: float,
+                   motor_down: tuple[int, int] | None) -> bool:
+    """Whether the pause from track ``last`` to ``next_ns`` is the watchdog's to stop: longer than its timeout,
+    after a state the motor moves on, and not begun while the motor itself was down (or within the bound before)."""
+    gap_ms = (next_ns - last.pub_ns) / MS
+    if gap_ms <= timeout_ms or last.state not in MOVING_STATES:
+        return False
+    return motor_down is None or not (motor_down[0] - bound_ms * MS <= last.pub_ns <= motor_down[1])
+
+
+def _late_stop(last: TrackObs, next_ns: int, stop_ns: int | None, bound_ms: float) -> str | None:
+    """The violation of a pause longer than the bound with no zero command within the bound (None: none)."""
+    gap_ms = (next_ns - last.pub_ns) / MS
+    if gap_ms > bound_ms and (stop_ns is None or (stop_ns - last.pub_ns) / MS > bound_ms):
+        what = "no zero command" if stop_ns is None else f"zero command after {(stop_ns - last.pub_ns) / MS:.0f} ms"
+        return f"tracks paused {gap_ms:.0f} ms after a {last.state} track: {what} (bound {bound_ms:.0f} ms)"
+    return None
 
 
 def _moving_after(issued: Sequence[tuple[int, bool]], from_ns: int, to_ns: int) -> bool:
