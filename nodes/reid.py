@@ -10,7 +10,9 @@ against the other people (tracking/identity.py; ``learned_appearance: false`` tu
 model the node warns once and goes on with colour).
 
 Inputs joined by frame: frame k, detections k, prior k, and the template learnt at frame k-1
-(offset -1). If that template is missing (a dropped frame upstream), the last one received is used.
+(offset -1). If that template is missing (a dropped frame upstream), the last one received is used; after
+this node initialised the target, that is the histogram of the initial box (what the template node learns
+from it), until the template node's own comes back.
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ class Reid(Node):
         self.frames = 0
         self.epoch_ns: int | None = None  # the capture session of the frames handled so far
         self.last: Measurement | None = None
+        self.initialised_at: tuple[int, int] | None = None  # (epoch_ns, frame_seq) of this node's last initialisation
         # The learned appearance's training sample (OSNet descriptors of several people: a 20-30 ms burst every
         # identity_sample_every_frames frames) below the loop's priority: at the loop's, on two cores, the
         # detector skipped a frame at each burst (bus/background.py).
@@ -81,7 +84,7 @@ class Reid(Node):
         frame, dets, prior = inputs["frame"], inputs["detections"], inputs["prior"]
         assert isinstance(frame, Frame) and isinstance(dets, Detections) and isinstance(prior, Prior)
         template = inputs.get("template")
-        if isinstance(template, Template):
+        if isinstance(template, Template) and not self._learnt_before_initialisation(template):
             self.template_hist = None if not template.initialised or template.hist is None else np.array(template.hist)
         self.learner.wait()  # the previous frame's sample is learnt before this frame is decided: results as in order
         new_source = frame.header.epoch_ns != self.epoch_ns
@@ -93,11 +96,26 @@ class Reid(Node):
                                 frame.header.stamp_ns, init_box=init_box, defer_learning=True,
                                 low_detections=dets.low_boxes)  # the second stage's (low_score_stage)
         self.frames += 1
+        if result.init_box is not None and result.candidate_hist is not None:
+            # The template node initialises its template from this box (tracking/template.py); until that template
+            # comes back, match against the same histogram. Without a template every frame re-initialised: a re-ID
+            # restarted with a backlog re-initialised on six frames in a row, the last time on a bystander (CI,
+            # 2026-11-26, kill-reid).
+            self.template_hist = np.array(result.candidate_hist)
+            self.initialised_at = (frame.header.epoch_ns, frame_seq)
         msg = result.to_message()
         self.last = msg
         self.publish("measurement", msg, like=frame)
         # The learned appearance's sample (OSNet descriptors) after the measurement is out: off the motor's path.
         self.learner.submit(self.reid.learn_pending)
+
+    def _learnt_before_initialisation(self, template: Template) -> bool:
+        """A template the template node learnt before this node's last initialisation (a fallback to an older
+        feedback): it describes the lock before, not the target now being followed."""
+        if self.initialised_at is None:
+            return False
+        epoch_ns, frame_seq = self.initialised_at
+        return template.header.epoch_ns == epoch_ns and template.header.frame_seq < frame_seq
 
     def teardown(self) -> None:
         self.learner.wait()

@@ -191,6 +191,69 @@ def test_reid_gate_drops_a_detection_far_from_the_prior():
     assert ungated[6].accepted and tuple(ungated[6].box) == far
 
 
+def _prior(k: int, stamp_ns: int, box: tuple[float, float, float, float]) -> Prior:
+    """Prediction's prior for frame k, centred on ``box`` (a gate of some 10 px)."""
+    x, y, w, h = box
+    prior = Prior.of_filter(stamp_ns, np.array([x + w / 2, y + h / 2, 0.0, 0.0]), (w, h), np.eye(4) * 25.0,
+                            np.eye(2) * 25.0, 9.488)
+    return stamped(prior, k, stamp_ns)
+
+
+def test_reid_initialised_without_a_template_tracks_on_instead_of_initialising_every_frame():
+    # A re-ID restarted while prediction kept the track: no template node has answered it yet, and a backlog
+    # of sets arrives at once. It initialises once (on the prior) and then tracks with the initial box's
+    # histogram; before, every set without a template initialised again (six in a row, the last on a
+    # bystander: CI, 2026-11-26).
+    target, bystander = (150, 120, 24, 80), (30, 100, 40, 120)
+    with InProcessGraph(tracking_graph(), nodes=["reid"]) as g:
+        t0 = g.now_ns
+        for k in range(6):
+            stamp = t0 + k * DT_NS
+            box = (target[0] + 2 * k, *target[1:])
+            g.inject("capture/frame", frame_msg(k, stamp, person_frame(box)))
+            g.inject("detection/detections", dets_msg(k, stamp, box, bystander))
+            g.inject("prediction/prior", _prior(k, stamp, tuple(map(float, box))))
+        g.deliver()
+        g.run_until(t0 + 6 * DT_NS + 400 * MS)  # the feedback waits, if any, have ended
+        meas = g.outputs("reid", "measurement")
+    assert len(meas) == 6
+    assert meas[0].source == "prior" and meas[0].init_box is not None
+    assert all(m.init_box is None for m in meas[1:])
+    assert states(meas) == ["TRACKING"] * 6 and all(m.accepted for m in meas)
+    assert [tuple(m.box) for m in meas] == [(target[0] + 2 * k, *target[1:]) for k in range(6)]
+
+
+def test_reid_ignores_a_template_learnt_before_it_initialised():
+    # Frames 0-4 show nobody (no detection, no motion): re-ID is not initialised. Frame 5 initialises it on the
+    # target. Then a template from frame 3 (someone else's look) arrives, the newest the template node sent:
+    # frame 6's set falls back to it once its own feedback times out. It describes no lock of this re-ID: the
+    # initial box's histogram stays the reference, and the target is tracked on.
+    from followbus.msgs.tracking import Template
+    from followbus.tracking.appearance import hs_histogram
+
+    target = (150, 120, 24, 80)
+    with InProcessGraph(tracking_graph(), nodes=["reid"]) as g:
+        t0 = g.now_ns
+        for k in range(7):
+            stamp = t0 + k * 400 * MS  # each set's feedback wait (300 ms) is over before the next frame
+            g.run_until(stamp)
+            g.inject("capture/frame", frame_msg(k, stamp, person_frame(target if k >= 5 else (0, 0, 0, 0))))
+            g.inject("detection/detections", dets_msg(k, stamp, *([target] if k >= 5 else [])))
+            g.inject("prediction/prior", _prior(k, stamp, tuple(map(float, target))))
+            g.deliver()
+            if k == 5:
+                g.run_until(stamp + 350 * MS)  # frame 5 handled
+                other_look = hs_histogram(person_frame(target, shirt=(200, 160, 20)), target, 16, 8)
+                g.inject("template/template", stamped(Template(initialised=True, hist=other_look), 3, stamp))
+        g.run_until(g.now_ns + 400 * MS)
+        meas = {m.header.frame_seq: m for m in g.outputs("reid", "measurement")}
+    assert {meas[k].state for k in meas if k < 5} == {"UNINITIALISED"}
+    assert meas[5].init_box is not None
+    assert meas[6].header.feedback.get("template") == 3  # the stale template was the set's feedback...
+    assert meas[6].init_box is None and meas[6].state == "TRACKING" and tuple(meas[6].box) == target
+    assert meas[6].s_color > 0.9  # ...but the colours were compared with the initial box's, not with it
+
+
 # --------------------------------------------------------------------------- template
 
 
