@@ -228,8 +228,9 @@ def test_a_recorded_demo_run_decodes_without_followbus(tmp_path):
     assert set(bus) == set(keys) and all(bus[key] for key in keys)
     frames = bus["n1demo/capture/frame"]
     assert frames and all(f["data"].code == 2 for f in frames)  # the image: out of band, in the blob area
+    launch_log = (tmp_path / "launch.log").read_text()[-4000:]
     assert {"n1demo/motor/command", "n1demo/motor/odometry", "n1demo/reid/measurement",
-            "n1demo/prediction/track", "n1demo/capture/frame"} <= set(keys)
+            "n1demo/prediction/track", "n1demo/capture/frame"} <= set(keys), (sorted(keys), launch_log)
     for key in keys:
         assert any(topic.startswith(key + "/") for topic in views), f"{key} has no view"
     commands = [views["n1demo/motor/command/json"], views["n1demo/motor/command/twist"]]

@@ -56,6 +56,7 @@ def _record(tmp, namespace: str, frames: int, during=None, *extra: str):
             proc.kill()
         sub.undeclare()
         session.close()
+    (tmp / "launch.log").write_text(out)  # for a test's failure message: who started when, what was dropped
     assert path.exists(), out[-3000:]
     return path
 
