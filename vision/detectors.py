@@ -250,7 +250,9 @@ class _OpenVinoSession:
         import openvino as ov  # deferred: only this runtime needs it
 
         core = ov.Core()
-        config: dict[str, Any] = {"PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": "1"}
+        # f32 as onnxruntime: on a CPU with AVX-512 BF16 (AMD EPYC here) OpenVINO infers in bfloat16 by default,
+        # which moved boxes by 2 px and swapped two near-equal scores against onnxruntime's.
+        config: dict[str, Any] = {"PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": "1", "INFERENCE_PRECISION_HINT": "f32"}
         if threads:
             config["INFERENCE_NUM_THREADS"] = int(threads)
         try:
