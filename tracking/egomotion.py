@@ -363,7 +363,7 @@ class EgoMotionEstimator:
         best, other = (0, 1) if cover[0] >= cover[1] else (1, 0)
         close = cover[other] >= self.params.rival_cover_ratio * cover[best]
         if close and self._prev_shift is not None:
-            centre = np.array([shape[1] / 2.0, shape[0] / 2.0])
+            centre = _image_centre(shape)
             dev = [np.linalg.norm(_shift(m, centre) - self._prev_shift) for m, _ in hyps]
             if dev[other] < dev[best]:
                 best, other = other, best
@@ -372,7 +372,7 @@ class EgoMotionEstimator:
     def _moving_cover(self, hyps: list[tuple[np.ndarray, np.ndarray]], cover: list[int],
                       shape: tuple[int, ...]) -> int:
         """Grid cells covered by the widest hypothesis that moves the image centre (0: none moves)."""
-        centre = np.array([shape[1] / 2.0, shape[0] / 2.0])
+        centre = _image_centre(shape)
         moving = [n for (mat, _), n in zip(hyps, cover, strict=True)
                   if float(np.linalg.norm(_shift(mat, centre))) >= self.params.static_min_motion_px]
         return max(moving, default=0)
@@ -419,7 +419,7 @@ class EgoMotionEstimator:
         if det <= 0.0 or abs(math.sqrt(det) - 1.0) > p.max_scale_change:
             self._degenerate("implausible_scale")
             return None
-        centre = np.array([grey.shape[1] / 2.0, grey.shape[0] / 2.0])
+        centre = _image_centre(grey.shape)
         shift = _shift(m, centre)
         self._update_static(a, b, cells, self._moving_cover(hyps, cover, grey.shape))
         motion = self._motion(m, fa, fb, inl, hyps[rival] if rival is not None else None, s, t_ns, grey.shape,
@@ -442,7 +442,7 @@ class EgoMotionEstimator:
         residual = float(np.sqrt(np.mean(np.sum(resid**2, axis=1)))) * unit
         p = self.params
         spread = cover / float(p.static_grid_cols * p.static_grid_rows)
-        centre = np.array([shape[1] / 2.0, shape[0] / 2.0])
+        centre = _image_centre(shape)
         shift = _shift(m, centre)
         rival_px, rival_n, var = 0.0, 0, residual**2 * 2.0 / max(n_in, 1)  # the fitted shift's own variance
         if rival is not None:
@@ -456,6 +456,11 @@ class EgoMotionEstimator:
                               rival_inliers=rival_n, agreement_px=agreement, std_px=math.sqrt(var))
         motion.header.stamp_ns = int(t_ns)
         return motion
+
+
+def _image_centre(shape: tuple[int, ...]) -> np.ndarray:
+    """(x, y) of the centre of an image of ``shape``: where a hypothesis's shift is read."""
+    return np.array([shape[1] / 2.0, shape[0] / 2.0])
 
 
 def _shift(m: np.ndarray, point: np.ndarray) -> np.ndarray:
