@@ -192,7 +192,7 @@ def test_reid_gate_drops_a_detection_far_from_the_prior():
 
 
 def _prior(k: int, stamp_ns: int, box: tuple[float, float, float, float]) -> Prior:
-    """Prediction's prior for frame k, centred on ``box`` (a gate of some 10 px)."""
+    """Prediction's prior for frame k, centred on ``box`` (S = 25 px², so a gate radius of about 15 px)."""
     x, y, w, h = box
     prior = Prior.of_filter(stamp_ns, np.array([x + w / 2, y + h / 2, 0.0, 0.0]), (w, h), np.eye(4) * 25.0,
                             np.eye(2) * 25.0, 9.488)
