@@ -68,6 +68,8 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o rival hypothesis": {"temporal_consistency": False},
     "followbus w/o reference across failed fits": {"max_reference_age_frames": 0},
     "followbus w/o camera-motion uncertainty": {"camera_motion_uncertainty": False},
+    # issue 22: the coasting prediction output however uncertain it has grown (KalmanParams)
+    "followbus w/o withholding an uncertain coasting box": {"occluded_output_max_std_heights": 0.0},
     # issue 22: a far re-lock on δ_switch alone, as before (no δ_id / N_id confirmation)
     "followbus w/o identity-confirmed far re-lock": {"far_relock_needs_identity": False},
     # issue 22: after a crossing, colour's choice (a lone detection unscored) even when the classifier, which just told

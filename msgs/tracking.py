@@ -7,6 +7,7 @@ re-ID gates against, a measurement is what prediction and template update consum
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import Enum
@@ -66,6 +67,11 @@ class Prior(Message):
     @property
     def centre(self) -> tuple[float, float]:
         return (float(self.state[0]), float(self.state[1]))
+
+    @property
+    def centre_std_px(self) -> float:
+        """The centre's 1 σ along its most uncertain direction (P_k's position block), px."""
+        return math.sqrt(max(float(np.linalg.eigvalsh(self.covariance[:2, :2]).max()), 0.0))
 
     @property
     def velocity_px_s(self) -> tuple[float, float]:

@@ -113,12 +113,11 @@ class Prediction(Node):
         for old in [s for s in self.priors if s < seq]:
             del self.priors[old]
 
-    @staticmethod
-    def _track(msg: Measurement, prior: Prior | None, posterior: Track | None) -> Track:
+    def _track(self, msg: Measurement, prior: Prior | None, posterior: Track | None) -> Track:
         """The track of a measurement: the filter's posterior (none: no filtered box, no velocity) with the
         tracker's output box (tracking/tracker.py)."""
         track = posterior or Track(state=msg.state)
-        track.box = output_box(msg, prior)
+        track.box = output_box(msg, prior, self.predictor.params.occluded_output_max_std_heights)
         return track
 
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from followbus.evaluation.graph_follower import GraphFollower
+from followbus.msgs.tracking import Measurement, Prior
 from followbus.tracking.init import frame_difference_roi, motion_blobs, nearest_to_centre_bottom, to_grey
 from followbus.tracking.kalman import Predictor
 from followbus.tracking.params import InvalidParam, KalmanParams, ReidParams, TemplateParams
@@ -104,7 +105,7 @@ def test_the_graph_is_deterministic_and_is_the_seeds_order_of_the_pure_modules()
         ta, tb = a[k][3], b[k][3]
         assert ta.track.state == tb.track.state == r.state
         assert ta.measurement.m_fuse == tb.measurement.m_fuse == r.m_fuse
-        expected = output_box(r, prior)
+        expected = output_box(r, prior, KalmanParams().occluded_output_max_std_heights)
         assert (ta.track.box is None) == (expected is None)
         assert ta.track.box is None or tuple(ta.track.box) == tuple(expected)
         assert ta.template.eta == tb.template.eta == eta
@@ -129,6 +130,35 @@ def test_explicit_init_box_and_lost() -> None:
     assert states[:6] == ["OCCLUDED"] * 6  # ≤ 200 ms since the last match
     assert states[6:] == ["LOST"] * 3
     assert follower.step(empty, none, 10 * FRAME_NS)[0] is None  # no output box when LOST
+
+
+def test_an_uncertain_coast_is_not_output() -> None:
+    """While OCCLUDED the coasting prediction is the output only while its centre's 1 σ is within
+    occluded_output_max_std_heights box heights; then none (the controller stops), the state stays OCCLUDED."""
+    occluded = Measurement(state="OCCLUDED")
+    prior_of = lambda std_px: Prior.of_filter(0, np.array([100.0, 100.0, 0.0, 0.0]), (30.0, 60.0),  # noqa: E731
+                                              np.diag([std_px**2, 1.0, 1.0, 1.0]), np.eye(2), 9.488)
+    assert prior_of(119.0).centre_std_px == pytest.approx(119.0)
+    np.testing.assert_array_equal(output_box(occluded, prior_of(119.0), 2.0), prior_of(119.0).box)
+    assert output_box(occluded, prior_of(121.0), 2.0) is None
+    assert output_box(occluded, prior_of(1e4), 0.0) is not None  # 0: no limit (the ablation)
+    accepted = Measurement(state="REACQUIRED", accepted=True, box=np.array([1.0, 2.0, 3.0, 4.0]))
+    np.testing.assert_array_equal(output_box(accepted, prior_of(1e4), 2.0), accepted.box)
+
+    follower = GraphFollower({"lost_after_ms": 5000.0}, details=True)
+    img, dets, _, _ = scene(0)
+    follower.step(img, dets, 0, init_box=(40.0, 170.0, 30.0, 60.0))
+    empty, none = np.full((H, W, 3), (40, 90, 40), np.uint8), np.zeros((0, 5), np.float32)
+    coast = []
+    for k in range(1, 40):
+        follower.step(empty, none, k * FRAME_NS)
+        last = follower.last
+        assert last.track.state == "OCCLUDED"
+        coast.append((last.track.box is not None, last.prior.centre_std_px / last.prior.size[1]))
+    shown = [heights for out, heights in coast if out]
+    withheld = [heights for out, heights in coast if not out]
+    assert shown and withheld and coast.index((False, withheld[0])) == len(shown)  # output first, then none
+    assert max(shown) <= 2.0 < min(withheld)
 
 
 def test_no_target_before_initialisation() -> None:

@@ -99,10 +99,15 @@ class KalmanParams(_FramePeriod, _UpdateSuspension):
     # (A frame without a transform is not widened: whether one came in time depends on live timing.)
     camera_motion_uncertainty: bool = True
     camera_motion_doubt_px: float = 4.0
+    # Issue 22: while OCCLUDED the output is the coasting prediction (seed 000 §2.3) only while it still locates
+    # the person: once the prior centre's 1 σ exceeds this many box heights, its box could as well sit on a
+    # neighbour, so none is output (the controller stops; the gate keeps searching). 0: always output it.
+    occluded_output_max_std_heights: float = 2.0
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("dt_ms", "gate_chi2", "r0_px2", "camera_motion_doubt_px"),
-                     non_negative=("accel_std_px_s2", "kappa_px2_per_mps2", "init_velocity_std_px_s"),
+                     non_negative=("accel_std_px_s2", "kappa_px2_per_mps2", "init_velocity_std_px_s",
+                                   "occluded_output_max_std_heights"),
                      unit_interval=("size_smoothing",))
 
 
