@@ -17,7 +17,8 @@ Track states (see ``followbus.msgs.tracking.TrackState``):
 * ``OCCLUDED``: the box is the tracker's Kalman prediction, not an observation. Keep following it
   so the robot stays pointed where the person is expected to reappear (seed 000 "blind tracking"),
   but every output is scaled by ``occluded_speed_scale`` (default 0.5) and the PID integrators are
-  frozen, so an extrapolation error cannot wind them up.
+  frozen, so an extrapolation error cannot wind them up. Prediction stops giving the box once it is too
+  uncertain to locate the person (KalmanParams.occluded_output_max_std_heights): no box, a stop.
 * ``LOST`` / ``UNINITIALISED`` / no box: zero twist immediately (reason ``"target-lost"``).
 
 A group's centre (seed 004, graph.group.yaml) is followed with the same law through ``on_position``: the
