@@ -141,6 +141,7 @@ def test_an_uncertain_coast_is_not_output() -> None:
     assert prior_of(119.0).centre_std_px == pytest.approx(119.0)
     np.testing.assert_array_equal(output_box(occluded, prior_of(119.0), 2.0), prior_of(119.0).box)
     assert output_box(occluded, prior_of(121.0), 2.0) is None
+    assert output_box(occluded, prior_of(61.0), 1.0) is None
     assert output_box(occluded, prior_of(1e4), 0.0) is not None  # 0: no limit (the ablation)
     accepted = Measurement(state="REACQUIRED", accepted=True, box=np.array([1.0, 2.0, 3.0, 4.0]))
     np.testing.assert_array_equal(output_box(accepted, prior_of(1e4), 2.0), accepted.box)
@@ -158,7 +159,8 @@ def test_an_uncertain_coast_is_not_output() -> None:
     shown = [heights for out, heights in coast if out]
     withheld = [heights for out, heights in coast if not out]
     assert shown and withheld and coast.index((False, withheld[0])) == len(shown)  # output first, then none
-    assert max(shown) <= 2.0 < min(withheld)
+    limit = KalmanParams().occluded_output_max_std_heights
+    assert max(shown) <= limit < min(withheld)
 
 
 def test_no_target_before_initialisation() -> None:

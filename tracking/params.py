@@ -100,9 +100,11 @@ class KalmanParams(_FramePeriod, _UpdateSuspension):
     camera_motion_uncertainty: bool = True
     camera_motion_doubt_px: float = 4.0
     # Issue 22: while OCCLUDED the output is the coasting prediction (seed 000 §2.3) only while it still locates
-    # the person: once the prior centre's 1 σ exceeds this many box heights, its box could as well sit on a
-    # neighbour, so none is output (the controller stops; the gate keeps searching). 0: always output it.
-    occluded_output_max_std_heights: float = 2.0
+    # the person: once the prior centre's 1 σ exceeds this many box heights, the person is as likely outside the
+    # box's own height as in it, and the box could sit on a neighbour, so none is output (the controller stops;
+    # the gate keeps searching). 0: always output it. 1 rather than 2: under 1 px of detector jitter (EVALUATION.md)
+    # a coast dragged by a merged box stayed on nobody for 10+ frames before 2 heights were reached.
+    occluded_output_max_std_heights: float = 1.0
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("dt_ms", "gate_chi2", "r0_px2", "camera_motion_doubt_px"),
