@@ -59,7 +59,8 @@ def _sequence_folders(spec: str) -> list[str]:
 
 
 def run_campaign(seqs: list[str], factories: dict[str, Any], detector: str, out: Path, *, seed: int,
-                 max_frames: int, write_frames: Callable[[SequenceRun], None]) -> list[SequenceRun]:
+                 max_frames: int, write_frames: Callable[[SequenceRun], None],
+                 jitter_px: float = 0.0) -> list[SequenceRun]:
     """Every sequence through every method (a progress bar over the sequences), plotted in ``out``/plots;
     ``write_frames`` writes what the command asked per run (traces, videos). A missing model raises ModelError."""
     from tqdm import tqdm
@@ -73,7 +74,8 @@ def run_campaign(seqs: list[str], factories: dict[str, Any], detector: str, out:
     for spec in tqdm(seqs, desc="sequences", unit="seq", file=sys.stderr, delay=1.0):
         seq = open_sequence(spec, max_frames=max_frames)
         try:
-            run = run_sequence(seq, factories, detector, cache_dir=out / "cache", seed=seed, progress=True)
+            run = run_sequence(seq, factories, detector, cache_dir=out / "cache", seed=seed, progress=True,
+                               jitter_px=jitter_px)
         except ModelError as exc:
             exc.sequence = spec  # type: ignore[attr-defined]  # the command's hint depends on its kind
             raise

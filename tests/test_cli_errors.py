@@ -487,3 +487,9 @@ def test_a_reader_that_stops_early_ends_the_command_quietly():
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == 0, err
     assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+@pytest.mark.parametrize("value", ["-1", "nan", "inf"])
+def test_eval_jitter_that_is_no_jitter_is_one_line(tmp_path, value):
+    line = one_error_line(run_followbus("eval", "scene:overlay", "--jitter-px", value, "--out", str(tmp_path)))
+    assert line.startswith("followbus: --jitter-px must be a finite number >= 0"), line

@@ -177,3 +177,20 @@ def test_a_follower_is_prepared_untimed_once_it_knows_whom_to_follow():
     first_step = next(i for i, (what, _) in enumerate(calls) if what == "step")
     assert calls[first_step - 1][0] == "prepare" and calls[first_step - 1][1] == calls[first_step][1] is not None
     assert max(res.runs["spy"].tracker_ms) < 100
+
+
+def test_jitter_moves_every_detection_by_seeded_noise() -> None:
+    """--jitter-px: N(0, px) on x, y, w, h, N(0, px/200) on the score, sizes >= 1 px, scores in [0, 1];
+    the same seed gives the same noise, 0 gives the rows themselves."""
+    from followbus.evaluation.runner import jitter_detections
+
+    rows = np.array([[10.0, 20.0, 30.0, 60.0, 0.9], [5.0, 5.0, 0.5, 0.5, 0.999]] * 500, np.float32)
+    assert jitter_detections(rows, 0.0, np.random.default_rng(0)) is rows
+    a = jitter_detections(rows, 2.0, np.random.default_rng(7))
+    np.testing.assert_array_equal(a, jitter_detections(rows, 2.0, np.random.default_rng(7)))
+    assert not np.array_equal(a, jitter_detections(rows, 2.0, np.random.default_rng(8)))
+    moved = (a - rows)[0::2]  # the large boxes: nothing clipped
+    assert moved[:, :4].std() == pytest.approx(2.0, rel=0.1) and abs(moved[:, :4].mean()) < 0.2
+    assert moved[:, 4].std() == pytest.approx(0.01, rel=0.1)
+    assert a[:, 2:4].min() >= 1.0 and a[:, 4].min() >= 0.0 and a[:, 4].max() <= 1.0
+    assert a.dtype == np.float32 and a.shape == rows.shape

@@ -238,7 +238,12 @@ def _eval_args(p: argparse.ArgumentParser) -> None:
                    help="also write videos/<seq>-<method>.mp4 of the first method's run: ground truth (green), "
                         "output (red), gate (cyan), candidates with their fused scores (implies the trace data)")
     p.add_argument("--max-frames", type=int, default=0, metavar="N", help="only the first N frames per sequence")
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulated detector (default 0)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the simulated detector and of --jitter-px (default 0)")
+    p.add_argument("--jitter-px", type=float, default=0.0, metavar="PX",
+                   help="move every detection's x, y, w, h by Gaussian noise of PX px (1 sigma; its score by PX/200) "
+                        "before any method sees it: does a result survive the last-digit differences of another "
+                        "CPU's detector? Run several --seed values (default 0: the detections as they are)")
     p.add_argument("--graph-check", action="store_true",
                    help="instead: run the scene(s) through the launched graph and in-process, require identical boxes")
     p.set_defaults(argv=None)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import shlex
 import sys
 import tempfile
@@ -134,6 +135,17 @@ def _no_model(exc: Exception, detector: str) -> int:
     return 2
 
 
+def _jitter_notes(args) -> list[str] | None:
+    """The report's note on --jitter-px (none without it); None, after one line, for a value that is no jitter."""
+    if not (args.jitter_px >= 0.0 and math.isfinite(args.jitter_px)):
+        print(f"followbus: --jitter-px must be a finite number >= 0, not {args.jitter_px}", file=sys.stderr)
+        return None
+    if args.jitter_px == 0:
+        return []
+    return [f"detections jittered: x, y, w, h + N(0, {args.jitter_px:g} px), score + N(0, {args.jitter_px / 200:g}), "
+            f"seed {args.seed} (--jitter-px; the cache holds them as detected)."]
+
+
 def cmd_eval(args) -> int:
     from ...vision.models import ModelError
 
@@ -150,7 +162,9 @@ def cmd_eval(args) -> int:
     if args.graph_check:
         return _cmd_graph_check(args)
     args.detector = args.detector or DEFAULT_DETECTOR
-    notes: list[str] = []
+    notes = _jitter_notes(args)
+    if notes is None:
+        return 2
     try:
         seqs = expand_sequences(args.sequences)
         factories = _methods(args, notes)
@@ -160,6 +174,7 @@ def cmd_eval(args) -> int:
     methods, out = list(factories), Path(args.out)
     try:
         runs = run_campaign(seqs, factories, args.detector, out, seed=args.seed, max_frames=args.max_frames or 0,
+                            jitter_px=args.jitter_px,
                             write_frames=lambda run: _write_frames(run, out, args, methods[0]))
     except ModelError as exc:
         return _no_model(exc, args.detector)
