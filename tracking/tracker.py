@@ -18,7 +18,7 @@ import numpy as np
 from ..msgs.tracking import Measurement, Prior, TrackState
 
 
-def output_box(reid: Measurement, prior: Prior | None, max_std_heights: float = 0.0) -> np.ndarray | None:
+def output_box(reid: Measurement, prior: Prior | None, max_std_heights: float) -> np.ndarray | None:
     """The tracker's output for a frame: the accepted box; while OCCLUDED the predicted box (§2.3:
     keep following the hidden trajectory) as long as its centre's 1 σ is at most ``max_std_heights`` box
     heights (0: no limit; KalmanParams.occluded_output_max_std_heights); None when LOST, before initialisation
