@@ -64,6 +64,7 @@ from ...bus.codec import DecodeError, Header, peek
 from ...bus.node import RECORDER_NAME
 from ...bus.pubsub import RateLimitedLog, declare_subscriber, frame_bytes
 from ...bus.schemas import decode
+from ...bus.stats import SequenceGaps
 from ...msgs import catalogue  # noqa: F401  (followbus's message types: decodable)
 from .. import __version__
 from .mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, ROS2_PROFILE, FinaliseResult, RecordingWriter
@@ -223,7 +224,7 @@ class Recorder:
         self._converted_all = False
         self.failed = threading.Event()  # the writer hit an error: the recording is over
         self._failure: BaseException | None = None
-        self._last_seq: dict[tuple[str, str], int] = {}
+        self._seq_gaps = SequenceGaps()
         self._warn = RateLimitedLog(log, 5.0)
         self._threads = [threading.Thread(target=self._convert_loop, name="record-convert", daemon=True),
                          threading.Thread(target=self._write_loop, name="record-write", daemon=True)]
@@ -437,13 +438,11 @@ class Recorder:
             self.report.foxglove_messages += 1
 
     def _track_seq(self, stats: KeyStats, key: str, source: str, seq: int) -> None:
-        last = self._last_seq.get((key, source))
-        if last is not None:
-            if seq > last + 1:
-                stats.seq_gaps += seq - last - 1
-            elif seq <= last:
-                stats.restarts += 1
-        self._last_seq[(key, source)] = seq
+        missing = self._seq_gaps.see((key, source), seq)
+        if missing > 0:
+            stats.seq_gaps += missing
+        elif missing < 0:
+            stats.restarts += 1
 
     # --- shutdown ---------------------------------------------------------------------------------
     def discard(self) -> None:
