@@ -45,8 +45,15 @@ def _hz_args(p: argparse.ArgumentParser) -> None:
 
 
 def _nodes_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "Node health, and the links between nodes as their statuses report them (each key's sent and "
+             "delivered rate, and the messages that never arrived: header.seq gaps). Links that cross hosts, lose "
+             "messages or deliver nothing are listed; --links lists every one.",
+             "example: followbus nodes --connect tcp/192.0.2.10:7447 --user monitor --links")
     connect_args(p)
     p.add_argument("--seconds", type=float, default=1.5, help="how long to listen (default 1.5)")
+    p.add_argument("--links", action="store_true", help="list every link, not only those that cross hosts, lose "
+                                                        "messages or deliver nothing")
 
 
 def _foxglove_args(p: argparse.ArgumentParser) -> None:

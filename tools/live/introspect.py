@@ -15,6 +15,7 @@ import zenoh
 
 from ...bus.codec import DecodeError
 from ...bus.health import HealthWatcher, live_namespaces, namespaces_hint
+from ...bus.links import links_of_statuses, short_of_sent
 from ...bus.pubsub import declare_subscriber, frame_bytes, payload_bytes
 from ...bus.schemas import decode, to_plain
 from ...bus.session import ZenohSettings, open_session
@@ -172,14 +173,30 @@ def cmd_nodes(args, settings: ZenohSettings, namespace: str) -> int:
     if not snapshot:
         print(namespaces_hint(namespace, found))
         return 1
-    print(f"{'node':<14} {'state':<6} {'pid':>7} {'uptime s':>9} {'handler errs':>12}  check")
+    print(f"{'node':<14} {'state':<6} {'pid':>7} {'uptime s':>9} {'handler errs':>12} {'lost in':>8}  check")
     for name in sorted(snapshot):
         h = snapshot[name]
         st = h.status
+        lost = sum(int(t.get("lost", 0)) for t in st.topics.values() if t.get("direction") == "in") if st else "-"
         print(f"{name:<14} {'up' if h.alive else 'down':<6} {st.pid if st else '-':>7} "
-              f"{(f'{st.uptime_s:.0f}' if st else '-'):>9} {(st.extra.get('handler_errors', 0) if st else '-'):>12}  "
-              f"{h.trust}{f' ({h.trust_reason})' if h.trust_reason else ''}")
+              f"{(f'{st.uptime_s:.0f}' if st else '-'):>9} {(st.extra.get('handler_errors', 0) if st else '-'):>12} "
+              f"{lost:>8}  {h.trust}{f' ({h.trust_reason})' if h.trust_reason else ''}")
+    _print_links({name: h.status for name, h in snapshot.items() if h.status is not None}, args.links)
     return 0
+
+
+def _print_links(statuses: dict, every: bool) -> None:
+    """The links between nodes (bus/links.py): those that cross hosts, have lost messages or deliver less than
+    is sent, or ``every`` one."""
+    rows = [link for link in links_of_statuses(statuses)
+            if every or link.crosses_hosts or link.lost or short_of_sent(link)]
+    if not rows:
+        return
+    width = max(len(link.route()) for link in rows)
+    print(f"\n{'link':<{width}} {'sent Hz':>8} {'delivered Hz':>12} {'lost':>8}")
+    for link in rows:
+        sent = "-" if link.sent_hz is None else f"{link.sent_hz:.1f}"
+        print(f"{link.route():<{width}} {sent:>8} {link.delivered_hz or 0.0:>12.1f} {link.lost:>8}")
 
 
 def run_router(listen: list[str], duration_s: float | None) -> int:
