@@ -125,8 +125,8 @@ def screen_state(snap: dict[str, Any], source_node: str, stale_after_s: float = 
 def health_rows(snap: dict[str, Any]) -> list[dict[str, Any]]:
     """The health table: a row per topic of each node (outputs, then inputs), one row for a node without any.
 
-    Outputs carry only a rate; inputs a rate, p50 latency, drops and messages lost on the way. Topic names drop the namespace, and an
-    output its own node's name too (``preview``; an input reads ``capture/frame``)."""
+    Outputs carry only a rate; inputs a rate, p50 latency, drops and messages lost on the way. Topic names drop the
+    namespace, and an output its own node's name too (``preview``; an input reads ``capture/frame``)."""
     prefix = f"{snap.get('namespace', '')}/"
     rows: list[dict[str, Any]] = []
     for node in snap.get("nodes", []):
@@ -629,7 +629,8 @@ function healthTable(rows) {
     if (r.topic === null) { tr += '<td class="l na" colspan="6">no status</td></tr>'; html.push(tr); continue; }
     tr += `<td class="l topic"><span class="dir">${r.direction}</span> ${esc(r.topic)}</td>` +
       `<td>${fmt(r.rate_hz, 1)}</td>` +
-      (r.direction === "in" ? `<td>${fmt(r.latency_p50_ms, 1)}</td><td>${r.drops}</td><td>${r.lost}</td>` : na + na + na) +
+      (r.direction === "in" ? `<td>${fmt(r.latency_p50_ms, 1)}</td><td>${r.drops}</td><td>${r.lost}</td>`
+        : na + na + na) +
       `<td>${r.decode_errors}</td></tr>`;
     html.push(tr);
   }
