@@ -13,12 +13,19 @@ or whose ends do not see each other, is named with what to do.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import threading
+import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from .schemas import NodeStatus
+import zenoh
+
+from .codec import DecodeError
+from .pubsub import direct_callback, payload_bytes
+from .schemas import NodeStatus, decode
 
 HOLD_S = 3.0  # a link's new state is reported once it has held this long (no report for a passing blip)
 UNSEEN_S = 5.0  # a node of another host whose status has not arrived in this long is reported missing
@@ -28,6 +35,7 @@ PEER_HINT = ("in peer mode, Zenoh peers do not forward each other's messages, so
              "sessions it connected to: run the robot's bus as a router (graph.robot.yaml) and join the other host "
              "as a client (README, \"Two computers, one graph\")")
 LINK_HINT = "check the network between the hosts and that both join the same bus"
+MAX_PUBLISHED_KEYS = 1024  # keys a PublishedKeys keeps (statuses naming more are not followed further)
 
 
 @dataclass(frozen=True)
@@ -130,6 +138,66 @@ def short_of_sent(link: LinkFigures) -> bool:
 def links_of_statuses(statuses: Mapping[str, NodeStatus]) -> list[LinkFigures]:
     """Every link the statuses show, measured (what `nodes` and `monitor` print)."""
     return measure(edges_of_statuses(statuses), statuses)
+
+
+@dataclass
+class PublishedKey:
+    """One key as its publisher's status last reported it."""
+
+    key: str
+    node: str
+    rate_hz: float
+    mean_bytes: float | None  # None: nothing published yet
+
+
+class PublishedKeys:
+    """The keys a namespace's nodes publish, as their statuses announce them (``<ns>/@status/*``, once a second per
+    node, a few hundred bytes each): what a tool without the graph file can subscribe to key by key, so that a key
+    it leaves out never crosses the link (a subscription on ``<ns>/**`` would carry every key, raw frames too).
+    Keeps listening until :meth:`close`: nodes that start later are announced later."""
+
+    def __init__(self, session: zenoh.Session, namespace: str):
+        self._lock = threading.Lock()
+        self._keys: dict[str, PublishedKey] = {}
+        self._statuses = 0
+        self._sub = session.declare_subscriber(f"{namespace}/@status/*", direct_callback(self._on_status))
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        try:
+            status = decode(payload_bytes(sample), NodeStatus)
+        except DecodeError:
+            return
+        with self._lock:
+            self._statuses += 1
+            for key, topic in status.topics.items():
+                if not isinstance(topic, dict) or topic.get("direction") != "out":
+                    continue
+                if key not in self._keys and len(self._keys) >= MAX_PUBLISHED_KEYS:
+                    continue
+                count, size = topic.get("count", 0), topic.get("bytes", 0)
+                mean = size / count if isinstance(count, int) and count > 0 and isinstance(size, int) else None
+                rate = topic.get("rate_hz", 0.0)
+                self._keys[key] = PublishedKey(key, status.node, float(rate) if isinstance(rate, (int, float))
+                                               else 0.0, mean)
+
+    def wait(self, timeout_s: float) -> bool:
+        """Wait until a status has arrived (at most ``timeout_s``); whether one did."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                if self._statuses:
+                    return True
+            time.sleep(0.05)
+        with self._lock:
+            return bool(self._statuses)
+
+    def announced(self) -> dict[str, PublishedKey]:
+        with self._lock:
+            return dict(self._keys)
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self._sub.undeclare()
 
 
 # --- the launcher's watch over a graph spread over hosts ---------------------------------------------------

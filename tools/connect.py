@@ -26,7 +26,7 @@ from typing import Any
 
 import zenoh
 
-from ..bus.session import ZenohSettings, open_session
+from ..bus.session import ZenohSettings, is_local_endpoint, open_session
 
 log = logging.getLogger(__name__)
 
@@ -281,3 +281,21 @@ def check_can_publish(session: zenoh.Session, settings: ZenohSettings, timeout_s
         who = f"user {user}" if user else "this session"
         raise PublishRefused(f"{', '.join(settings.connect)} does not accept messages from {who} (access control: a "
                              "read-only identity; publishing needs one allowed to, e.g. --user operator)")
+
+
+# --- what a slow link carries ---------------------------------------------------------------------------
+
+# The uncompressed camera frame every capture node publishes as its ``frame`` output: ~27 MB/s at 640x480 and
+# 30 Hz, more than any wireless link carries. A tool joining over a network leaves these keys out unless asked
+# (record and topics: --raw-frames); the JPEG ``preview`` (a few KB) stays.
+RAW_FRAME_OUTPUT = "frame"
+
+
+def is_remote(settings: ZenohSettings) -> bool:
+    """Whether a tool reaches the graph over a network (any endpoint beyond loopback)."""
+    return any(not is_local_endpoint(ep) for ep in settings.connect)
+
+
+def is_raw_frame(key: str) -> bool:
+    """Whether a key is a node's raw frame output (``<ns>/<node>/frame``)."""
+    return key.rsplit("/", 1)[-1] == RAW_FRAME_OUTPUT
