@@ -18,6 +18,13 @@ it is in flight are dropped, so the receiver gets whole frames as fast as its li
 there was when the link was free (`followbus bench link`, BENCHMARKS.md). ``data_low`` keeps them behind the
 small messages (commands, statuses, previews) in Zenoh's queues.
 
+Two settings keep the small messages flowing while a slow link is full. A remote listen endpoint gets a small
+kernel send buffer (``#so_sndbuf``): Zenoh writes one batch at a time into the socket, and with the kernel's
+default (grown to megabytes) a full link held that write, and every queue behind it, for seconds; and the
+``real_time`` queue (motor commands, sent express: a batch each) holds more batches, so the commands that come
+while one write waits are queued, not dropped. Batches are allocated as they are needed: a link that never
+backs up never holds more.
+
 The interfaces are those of the listen endpoints that are not loopback: the one holding the address, or every
 interface but loopback for ``0.0.0.0``/``[::]``. IPv4 addresses are looked up with SIOCGIFADDR; an IPv6 address
 or a host name cannot be, and is logged (set ``qos/network`` in the graph's zenoh config by hand then).
@@ -38,6 +45,12 @@ log = logging.getLogger(__name__)
 SIOCGIFADDR = 0x8915
 QOS_ID = "followbus-remote-links-drop"
 LARGE_QOS_ID = "followbus-remote-links-large"
+# The kernel send buffer of a remote listen endpoint's links (Linux doubles it): about 0.5 s at 2 Mbit/s, and still
+# 1 Gbit/s at 1 ms round trip.
+REMOTE_SNDBUF_BYTES = 64 * 1024
+# Batches of a link's real_time queue (Zenoh's default: 2): 0.5 s of 30 Hz express commands.
+REALTIME_QUEUE_BATCHES = 16
+REALTIME_QUEUE_KEY = "transport/link/tx/queue/size/real_time"
 # Messages from this size up are "large" on a remote link (BLOCK_FIRST, data_low): the size from which a
 # publisher uses shared memory (bus/pubsub.py SHM_THRESHOLD_BYTES), far above a preview JPEG (a few KB), far
 # below a raw 320x240 frame (230 KB).
@@ -96,3 +109,28 @@ def drop_on_remote_links(listen: list[str]) -> list[dict[str, Any]]:
             {"id": LARGE_QOS_ID, "interfaces": interfaces, "messages": ["put"], "flows": ["egress"],
              "payload_size": f"{LARGE_MESSAGE_BYTES}..",
              "overwrite": {"congestion_control": "block_first", "priority": "data_low"}}]
+
+
+def small_send_buffers(listen: list[str]) -> list[str]:
+    """The listen endpoints, each TCP or TLS one beyond loopback with ``#so_sndbuf`` (unless it sets its own link
+    options after ``#``)."""
+    out = []
+    for endpoint in listen:
+        host = _endpoint_host(endpoint)
+        remote = host is not None and (host in ANY or not _is_loopback(host))
+        if remote and endpoint.split("/", 1)[0] in ("tcp", "tls") and "#" not in endpoint:
+            endpoint = f"{endpoint}#so_sndbuf={REMOTE_SNDBUF_BYTES}"
+        out.append(endpoint)
+    return out
+
+
+def remote_queue_config(listen: list[str]) -> dict[str, Any]:
+    """The queue settings of a session that listens beyond loopback ({} when it listens on loopback only)."""
+    return {REALTIME_QUEUE_KEY: REALTIME_QUEUE_BATCHES} if remote_interfaces(listen) else {}
+
+
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
