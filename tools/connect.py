@@ -36,6 +36,7 @@ USER_ENV = "FOLLOWBUS_ZENOH_USER"
 VIEWER_CONNECT_TIMEOUT_MS = 3000  # monitor, foxglove: they retry by themselves, so fail fast on a refusal
 PUBLISH_PROBE_S = 3.0  # how long `play` waits for its probe message to come back through the router
 TCP_BASED = ("tcp", "tls", "ws")  # link protocols whose endpoint a TCP connection can probe
+REMOTE_BATCH_BYTES = 8192  # a tool's link over a network: batches of this size (Zenoh's default 65535)
 
 
 class BusUnreachable(Exception):
@@ -241,6 +242,12 @@ def client_settings(graph_path: str | None, connect: list[str] | None = None, us
         out.connect_timeout_ms = VIEWER_CONNECT_TIMEOUT_MS
     if connect_timeout_s is not None:
         out.connect_timeout_ms = max(1, round(connect_timeout_s * 1000))
+    if is_remote(out) and "transport/link/tx/batch_size" not in out.config:
+        # Zenoh negotiates a link's batch size down to the smaller side's, so this link alone gets small batches.
+        # The robot's router writes one batch at a time into a link it cannot preempt: on a full 2 Mbit/s link a
+        # 64 KB batch holds the motor commands behind it for a quarter of a second, and those that come meanwhile
+        # overflow their queue (bus/netif.py); an 8 KB one for 33 ms, a command's period.
+        out.config["transport/link/tx/batch_size"] = REMOTE_BATCH_BYTES
     return out
 
 
