@@ -49,6 +49,12 @@ class _KeySeen:
     type: str = "?"
     lost: int = 0
     ends: dict[str, list[tuple[int, int]]] = field(default_factory=dict)
+    arrivals: list[int] = field(default_factory=lambda: [0, 0])  # monotonic ns of the first and last
+
+    def received_hz(self) -> float | None:
+        """How fast they arrived here, between the first and the last (None: fewer than two)."""
+        span_s = (self.arrivals[1] - self.arrivals[0]) / 1e9
+        return (self.count - 1) / span_s if self.count > 1 and span_s > 0 else None
 
     def publisher_rate_hz(self) -> float | None:
         """The busiest publisher's own rate (None: fewer than two of its messages arrived)."""
@@ -72,8 +78,11 @@ class TopicCounts:
             msg = decode(data)
         except DecodeError:
             data, msg = payload_bytes(sample), None
+        now = time.monotonic_ns()
         with self._lock:
             seen = self.keys[key]
+            seen.arrivals[0] = seen.arrivals[0] or now
+            seen.arrivals[1] = now
             seen.count += 1
             seen.size += len(data)
             if msg is None:
@@ -87,16 +96,20 @@ class TopicCounts:
             seen.lost += max(missing, 0)
             ends[1] = (h.seq, h.pub_ns)
 
-    def table(self, seconds: float) -> list[str]:
+    def table(self) -> list[str]:
         with self._lock:
             keys = dict(self.keys)
         lines = [f"{'key':<40} {'type':<15} {'rate Hz':>8} {'recv Hz':>8} {'lost':>6} {'avg bytes':>10}"]
         for key in sorted(keys):
             seen = keys[key]
-            rate = seen.publisher_rate_hz()
-            lines.append(f"{key:<40} {seen.type:<15} {'-' if rate is None else f'{rate:.1f}':>8} "
-                         f"{seen.count / seconds:>8.1f} {seen.lost:>6} {seen.size / seen.count:>10.0f}")
+            rate, received = seen.publisher_rate_hz(), seen.received_hz()
+            lines.append(f"{key:<40} {seen.type:<15} {_hz(rate):>8} {_hz(received):>8} {seen.lost:>6} "
+                         f"{seen.size / seen.count:>10.0f}")
         return lines
+
+
+def _hz(rate: float | None) -> str:
+    return "-" if rate is None else f"{rate:.1f}"
 
 
 def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
@@ -131,7 +144,7 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
     if not counts.keys and not left_out:
         print(f"no messages under {namespace}/** in {args.seconds:.1f} s")
         return 1
-    print("\n".join(counts.table(args.seconds)))
+    print("\n".join(counts.table()))
     _topics_notes(counts, left_out, args.seconds)
     return 0
 
@@ -143,7 +156,7 @@ def _topics_notes(counts: TopicCounts, left_out: dict[str, Any], seconds: float)
         print(f"not subscribed: {key} (raw frames, {size}, {info.rate_hz:.1f} Hz by {info.node}'s status; "
               "over this link only with --raw-frames)")
     if any(seen.publisher_rate_hz() is None for seen in counts.keys.values()):
-        print(f"rate -: fewer than two messages of one publisher arrived in {seconds:g} s, so its rate is unknown")
+        print(f"-: fewer than two messages (of one publisher) arrived in {seconds:g} s: no rate to show")
     if any(seen.lost for seen in counts.keys.values()):
         print("lost: messages the link did not deliver (header.seq gaps); rate Hz is the publisher's, recv Hz what "
               "arrived here")
