@@ -200,6 +200,14 @@ class PublishedKeys:
             self._sub.undeclare()
 
 
+def _blind(edge: Edge, statuses: Mapping[str, NodeStatus], health: Mapping[str, Any]) -> bool:
+    """Whether the edge's source still waits for its target (its start-up barrier, in its status) while the target
+    is up as the caller sees it."""
+    source, target = statuses.get(edge.source), health.get(edge.target)
+    waiting = source.extra.get("waiting_for", []) if source is not None else []
+    return isinstance(waiting, list) and edge.target in waiting and target is not None and bool(target.alive)
+
+
 # --- the launcher's watch over a graph spread over hosts ---------------------------------------------------
 
 OK, LOSSY, SILENT, BLIND, UNSEEN, UNKNOWN = "ok", "lossy", "silent", "blind", "unseen", "unknown"
@@ -212,6 +220,7 @@ class _EdgeState:
     candidate_since: float = 0.0
     received: int | None = None
     received_since: float = 0.0  # when the received count last changed (or was first seen)
+    grew: bool = False  # the received count grew while watched: the link carries something
 
 
 class LinkWatch:
@@ -249,20 +258,17 @@ class LinkWatch:
 
     def _judge(self, link: LinkFigures, state: _EdgeState, health: Mapping[str, Any],
                statuses: Mapping[str, NodeStatus], now_s: float) -> str:
-        edge = link.edge
         if link.received is not None and link.received != state.received:
+            state.grew = state.grew or (state.received is not None and link.received > state.received)
             state.received, state.received_since = link.received, now_s
-        source, target = statuses.get(edge.source), statuses.get(edge.target)
-        waiting = source.extra.get("waiting_for", []) if source is not None else []
-        target_health = health.get(edge.target)
-        if isinstance(waiting, list) and edge.target in waiting and target_health is not None and target_health.alive:
+        if _blind(link.edge, statuses, health):
             return BLIND
-        if statuses.get(self._other(edge)) is None:
+        if statuses.get(self._other(link.edge)) is None:
             assert self._started is not None
             return UNSEEN if now_s - self._started >= self.unseen_s else UNKNOWN
-        if target is None or link.delivered_hz is None or link.sent_hz is None or link.sent_hz < SENDING_HZ:
+        if link.delivered_hz is None or link.sent_hz is None or link.sent_hz < SENDING_HZ:
             return UNKNOWN  # the target does not subscribe to it (an input its params never read), or nothing sent
-        if now_s - state.received_since >= self.hold_s:
+        if now_s > state.received_since and not state.grew:  # nothing ever arrived (held like any state)
             return SILENT
         return LOSSY if link.delivered_hz < LOSSY_FRACTION * link.sent_hz else OK
 

@@ -352,6 +352,33 @@ def test_dashboard_shows_health_rates_target_and_command():
     assert re.search(r"^monitor +2 decode errors$", text, re.M), text
 
 
+def test_dashboard_names_a_link_that_delivers_less_than_is_sent():
+    """Frames a node never received are shown where the operator looks: the input's lost count in the topic table,
+    and a line for the link that carries less than its publisher sends (here over a slow link to another host)."""
+    import io
+
+    from rich.console import Console
+
+    monitor = BusMonitor(ZenohSettings(mode="client", listen=[], connect=["tcp/127.0.0.1:9"]),
+                         GraphInfo(namespace="t", nodes=["capture", "detection"]))  # never started: no session
+    monitor._set_connected(True)
+    now_ns = time.time_ns()
+    topics = {"capture": {"t/capture/frame": {"direction": "out", "rate_hz": 30.0, "count": 900}},
+              "detection": {"t/capture/frame": {"direction": "in", "rate_hz": 2.4, "count": 72, "lost": 828}}}
+    for name in ("capture", "detection"):
+        monitor._on_health(name, True)
+        node = monitor.nodes[name]
+        node.status, node.status_ns = NodeStatus(node=name, pid=1, topics=topics[name]), now_ns
+    snap = monitor.snapshot()
+    assert snap["links"] == ["t/capture/frame capture -> detection: 2.4 of 30.0 Hz delivered, 828 lost"]
+    out = io.StringIO()
+    show(Console(file=out, force_terminal=False, width=200), snap)
+    text = out.getvalue()
+    assert re.search(r"^link +t/capture/frame capture -> detection: 2\.4 of 30\.0 Hz delivered, 828 lost$", text, re.M)
+    row = next(line for line in text.splitlines() if line.startswith("t/capture/frame @detection")).split()
+    assert row[6:] == ["0", "828", "0"]  # drops, lost, decode errors
+
+
 def test_dashboard_on_a_terminal_is_coloured():
     text = _dashboard(terminal=True)
     plain = re.sub(r"\x1b\[[0-9;]*m", "", text)
