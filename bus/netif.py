@@ -20,8 +20,8 @@ small messages (commands, statuses, previews) in Zenoh's queues.
 
 Two settings keep the small messages flowing while a slow link is full. A remote listen endpoint gets a small
 kernel send buffer (``#so_sndbuf``): Zenoh writes one batch at a time into the socket, and with the kernel's
-default (grown to megabytes) a full link held that write, and every queue behind it, for seconds; and the
-``real_time`` queue (motor commands, sent express: a batch each) holds more batches, so the commands that come
+default (grown to megabytes) a full link holds that write, and every queue behind it, for seconds; and the
+``real_time`` queue (actuator commands, sent express: a batch each) holds more batches, so the commands that come
 while one write waits are queued, not dropped. Batches are allocated as they are needed: a link that never
 backs up never holds more.
 

@@ -631,15 +631,28 @@ def _link_excludes(args, settings, graph, namespace: str) -> tuple[list[str], li
 
 class AnnouncedKeys:
     """A remote recording without the graph file: the keys the nodes' statuses announce (bus/links.py
-    PublishedKeys), each kept one subscribed to as it appears, for the whole recording."""
+    PublishedKeys), each kept one subscribed to as it appears, for the whole recording. Inert (``active`` False)
+    for any other recording, which subscribes to its patterns or the graph's keys at start."""
 
-    def __init__(self, session: zenoh.Session, recorder: Recorder, namespace: str):
+    def __init__(self, session: zenoh.Session, recorder: Recorder, namespace: str, active: bool):
         self.session, self.recorder = session, recorder
-        self.published = PublishedKeys(session, namespace)
+        self.published = PublishedKeys(session, namespace) if active else None
         self.subscribed: set[str] = set()
+
+    @classmethod
+    def start(cls, session: zenoh.Session, recorder: Recorder, namespace: str, active: bool) -> AnnouncedKeys:
+        """Follow the announced keys, the nodes' first statuses waited for (their keys subscribed before the
+        recording goes on)."""
+        announced = cls(session, recorder, namespace, active)
+        if announced.published is not None:
+            announced.published.wait(STATUS_WAIT_S)
+        announced.follow()
+        return announced
 
     def follow(self) -> None:
         """Subscribe to every kept key announced since the last call."""
+        if self.published is None:
+            return
         opts = self.recorder.opts
         new = [k for k in self.published.announced() if k not in self.subscribed]
         for key in kept_keys(new, opts.patterns, opts.exclude):
@@ -647,7 +660,14 @@ class AnnouncedKeys:
         self.subscribed.update(new)
 
     def close(self) -> None:
-        self.published.close()
+        if self.published is not None:
+            self.published.close()
+
+
+def _follows_announced(settings, graph, options: RecordOptions) -> bool:
+    """Whether the recording subscribes key by key to what the nodes announce: over a network, keys left out,
+    no graph file to list the keys."""
+    return is_remote(settings) and graph is None and bool(options.exclude)
 
 
 def cmd_record(args, settings, graph) -> int:
@@ -684,11 +704,7 @@ def cmd_record(args, settings, graph) -> int:
         recorder.discard()
         raise
     recorder.start(session)
-    announced = None
-    if is_remote(settings) and graph is None and options.exclude:
-        announced = AnnouncedKeys(session, recorder, namespace)
-        announced.published.wait(STATUS_WAIT_S)  # the nodes' first statuses: their keys subscribed before we go on
-        announced.follow()
+    announced = AnnouncedKeys.start(session, recorder, namespace, _follows_announced(settings, graph, options))
     # Declared after the subscribers: a capture node launched with --record waits for it before frame 0,
     # so a recording holds the run from its first frame (a replayed node must start where the live one did).
     token = session.liveliness().declare_token(f"{namespace}/@health/{RECORDER_NAME}")
@@ -705,15 +721,13 @@ def cmd_record(args, settings, graph) -> int:
             if args.duration is not None and time.monotonic() - started >= args.duration:
                 break
             stop.wait(0.1)
-            if announced is not None:
-                announced.follow()
+            announced.follow()
             if time.monotonic() >= next_status:
                 next_status += 10.0
                 log.info("%d messages received, queue %.1f MB", recorder.report.received,
                          recorder.queued_bytes() / 1e6)
     finally:
-        if announced is not None:
-            announced.close()
+        announced.close()
         report = recorder.stop()
         with contextlib.suppress(Exception):
             token.undeclare()
