@@ -456,20 +456,20 @@ def _robot_line(robot: dict[str, Any]) -> str:
 
 def table(runs: list[CaseRun]) -> str:
     """Markdown: one row per case and round (robot figures), then per recording its keys."""
-    lines = ["| case | round | capture→command p50 ms | p99 ms | frames answered | laptop received | "
-             "dropped | seq gaps | laptop CPU s |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    rounds: dict[str, int] = {}
+    lines = ["| link Mbit/s | case | round | capture→command p50 ms | p99 ms | frames answered | laptop received | "
+             "dropped | seq gaps | laptop CPU s |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    rounds: dict[tuple[float, str], int] = {}
     for run in runs:
         if run.case in LAPTOP_KEYS:
             continue  # laptop_table
-        rounds[run.case] = rounds.get(run.case, 0) + 1
+        rounds[(run.rate_mbit, run.case)] = rounds.get((run.rate_mbit, run.case), 0) + 1
         r, lap = run.robot, run.laptop
         p50 = f"{r['p50_ms']:.1f}" if r["p50_ms"] is not None else "-"
         p99 = f"{r['p99_ms']:.1f}" if r["p99_ms"] is not None else "-"
         rec = (f"{lap['received']} | {lap['dropped']} | {lap['seq_gaps']}" if "received" in lap else "- | - | -")
         cpu = f"{lap['cpu_s']:.1f}" if "cpu_s" in lap else "-"
-        lines.append(f"| {run.case} | {rounds[run.case]} | {p50} | {p99} | {r['answered']}/{r['frames']} | {rec} "
-                     f"| {cpu} |")
+        lines.append(f"| {run.rate_mbit:g} | {run.case} | {rounds[(run.rate_mbit, run.case)]} | {p50} | {p99} | "
+                     f"{r['answered']}/{r['frames']} | {rec} | {cpu} |")
     return "\n".join(lines)
 
 
