@@ -9,6 +9,22 @@ node behind it: measured with a laptop recording every key over 2 Mbit/s, the ro
 interfaces into congestion control DROP: the laptop loses what its link cannot carry (its recorder reports
 the ``header.seq`` gaps), the robot's loop on loopback keeps BLOCK.
 
+Large messages (raw frames) on those interfaces are BLOCK_FIRST at priority ``data_low`` instead. Under plain
+DROP a link slower than the camera gets none of them: a 921 KB frame is hundreds of batches, and once the link's
+queue is full the rest of its fragments are dropped after the drop wait, so no frame arrives whole while the
+fragments that did go out fill the link. With BLOCK_FIRST one large message per link and priority is in flight
+at a time, pushed on a thread of Zenoh's own (the router's thread does not wait for it); those that come while
+it is in flight are dropped, so the receiver gets whole frames as fast as its link carries them, each the newest
+there was when the link was free (`followbus bench link`, BENCHMARKS.md). ``data_low`` keeps them behind the
+small messages (commands, statuses, previews) in Zenoh's queues.
+
+Two settings keep the small messages flowing while a slow link is full. A remote listen endpoint gets a small
+kernel send buffer (``#so_sndbuf``): Zenoh writes one batch at a time into the socket, and with the kernel's
+default (grown to megabytes) a full link holds that write, and every queue behind it, for seconds; and the
+``real_time`` queue (actuator commands, sent express: a batch each) holds more batches, so the commands that come
+while one write waits are queued, not dropped. Batches are allocated as they are needed: a link that never
+backs up never holds more.
+
 The interfaces are those of the listen endpoints that are not loopback: the one holding the address, or every
 interface but loopback for ``0.0.0.0``/``[::]``. IPv4 addresses are looked up with SIOCGIFADDR; an IPv6 address
 or a host name cannot be, and is logged (set ``qos/network`` in the graph's zenoh config by hand then).
@@ -28,6 +44,17 @@ log = logging.getLogger(__name__)
 
 SIOCGIFADDR = 0x8915
 QOS_ID = "followbus-remote-links-drop"
+LARGE_QOS_ID = "followbus-remote-links-large"
+# The kernel send buffer of a remote listen endpoint's links (Linux doubles it): about 0.5 s at 2 Mbit/s, and still
+# 1 Gbit/s at 1 ms round trip.
+REMOTE_SNDBUF_BYTES = 64 * 1024
+# Batches of a link's real_time queue (Zenoh's default: 2): 0.5 s of 30 Hz express commands.
+REALTIME_QUEUE_BATCHES = 16
+REALTIME_QUEUE_KEY = "transport/link/tx/queue/size/real_time"
+# Messages from this size up are "large" on a remote link (BLOCK_FIRST, data_low): the size from which a
+# publisher uses shared memory (bus/pubsub.py SHM_THRESHOLD_BYTES), far above a preview JPEG (a few KB), far
+# below a raw 320x240 frame (230 KB).
+LARGE_MESSAGE_BYTES = 64 * 1024
 ANY = {"0.0.0.0", "::", ""}
 
 
@@ -71,10 +98,39 @@ def remote_interfaces(listen: list[str]) -> list[str]:
 
 
 def drop_on_remote_links(listen: list[str]) -> list[dict[str, Any]]:
-    """The ``qos/network`` items that make every put and delete sent over a remote interface DROP ([] when the
-    session listens on loopback only)."""
+    """The ``qos/network`` items that make every put and delete sent over a remote interface DROP, and puts of
+    :data:`LARGE_MESSAGE_BYTES` and more BLOCK_FIRST at ``data_low`` ([] when the session listens on loopback
+    only). Zenoh applies the items in order: the second overwrites the first for large puts."""
     interfaces = remote_interfaces(listen)
     if not interfaces:
         return []
     return [{"id": QOS_ID, "interfaces": interfaces, "messages": ["put", "delete"], "flows": ["egress"],
-             "overwrite": {"congestion_control": "drop"}}]
+             "overwrite": {"congestion_control": "drop"}},
+            {"id": LARGE_QOS_ID, "interfaces": interfaces, "messages": ["put"], "flows": ["egress"],
+             "payload_size": f"{LARGE_MESSAGE_BYTES}..",
+             "overwrite": {"congestion_control": "block_first", "priority": "data_low"}}]
+
+
+def small_send_buffers(listen: list[str]) -> list[str]:
+    """The listen endpoints, each TCP or TLS one beyond loopback with ``#so_sndbuf`` (unless it sets its own link
+    options after ``#``)."""
+    out = []
+    for endpoint in listen:
+        host = _endpoint_host(endpoint)
+        remote = host is not None and (host in ANY or not _is_loopback(host))
+        if remote and endpoint.split("/", 1)[0] in ("tcp", "tls") and "#" not in endpoint:
+            endpoint = f"{endpoint}#so_sndbuf={REMOTE_SNDBUF_BYTES}"
+        out.append(endpoint)
+    return out
+
+
+def remote_queue_config(listen: list[str]) -> dict[str, Any]:
+    """The queue settings of a session that listens beyond loopback ({} when it listens on loopback only)."""
+    return {REALTIME_QUEUE_KEY: REALTIME_QUEUE_BATCHES} if remote_interfaces(listen) else {}
+
+
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"

@@ -200,6 +200,7 @@ class DownstreamBarrier:
 
         graph, name = runtime.graph, runtime.spec.name
         self.log = runtime.log
+        self._runtime = runtime
         self.timeout_s = timeout_s
         self.settle_s = settle_s
         self._open_at: float | None = None
@@ -236,6 +237,9 @@ class DownstreamBarrier:
         if self._open_at is None:
             assert self._health is not None
             missing = self.waiting_for - self._health.alive()
+            # In the node's status while it waits: a launcher that sees a consumer this node cannot (two hosts
+            # whose sessions do not route to each other) names the split from it (bus/links.py).
+            self._runtime.awaiting = missing
             now = time.monotonic()
             if missing - self.left_out and now < self._deadline or missing and now < self._left_out_deadline:
                 return 0.05
@@ -246,6 +250,7 @@ class DownstreamBarrier:
             if missing:
                 self.log.warning("starting without %s (not up after %.0f s)", ", ".join(sorted(missing)),
                                  self.timeout_s)
+            self._runtime.awaiting = set()
             self._open_at = time.monotonic() + self.settle_s
         return max(0.0, self._open_at - time.monotonic())
 
@@ -523,6 +528,7 @@ class NodeHost:
         self.latest: dict[str, Message] = {}
         self.handler_errors = 0
         self.resets = 0
+        self.awaiting: set[str] = set()  # the consumers a source's start-up barrier still waits for
         # Working, not just alive (bus/liveness.py): consecutive failures of poll and of the handlers, and
         # when this node last published.
         self.poll_failures = FailureBudget(POLL_FAILURE_LIMIT)
@@ -819,6 +825,11 @@ class NodeRuntime(NodeHost):
         topics = {p.key: p.stats.snapshot() for p in self.publishers.values()}
         topics.update({q.stats.key: q.stats.snapshot() for q in self.queues.values()})
         extra = self.sync_counters()
+        host = self.graph.host_of(self.spec.name)
+        if host:
+            extra["host"] = host
+        if self.awaiting:
+            extra["waiting_for"] = sorted(self.awaiting)
         if self.live_params.changed:
             extra["params_set"] = dict(self.live_params.changed)
         try:

@@ -17,13 +17,14 @@ import zenoh
 from . import shmlane
 from .codec import DecodeError
 from .schemas import Message, decode, encode_parts, validate
-from .stats import TopicStats
+from .stats import SequenceGaps, TopicStats
 
 log = logging.getLogger(__name__)
 
 SHM_THRESHOLD_BYTES = 64 * 1024
 SHM_POOL_BYTES = 64 * 1024 * 1024
 SHM_RETRY_S = 5.0  # after a failed shared-memory allocation, large payloads go inline this long, then retry
+LOST_WARN_PERIOD_S = 10.0  # a subscriber says at most this often that messages never reached it
 CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
 # Zenoh queues each priority separately on a link: a "real_time" message is not stuck behind a backlog of
 # "data" ones (frames, a flood of bad payloads), which is what a stop command needs.
@@ -373,7 +374,9 @@ def declare_subscriber(session: zenoh.Session, key: str, fn: Callable[[zenoh.Sam
 
 class Subscriber:
     """Decodes and validates every sample on a key; malformed ones (bad bytes, wrong type, non-finite or
-    out-of-range values) are counted in ``decode_errors``, logged once a second and dropped."""
+    out-of-range values) are counted in ``decode_errors``, logged once a second and dropped. Messages that never
+    arrived (gaps in a publisher's ``header.seq``: a link that dropped them) are counted in ``stats.lost`` and
+    logged at most every :data:`LOST_WARN_PERIOD_S`, so a node that misses frames says so, not only its rate."""
 
     def __init__(self, session: zenoh.Session, key: str, on_message: Callable[[Message], None], *,
                  schema: type[Message] | None = None, stats: TopicStats | None = None,
@@ -383,6 +386,8 @@ class Subscriber:
         self.on_message = on_message
         self.stats = stats or TopicStats(key, "in")
         self._warn = RateLimitedLog(logger or log)
+        self._lost_warn = RateLimitedLog(logger or log, LOST_WARN_PERIOD_S)
+        self._gaps = SequenceGaps()
         # A direct callback runs on Zenoh's receive thread, so messages on different keys reach the node
         # in the order they arrived (the default indirect callbacks run one thread per subscriber and
         # reorder them: a lockstep replay then diverges). The work here is a decode and an enqueue.
@@ -417,6 +422,12 @@ class Subscriber:
             self._warn.warning("dropped unreadable sample on %s: %r", sample.key_expr, exc)
             return
         self.stats.record(msg.header.stamp_ns, size)
+        missing = self._gaps.see(msg.header.source, msg.header.seq)
+        if missing > 0:
+            self.stats.lose(missing)
+            self._lost_warn.warning("%d messages on %s from %s never arrived (header.seq %d after %d; %d lost so far)",
+                                    missing, self.key, msg.header.source, msg.header.seq,
+                                    msg.header.seq - missing - 1, self.stats.lost)
         self.on_message(msg)
 
     def undeclare(self) -> None:

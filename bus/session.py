@@ -145,6 +145,10 @@ def build_config(settings: ZenohSettings, remote_links: bool = True) -> zenoh.Co
     conf.insert_json5("mode", json.dumps(settings.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     listen = list(settings.listen)
+    if remote_links and settings.mode != "client":
+        from .netif import small_send_buffers
+
+        listen = small_send_buffers(listen)  # a full slow link holds a write to it briefly (bus/netif.py)
     if settings.mode == "peer":
         # An ephemeral loopback port so other peers can reach us directly even when the well-known
         # port is held by someone else.
@@ -157,13 +161,8 @@ def build_config(settings: ZenohSettings, remote_links: bool = True) -> zenoh.Co
     else:
         conf.insert_json5("connect/timeout_ms", json.dumps(settings.connect_timeout_ms))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shm))
-    if remote_links and settings.mode != "client" and not any(k.startswith("qos") for k in settings.config):
-        # What this session sends to other machines is DROP: a laptop on a slow link never blocks the robot.
-        from .netif import drop_on_remote_links
-
-        overwrite = drop_on_remote_links(list(settings.listen))
-        if overwrite:
-            conf.insert_json5("qos/network", json.dumps(overwrite))
+    if remote_links and settings.mode != "client":
+        _protect_remote_links(conf, settings)
     for key, value in settings.config.items():
         if settings.mode == "client" and key.startswith("access_control"):
             # The router it joins enforces the graph's rules; a client's own allow-list would judge the router's
@@ -174,6 +173,21 @@ def build_config(settings: ZenohSettings, remote_links: bool = True) -> zenoh.Co
         except zenoh.ZError as exc:  # name the key: Zenoh's own message may not
             raise zenoh.ZError(f"{key}: {zenoh_error_text(exc).removeprefix('config: ')}") from None
     return conf
+
+
+def _protect_remote_links(conf: zenoh.Config, settings: ZenohSettings) -> None:
+    """What this session sends to other machines is DROP (large messages BLOCK_FIRST), and its real_time queue
+    holds more: a laptop on a slow link never blocks the robot, and still gets the commands (bus/netif.py). A
+    graph's own ``qos`` or queue settings win."""
+    from .netif import drop_on_remote_links, remote_queue_config
+
+    if not any(k.startswith("qos") for k in settings.config):
+        overwrite = drop_on_remote_links(list(settings.listen))
+        if overwrite:
+            conf.insert_json5("qos/network", json.dumps(overwrite))
+    for key, value in remote_queue_config(list(settings.listen)).items():
+        if key not in settings.config:
+            conf.insert_json5(key, json.dumps(value))
 
 
 def is_local_endpoint(endpoint: str) -> bool:

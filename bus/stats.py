@@ -1,15 +1,45 @@
-"""Per-topic statistics: rate, latency from the frame's capture stamp, drops, decode errors, refusals."""
+"""Per-topic statistics: rate, latency from the frame's capture stamp, drops, messages lost on the way, decode
+errors, refusals."""
 
 from __future__ import annotations
 
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
+from collections.abc import Hashable
 from typing import Any
 
 import numpy as np
 
 WINDOW_S = 5.0
+MAX_TRACKED_PUBLISHERS = 256  # publishers whose header.seq a SequenceGaps follows (the oldest seen is forgotten)
+
+
+class SequenceGaps:
+    """Messages never received, from the gaps in each publisher's ``header.seq``.
+
+    Every followbus publisher numbers its messages 0, 1, 2, ... (bus/pubsub.py Publisher), so a receiver that
+    sees seq 7 after seq 4 from the same publisher never received two messages: lost on the way (a link that
+    dropped them, a publisher that refused one). A seq at or below the last one is a restarted publisher: it is
+    followed from there, nothing counted. ``publisher`` is anything naming one (key and ``header.source``).
+    """
+
+    def __init__(self, max_publishers: int = MAX_TRACKED_PUBLISHERS):
+        self.max_publishers = max_publishers
+        self._last: OrderedDict[Hashable, int] = OrderedDict()
+
+    def see(self, publisher: Hashable, seq: int) -> int:
+        """The messages missing right before this one (0 when none), or -1 when the publisher restarted."""
+        last = self._last.get(publisher)
+        self._last[publisher] = seq
+        self._last.move_to_end(publisher)
+        if last is None:
+            while len(self._last) > self.max_publishers:
+                self._last.popitem(last=False)
+            return 0
+        if seq <= last:
+            return -1
+        return seq - last - 1
 
 
 class TopicStats:
@@ -20,6 +50,7 @@ class TopicStats:
         self.direction = direction
         self.count = 0
         self.drops = 0
+        self.lost = 0  # messages that never arrived (header.seq gaps; inputs only)
         self.decode_errors = 0
         self.refused = 0  # publications refused before sending (payload over the size limit)
         self.bytes = 0
@@ -38,6 +69,10 @@ class TopicStats:
     def drop(self, n: int = 1) -> None:
         with self._lock:
             self.drops += n
+
+    def lose(self, n: int) -> None:
+        with self._lock:
+            self.lost += n
 
     def decode_error(self) -> None:
         with self._lock:
@@ -61,6 +96,7 @@ class TopicStats:
                 "direction": self.direction,
                 "count": self.count,
                 "drops": self.drops,
+                "lost": self.lost,
                 "decode_errors": self.decode_errors,
                 "refused": self.refused,
                 "bytes": self.bytes,

@@ -237,10 +237,11 @@ def test_web_view_streams_previews_and_state(tracking_robot, tmp_path):
         # Labelled columns, and a row per topic (detection's frame input has its own rate, latency and drops).
         head = dom.split('<table id="nodes">')[1].split("</thead>")[0]
         labels = [re.sub(r"<[^>]+>", "", cell) for cell in re.findall(r"<th[^>]*>(.*?)</th>", head)]
-        assert labels == ["node", "state", "restarts", "topic", "rate Hz", "p50 latency ms", "drops",
+        assert labels == ["node", "state", "restarts", "topic", "rate Hz", "p50 latency ms", "drops", "lost",
                           "decode errors"], labels
         row = re.search(r'<tr[^>]*data-node="detection"[^>]*>(?:(?!</tr>).)*<span class="dir">in</span> '
-                        r"capture/frame</td><td>([\d.]+)</td><td>([\d.]+)</td><td>(\d+)</td><td>(\d+)</td>", dom)
+                        r"capture/frame</td><td>([\d.]+)</td><td>([\d.]+)</td><td>(\d+)</td><td>(\d+)</td><td>(\d+)</td>",
+                        dom)
         assert row and float(row.group(1)) > 10.0, dom.split('<table id="nodes">')[1][:3000]
         assert element_text(dom, "srcw")[1] == "source width 640 px"
         # The README's picture of the page (docs/webview.png with FOLLOWBUS_UPDATE_PICTURES=1).
@@ -344,11 +345,38 @@ def test_dashboard_shows_health_rates_target_and_command():
     assert rows["detection"][1] == "DOWN" and "spoofed? (no such process in the launcher's table)" in text
     topic = next(line for line in lines if line.startswith("t/capture/frame @capture")).split()
     assert topic[2] == "out" and 25 < float(topic[3]) < 35 and float(topic[4]) == pytest.approx(2.0, abs=0.1)
-    assert topic[6:] == ["3", "0"]  # drops, decode errors
+    assert topic[6:] == ["3", "0", "0"]  # drops, lost, decode errors
     assert re.search(r"^target +OCCLUDED  box \[10\.0, 20\.0, 30\.0, 90\.0\]  v \[5\.0, -2\.0\] px/s  frame 77",
                      text, re.M), text
     assert re.search(r"^motor +vx \+0\.25 m/s  vy \+0\.00 m/s  wz -0\.50 rad/s  \[follow\]", text, re.M), text
     assert re.search(r"^monitor +2 decode errors$", text, re.M), text
+
+
+def test_dashboard_names_a_link_that_delivers_less_than_is_sent():
+    """Frames a node never received are shown where the operator looks: the input's lost count in the topic table,
+    and a line for the link that carries less than its publisher sends (here over a slow link to another host)."""
+    import io
+
+    from rich.console import Console
+
+    monitor = BusMonitor(ZenohSettings(mode="client", listen=[], connect=["tcp/127.0.0.1:9"]),
+                         GraphInfo(namespace="t", nodes=["capture", "detection"]))  # never started: no session
+    monitor._set_connected(True)
+    now_ns = time.time_ns()
+    topics = {"capture": {"t/capture/frame": {"direction": "out", "rate_hz": 30.0, "count": 900}},
+              "detection": {"t/capture/frame": {"direction": "in", "rate_hz": 2.4, "count": 72, "lost": 828}}}
+    for name in ("capture", "detection"):
+        monitor._on_health(name, True)
+        node = monitor.nodes[name]
+        node.status, node.status_ns = NodeStatus(node=name, pid=1, topics=topics[name]), now_ns
+    snap = monitor.snapshot()
+    assert snap["links"] == ["t/capture/frame capture -> detection: 2.4 of 30.0 Hz delivered, 828 lost"]
+    out = io.StringIO()
+    show(Console(file=out, force_terminal=False, width=200), snap)
+    text = out.getvalue()
+    assert re.search(r"^link +t/capture/frame capture -> detection: 2\.4 of 30\.0 Hz delivered, 828 lost$", text, re.M)
+    row = next(line for line in text.splitlines() if line.startswith("t/capture/frame @detection")).split()
+    assert row[6:] == ["0", "828", "0"]  # drops, lost, decode errors
 
 
 def test_dashboard_on_a_terminal_is_coloured():

@@ -110,7 +110,7 @@ def test_health_rows_are_labelled_one_per_topic():
     snap = _snap(nodes=[
         {"name": "detection", "alive": True, "restarts": 2, "pid": 7, "topics": {
             "t/capture/frame": {"direction": "in", "rate_hz": 29.5, "latency_p50_ms": 4.25, "drops": 3,
-                                "decode_errors": 1},
+                                "lost": 5, "decode_errors": 1},
             "t/detection/detections": {"direction": "out", "rate_hz": 29.0, "latency_p50_ms": None, "drops": 0,
                                        "decode_errors": 0}}},
         {"name": "idle", "alive": False, "restarts": 0, "pid": None, "topics": {}}])
@@ -120,6 +120,7 @@ def test_health_rows_are_labelled_one_per_topic():
     out, inp, idle = rows
     assert (out["rate_hz"], out["latency_p50_ms"], out["drops"]) == (29.0, None, None)
     assert (inp["rate_hz"], inp["latency_p50_ms"], inp["drops"], inp["decode_errors"]) == (29.5, 4.25, 3, 1)
+    assert (inp["lost"], out["lost"]) == (5, None)  # messages that never arrived: inputs only
     assert (inp["alive"], inp["restarts"], inp["pid"]) == (True, 2, 7)
     assert not idle["alive"] and idle["rate_hz"] is None
 

@@ -26,7 +26,7 @@ from typing import Any
 
 import zenoh
 
-from ..bus.session import ZenohSettings, open_session
+from ..bus.session import ZenohSettings, is_local_endpoint, open_session
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +36,7 @@ USER_ENV = "FOLLOWBUS_ZENOH_USER"
 VIEWER_CONNECT_TIMEOUT_MS = 3000  # monitor, foxglove: they retry by themselves, so fail fast on a refusal
 PUBLISH_PROBE_S = 3.0  # how long `play` waits for its probe message to come back through the router
 TCP_BASED = ("tcp", "tls", "ws")  # link protocols whose endpoint a TCP connection can probe
+REMOTE_BATCH_BYTES = 8192  # a tool's link over a network: batches of this size (Zenoh's default 65535)
 
 
 class BusUnreachable(Exception):
@@ -241,6 +242,12 @@ def client_settings(graph_path: str | None, connect: list[str] | None = None, us
         out.connect_timeout_ms = VIEWER_CONNECT_TIMEOUT_MS
     if connect_timeout_s is not None:
         out.connect_timeout_ms = max(1, round(connect_timeout_s * 1000))
+    if is_remote(out) and "transport/link/tx/batch_size" not in out.config:
+        # Zenoh negotiates a link's batch size down to the smaller side's, so this link alone gets small batches.
+        # The robot's router writes one batch at a time into a link it cannot preempt: on a full 2 Mbit/s link a
+        # 64 KB batch holds the motor commands behind it for a quarter of a second, and those that come meanwhile
+        # overflow their queue (bus/netif.py); an 8 KB one for 33 ms, a command's period.
+        out.config["transport/link/tx/batch_size"] = REMOTE_BATCH_BYTES
     return out
 
 
@@ -281,3 +288,21 @@ def check_can_publish(session: zenoh.Session, settings: ZenohSettings, timeout_s
         who = f"user {user}" if user else "this session"
         raise PublishRefused(f"{', '.join(settings.connect)} does not accept messages from {who} (access control: a "
                              "read-only identity; publishing needs one allowed to, e.g. --user operator)")
+
+
+# --- what a slow link carries ---------------------------------------------------------------------------
+
+# The uncompressed camera frame every capture node publishes as its ``frame`` output: ~27 MB/s at 640x480 and
+# 30 Hz, more than any wireless link carries. A tool joining over a network leaves these keys out unless asked
+# (record and topics: --raw-frames); the JPEG ``preview`` (a few KB) stays.
+RAW_FRAME_OUTPUT = "frame"
+
+
+def is_remote(settings: ZenohSettings) -> bool:
+    """Whether a tool reaches the graph over a network (any endpoint beyond loopback)."""
+    return any(not is_local_endpoint(ep) for ep in settings.connect)
+
+
+def is_raw_frame(key: str) -> bool:
+    """Whether a key is a node's raw frame output (``<ns>/<node>/frame``)."""
+    return key.rsplit("/", 1)[-1] == RAW_FRAME_OUTPUT

@@ -26,13 +26,15 @@ from ..bus.health import (
     launcher_key,
     process_table,
 )
-from ..bus.hosts import nodes_on
+from ..bus.hosts import host_plan, nodes_on
+from ..bus.links import LinkWatch, edges_of_graph
 from ..bus.liveness import STOPPED_WORKING_EXIT
 from ..bus.node import LAUNCH_ID_ENV, LAUNCHED_NODES_ENV, LEFT_OUT_NODES_ENV
 from ..bus.pubsub import Publisher, direct_callback
 from ..bus.session import open_session
 
 log = logging.getLogger("followbus.launch")
+LINK_CHECK_PERIOD_S = 1.0  # a graph spread over hosts: its links are judged this often (statuses come once a second)
 TOOL_GRACE_S = 30.0  # a tool beside the graph (the recorder) gets this long to stop after SIGTERM
 
 # A node that fails again after being restarted this recently is crash-looping: its restarts are not helping.
@@ -103,6 +105,9 @@ class Launcher:
             self.children.append(Child(NodeSpec(name=name, run="<tool>"), argv))
         self.health: HealthWatcher | None = None
         self.session = None
+        # A graph spread over hosts: this launcher watches the links between its nodes and the other hosts'.
+        self.links = _link_watch(graph, host)
+        self._links_due = 0.0
         # The process table (which node runs as which pid, which exited) lets monitors tell a live node
         # from a token someone else declared under its name (bus/health.py).
         self.launcher_id = launcher_id(socket.gethostname(), os.getpid())
@@ -277,7 +282,9 @@ class Launcher:
     def _open_bus(self) -> None:
         """Open the session, the liveliness watch, the process table and (with watch_outputs) the output watch."""
         self.session = open_session(self.graph.zenoh)
-        self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=False)
+        # Raw tokens for readiness (no cross-check); the statuses too when the links are watched.
+        self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=self.links is not None,
+                                    cross_check=False)
         self._table_pub = Publisher(self.session, launcher_key(self.graph.namespace, self.launcher_id),
                                     self.launcher_id, congestion="drop")
         if self.watch_outputs:
@@ -293,6 +300,10 @@ class Launcher:
                 self._start(child)
         if now >= self._table_due:
             self._publish_table()
+        if self.links is not None and self.health is not None and now >= self._links_due:
+            self._links_due = now + LINK_CHECK_PERIOD_S
+            for level, line in self.links.check(self.health.snapshot(), now):
+                log.log(level, "%s", line)
         if self.watch_outputs:
             self._unwatch()
 
@@ -355,6 +366,14 @@ class Launcher:
         if self.log_file is not None:
             self.log_file.close()
         return status
+
+
+def _link_watch(graph: Graph, host: str | None) -> LinkWatch | None:
+    """The watch over the links between ``host`` and the graph's other hosts (None: a one-host graph)."""
+    if host is None or len(host_plan(graph)) < 2:
+        return None
+    hosts = {name: graph.host_of(name) or "" for name in graph.nodes}
+    return LinkWatch(edges_of_graph(graph), hosts, host, peer_mode=graph.zenoh.mode == "peer")
 
 
 def _failure(child: Child) -> str | None:

@@ -27,6 +27,7 @@ import zenoh
 from ..bus.codec import DecodeError
 from ..bus.graph import Graph
 from ..bus.health import HealthWatcher, live_namespaces, namespaces_hint
+from ..bus.links import links_of_statuses, short_of_sent
 from ..bus.pubsub import declare_subscriber, frame_bytes
 from ..bus.schemas import Frame, Message, NodeStatus, decode
 from ..bus.session import ZenohSettings, open_session
@@ -35,7 +36,7 @@ from ..msgs.perception import GroundTruth
 from ..msgs.robot import MotorCommand
 from ..msgs.tracking import Measurement, Prior, Template, Track
 from ..tracking.groundplane import CameraGeometry
-from .views import _centre, message_views, node_row
+from .views import STATUS_FRESH_NS, _centre, message_views, node_row
 
 log = logging.getLogger("followbus.monitor")
 
@@ -405,6 +406,10 @@ class BusMonitor:
                 "ages": {k: round((now_ns - t) / 1e9, 2) for k, t in self.received_ns.items()},
                 "stale_after_s": VALUE_STALE_S,
             }
+            # Links that deliver nothing, or less than their publisher sends (bus/links.py), from fresh statuses.
+            statuses = {name: node.status for name, node in self.nodes.items()
+                        if node.status is not None and now_ns - node.status_ns < STATUS_FRESH_NS}
+            out["links"] = [link.describe() for link in links_of_statuses(statuses) if short_of_sent(link)]
             out.update(message_views(self.latest, self._poses, self.info.camera))
             err = self.history["centre_error_px"]
             out["centre_error_px"] = err[-1][1] if err else None

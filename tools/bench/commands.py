@@ -167,12 +167,20 @@ def _link_args(p: argparse.ArgumentParser) -> None:
              "the robot's capture->command p50/p99 and frames answered (a probe on the robot), and what the\n"
              "laptop's recording holds (received, dropped, seq gaps per key). Cases: none (no laptop),\n"
              "monitor (monitor --web), record-all (record --raw-frames), record (the remote default: raw frames\n"
-             "left out). Needs root (ip netns, tc); exit status 2 without.",
-             "example: followbus bench link --rate-mbit 2 --seconds 20 --rounds 3", raw=True)
-    p.add_argument("--rate-mbit", type=float, default=2.0, metavar="R", help="link rate each way (default 2)")
+             "left out), watch (plain subscribers to the command, the track and the preview: per key received/s,\n"
+             "lost, age on arrival), frames (the same and the raw frame key). Needs root (ip netns, tc); exit\n"
+             "status 2 without.",
+             "examples:\n  followbus bench link --rate-mbit 2 --seconds 20 --rounds 3\n"
+             "  followbus bench link --rate-mbit 2,20,100 --cases none,watch,frames --rounds 2", raw=True)
+    p.add_argument("--rate-mbit", default="2", metavar="R[,R...]",
+                   help="link rate each way, or several comma-separated (a robot launch each; default 2)")
     p.add_argument("--seconds", type=float, default=20.0, metavar="S", help="measured seconds per case (default 20)")
     p.add_argument("--rounds", type=int, default=3, help="rounds of every case, alternated (default 3)")
-    p.add_argument("--cases", metavar="LIST", help="comma-separated, of none,monitor,record-all,record (default all)")
+    p.add_argument("--cases", metavar="LIST",
+                   help="comma-separated, of none,monitor,record-all,record,watch,frames (default all)")
+    p.add_argument("--large-rule", choices=("block_first", "drop"), default="block_first",
+                   help="what the robot's router does with large messages (raw frames) to the laptop: BLOCK_FIRST "
+                        "at data_low (bus/netif.py, the default), or DROP as every other message (as before)")
     p.add_argument("--detector", default="simulated", choices=("simulated", "hog", "yolox"),
                    help="detection backend of the robot graph (default simulated)")
     p.add_argument("--port", type=int, default=21650, help="the robot's port, inside its namespace (default 21650)")

@@ -11,10 +11,17 @@ shared machine falls on all of them alike:
 - ``none``: no laptop;
 - ``monitor``: ``followbus monitor --web`` as ``monitor`` (it subscribes to the JPEG preview too);
 - ``record-all``: ``followbus record --raw-frames`` (every key, raw frames included: far beyond the link);
-- ``record``: ``followbus record`` with the remote default (raw frames left out, the preview kept).
+- ``record``: ``followbus record`` with the remote default (raw frames left out, the preview kept);
+- ``watch``: plain Zenoh subscribers on the laptop (as ``monitor``) to what a slow link is meant to carry: the
+  motor command, the track and the JPEG preview;
+- ``frames``: the same and the raw frame key (what a subscriber to the camera gets over the link).
 
 For each recording: messages received, dropped by the recorder, and lost on the way (``header.seq`` gaps)
-per key, from the file's own ``recording_stats`` metadata.
+per key, from the file's own ``recording_stats`` metadata. For ``watch`` and ``frames``, per key and window
+(after the link has been full for a while): messages received a second, lost (``header.seq`` gaps) and their
+age on arrival (``now - stamp_ns``, capture to laptop). ``--rate-mbit`` takes several rates (a pair of namespaces
+and a robot launch each); ``--large-rule drop`` measures the robot with large messages to the laptop DROP, as
+before bus/netif.py made them BLOCK_FIRST.
 """
 
 from __future__ import annotations
@@ -39,7 +46,12 @@ import numpy as np
 from .netns import NetnsPair, netns_unavailable
 
 REPO = Path(__file__).resolve().parents[2]
-CASES = ("none", "monitor", "record-all", "record")
+CASES = ("none", "monitor", "record-all", "record", "watch", "frames")
+# What a plain subscriber on the laptop listens to in the watch and frames cases (keys of the link namespace).
+LAPTOP_KEYS = {"watch": ("motor/command", "prediction/track", "capture/preview"),
+               "frames": ("motor/command", "prediction/track", "capture/preview", "capture/frame")}
+LARGE_RULES = ("block_first", "drop")  # what the robot's router does with large messages to the laptop
+IDENTITY_ENV = ("FOLLOWBUS_DOMAIN", "FOLLOWBUS_NAMESPACE", "FOLLOWBUS_PORT")  # each namespace is a machine of its own
 USERS_FILE = REPO / "docs" / "zenoh-users.example.txt"  # robot, monitor, operator with their example passwords
 MONITOR_PASSWORD = "change-me-monitor"
 SETTLE_S = 3.0  # the laptop joins and its subscriptions reach the robot before a window opens
@@ -47,6 +59,7 @@ LAPTOP_START_S = 30.0  # at most this long for the laptop's first line (it has s
 # The laptop's processes share this machine's cores with the robot; a real laptop's CPU is its own. At nice 19
 # they take only what the robot leaves, which is the nearest one machine comes to that (0: as before 2026-11-26).
 LAPTOP_NICE = 19
+LINK_FILL_S = 5.0  # watch and frames: the link's queues fill for this long before a window opens
 MIN_RECORDED_S = 5.0  # a check's laptop (run_case until_answered) records at least this long
 NAMESPACE = "link"
 
@@ -54,9 +67,10 @@ NAMESPACE = "link"
 # --- the robot's graph ---------------------------------------------------------------------------------
 
 def write_robot_graph(tmp: Path, port: int, address: str, detector: str, namespace: str = NAMESPACE,
-                      protect: bool = True, drop_wait_us: int | None = None) -> Path:
+                      protect: bool = True, drop_wait_us: int | None = None, old_large_rule_on: str = "") -> Path:
     """graph.robot.yaml of the repository (its extends resolved) in ``tmp``: a private port on loopback and on
-    ``address`` (the veth end the laptop reaches), the scene looping at 30 Hz, the given detector."""
+    ``address`` (the veth end the laptop reaches), the scene looping at 30 Hz, the given detector.
+    ``old_large_rule_on``: an interface whose egress is DROP for every put, large ones too (as before BLOCK_FIRST)."""
     from ...bus.graph import load_graph
 
     robot = load_graph(REPO / "graph.robot.yaml")
@@ -67,6 +81,11 @@ def write_robot_graph(tmp: Path, port: int, address: str, detector: str, namespa
             "wait_before_drop": drop_wait_us, "max_wait_before_drop_fragments": drop_wait_us}
     if not protect:  # the robot's links to the laptop as before bus/netif.py: BLOCK messages block the router
         config["qos/network"] = []
+    elif old_large_rule_on:
+        from ...bus.netif import QOS_ID
+
+        config["qos/network"] = [{"id": QOS_ID, "interfaces": [old_large_rule_on], "messages": ["put", "delete"],
+                                  "flows": ["egress"], "overwrite": {"congestion_control": "drop"}}]
     robot = robot.override({
         "capture": {"source": "scene:corridor-occlusion", "pace": "realtime", "fps": 30.0, "loop": True},
         "detection": {"backend": detector}, "template": {"state_file": ""}}).with_namespace(namespace)
@@ -141,6 +160,65 @@ def probe_main(graph_path: str) -> int:
     return 0
 
 
+class LaptopProbe:
+    """What plain subscribers on the laptop get per key in one window: messages, lost (``header.seq`` gaps), and
+    their age on arrival (capture to laptop). Run in the laptop's namespace: see laptop_main."""
+
+    def __init__(self, endpoint: str, keys: list[str]):
+        from ...bus.pubsub import declare_subscriber
+        from ...bus.stats import SequenceGaps
+        from ..connect import client_settings, open_client_session
+
+        self.session = open_client_session(client_settings(None, [endpoint], "monitor", MONITOR_PASSWORD))
+        self.lock = threading.Lock()
+        self.open = False
+        self.gaps = SequenceGaps()
+        self.seen: dict[str, dict[str, Any]] = {}
+        self.subs = [declare_subscriber(self.session, key, self._on_sample) for key in keys]
+
+    def _on_sample(self, sample: Any) -> None:
+        from ...bus.pubsub import frame_bytes
+        from ...bus.schemas import decode
+        from ...msgs import catalogue  # noqa: F401  (followbus's message types: decodable)
+
+        now = time.time_ns()
+        try:
+            h = decode(frame_bytes(sample)).header
+        except Exception:  # not a figure
+            return
+        key = str(sample.key_expr)
+        with self.lock:
+            missing = self.gaps.see((key, h.source), h.seq)  # followed between windows too
+            if self.open:
+                seen = self.seen.setdefault(key, {"received": 0, "lost": 0, "ages_ms": []})
+                seen["received"] += 1
+                seen["lost"] += max(missing, 0)
+                seen["ages_ms"].append((now - h.stamp_ns) / 1e6)
+
+    def window(self, seconds: float) -> dict[str, Any]:
+        with self.lock:
+            self.seen, self.open = {}, True
+        time.sleep(seconds)
+        with self.lock:
+            self.open = False
+            out = {}
+            for key, seen in self.seen.items():
+                ages = np.asarray(seen["ages_ms"])
+                out[key] = {"received": seen["received"], "per_s": seen["received"] / seconds, "lost": seen["lost"],
+                            "age_p50_ms": float(np.percentile(ages, 50)), "age_p99_ms": float(np.percentile(ages, 99))}
+            return out
+
+
+def laptop_main(endpoint: str, keys: list[str]) -> int:
+    """Read ``<seconds>`` lines on stdin, answer each with one JSON line (a window's figures per key)."""
+    probe = LaptopProbe(endpoint, keys)
+    print("ready", flush=True)
+    for line in sys.stdin:
+        print(json.dumps(probe.window(float(line))), flush=True)
+    probe.session.close()
+    return 0
+
+
 # --- the laptop ----------------------------------------------------------------------------------------------
 
 def laptop_argv(case: str, endpoint: str, graph: Path, tmp: Path, seconds: float) -> list[str] | None:
@@ -171,22 +249,28 @@ class CaseRun:
     case: str
     robot: dict[str, Any]
     laptop: dict[str, Any] = field(default_factory=dict)
+    rate_mbit: float = 0.0
 
 
 class LinkBench:
     """The robot graph and its probe in namespace a, one laptop case at a time in namespace b."""
 
     def __init__(self, pair: NetnsPair, tmp: Path, port: int, detector: str, protect: bool = True,
-                 log: Path | None = None, drop_wait_us: int | None = None, laptop_nice: int = LAPTOP_NICE):
+                 log: Path | None = None, drop_wait_us: int | None = None, laptop_nice: int = LAPTOP_NICE,
+                 large_rule: str = "block_first"):
         self.pair, self.tmp, self.log = pair, tmp, log
         self.laptop_nice = laptop_nice
         self.graph = write_robot_graph(tmp, port, pair.addresses[0], detector, protect=protect,
-                                       drop_wait_us=drop_wait_us)
+                                       drop_wait_us=drop_wait_us,
+                                       old_large_rule_on=pair.links[0] if large_rule == "drop" else "")
         self.endpoint = f"tcp/{pair.addresses[0]}:{port}"
-        self.env = dict(os.environ, FOLLOWBUS_ZENOH_PASSWORD=MONITOR_PASSWORD, PYTHONUNBUFFERED="1")
+        # The namespaces are machines of their own: this shell's graph identity (domain, namespace, port) is not
+        # theirs, and the probes read the graph file as written.
+        env = {k: v for k, v in os.environ.items() if k not in IDENTITY_ENV}
+        self.env = dict(env, FOLLOWBUS_ZENOH_PASSWORD=MONITOR_PASSWORD, PYTHONUNBUFFERED="1")
         self.robot = subprocess.Popen(pair.argv(0, [sys.executable, "-m", "followbus.tools.cli", "launch",
                                                     str(self.graph), "--startup-timeout", "90"]),
-                                      cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                                      cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         self.robot_lines: list[str] = []
         threading.Thread(target=lambda: self.robot_lines.extend(iter(self.robot.stdout.readline, "")),
                          daemon=True).start()
@@ -200,7 +284,8 @@ class LinkBench:
             time.sleep(0.2)
         self.probe = subprocess.Popen(self.pair.argv(0, [sys.executable, "-m", "followbus.tools.bench.link",
                                                          "probe", str(self.graph)]),
-                                      cwd=self.tmp, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                                      cwd=self.tmp, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                      env=self.env)
         if self.probe.stdout.readline().strip() != "ready":
             raise RuntimeError("the probe did not start")
         # Warm-up: the robot answers frames (models loaded, the target acquired) before any window counts.
@@ -217,6 +302,8 @@ class LinkBench:
     def run_case(self, case: str, seconds: float, until_answered: bool = False) -> CaseRun:
         """One window of ``seconds`` with the case's laptop; ``until_answered``: 1 s windows until the robot
         answers a frame or ``seconds`` pass, then the laptop is stopped (a test's check, not a figure)."""
+        if case in LAPTOP_KEYS:
+            return self._probed_case(case, seconds)
         argv = laptop_argv(case, self.endpoint, self.graph, self.tmp, SETTLE_S + seconds + 1.0)
         laptop = None
         cpu0 = _children_cpu_s()
@@ -243,6 +330,30 @@ class LinkBench:
                 run.laptop.update(recording_summary(mcap))
                 mcap.unlink()
         return run
+
+    def _probed_case(self, case: str, seconds: float) -> CaseRun:
+        """The robot's window and the laptop probe's side by side, once the link has been full for a while."""
+        keys = [f"{NAMESPACE}/{k}" for k in LAPTOP_KEYS[case]]
+        argv = ["nice", "-n", str(self.laptop_nice), sys.executable, "-m", "followbus.tools.bench.link", "laptop",
+                self.endpoint, *keys]
+        laptop = subprocess.Popen(self.pair.argv(1, argv), cwd=self.tmp, env=self.env, stdin=subprocess.PIPE,
+                                  stdout=subprocess.PIPE, text=True)
+        try:
+            if laptop.stdout.readline().strip() != "ready":
+                raise RuntimeError("the laptop probe did not start")
+            time.sleep(LINK_FILL_S)
+            laptop.stdin.write(f"{seconds}\n")
+            laptop.stdin.flush()
+            robot = self.window(seconds)
+            figures = json.loads(laptop.stdout.readline())
+        finally:
+            laptop.stdin.close()
+            try:
+                laptop.wait(20)
+            except subprocess.TimeoutExpired:
+                laptop.kill()
+                laptop.wait()
+        return CaseRun(case, robot, {"keys": figures})
 
     def _until_answered(self, seconds: float) -> dict[str, Any]:
         start = time.monotonic()
@@ -312,21 +423,29 @@ class _LineReader:
 def run_link_bench(rate_mbit: float, seconds: float, rounds: int, cases: list[str], detector: str,
                    port: int = 21650, progress: Any = print, protect: bool = True,
                    log: Path | None = None, drop_wait_us: int | None = None,
-                   laptop_nice: int = LAPTOP_NICE) -> list[CaseRun]:
+                   laptop_nice: int = LAPTOP_NICE, large_rule: str = "block_first") -> list[CaseRun]:
     """Every case ``rounds`` times, alternated; the robot graph is launched once."""
     runs = []
     with tempfile.TemporaryDirectory(prefix="followbus-link-") as tmp, NetnsPair(rate_mbit=rate_mbit) as pair:
         bench = LinkBench(pair, Path(tmp), port, detector, protect=protect, log=log, drop_wait_us=drop_wait_us,
-                          laptop_nice=laptop_nice)
+                          laptop_nice=laptop_nice, large_rule=large_rule)
         try:
             bench.start()
             for r in range(rounds):
                 for case in cases:
                     runs.append(bench.run_case(case, seconds))
-                    progress(f"round {r + 1}/{rounds} {case}: {_robot_line(runs[-1].robot)}")
+                    runs[-1].rate_mbit = rate_mbit
+                    progress(f"{rate_mbit:g} Mbit/s round {r + 1}/{rounds} {case}: {_robot_line(runs[-1].robot)}"
+                             f"{_laptop_line(runs[-1].laptop)}")
         finally:
             bench.close()
     return runs
+
+
+def _laptop_line(laptop: dict[str, Any]) -> str:
+    if "per_s" not in next(iter(laptop.get("keys", {}).values()), {}):
+        return ""
+    return "; laptop " + ", ".join(f"{key.rsplit('/', 1)[-1]} {k['per_s']:.1f}/s" for key, k in laptop["keys"].items())
 
 
 def _robot_line(robot: dict[str, Any]) -> str:
@@ -337,29 +456,66 @@ def _robot_line(robot: dict[str, Any]) -> str:
 
 def table(runs: list[CaseRun]) -> str:
     """Markdown: one row per case and round (robot figures), then per recording its keys."""
-    lines = ["| case | round | capture→command p50 ms | p99 ms | frames answered | laptop received | "
-             "dropped | seq gaps | laptop CPU s |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    rounds: dict[str, int] = {}
+    lines = ["| link Mbit/s | case | round | capture→command p50 ms | p99 ms | frames answered | laptop received | "
+             "dropped | seq gaps | laptop CPU s |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    rounds: dict[tuple[float, str], int] = {}
     for run in runs:
-        rounds[run.case] = rounds.get(run.case, 0) + 1
+        if run.case in LAPTOP_KEYS:
+            continue  # laptop_table
+        rounds[(run.rate_mbit, run.case)] = rounds.get((run.rate_mbit, run.case), 0) + 1
         r, lap = run.robot, run.laptop
         p50 = f"{r['p50_ms']:.1f}" if r["p50_ms"] is not None else "-"
         p99 = f"{r['p99_ms']:.1f}" if r["p99_ms"] is not None else "-"
         rec = (f"{lap['received']} | {lap['dropped']} | {lap['seq_gaps']}" if "received" in lap else "- | - | -")
         cpu = f"{lap['cpu_s']:.1f}" if "cpu_s" in lap else "-"
-        lines.append(f"| {run.case} | {rounds[run.case]} | {p50} | {p99} | {r['answered']}/{r['frames']} | {rec} "
-                     f"| {cpu} |")
+        lines.append(f"| {run.rate_mbit:g} | {run.case} | {rounds[(run.rate_mbit, run.case)]} | {p50} | {p99} | "
+                     f"{r['answered']}/{r['frames']} | {rec} | {cpu} |")
+    return "\n".join(lines)
+
+
+def laptop_table(runs: list[CaseRun]) -> str:
+    """Markdown: the watch and frames cases, one row per rate, case and round: the robot's figures beside what
+    the laptop received a second per key (lost on the way; median age on arrival)."""
+    shown = ("command", "track", "preview", "frame")
+    lines = ["| link Mbit/s | case | round | robot p50 ms | robot p99 ms | frames answered | "
+             + " | ".join(f"laptop {k}/s (lost, age p50 ms)" for k in shown) + " |",
+             "|---:|---|---:|---:|---:|---:|" + "---:|" * len(shown)]
+    rounds: dict[tuple[float, str], int] = {}
+    for run in runs:
+        if run.case not in LAPTOP_KEYS:
+            continue
+        rounds[(run.rate_mbit, run.case)] = rounds.get((run.rate_mbit, run.case), 0) + 1
+        r, keys = run.robot, {k.rsplit("/", 1)[-1]: v for k, v in run.laptop.get("keys", {}).items()}
+        cells = []
+        for name in shown:
+            k = keys.get(name)
+            wanted = any(name == w.rsplit("/", 1)[-1] for w in LAPTOP_KEYS[run.case])
+            cells.append("-" if not wanted else "0" if k is None else
+                         f"{k['per_s']:.1f} ({k['lost']}, {k['age_p50_ms']:.0f})")
+        p50 = f"{r['p50_ms']:.1f}" if r["p50_ms"] is not None else "-"
+        p99 = f"{r['p99_ms']:.1f}" if r["p99_ms"] is not None else "-"
+        lines.append(f"| {run.rate_mbit:g} | {run.case} | {rounds[(run.rate_mbit, run.case)]} | {p50} | {p99} | "
+                     f"{r['answered']}/{r['frames']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def key_table(runs: list[CaseRun]) -> str:
     """The last recording of each recording case, per key."""
-    last = {run.case: run for run in runs if "keys" in run.laptop}
+    last = {run.case: run for run in runs if "keys" in run.laptop and run.case not in LAPTOP_KEYS}
     lines = ["| recording | key | received | dropped | seq gaps (lost on the way) |", "|---|---|---:|---:|---:|"]
     for case, run in last.items():
         for key, s in sorted(run.laptop["keys"].items()):
             lines.append(f"| {case} | {key} | {s['received']} | {s['dropped']} | {s['seq_gaps']} |")
     return "\n".join(lines)
+
+
+def _rates(text: str) -> list[float]:
+    """``2,20,100`` -> [2.0, 20.0, 100.0]; [] when any is not a positive number."""
+    try:
+        rates = [float(r) for r in text.split(",")]
+    except ValueError:
+        return []
+    return rates if all(r > 0 for r in rates) else []
 
 
 def cmd_bench_link(args) -> int:
@@ -372,20 +528,28 @@ def cmd_bench_link(args) -> int:
     if unknown:
         print(f"followbus: --cases: unknown {', '.join(unknown)} (of {', '.join(CASES)})", file=sys.stderr)
         return 2
+    rates = _rates(str(args.rate_mbit))
+    if not rates:
+        print(f"followbus: --rate-mbit {args.rate_mbit!r}: one or more rates in Mbit/s, e.g. 2,20,100",
+              file=sys.stderr)
+        return 2
     with open("/proc/loadavg") as f:
         load = f.read().strip()
-    print(f"bench link: {args.rate_mbit:g} Mbit/s each way, {args.seconds:g} s windows, {args.rounds} rounds of "
-          f"{', '.join(cases)}; detector {args.detector}; remote links "
-          f"{'as before (BLOCK)' if args.unprotected else 'DROP (bus/netif.py)'}; laptop at nice {args.laptop_nice}; "
-          f"load {load}", flush=True)
-    runs = run_link_bench(args.rate_mbit, args.seconds, args.rounds, cases, args.detector, args.port,
-                          protect=not args.unprotected, log=Path(args.log), drop_wait_us=args.drop_wait_us,
-                          laptop_nice=args.laptop_nice)
+    print(f"bench link: {', '.join(f'{r:g}' for r in rates)} Mbit/s each way, {args.seconds:g} s windows, "
+          f"{args.rounds} rounds of {', '.join(cases)}; detector {args.detector}; remote links "
+          f"{'as before (BLOCK)' if args.unprotected else 'DROP (bus/netif.py)'}, large messages "
+          f"{args.large_rule.upper()}; laptop at nice {args.laptop_nice}; load {load}", flush=True)
+    runs = []
+    for rate in rates:
+        runs += run_link_bench(rate, args.seconds, args.rounds, cases, args.detector, args.port,
+                               protect=not args.unprotected, log=Path(args.log), drop_wait_us=args.drop_wait_us,
+                               laptop_nice=args.laptop_nice, large_rule=args.large_rule)
     with open("/proc/loadavg") as f:
         print(f"load at the end: {f.read().strip()}")
-    print(table(runs))
-    print()
-    print(key_table(runs))
+    for text in (table(runs), laptop_table(runs), key_table(runs)):
+        if text.count("\n") > 1:
+            print(text)
+            print()
     if args.json:
         Path(args.json).write_text(json.dumps([vars(r) for r in runs], indent=1))
     return 0
@@ -393,3 +557,5 @@ def cmd_bench_link(args) -> int:
 
 if __name__ == "__main__" and len(sys.argv) == 3 and sys.argv[1] == "probe":
     sys.exit(probe_main(sys.argv[2]))
+if __name__ == "__main__" and len(sys.argv) >= 4 and sys.argv[1] == "laptop":
+    sys.exit(laptop_main(sys.argv[2], sys.argv[3:]))

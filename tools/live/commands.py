@@ -20,8 +20,17 @@ def _router_args(p: argparse.ArgumentParser) -> None:
 
 
 def _topics_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "The keys with traffic: type, the publisher's rate (from header.seq and pub_ns: a slow link that "
+             "loses messages does not lower it; - when fewer than two arrived), what arrived here, what was lost "
+             "on the way, the mean size. Over a network (an endpoint beyond loopback) it subscribes key by key "
+             "to what the nodes' statuses announce and leaves the raw frames out (a Wi-Fi link cannot carry them, "
+             "and they would crowd out the rest), naming them; --raw-frames subscribes to every key.",
+             "example: followbus topics --connect tcp/192.0.2.10:7447 --user monitor")
     connect_args(p)
     p.add_argument("--seconds", type=float, default=2.0, help="how long to listen (default 2)")
+    p.add_argument("--raw-frames", action="store_true",
+                   help="over a network, subscribe to every key under <ns>/**, the raw frames too")
 
 
 def _echo_args(p: argparse.ArgumentParser) -> None:
@@ -45,8 +54,15 @@ def _hz_args(p: argparse.ArgumentParser) -> None:
 
 
 def _nodes_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "Node health, and the links between nodes as their statuses report them (each key's sent and "
+             "delivered rate, and the messages that never arrived: header.seq gaps). Links that cross hosts, lose "
+             "messages or deliver nothing are listed; --links lists every one.",
+             "example: followbus nodes --connect tcp/192.0.2.10:7447 --user monitor --links")
     connect_args(p)
     p.add_argument("--seconds", type=float, default=1.5, help="how long to listen (default 1.5)")
+    p.add_argument("--links", action="store_true", help="list every link, not only those that cross hosts, lose "
+                                                        "messages or deliver nothing")
 
 
 def _foxglove_args(p: argparse.ArgumentParser) -> None:

@@ -9,17 +9,21 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import zenoh
 
 from ...bus.codec import DecodeError
 from ...bus.health import HealthWatcher, live_namespaces, namespaces_hint
+from ...bus.links import PublishedKeys, links_of_statuses, short_of_sent
 from ...bus.pubsub import declare_subscriber, frame_bytes, payload_bytes
 from ...bus.schemas import decode, to_plain
 from ...bus.session import ZenohSettings, open_session
+from ...bus.stats import SequenceGaps
 from ...msgs import catalogue  # noqa: F401  (followbus's message types: decodable)
-from ..connect import open_client_session
+from ..connect import is_raw_frame, is_remote, open_client_session
 from .silence import warn_if_silent
 
 
@@ -32,39 +36,130 @@ def wait_for(seconds: float | None, done: threading.Event | None = None) -> None
         time.sleep(0.05)
 
 
-def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
-    counts: dict[str, list[int]] = defaultdict(list)
-    sizes: dict[str, int] = defaultdict(int)
-    types: dict[str, str] = {}
-    lock = threading.Lock()
+STATUS_WAIT_S = 2.0  # over a network, topics waits this long for the nodes' first statuses (their keys)
 
-    def on_sample(sample: zenoh.Sample) -> None:
+
+@dataclass
+class _KeySeen:
+    """What arrived on one key: messages, bytes, type, and per publisher (``header.source``) its first and last
+    (seq, pub_ns), which give the rate it publishes at however many the link lost on the way."""
+
+    count: int = 0
+    size: int = 0
+    type: str = "?"
+    lost: int = 0
+    ends: dict[str, list[tuple[int, int]]] = field(default_factory=dict)
+    arrivals: list[int] = field(default_factory=lambda: [0, 0])  # monotonic ns of the first and last
+
+    def received_hz(self) -> float | None:
+        """How fast they arrived here, between the first and the last (None: fewer than two)."""
+        span_s = (self.arrivals[1] - self.arrivals[0]) / 1e9
+        return (self.count - 1) / span_s if self.count > 1 and span_s > 0 else None
+
+    def publisher_rate_hz(self) -> float | None:
+        """The busiest publisher's own rate (None: fewer than two of its messages arrived)."""
+        spans = [(last[0] - first[0], (last[1] - first[1]) / 1e9) for first, last in self.ends.values()]
+        seqs, seconds = max(spans, default=(0, 0.0))
+        return seqs / seconds if seqs > 0 and seconds > 0 else None
+
+
+class TopicCounts:
+    """The keys seen by `topics`, fed from Zenoh's callback thread."""
+
+    def __init__(self) -> None:
+        self.keys: dict[str, _KeySeen] = defaultdict(_KeySeen)
+        self._gaps = SequenceGaps()
+        self._lock = threading.Lock()
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         try:
             data = frame_bytes(sample)
-            msg_type = decode(data).TYPE
+            msg = decode(data)
         except DecodeError:
-            data, msg_type = payload_bytes(sample), "?"
-        with lock:
-            counts[key].append(time.monotonic_ns())
-            sizes[key] += len(data)
-            types[key] = msg_type
+            data, msg = payload_bytes(sample), None
+        now = time.monotonic_ns()
+        with self._lock:
+            seen = self.keys[key]
+            seen.arrivals[0] = seen.arrivals[0] or now
+            seen.arrivals[1] = now
+            seen.count += 1
+            seen.size += len(data)
+            if msg is None:
+                return
+            seen.type = msg.TYPE
+            h = msg.header
+            ends = seen.ends.setdefault(h.source, [(h.seq, h.pub_ns), (h.seq, h.pub_ns)])
+            missing = self._gaps.see((key, h.source), h.seq)
+            if missing < 0:  # the publisher restarted: its rate from here
+                ends[0] = (h.seq, h.pub_ns)
+            seen.lost += max(missing, 0)
+            ends[1] = (h.seq, h.pub_ns)
 
+    def table(self) -> list[str]:
+        with self._lock:
+            keys = dict(self.keys)
+        lines = [f"{'key':<40} {'type':<15} {'rate Hz':>8} {'recv Hz':>8} {'lost':>6} {'avg bytes':>10}"]
+        for key in sorted(keys):
+            seen = keys[key]
+            rate, received = seen.publisher_rate_hz(), seen.received_hz()
+            lines.append(f"{key:<40} {seen.type:<15} {_hz(rate):>8} {_hz(received):>8} {seen.lost:>6} "
+                         f"{seen.size / seen.count:>10.0f}")
+        return lines
+
+
+def _hz(rate: float | None) -> str:
+    return "-" if rate is None else f"{rate:.1f}"
+
+
+def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
+    """Every key with traffic: its publisher's rate (from header.seq and pub_ns, so a slow link that loses
+    messages does not lower it), what arrived here, what was lost on the way. Over a network, the keys the nodes'
+    statuses announce, raw frames left out unless --raw-frames (bus/links.py PublishedKeys)."""
+    counts = TopicCounts()
     session = open_client_session(settings)
-    sub = declare_subscriber(session, f"{namespace}/**", on_sample)
-    wait_for(args.seconds)
-    sub.undeclare()
+    announced = PublishedKeys(session, namespace) if is_remote(settings) and not args.raw_frames else None
+    subs: dict[str, Any] = {}
+    if announced is None:
+        subs[f"{namespace}/**"] = declare_subscriber(session, f"{namespace}/**", counts.on_sample)
+    elif not announced.wait(STATUS_WAIT_S):
+        announced.close()
+        session.close()
+        print(f"no node status under {namespace}/@status in {STATUS_WAIT_S:g} s: no graph there to list "
+              f"(--raw-frames subscribes to every key under {namespace}/**)")
+        return 1
+    deadline = time.monotonic() + args.seconds
+    while time.monotonic() < deadline:
+        if announced is not None:  # a node that starts during the window announces its keys then
+            for key in announced.announced():
+                if key not in subs and not is_raw_frame(key):
+                    subs[key] = declare_subscriber(session, key, counts.on_sample)
+        time.sleep(0.05)
+    for sub in subs.values():
+        sub.undeclare()
+    left_out = {k: v for k, v in announced.announced().items() if is_raw_frame(k)} if announced is not None else {}
+    if announced is not None:
+        announced.close()
     session.close()
-    if not counts:
+    if not counts.keys and not left_out:
         print(f"no messages under {namespace}/** in {args.seconds:.1f} s")
         return 1
-    print(f"{'key':<40} {'type':<13} {'rate Hz':>8} {'avg bytes':>10}")
-    for key in sorted(counts):
-        stamps = counts[key]
-        span = (stamps[-1] - stamps[0]) / 1e9
-        rate = (len(stamps) - 1) / span if span > 0 else 0.0
-        print(f"{key:<40} {types[key]:<13} {rate:>8.1f} {sizes[key] / len(stamps):>10.0f}")
+    print("\n".join(counts.table()))
+    _topics_notes(counts, left_out, args.seconds)
     return 0
+
+
+def _topics_notes(counts: TopicCounts, left_out: dict[str, Any], seconds: float) -> None:
+    """What the table's figures mean where it matters: keys not subscribed, rates not measured, losses."""
+    for key, info in sorted(left_out.items()):
+        size = f"{info.mean_bytes / 1e3:.1f} KB a message" if info.mean_bytes else "no message yet"
+        print(f"not subscribed: {key} (raw frames, {size}, {info.rate_hz:.1f} Hz by {info.node}'s status; "
+              "over this link only with --raw-frames)")
+    if any(seen.publisher_rate_hz() is None for seen in counts.keys.values()):
+        print(f"-: fewer than two messages (of one publisher) arrived in {seconds:g} s: no rate to show")
+    if any(seen.lost for seen in counts.keys.values()):
+        print("lost: messages the link did not deliver (header.seq gaps); rate Hz is the publisher's, recv Hz what "
+              "arrived here")
 
 
 def cmd_echo(args, settings: ZenohSettings, namespace: str) -> int:
@@ -172,14 +267,30 @@ def cmd_nodes(args, settings: ZenohSettings, namespace: str) -> int:
     if not snapshot:
         print(namespaces_hint(namespace, found))
         return 1
-    print(f"{'node':<14} {'state':<6} {'pid':>7} {'uptime s':>9} {'handler errs':>12}  check")
+    print(f"{'node':<14} {'state':<6} {'pid':>7} {'uptime s':>9} {'handler errs':>12} {'lost in':>8}  check")
     for name in sorted(snapshot):
         h = snapshot[name]
         st = h.status
+        lost = sum(int(t.get("lost", 0)) for t in st.topics.values() if t.get("direction") == "in") if st else "-"
         print(f"{name:<14} {'up' if h.alive else 'down':<6} {st.pid if st else '-':>7} "
-              f"{(f'{st.uptime_s:.0f}' if st else '-'):>9} {(st.extra.get('handler_errors', 0) if st else '-'):>12}  "
-              f"{h.trust}{f' ({h.trust_reason})' if h.trust_reason else ''}")
+              f"{(f'{st.uptime_s:.0f}' if st else '-'):>9} {(st.extra.get('handler_errors', 0) if st else '-'):>12} "
+              f"{lost:>8}  {h.trust}{f' ({h.trust_reason})' if h.trust_reason else ''}")
+    _print_links({name: h.status for name, h in snapshot.items() if h.status is not None}, args.links)
     return 0
+
+
+def _print_links(statuses: dict, every: bool) -> None:
+    """The links between nodes (bus/links.py): those that cross hosts, have lost messages or deliver less than
+    is sent, or ``every`` one."""
+    rows = [link for link in links_of_statuses(statuses)
+            if every or link.crosses_hosts or link.lost or short_of_sent(link)]
+    if not rows:
+        return
+    width = max(len(link.route()) for link in rows)
+    print(f"\n{'link':<{width}} {'sent Hz':>8} {'delivered Hz':>12} {'lost':>8}")
+    for link in rows:
+        sent = "-" if link.sent_hz is None else f"{link.sent_hz:.1f}"
+        print(f"{link.route():<{width}} {sent:>8} {link.delivered_hz or 0.0:>12.1f} {link.lost:>8}")
 
 
 def run_router(listen: list[str], duration_s: float | None) -> int:

@@ -100,11 +100,14 @@ def render(snap: dict[str, Any], height: int | None = None, width: int | None = 
                       _count(n["handler_errors"], "red"), Text(trust, TRUST_STYLE.get(n["trust"], ""))])
         topics += [[f"{key} @{n['name']}", t.get("direction", "?"), _num(t.get("rate_hz")),
                     _num(t.get("latency_p50_ms")), _num(t.get("latency_p99_ms")), _count(t.get("drops", 0), "yellow"),
-                    _count(t.get("decode_errors", 0), "red")] for key, t in sorted(n["topics"].items())]
+                    _count(t.get("lost", 0), "yellow"), _count(t.get("decode_errors", 0), "red")]
+                   for key, t in sorted(n["topics"].items())]
     state = _state_rows(snap)
     group = snap.get("group")
     if group:  # group following (graph.group.yaml)
         state.insert(0, ["group", _group_line(group)])
+    for link in snap.get("links", []):  # links that deliver nothing, or less than is sent (bus/links.py)
+        state.append(["link", Text(link, "yellow")])
     if snap["decode_errors"]:
         state.append(["monitor", Text(f"{snap['decode_errors']} decode errors", "red")])
     if snap.get("namespaces_hint"):
@@ -114,10 +117,10 @@ def render(snap: dict[str, Any], height: int | None = None, width: int | None = 
         room = height - (len(head.wrap(Console(width=width or 80), width or 80)) + 2 * len(state) + len(nodes) + 6)
         if len(topics) > max(room, 1):
             more = len(topics) - max(room - 1, 0)
-            topics = topics[:max(room - 1, 0)] + [[f"... {more} more (followbus topics)", "", "", "", "", "", ""]]
+            topics = topics[:max(room - 1, 0)] + [[f"... {more} more (followbus topics)", "", "", "", "", "", "", ""]]
+    topic_columns = ["topic (as seen by node)", "dir", "rate Hz", "p50 ms", "p99 ms", "drops", "lost", "dec err"]
     return Group(head, "", _table(["node", "state", "for s", "restarts", "pid", "uptime s", "errs", "check"], nodes),
-                 "", _table(["topic (as seen by node)", "dir", "rate Hz", "p50 ms", "p99 ms", "drops", "dec err"],
-                            topics), "", _table(["", ""], state))
+                 "", _table(topic_columns, topics), "", _table(["", ""], state))
 
 
 def _aged(label: str, value: Any, age: float | None, stale_s: float) -> list[Any]:

@@ -125,8 +125,8 @@ def screen_state(snap: dict[str, Any], source_node: str, stale_after_s: float = 
 def health_rows(snap: dict[str, Any]) -> list[dict[str, Any]]:
     """The health table: a row per topic of each node (outputs, then inputs), one row for a node without any.
 
-    Outputs carry only a rate; inputs a rate, p50 latency and drops. Topic names drop the namespace, and an
-    output its own node's name too (``preview``; an input reads ``capture/frame``)."""
+    Outputs carry only a rate; inputs a rate, p50 latency, drops and messages lost on the way. Topic names drop the
+    namespace, and an output its own node's name too (``preview``; an input reads ``capture/frame``)."""
     prefix = f"{snap.get('namespace', '')}/"
     rows: list[dict[str, Any]] = []
     for node in snap.get("nodes", []):
@@ -136,7 +136,7 @@ def health_rows(snap: dict[str, Any]) -> list[dict[str, Any]]:
         order = sorted(topics, key=lambda k: (topics[k].get("direction") != "out", k))
         if not order:
             rows.append({**base, "topic": None, "direction": None, "rate_hz": None, "latency_p50_ms": None,
-                         "drops": None, "decode_errors": None})
+                         "drops": None, "lost": None, "decode_errors": None})
         for key in order:
             t = topics[key]
             name = key[len(prefix):] if key.startswith(prefix) else key
@@ -146,6 +146,7 @@ def health_rows(snap: dict[str, Any]) -> list[dict[str, Any]]:
             rows.append({**base, "topic": name, "direction": "in" if inbound else "out", "rate_hz": t.get("rate_hz"),
                          "latency_p50_ms": t.get("latency_p50_ms") if inbound else None,
                          "drops": t.get("drops", 0) if inbound else None,
+                         "lost": t.get("lost", 0) if inbound else None,
                          "decode_errors": t.get("decode_errors", 0)})
     return rows
 
@@ -408,8 +409,10 @@ td.topic{white-space:nowrap}
   <canvas class="plot" id="p_lat"></canvas>
   <table id="nodes"><thead><tr><th class="l">node</th><th class="l">state</th><th>restarts</th>
    <th class="l">topic</th><th>rate Hz</th><th title="inputs: median capture-to-receive latency">p50 latency ms</th>
-   <th title="inputs: messages dropped by the queue policy">drops</th><th>decode errors</th></tr></thead>
-   <tbody><tr><td class="l na" colspan="8">no node status yet</td></tr></tbody></table>
+   <th title="inputs: messages dropped by the queue policy">drops</th>
+   <th title="inputs: messages that never arrived (gaps in the publisher's header.seq)">lost</th>
+   <th>decode errors</th></tr></thead>
+   <tbody><tr><td class="l na" colspan="9">no node status yet</td></tr></tbody></table>
   <div id="monitor_errors" class="legend"></div>
   <details id="graphbox"><summary>graph: nodes and keys</summary><img id="graph" alt="the graph's drawing"
    src="graph.svg"></details>
@@ -608,7 +611,7 @@ function plot(id, series, label, unit) {
 function healthTable(rows) {
   const body = document.querySelector("#nodes tbody");
   if (!rows.length) {
-    body.innerHTML = '<tr><td class="l na" colspan="8">no node seen yet</td></tr>'; return; }
+    body.innerHTML = '<tr><td class="l na" colspan="9">no node seen yet</td></tr>'; return; }
   const span = {};
   for (const r of rows) span[r.node] = (span[r.node] || 0) + 1;
   const html = [];
@@ -623,10 +626,11 @@ function healthTable(rows) {
         `<td rowspan="${n}">${r.restarts}</td>`;
     }
     const na = '<td class="na">-</td>';
-    if (r.topic === null) { tr += '<td class="l na" colspan="5">no status</td></tr>'; html.push(tr); continue; }
+    if (r.topic === null) { tr += '<td class="l na" colspan="6">no status</td></tr>'; html.push(tr); continue; }
     tr += `<td class="l topic"><span class="dir">${r.direction}</span> ${esc(r.topic)}</td>` +
       `<td>${fmt(r.rate_hz, 1)}</td>` +
-      (r.direction === "in" ? `<td>${fmt(r.latency_p50_ms, 1)}</td><td>${r.drops}</td>` : na + na) +
+      (r.direction === "in" ? `<td>${fmt(r.latency_p50_ms, 1)}</td><td>${r.drops}</td><td>${r.lost}</td>`
+        : na + na + na) +
       `<td>${r.decode_errors}</td></tr>`;
     html.push(tr);
   }

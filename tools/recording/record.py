@@ -61,13 +61,16 @@ import zenoh
 
 from ...bus import ros2
 from ...bus.codec import DecodeError, Header, peek
+from ...bus.links import PublishedKeys
 from ...bus.node import RECORDER_NAME
 from ...bus.pubsub import RateLimitedLog, declare_subscriber, frame_bytes
 from ...bus.schemas import decode
+from ...bus.stats import SequenceGaps
 from ...msgs import catalogue  # noqa: F401  (followbus's message types: decodable)
 from .. import __version__
+from ..connect import is_remote
 from .mcap_io import DEFAULT_CHUNK_BYTES, DEFAULT_COMPRESSION, ROS2_PROFILE, FinaliseResult, RecordingWriter
-from .remote import is_remote, raw_frame_keys, subscription_patterns
+from .remote import kept_keys, raw_frame_keys, subscription_patterns
 from .views import ROS2_SCHEMA_ENCODING, View, message_views
 
 log = logging.getLogger("followbus.record")
@@ -76,6 +79,7 @@ STATUS_SEGMENTS = ("@status", "@health")
 # ~10 s of the default graph's recording (raw 640x480 frames at 30 Hz: ~26 MB/s) if the disk stalls.
 DEFAULT_MAX_QUEUE_MB = 256.0
 EXIT_WRITE_FAILED = 1
+STATUS_WAIT_S = 2.0  # a remote recording without the graph file waits this long for the nodes to announce their keys
 
 
 @dataclass
@@ -223,7 +227,7 @@ class Recorder:
         self._converted_all = False
         self.failed = threading.Event()  # the writer hit an error: the recording is over
         self._failure: BaseException | None = None
-        self._last_seq: dict[tuple[str, str], int] = {}
+        self._seq_gaps = SequenceGaps()
         self._warn = RateLimitedLog(log, 5.0)
         self._threads = [threading.Thread(target=self._convert_loop, name="record-convert", daemon=True),
                          threading.Thread(target=self._write_loop, name="record-write", daemon=True)]
@@ -286,6 +290,12 @@ class Recorder:
             # On the real keys, not the lane's side keys (bus/shmlane.py): publishers send the recorder the
             # messages themselves, so a stall of the recorder (a slow disk) loses no frame to a rewritten segment.
             self._subs.append(declare_subscriber(session, pattern, self._callback_for(i)))
+
+    def add_subscription(self, session: zenoh.Session, pattern: str) -> None:
+        """Subscribe to one more key expression while recording (a key a node announced after the start)."""
+        self.subscribe.append(pattern)
+        self._key_exprs.append(zenoh.KeyExpr(pattern))
+        self._subs.append(declare_subscriber(session, pattern, self._callback_for(len(self.subscribe) - 1)))
 
     def _callback_for(self, index: int):
         def callback(sample: zenoh.Sample) -> None:
@@ -437,13 +447,11 @@ class Recorder:
             self.report.foxglove_messages += 1
 
     def _track_seq(self, stats: KeyStats, key: str, source: str, seq: int) -> None:
-        last = self._last_seq.get((key, source))
-        if last is not None:
-            if seq > last + 1:
-                stats.seq_gaps += seq - last - 1
-            elif seq <= last:
-                stats.restarts += 1
-        self._last_seq[(key, source)] = seq
+        missing = self._seq_gaps.see((key, source), seq)
+        if missing > 0:
+            stats.seq_gaps += missing
+        elif missing < 0:
+            stats.restarts += 1
 
     # --- shutdown ---------------------------------------------------------------------------------
     def discard(self) -> None:
@@ -616,8 +624,50 @@ def _link_excludes(args, settings, graph, namespace: str) -> tuple[list[str], li
         notes.append(f"remote link ({', '.join(settings.connect)}): leaving out raw frames ({', '.join(raw)}; "
                      "--raw-frames records them), the JPEG preview stays")
     if exclude and graph is None and is_remote(settings):
-        notes.append("without the graph (--graph) excluded keys are dropped on arrival: they still cross the link")
+        notes.append(f"without the graph file: subscribing key by key to what the nodes announce on "
+                     f"{namespace}/@status, so excluded keys never cross the link")
     return exclude, notes
+
+
+class AnnouncedKeys:
+    """A remote recording without the graph file: the keys the nodes' statuses announce (bus/links.py
+    PublishedKeys), each kept one subscribed to as it appears, for the whole recording. Inert (``active`` False)
+    for any other recording, which subscribes to its patterns or the graph's keys at start."""
+
+    def __init__(self, session: zenoh.Session, recorder: Recorder, namespace: str, active: bool):
+        self.session, self.recorder = session, recorder
+        self.published = PublishedKeys(session, namespace) if active else None
+        self.subscribed: set[str] = set()
+
+    @classmethod
+    def start(cls, session: zenoh.Session, recorder: Recorder, namespace: str, active: bool) -> AnnouncedKeys:
+        """Follow the announced keys, the nodes' first statuses waited for (their keys subscribed before the
+        recording goes on)."""
+        announced = cls(session, recorder, namespace, active)
+        if announced.published is not None:
+            announced.published.wait(STATUS_WAIT_S)
+        announced.follow()
+        return announced
+
+    def follow(self) -> None:
+        """Subscribe to every kept key announced since the last call."""
+        if self.published is None:
+            return
+        opts = self.recorder.opts
+        new = [k for k in self.published.announced() if k not in self.subscribed]
+        for key in kept_keys(new, opts.patterns, opts.exclude):
+            self.recorder.add_subscription(self.session, key)
+        self.subscribed.update(new)
+
+    def close(self) -> None:
+        if self.published is not None:
+            self.published.close()
+
+
+def _follows_announced(settings, graph, options: RecordOptions) -> bool:
+    """Whether the recording subscribes key by key to what the nodes announce: over a network, keys left out,
+    no graph file to list the keys."""
+    return is_remote(settings) and graph is None and bool(options.exclude)
 
 
 def cmd_record(args, settings, graph) -> int:
@@ -654,6 +704,7 @@ def cmd_record(args, settings, graph) -> int:
         recorder.discard()
         raise
     recorder.start(session)
+    announced = AnnouncedKeys.start(session, recorder, namespace, _follows_announced(settings, graph, options))
     # Declared after the subscribers: a capture node launched with --record waits for it before frame 0,
     # so a recording holds the run from its first frame (a replayed node must start where the live one did).
     token = session.liveliness().declare_token(f"{namespace}/@health/{RECORDER_NAME}")
@@ -670,11 +721,13 @@ def cmd_record(args, settings, graph) -> int:
             if args.duration is not None and time.monotonic() - started >= args.duration:
                 break
             stop.wait(0.1)
+            announced.follow()
             if time.monotonic() >= next_status:
                 next_status += 10.0
                 log.info("%d messages received, queue %.1f MB", recorder.report.received,
                          recorder.queued_bytes() / 1e6)
     finally:
+        announced.close()
         report = recorder.stop()
         with contextlib.suppress(Exception):
             token.undeclare()
