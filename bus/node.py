@@ -40,6 +40,7 @@ from .liveness import (
     FailureBudget,
     NodeStoppedWorking,
     ProductionWatch,
+    SourceActivity,
 )
 from .pubsub import InputQueue, Publisher, RateLimitedLog, ShmPool, Subscriber
 from .schemas import Frame, Message, NodeStatus, ReplayHint
@@ -249,6 +250,11 @@ class DownstreamBarrier:
             self._open_at = time.monotonic() + self.settle_s
         return max(0.0, self._open_at - time.monotonic())
 
+    @property
+    def opened(self) -> bool:
+        """Whether the wait is over (the first message may go)."""
+        return self._open_at is not None and time.monotonic() >= self._open_at
+
     def close(self) -> None:
         if self._health is not None:
             self._health.close()
@@ -343,6 +349,11 @@ class Node:
         return None
 
     def teardown(self) -> None: ...
+    def holding(self) -> bool:
+        """A source that holds its first publication on purpose (capture waiting for its consumers) says so: its
+        silence meanwhile is no stall (bus/liveness.py SourceActivity)."""
+        return False
+
     def status_extra(self) -> dict[str, Any]:
         return {}
 
@@ -528,6 +539,7 @@ class NodeHost:
         self.poll_failures = FailureBudget(POLL_FAILURE_LIMIT)
         self.handler_failures = FailureBudget(HANDLER_FAILURE_LIMIT)
         self.production = ProductionWatch()
+        self.activity = SourceActivity()
         self._frame_failures = 0  # consecutive
         self.provenance: dict[str, int] | None = None  # feedback used by the set being handled
         self._warn = RateLimitedLog(self.log)
@@ -594,7 +606,7 @@ class NodeHost:
             backoff_s = self.poll_failures.failed()
             if self.poll_failures.exhausted:
                 raise NodeStoppedWorking(f"poll failed {self.poll_failures.streak} times in a row "
-                                         f"(last: {exc!r})") from exc
+                                         f"(last: {type(exc).__name__}: {exc})") from exc
             self.log.exception("poll failed (%d in a row); retrying in %.2f s", self.poll_failures.streak,
                                backoff_s)
             return backoff_s
@@ -819,6 +831,9 @@ class NodeRuntime(NodeHost):
         topics = {p.key: p.stats.snapshot() for p in self.publishers.values()}
         topics.update({q.stats.key: q.stats.snapshot() for q in self.queues.values()})
         extra = self.sync_counters()
+        source = self.activity.state(self.production, time.monotonic())
+        if source is not None:
+            extra["source"] = source
         if self.live_params.changed:
             extra["params_set"] = dict(self.live_params.changed)
         try:
@@ -873,7 +888,9 @@ class NodeRuntime(NodeHost):
                 now = self.clock.now_ns()
                 self.run_timer(now)
                 if next_poll_wall is not None and time.monotonic() >= next_poll_wall:
+                    self.activity.poll_started(time.monotonic())
                     delay = self.poll_once(now)
+                    self.activity.poll_ended(delay, time.monotonic(), holding=self.node.holding())
                     next_poll_wall = None if delay is None else time.monotonic() + max(0.0, delay)
                 self.check_working(polling=next_poll_wall is not None)
         finally:

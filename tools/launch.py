@@ -360,7 +360,7 @@ class Launcher:
 def _failure(child: Child) -> str | None:
     """One phrase for a child that failed for good, crash-looped or stopped working (bus/liveness.py); else None."""
     said = child.last_error or child.last_line
-    why = f": {said[:160]}" if said else ""
+    why = f": {said[:320]}" if said else ""  # room for a source and its error
     last_t, last_code = child.failures[-1] if child.failures else (0.0, child.exit_code)
     recent = [t for t, _ in child.failures if t >= last_t - CRASH_LOOP_WINDOW_S]
     if child.failed or len(recent) >= CRASH_LOOP_EXITS:

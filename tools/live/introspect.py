@@ -14,7 +14,7 @@ import numpy as np
 import zenoh
 
 from ...bus.codec import DecodeError
-from ...bus.health import HealthWatcher, live_namespaces, namespaces_hint
+from ...bus.health import HealthWatcher, live_namespaces, namespaces_hint, node_state
 from ...bus.pubsub import declare_subscriber, frame_bytes, payload_bytes
 from ...bus.schemas import decode, to_plain
 from ...bus.session import ZenohSettings, open_session
@@ -172,11 +172,11 @@ def cmd_nodes(args, settings: ZenohSettings, namespace: str) -> int:
     if not snapshot:
         print(namespaces_hint(namespace, found))
         return 1
-    print(f"{'node':<14} {'state':<6} {'pid':>7} {'uptime s':>9} {'handler errs':>12}  check")
+    print(f"{'node':<14} {'state':<7} {'pid':>7} {'uptime s':>9} {'handler errs':>12}  check")
     for name in sorted(snapshot):
         h = snapshot[name]
         st = h.status
-        print(f"{name:<14} {'up' if h.alive else 'down':<6} {st.pid if st else '-':>7} "
+        print(f"{name:<14} {node_state(h.alive, st.extra if st else None):<7} {st.pid if st else '-':>7} "
               f"{(f'{st.uptime_s:.0f}' if st else '-'):>9} {(st.extra.get('handler_errors', 0) if st else '-'):>12}  "
               f"{h.trust}{f' ({h.trust_reason})' if h.trust_reason else ''}")
     return 0
