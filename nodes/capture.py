@@ -27,6 +27,7 @@ from ..msgs.perception import GroundTruth
 from ..msgs.tracking import Track
 from ..vision.sources import SourceError, SourceReadError, check_source, open_source
 
+MAX_SIDE_PX = 8192  # frames larger than 8K are refused at check time, not allocated by a crash-looping node
 _END = object()  # the source has no more frames (None is a live source's "no new frame yet")
 
 
@@ -68,6 +69,10 @@ class Capture(Node):
                          ("start_delay_s", 0)):
             if getattr(params, key) < low:
                 raise ParamError(key, f"{key} must be >= {low}, not {getattr(params, key)!r}")
+        for key in ("width_px", "height_px", "preview_width_px"):
+            if getattr(params, key) > MAX_SIDE_PX:
+                raise ParamError(key, f"{key} must be at most {MAX_SIDE_PX} (an 8K frame's side), "
+                                      f"not {getattr(params, key)!r}")
         if params.jpeg_quality > 100:
             raise ParamError("jpeg_quality", f"jpeg_quality must be in 1..100, not {params.jpeg_quality!r}")
         return params

@@ -278,6 +278,9 @@ def cmd_launch(args) -> int:
         status = launcher.run(args.duration)
     finally:
         held.close()
+    if launcher.refusal:
+        print(f"followbus launch: {launcher.refusal}", file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
     problems = launcher.problems() if args.duration is not None else []
     if problems:
         # A scripted run (CI, a smoke test) must not pass with a node that crash-looped or stayed silent.

@@ -77,6 +77,7 @@ class Launcher:
         # Subscribe to every node's outputs until its first message: problems() names the silent ones.
         self.watch_outputs = watch_outputs
         self.interrupted = False  # stopped by Ctrl-C/SIGTERM rather than by its duration
+        self.refusal = ""  # why the graph could not start at all (TLS), one line
         self.ran_s = 0.0
         self.grace_s = grace_s
         self.startup_timeout_s = startup_timeout_s
@@ -239,6 +240,9 @@ class Launcher:
         """Run until duration elapses (counted from the moment every node is up, so start-up on a busy
         machine does not eat the run), Ctrl-C/SIGTERM, or every node has finished. Returns the exit status."""
         self._open_bus()
+        self.refusal = self._tls_refusal()
+        if self.refusal:
+            return self._shutdown(2)
         for child in self.children:
             self._start(child)
         node_names = {c.name for c in self.children if c.spec.run != "<tool>"}
@@ -309,9 +313,23 @@ class Launcher:
         if on_ready is not None:
             on_ready()
 
+    def _tls_refusal(self) -> str:
+        """A graph whose nodes cannot pass the TLS handshake with its endpoints (an expired certificate, a CA that did
+        not sign it) would end in a start-up timeout that names no cause: said at once instead, naming TLS."""
+        from .connect import graph_tls_problem
+
+        problem = graph_tls_problem(self.graph.zenoh)
+        if problem:
+            log.error("%s", problem)
+        return problem or ""
+
     def _report_startup_timeout(self, missing: set[str]) -> None:
-        log.error("startup timeout after %.0f s: no liveliness from %s", self.startup_timeout_s,
-                  ", ".join(sorted(missing)))
+        from .connect import graph_tls_problem
+
+        tls = graph_tls_problem(self.graph.zenoh)
+        log.error("startup timeout after %.0f s: no liveliness from %s%s", self.startup_timeout_s,
+                  ", ".join(sorted(missing)), f" ({tls})" if tls else "")
+        self.refusal = self.refusal or (tls or "")
 
     def _should_stop(self) -> bool:
         """Every child has finished, or a node (not a tool) failed for good."""
