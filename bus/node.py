@@ -21,6 +21,7 @@ import itertools
 import logging
 import math
 import os
+import re
 import signal
 import socket
 import threading
@@ -129,6 +130,10 @@ def _non_finite(value: Any) -> bool:
     return False
 
 
+# A number YAML 1.1 reads as text (1e-3, 1e309: its floats need a dot), which YAML 1.2 and Python read as a number.
+_EXPONENT_NUMBER = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+$")
+
+
 def _coerce(value: Any, hint: Any, key: str) -> Any:
     # No parameter means anything with NaN or inf: a NaN gate never follows, an infinite timeout never fires.
     if _non_finite(value):
@@ -136,8 +141,21 @@ def _coerce(value: Any, hint: Any, key: str) -> Any:
     try:
         return conform(value, hint)
     except TypeMismatch as exc:
+        if isinstance(value, str) and _EXPONENT_NUMBER.match(value.strip()):
+            return _coerce_exponent(value, hint, key)
         raise ParamError(key, f"parameter {key!r} must be {exc.expected}, not {type(value).__name__} "
                               f"({value!r})") from None
+
+
+def _coerce_exponent(text: str, hint: Any, key: str) -> Any:
+    """``1e-3`` for a number parameter: the number it says, or a ParamError when no float holds it (1e309)."""
+    number = float(text)
+    if not math.isfinite(number):
+        raise ParamError(key, f"parameter {key!r}: {text.strip()} is beyond the range of a float (at most ~1.8e308)")
+    try:
+        return conform(number, hint)
+    except TypeMismatch as exc:
+        raise ParamError(key, f"parameter {key!r} must be {exc.expected}, not {text.strip()}") from None
 
 
 class Clock:

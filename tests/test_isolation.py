@@ -53,7 +53,8 @@ def test_up_ps_logs_down_and_a_launch_into_a_live_graph_is_refused(graph_file, t
     pid = int(re.search(r"pid (\d+)", up.stdout)[1])
     try:
         ps = run_followbus("ps")
-        assert re.search(rf"test\s+o1iso\s+tcp/127.0.0.1:{port}\s+\S+\s+2\s+{pid}\s+up", ps.stdout), ps.stdout
+        assert re.search(rf"test\s+o1iso\s+tcp/127.0.0.1:{port}\s+\S+\s+2\s+all up\s+{pid}\s+\S+\s+up", ps.stdout), \
+            ps.stdout
         # Into the same bus and namespace: refused in one line naming who, where and what to do.
         refused = run_followbus("launch", str(graph), "--duration", "1")
         assert refused.returncode == 2

@@ -35,7 +35,7 @@ examples:
   followbus node detection                run one node of ./graph.yaml in this terminal
   followbus demo --domain auto            in the first domain where no graph runs (FOLLOWBUS_DOMAIN=N: that one)
   followbus up graph.yaml                 in the background, a log file per node; then: ps, logs, down
-  followbus logs followbus-demo reid -f   one node's log of a graph started with up
+  followbus logs followbus reid -f        one node's log of a graph started with up
   followbus param set reid.reid_threshold 0.8   change a live-tunable parameter of a running node
   followbus graph graph.yaml --svg -o g.svg     draw the nodes and keys (or --dot)
   followbus topics                        keys seen on the bus with their rates

@@ -15,6 +15,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from ..bus.children import die_with_parent
 from ..bus.graph import Graph, NodeSpec
@@ -24,6 +25,7 @@ from ..bus.health import (
     LaunchedProcess,
     launcher_id,
     launcher_key,
+    node_state,
     process_table,
 )
 from ..bus.hosts import nodes_on
@@ -31,8 +33,10 @@ from ..bus.liveness import STOPPED_WORKING_EXIT
 from ..bus.node import LAUNCH_ID_ENV, LAUNCHED_NODES_ENV, LEFT_OUT_NODES_ENV
 from ..bus.pubsub import Publisher, direct_callback
 from ..bus.session import open_session
+from .runs.claims import health_path, write_health
 
 log = logging.getLogger("followbus.launch")
+INTERRUPTED_EXIT = 130  # every command's status after Ctrl-C (tools/cli.py)
 TOOL_GRACE_S = 30.0  # a tool beside the graph (the recorder) gets this long to stop after SIGTERM
 
 # A node that fails again after being restarted this recently is crash-looping: its restarts are not helping.
@@ -167,7 +171,7 @@ class Launcher:
         log_fn("%s exited with status %d", child.name, code)
         wants_restart = policy.policy == "always" or (policy.policy == "on-failure" and code != 0)
         if child.spec.run == "<tool>" or self.stop_event.is_set() or not wants_restart:
-            child.failed = code != 0
+            child.failed = code != 0 and not _interrupted(code)
             child.finished = True
             if child.failed:
                 log.error("%s failed for good (status %d, restart policy %s)", child.name, code, policy.policy)
@@ -201,6 +205,32 @@ class Launcher:
         except Exception as exc:  # monitoring must never take the graph down
             log.warning("could not publish the process table: %r", exc)
         self._table_due = time.monotonic() + LAUNCHER_PERIOD_S
+
+    def node_states(self) -> dict[str, dict[str, Any]]:
+        """Each node's state as `followbus ps` shows it: up, stalled, done (bus/health.py node_state), starting (no
+        token yet), restarting, failed; and its restarts."""
+        snapshot = self.health.snapshot() if self.health is not None else {}
+        out = {}
+        for child in self.children:
+            if child.spec.run == "<tool>":
+                continue
+            health = snapshot.get(child.name)
+            if child.failed:
+                state = "failed"
+            elif child.proc is None:
+                state = "exited" if child.finished else "restarting"
+            elif health is None or not health.alive:
+                state = "starting"
+            else:
+                state = node_state(True, health.status.extra if health.status else None)
+            out[child.name] = {"state": state, "restarts": child.restarts}
+        return out
+
+    def _write_health(self) -> None:
+        try:
+            write_health(health_path(self.graph), self.node_states())
+        except OSError as exc:  # `ps` shows less; the graph runs on
+            log.debug("could not write the health file: %r", exc)
 
     def request_stop(self, *_args) -> None:
         self.stop_event.set()
@@ -281,7 +311,8 @@ class Launcher:
     def _open_bus(self) -> None:
         """Open the session, the liveliness watch, the process table and (with watch_outputs) the output watch."""
         self.session = open_session(self.graph.zenoh)
-        self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=False)
+        # Statuses too: `followbus ps` shows a stalled source from the health file (_write_health).
+        self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=True, cross_check=False)
         self._table_pub = Publisher(self.session, launcher_key(self.graph.namespace, self.launcher_id),
                                     self.launcher_id, congestion="drop")
         if self.watch_outputs:
@@ -297,6 +328,7 @@ class Launcher:
                 self._start(child)
         if now >= self._table_due:
             self._publish_table()
+            self._write_health()
         if self.watch_outputs:
             self._unwatch()
 
@@ -307,6 +339,7 @@ class Launcher:
             self._on_exit(child, code)
 
     def _announce_ready(self, n_nodes: int, startup_s: float, on_ready) -> None:
+        self._write_health()  # before the line `followbus up` waits for: a `ps` after it sees every node up
         self.ready_event.set()
         # `followbus up` waits for this line in a detached run's launch.log (READY_MARK).
         log.info("graph %r ready: %d nodes up in %.1f s", self.graph.name, n_nodes, startup_s)
@@ -365,6 +398,8 @@ class Launcher:
         if failed:
             log.error("node(s) failed for good: %s", ", ".join(failed))
         self._publish_table(stopped=True)
+        with contextlib.suppress(OSError):
+            health_path(self.graph).unlink()
         self._unwatch(every=True)
         if self.health is not None:
             self.health.close()
@@ -373,6 +408,13 @@ class Launcher:
         if self.log_file is not None:
             self.log_file.close()
         return status
+
+
+def _interrupted(code: int) -> bool:
+    """A child that exited as every command does after Ctrl-C (the terminal sent it SIGINT with the launcher)."""
+    from .errors import INTERRUPTED
+
+    return code == INTERRUPTED_EXIT and INTERRUPTED.is_set()
 
 
 def _failure(child: Child) -> str | None:

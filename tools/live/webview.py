@@ -251,8 +251,9 @@ def make_handler(monitor: BusMonitor, gate: PreviewGate, token: str | None = Non
                 elif url.path == "/preview.jpg":
                     self._preview(query)
                 elif url.path == "/graph.svg":
-                    svg = monitor.info.graph_svg
-                    self._send(200 if svg else 404, (svg or "no graph file given\n").encode(),
+                    svg = monitor.graph_svg()
+                    self._send(200 if svg else 404,
+                               (svg or "no graph file given, and no node has said what it publishes yet\n").encode(),
                                "image/svg+xml" if svg else "text/plain")
                 elif url.path == "/healthz":
                     self._send(200, b"ok\n", "text/plain")
