@@ -5,8 +5,8 @@ Two forms: Graphviz DOT (written here: for ``dot -Tpng``, or any DOT viewer) and
 out here rather than by Graphviz's ``dot`` because Graphviz is a system package (no wheel on PyPI), which the
 two set-up commands would have to install with apt as root, and the web view must draw the graph on any machine.
 The layout is layered, as dot's is: every item sits one column right of what feeds it (longest path); an edge
-that closes a cycle (a feedback input, ``offset: -1``, or an input read without joining by frame, such as the
-odometry prediction takes from the motor) is drawn dashed, against the flow, and does not count for the columns.
+that closes a cycle (a feedback input, ``offset: -1``, or an input read without joining by frame from a node
+further down the flow) is drawn dashed, against the flow, and does not count for the columns.
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ def _edges(graph: Any) -> tuple[list[tuple[str, str, bool]], list[str]]:
 
 def back_edges(graph: Any) -> set[tuple[str, str]]:
     """The edges that close a cycle, found depth first in file order, as dot breaks cycles: a feedback input
-    (``offset: -1``), or an input taken without joining by frame (the motor's odometry read by prediction). An edge
-    from a node to the key it publishes never closes one (a key is reached only through its publisher), so every
-    key stays right of its publisher."""
+    (``offset: -1``), or an input taken without joining by frame from a node further down the flow. An edge from a
+    node to the key it publishes never closes one (a key is reached only through its publisher), so every key
+    stays right of its publisher."""
     edges, items = _edges(graph)
     out: dict[str, list[str]] = {item: [] for item in items}
     for src, dst, _feedback in edges:
