@@ -635,6 +635,11 @@ def _walk(buf: Any, layout: _Layout, damage: list[CorruptChunk],
                 return
             pos = resumed
             continue
+        if record is None:  # a private record: another writer's (never followbus's), or a damaged opcode byte
+            damage.append(CorruptChunk(pos, 0, 0, f"a private record (opcode 0x{buf[pos]:02x}), skipped",
+                                       chunk=False, length=end - pos))
+            pos = end
+            continue
         index = layout.chunks.get(pos)
         if index is not None and _RECORD_HEAD.unpack_from(buf, pos) != (Opcode.CHUNK, end - pos - _RECORD_HEAD.size):
             damage.append(CorruptChunk(pos, index.message_start_time, index.message_end_time, "its opcode or length "
@@ -740,7 +745,7 @@ def salvage_records(path: str | Path, found: Salvage) -> Iterator[Any]:
             last_bad = None
             if isinstance(record, Chunk):
                 last_bad = yield from _salvage_chunk(path, offset, record, layout, found)
-            elif not isinstance(record, (DataEnd, type(None))):
+            elif not isinstance(record, DataEnd):
                 yield record
         if walked and layout.summary is None and walked[-1].offset + walked[-1].length == layout.data_end:
             found.stopped_by = walked.pop().reason  # the cut of a file its recorder never finished

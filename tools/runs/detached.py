@@ -103,7 +103,8 @@ def plays_once(graph, overrides: list[str]) -> list[str]:
         params = validate_node(graph, spec)[1]
         source, loop = getattr(params, "source", None), getattr(params, "loop", None)
         if isinstance(source, str) and loop is False and not source.startswith(("camera:", "ros2:")):
-            notes.append(f"{name} plays {source} once (a scene lasts 8-20 s), then publishes nothing: "
+            length = " (a scene lasts 8-20 s)" if source.startswith("scene:") else ""
+            notes.append(f"{name} plays {source} once{length}, then publishes nothing: "
                          f"`--set {name}.loop=true` plays it again and again")
     return notes
 
