@@ -4,8 +4,9 @@
 Two forms: Graphviz DOT (written here: for ``dot -Tpng``, or any DOT viewer) and a self-made SVG. The SVG is laid
 out here rather than by Graphviz's ``dot`` because Graphviz is a system package (no wheel on PyPI), which the
 two set-up commands would have to install with apt as root, and the web view must draw the graph on any machine.
-The layout is layered, as dot's is: every item sits one column right of what feeds it (longest path), a
-feedback input (``offset: -1``) is drawn dashed, against the flow, and does not count for the columns.
+The layout is layered, as dot's is: every item sits one column right of what feeds it (longest path); an edge
+that closes a cycle (a feedback input, ``offset: -1``, or an input read without joining by frame from a node
+further down the flow) is drawn dashed, against the flow, and does not count for the columns.
 """
 
 from __future__ import annotations
@@ -31,14 +32,49 @@ def _edges(graph: Any) -> tuple[list[tuple[str, str, bool]], list[str]]:
     return edges, items
 
 
-def layout(graph: Any) -> dict[str, tuple[int, int]]:
-    """Column and row of every item: a column one right of the furthest item feeding it (feedback ignored)."""
+def back_edges(graph: Any) -> set[tuple[str, str]]:
+    """The edges that close a cycle, found depth first in file order, as dot breaks cycles: a feedback input
+    (``offset: -1``), or an input taken without joining by frame from a node further down the flow. An edge from a
+    node to the key it publishes never closes one (a key is reached only through its publisher), so every key
+    stays right of its publisher."""
     edges, items = _edges(graph)
+    out: dict[str, list[str]] = {item: [] for item in items}
+    for src, dst, _feedback in edges:
+        if src in out and dst in out:
+            out[src].append(dst)
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    found: set[tuple[str, str]] = set()
+    for root in items:
+        if root in state:
+            continue
+        state[root] = 1
+        stack = [(root, iter(out[root]))]
+        while stack:
+            item, children = stack[-1]
+            child = next(children, None)
+            if child is None:
+                state[item] = 2
+                stack.pop()
+            elif state.get(child) == 1:
+                found.add((item, child))
+            elif child not in state:
+                state[child] = 1
+                stack.append((child, iter(out[child])))
+    return found
+
+
+def layout(graph: Any) -> dict[str, tuple[int, int]]:
+    """Column and row of every item: a column one right of the furthest item feeding it, over the edges that close
+    no cycle (:func:`back_edges`; feedback inputs among them)."""
+    edges, items = _edges(graph)
+    backward = back_edges(graph)
+    forward = [(src, dst) for src, dst, feedback in edges
+               if src in items and not feedback and (src, dst) not in backward]
     column = dict.fromkeys(items, 0)
-    for _ in items:  # longest path by relaxation: at most one pass per item in an acyclic flow
+    for _ in items:  # longest path by relaxation over an acyclic set of edges: at most one pass per item
         changed = False
-        for src, dst, feedback in edges:
-            if not feedback and src in column and column[dst] < column[src] + 1 and column[src] < len(items):
+        for src, dst in forward:
+            if column[dst] < column[src] + 1:
                 column[dst] = column[src] + 1
                 changed = True
         if not changed:
@@ -107,7 +143,9 @@ def to_svg(graph: Any) -> str:
              f"<title>{escape(graph.name)} ({escape(graph.namespace)})</title>",
              '<defs><marker id="arrow" viewBox="0 0 10 10" refX="10" refY="5" markerWidth="7" markerHeight="7" '
              'orient="auto"><path d="M0,0 L10,5 L0,10 z" fill="#555"/></marker></defs>']
-    parts += [_svg_edge(cells[src], cells[dst], feedback) for src, dst, feedback in edges if src in cells]
+    backward = back_edges(graph)
+    parts += [_svg_edge(cells[src], cells[dst], feedback or (src, dst) in backward)
+              for src, dst, feedback in edges if src in cells]
     parts += [_svg_item(item, cells[item], graph.namespace) for item in items]
     parts.append("</svg>")
     return "\n".join(parts) + "\n"

@@ -23,6 +23,7 @@ from typing import Any
 import zenoh
 
 from .codec import DecodeError
+from .liveness import SOURCE_FINISHED, SOURCE_STALLED
 from .pubsub import direct_callback, payload_bytes
 from .schemas import NodeStatus, decode
 
@@ -40,6 +41,14 @@ SPOOF_HOLD_S = 10.0  # a status from a pid the launcher never ran keeps the node
 VERIFIED = "verified"  # a fresh launcher table agrees with the token (and the status pid)
 UNVERIFIED = "unverified"  # no launcher speaks for this node (started by hand, or no table yet)
 SPOOFED = "spoofed?"  # the launcher contradicts the token or the status pid
+
+
+def node_state(alive: bool, extra: dict[str, Any] | None) -> str:
+    """A node table's state column: ``down``; ``stalled``, a source that publishes nothing (its status says so:
+    bus/liveness.py SourceActivity); ``done``, a source that published every frame it had; else ``up``."""
+    if not alive:
+        return "down"
+    return {SOURCE_STALLED: "stalled", SOURCE_FINISHED: "done"}.get((extra or {}).get("source"), "up")
 
 
 def launcher_key(namespace: str, launcher_id: str) -> str:

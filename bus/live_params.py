@@ -12,6 +12,7 @@ the namespace, and the node's status carries every value changed so far (``extra
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import logging
 import threading
@@ -68,11 +69,19 @@ class LiveParams:
         try:
             value = current_value(self.runtime.params, param)
         except KeyError:
-            return {"ok": False, "error": f"node {self.runtime.spec.name!r} has no parameter {param!r}"}
+            close = difflib.get_close_matches(param, sorted(self.runtime.cls.param_names()), n=1)
+            hint = f" (did you mean {self.runtime.spec.name}.{close[0]}?)" if close else ""
+            return {"ok": False, "error": f"node {self.runtime.spec.name!r} has no parameter {param!r}{hint}"}
         return {"ok": True, "value": value, "live": param in self.runtime.cls.LIVE_PARAMS}
 
     def set(self, param: str, value: Any) -> dict[str, Any]:
         node = self.runtime.spec.name
+        names = self.runtime.cls.param_names()
+        if param not in names:
+            close = difflib.get_close_matches(param, sorted(names), n=1)
+            hint = f"did you mean {node}.{close[0]}? " if close else ""
+            return {"ok": False, "error": f"node {node!r} has no parameter {param!r} ({hint}live-tunable: "
+                                          f"{', '.join(self.live()) or 'none'})"}
         if param not in self.runtime.cls.LIVE_PARAMS:
             live = ", ".join(self.live()) or "none"
             return {"ok": False, "error": f"{node}.{param} is not live-tunable (live: {live}); set it at launch "

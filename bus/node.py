@@ -21,6 +21,7 @@ import itertools
 import logging
 import math
 import os
+import re
 import signal
 import socket
 import threading
@@ -40,6 +41,7 @@ from .liveness import (
     FailureBudget,
     NodeStoppedWorking,
     ProductionWatch,
+    SourceActivity,
 )
 from .pubsub import InputQueue, Publisher, RateLimitedLog, ShmPool, Subscriber
 from .schemas import Frame, Message, NodeStatus, ReplayHint
@@ -128,6 +130,10 @@ def _non_finite(value: Any) -> bool:
     return False
 
 
+# A number YAML 1.1 reads as text (1e-3, 1e309: its floats need a dot), which YAML 1.2 and Python read as a number.
+_EXPONENT_NUMBER = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+$")
+
+
 def _coerce(value: Any, hint: Any, key: str) -> Any:
     # No parameter means anything with NaN or inf: a NaN gate never follows, an infinite timeout never fires.
     if _non_finite(value):
@@ -135,8 +141,21 @@ def _coerce(value: Any, hint: Any, key: str) -> Any:
     try:
         return conform(value, hint)
     except TypeMismatch as exc:
+        if isinstance(value, str) and _EXPONENT_NUMBER.match(value.strip()):
+            return _coerce_exponent(value, hint, key)
         raise ParamError(key, f"parameter {key!r} must be {exc.expected}, not {type(value).__name__} "
                               f"({value!r})") from None
+
+
+def _coerce_exponent(text: str, hint: Any, key: str) -> Any:
+    """``1e-3`` for a number parameter: the number it says, or a ParamError when no float holds it (1e309)."""
+    number = float(text)
+    if not math.isfinite(number):
+        raise ParamError(key, f"parameter {key!r}: {text.strip()} is beyond the range of a float (at most ~1.8e308)")
+    try:
+        return conform(number, hint)
+    except TypeMismatch as exc:
+        raise ParamError(key, f"parameter {key!r} must be {exc.expected}, not {text.strip()}") from None
 
 
 class Clock:
@@ -254,6 +273,11 @@ class DownstreamBarrier:
             self._open_at = time.monotonic() + self.settle_s
         return max(0.0, self._open_at - time.monotonic())
 
+    @property
+    def opened(self) -> bool:
+        """Whether the wait is over (the first message may go)."""
+        return self._open_at is not None and time.monotonic() >= self._open_at
+
     def close(self) -> None:
         if self._health is not None:
             self._health.close()
@@ -348,6 +372,11 @@ class Node:
         return None
 
     def teardown(self) -> None: ...
+    def holding(self) -> bool:
+        """A source that holds its first publication on purpose (capture waiting for its consumers) says so: its
+        silence meanwhile is no stall (bus/liveness.py SourceActivity)."""
+        return False
+
     def status_extra(self) -> dict[str, Any]:
         return {}
 
@@ -534,6 +563,7 @@ class NodeHost:
         self.poll_failures = FailureBudget(POLL_FAILURE_LIMIT)
         self.handler_failures = FailureBudget(HANDLER_FAILURE_LIMIT)
         self.production = ProductionWatch()
+        self.activity = SourceActivity()
         self._frame_failures = 0  # consecutive
         self.provenance: dict[str, int] | None = None  # feedback used by the set being handled
         self._warn = RateLimitedLog(self.log)
@@ -600,7 +630,7 @@ class NodeHost:
             backoff_s = self.poll_failures.failed()
             if self.poll_failures.exhausted:
                 raise NodeStoppedWorking(f"poll failed {self.poll_failures.streak} times in a row "
-                                         f"(last: {exc!r})") from exc
+                                         f"(last: {type(exc).__name__}: {exc})") from exc
             self.log.exception("poll failed (%d in a row); retrying in %.2f s", self.poll_failures.streak,
                                backoff_s)
             return backoff_s
@@ -830,6 +860,9 @@ class NodeRuntime(NodeHost):
             extra["host"] = host
         if self.awaiting:
             extra["waiting_for"] = sorted(self.awaiting)
+        source = self.activity.state(self.production, time.monotonic())
+        if source is not None:
+            extra["source"] = source
         if self.live_params.changed:
             extra["params_set"] = dict(self.live_params.changed)
         try:
@@ -884,7 +917,9 @@ class NodeRuntime(NodeHost):
                 now = self.clock.now_ns()
                 self.run_timer(now)
                 if next_poll_wall is not None and time.monotonic() >= next_poll_wall:
+                    self.activity.poll_started(time.monotonic())
                     delay = self.poll_once(now)
+                    self.activity.poll_ended(delay, time.monotonic(), holding=self.node.holding())
                     next_poll_wall = None if delay is None else time.monotonic() + max(0.0, delay)
                 self.check_working(polling=next_poll_wall is not None)
         finally:

@@ -20,15 +20,17 @@ Both still read: a message is told by its first bytes (``FB1``: a frame, 0x92: t
 from __future__ import annotations
 
 import dataclasses
+import io
 import logging
 import os
+import re
 import stat
 import struct
 import types
 import typing
 import zlib
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any
@@ -37,8 +39,21 @@ from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, ChunkIndex, Footer, Metadata, MetadataIndex, Schema
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.records import (
+    Attachment,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    MetadataIndex,
+    Schema,
+)
+from mcap.stream_reader import StreamReader, breakup_chunk, get_chunk_data_stream
 
 from .codec import FRAME_FORMAT, RECORD_FORMAT, DecodeError, record_to_frame
 from .schemas import SCHEMA_VERSION, SCHEMAS
@@ -64,15 +79,24 @@ def _utc(ns: int) -> str:
 
 @dataclass
 class CorruptChunk:
-    """A chunk that cannot be trusted: its CRC does not match, or it does not even decompress or parse."""
-    offset: int  # of the chunk record in the file
-    start_ns: int  # log times of its first and last message (from the summary's chunk index)
+    """A part of a recording that cannot be trusted: a chunk whose CRC does not match, or that does not even
+    decompress or parse; or (``chunk`` False) bytes whose records do not hold together (a damaged header,
+    a damaged length field), ``length`` of them."""
+    offset: int  # of the chunk record (or the damaged bytes) in the file
+    start_ns: int  # log times of its first and last message (a chunk's fields or the summary's chunk index)
     end_ns: int
     reason: str
+    chunk: bool = True
+    length: int = 0  # bytes dropped with it
+    messages: int = 0  # messages dropped with it, when its message indexes tell
+    repaired: bool = False  # read all the same (a chunk whose length field alone is damaged: its CRC passes)
 
     def describe(self) -> str:
+        lost = f" ({self.messages} messages)" if self.messages else ""
+        if not self.chunk:
+            return f"{self.length} bytes at byte {self.offset}{lost}: {self.reason}"
         return (f"chunk at byte {self.offset}, messages {_utc(self.start_ns)} to {_utc(self.end_ns)} UTC "
-                f"({(self.end_ns - self.start_ns) / 1e9:.2f} s): {self.reason}")
+                f"({(self.end_ns - self.start_ns) / 1e9:.2f} s){lost}: {self.reason}")
 
 
 class CorruptChunkError(RecordingError):
@@ -82,11 +106,11 @@ class CorruptChunkError(RecordingError):
 
 
 class CorruptRecording(RecordingError):
-    """Chunks of a recording failed their check and the caller did not ask to skip them."""
+    """Parts of a recording failed their check and the caller did not ask to skip them."""
 
     def __init__(self, path: str | Path, chunks: list[CorruptChunk]):
         self.chunks = chunks
-        more = f" (and {len(chunks) - 1} more corrupt chunks)" if len(chunks) > 1 else ""
+        more = f" (and {len(chunks) - 1} more corrupt parts)" if len(chunks) > 1 else ""
         super().__init__(f"{path}: corrupt {chunks[0].describe()}{more}; --on-corrupt skip reads the rest, "
                          f"`followbus recover {path}` rewrites the good chunks")
 
@@ -252,11 +276,12 @@ def chunks_to_skip(path: str | Path, keys: Iterable[str] | None, on_corrupt: str
     is ``refuse``; with ``skip``, each is logged (named by its time range) and its offset returned."""
     if on_corrupt not in ON_CORRUPT:
         raise ValueError(f"on_corrupt must be one of {', '.join(ON_CORRUPT)}, not {on_corrupt!r}")
+    damaged = structure_damage(path)  # the header, the magic, the records between chunks: whatever keys are read
     bad = corrupt_chunks(path, keys)
-    if bad and on_corrupt == "refuse":
-        raise CorruptRecording(path, bad)
-    for chunk in bad:
-        log.warning("%s: skipping corrupt %s", path, chunk.describe())
+    if (damaged or bad) and on_corrupt == "refuse":
+        raise CorruptRecording(path, damaged + bad)
+    for part in damaged + bad:
+        log.warning("%s: skipping corrupt %s", path, part.describe())
     return frozenset(c.offset for c in bad)
 
 
@@ -444,38 +469,307 @@ def _parse_records(data: memoryview, summary: Any, channel_ids: set[int]) -> Ite
                              stored_frame(data[body + _MESSAGE_HEAD.size:pos]), sequence)
 
 
+# --- the records of a file that may be damaged ------------------------------------------------------
+
+_DATA_SECTION_RECORDS: dict[int, Any] = {
+    Opcode.HEADER: Header, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.MESSAGE: Message,
+    Opcode.CHUNK: Chunk, Opcode.MESSAGE_INDEX: MessageIndex, Opcode.ATTACHMENT: Attachment,
+    Opcode.METADATA: Metadata, Opcode.DATA_END: DataEnd}
+_PRIVATE_OPCODES = 0x80  # and above: records of other writers, skipped as the MCAP spec says
+# Where a chunk or metadata record may start after damage: its opcode, then a length below 2**40 (three high bytes 0).
+_RESYNC_AT = re.compile(rb"(?=[\x06\x0c].{5}\x00\x00\x00)", re.DOTALL)
+
+
+class Unreadable(Exception):
+    """The record at some offset does not hold together (its framing or its fields)."""
+
+
+@dataclass
+class ChunkFraming:
+    """A chunk record checked by its fields only (``fields_only``): its records are not copied out."""
+    fields: ChunkFields
+
+
+def _record_at(buf: Any, pos: int, limit: int, index: Any = None, fields_only: bool = False) -> tuple[Any, int]:
+    """(the record at ``pos`` of ``buf``, parsed by mcap's record classes, and the offset after it); None for a
+    private record. Unreadable when it runs past ``limit``, has no place in the data section, or its fields do not
+    fill it exactly. ``index``: the summary's ChunkIndex of a chunk there, whose opcode and length it gives,
+    whatever the record's own bytes say; ``fields_only``: a chunk is checked by its fields (a ChunkFraming), its
+    records not copied out."""
+    if pos + _RECORD_HEAD.size > limit:
+        raise Unreadable(f"{limit - pos} bytes: too short for a record")
+    opcode, length = _RECORD_HEAD.unpack_from(buf, pos)
+    if index is not None:
+        opcode, length = Opcode.CHUNK, index.chunk_length - _RECORD_HEAD.size
+    body, end = pos + _RECORD_HEAD.size, pos + _RECORD_HEAD.size + length
+    if end > limit:
+        raise Unreadable(f"a record (opcode 0x{opcode:02x}) of {length} bytes runs past byte {limit}")
+    if opcode >= _PRIVATE_OPCODES:
+        return None, end
+    kind = _DATA_SECTION_RECORDS.get(opcode)
+    if kind is None:
+        raise Unreadable(f"opcode 0x{opcode:02x} has no place in the data section")
+    if kind is Chunk and fields_only:
+        try:
+            fields = chunk_fields(buf, body)
+        except (struct.error, UnicodeDecodeError) as exc:
+            raise Unreadable(f"Chunk record: {type(exc).__name__}: {exc}") from None
+        if fields.records_at + fields.records_size != end:
+            raise Unreadable(f"Chunk record: its fields take {fields.records_at + fields.records_size - body} of "
+                             f"its {length} bytes")
+        return ChunkFraming(fields), end
+    stream = ReadDataStream(io.BytesIO(buf[body:end]))
+    try:
+        record = kind.read(stream, length) if kind is Message else kind.read(stream)
+    except Exception as exc:  # struct, EndOfFile, UnicodeDecodeError: whatever damaged bytes make of the fields
+        raise Unreadable(f"{kind.__name__} record: {type(exc).__name__}: {exc}") from None
+    if stream.count != length:
+        raise Unreadable(f"{kind.__name__} record: its fields take {stream.count} of its {length} bytes")
+    return record, end
+
+
+def _passes(chunk: Any) -> bool:
+    try:
+        breakup_chunk(chunk, validate_crc=True)
+    except Exception:
+        return False
+    return bool(chunk.uncompressed_crc)
+
+
+def _trusted_at(buf: Any, pos: int, limit: int) -> bool:
+    """Whether reading may resume at ``pos``: a chunk there passes its CRC (the one check that garbage, or the records
+    inside a damaged uncompressed chunk, cannot pass by chance), or a metadata record (never inside a chunk) parses
+    exactly and so does the record after it."""
+    try:
+        record, end = _record_at(buf, pos, limit)
+        if isinstance(record, Chunk):
+            return _passes(record)
+        if not isinstance(record, Metadata):
+            return False
+        if end < limit:
+            _record_at(buf, end, limit, fields_only=True)  # Unreadable when the record after it does not hold
+        return True
+    except Unreadable:
+        return False
+
+
+def _resync(buf: Any, start: int, limit: int, known: list[int]) -> int | None:
+    """The offset of the next record to trust after damage at ``start``: the next one the summary indexes (chunks,
+    metadata, attachments), else the next one :func:`_trusted_at` accepts."""
+    later = [offset for offset in known if offset >= start]
+    if later:
+        return min(later)
+    return next((m.start() for m in _RESYNC_AT.finditer(buf, start, limit) if _trusted_at(buf, m.start(), limit)),
+                None)
+
+
+def _chunk_by_fields(buf: Any, pos: int, limit: int) -> tuple[Any, int] | None:
+    """A chunk whose length field alone is damaged, read by its own fields (its records' size), when its CRC passes."""
+    if buf[pos] != Opcode.CHUNK:
+        return None
+    try:
+        fields = chunk_fields(buf, pos + _RECORD_HEAD.size)
+        end = fields.records_at + fields.records_size
+        if end > limit:
+            return None
+        chunk = Chunk.read(ReadDataStream(io.BytesIO(buf[pos + _RECORD_HEAD.size:end])))
+    except Exception:
+        return None
+    return (chunk, end) if _passes(chunk) else None
+
+
+@dataclass
+class _Layout:
+    """What the end of a finalised file says of its data section: where it ends, and the offsets it indexes."""
+    summary: Any = None
+    data_end: int = 0
+    chunks: dict[int, Any] = field(default_factory=dict)  # offset -> ChunkIndex
+    known: list[int] = field(default_factory=list)  # offsets of indexed records (chunks, metadata, attachments)
+    summary_damage: str = ""
+
+
+def _layout(f: IO[bytes], buf: Any) -> _Layout:
+    """The summary of ``f`` if its footer and summary hold (their CRC checked), else only where its data may end."""
+    out = _Layout(data_end=len(buf))
+    try:
+        summary = make_reader(f).get_summary()
+        tail = len(buf) - len(MCAP_MAGIC)
+        footer = Footer.read(ReadDataStream(io.BytesIO(buf[tail - 20:tail])))  # its fields, past opcode and length
+    except Exception:
+        return out  # unfinalised (a killed recorder), or its end is damaged: walked to the end of the file
+    if summary is None or not footer.summary_start:
+        return out
+    crc_end = len(buf) - len(MCAP_MAGIC) - 4
+    if footer.summary_crc and zlib.crc32(buf[footer.summary_start:crc_end]) != footer.summary_crc:
+        out.summary_damage = f"the summary at byte {footer.summary_start} fails its CRC"
+        return out
+    out.summary, out.data_end = summary, footer.summary_start
+    out.chunks = {ci.chunk_start_offset: ci for ci in summary.chunk_indexes}
+    out.known = sorted([*out.chunks, *(m.offset for m in summary.metadata_indexes),
+                        *(a.offset for a in summary.attachment_indexes)])
+    return out
+
+
+def _walk(buf: Any, layout: _Layout, damage: list[CorruptChunk],
+          fields_only: bool = False) -> Iterator[tuple[int, Any]]:
+    """(offset, record) of every top-level record of the data section that holds together, up to DataEnd; damaged
+    bytes are appended to ``damage`` and skipped to the next record to trust (:func:`_resync`)."""
+    pos = len(MCAP_MAGIC)
+    while pos < layout.data_end:
+        try:
+            record, end = _record_at(buf, pos, layout.data_end, layout.chunks.get(pos), fields_only)
+        except Unreadable as exc:
+            repaired = _chunk_by_fields(buf, pos, layout.data_end)
+            if repaired is not None:
+                record, end = repaired
+                damage.append(CorruptChunk(pos, record.message_start_time, record.message_end_time,
+                                           f"its length field is damaged ({exc}); read by its own fields, its CRC "
+                                           "passes", repaired=True))
+                yield pos, (ChunkFraming(chunk_fields(buf, pos + _RECORD_HEAD.size)) if fields_only else record)
+                pos = end
+                continue
+            resumed = _resync(buf, pos + 1, layout.data_end, layout.known)
+            damage.append(CorruptChunk(pos, 0, 0, str(exc), chunk=False,
+                                       length=(layout.data_end if resumed is None else resumed) - pos))
+            if resumed is None:
+                return
+            pos = resumed
+            continue
+        if record is None:  # a private record: another writer's (never followbus's), or a damaged opcode byte
+            damage.append(CorruptChunk(pos, 0, 0, f"a private record (opcode 0x{buf[pos]:02x}), skipped",
+                                       chunk=False, length=end - pos))
+            pos = end
+            continue
+        index = layout.chunks.get(pos)
+        if index is not None and _RECORD_HEAD.unpack_from(buf, pos) != (Opcode.CHUNK, end - pos - _RECORD_HEAD.size):
+            damage.append(CorruptChunk(pos, index.message_start_time, index.message_end_time, "its opcode or length "
+                                       "field disagrees with the summary's chunk index, which is followed",
+                                       repaired=True))
+        yield pos, record
+        if isinstance(record, DataEnd):
+            return
+        pos = end
+
+
+def _framing_doubts(walked: list[tuple[int, Any]], damage: list[CorruptChunk]) -> list[CorruptChunk]:
+    """A data section that does not start with its Header."""
+    out = []
+    header_damaged = any(d.offset == len(MCAP_MAGIC) for d in damage)
+    if not header_damaged and (not walked or not isinstance(walked[0][1], Header)):
+        out.append(CorruptChunk(len(MCAP_MAGIC), 0, 0, "no Header record after the magic", chunk=False))
+    return out
+
+
+def structure_damage(path: str | Path) -> list[CorruptChunk]:
+    """What is wrong with a recording besides its chunks' contents (:func:`corrupt_chunks`): its magic, its header,
+    the framing of the records from the header to the summary (a damaged length field, garbage between records),
+    the summary's CRC. Chunk bodies are not read: this is cheap."""
+    import mmap
+
+    damage: list[CorruptChunk] = []
+    with open_recording(path) as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+        if buf[:len(MCAP_MAGIC)] != MCAP_MAGIC:
+            damage.append(CorruptChunk(0, 0, 0, "not the MCAP magic", chunk=False, length=len(MCAP_MAGIC)))
+        layout = _layout(f, buf)
+        if layout.summary_damage:
+            damage.append(CorruptChunk(layout.data_end, 0, 0, layout.summary_damage, chunk=False))
+        walked = list(_walk(buf, layout, damage, fields_only=True))
+        damage += _framing_doubts(walked, damage)
+    return sorted(damage, key=lambda d: d.offset)
+
+
 # --- salvaging a damaged file ----------------------------------------------------------------------
 
 @dataclass
 class Salvage:
     """What reading a possibly truncated or corrupt file found besides its records."""
-    chunks: int = 0  # complete chunks read
-    bad_chunks: int = 0  # chunks whose body did not decompress or failed its CRC: skipped
+    chunks: int = 0  # chunks read whole (their CRC passes)
     compression: str | None = None  # of its first chunk ("none" when uncompressed)
-    complete: bool = False  # its footer was there: nothing was lost
-    stopped_by: str = ""  # why reading stopped before the footer (the cut)
+    complete: bool = False  # its footer and summary were there and hold: the file was finalised
+    stopped_by: str = ""  # why reading stopped before the end of the data section (the cut of a killed recorder)
+    damage: list[CorruptChunk] = field(default_factory=list)  # what was dropped (bad chunks, damaged bytes)
+    # Schema or channel records read from a damaged chunk, for want of any other copy: named, so that they
+    # can be checked (a record a flipped bit hit would name a wrong topic or type).
+    doubtful: list[str] = field(default_factory=list)
+
+    @property
+    def bad_chunks(self) -> int:
+        return sum(1 for d in self.damage if d.chunk)
+
+
+def _definitions(chunk: Any) -> list[Any]:
+    """The Schema and Channel records of a chunk that failed its CRC, as far as its records still parse."""
+    out: list[Any] = []
+    try:
+        stream, size = get_chunk_data_stream(chunk, validate_crc=False)
+        while stream.count < size:
+            opcode, length = stream.read1(), stream.read8()
+            start = stream.count
+            if opcode == Opcode.SCHEMA:
+                out.append(Schema.read(stream))
+            elif opcode == Opcode.CHANNEL:
+                out.append(Channel.read(stream))
+            else:
+                stream.read(length)
+            if stream.count != start + length:
+                break
+    except Exception:  # what follows the damage does not parse
+        pass
+    return out
 
 
 def salvage_records(path: str | Path, found: Salvage) -> Iterator[Any]:
-    """Every record of an MCAP file that can still be read, in file order, chunks broken up into their records
-    (Header, Schema, Channel, Message, Metadata, Attachment, ...): a corrupt chunk is skipped, reading stops at
-    the cut of a truncated file. ``found`` is filled in as it goes (``followbus recover`` rewrites the records)."""
-    with open_recording(path) as f:
-        try:
-            for record in StreamReader(f, emit_chunks=True, record_size_limit=1 << 31).records:
-                if isinstance(record, Chunk):
-                    found.compression = found.compression or record.compression or "none"
-                    try:
-                        inner = breakup_chunk(record, validate_crc=True)
-                    except Exception as exc:  # a corrupt chunk body (any codec error): skip it, keep the rest
-                        found.bad_chunks += 1
-                        log.warning("%s: skipping a corrupt chunk at %d: %s", path, found.chunks, exc)
-                        continue
-                    found.chunks += 1
-                    yield from inner
-                elif isinstance(record, Footer):
-                    found.complete = True
-                else:
-                    yield record
-        except (McapError, struct.error, ValueError, EOFError) as exc:
-            found.stopped_by = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+    """Every record of an MCAP file that can still be trusted, in file order, chunks broken up into their records
+    (Header, Schema, Channel, Message, Metadata, Attachment): the summary's schemas and channels first, when the
+    file has a summary (a chunk that holds the only other copy may be the damaged one); every chunk whose CRC
+    passes, whichever chunk is bad; after damaged bytes (a damaged header, a damaged length field) reading
+    resumes at the next record the summary indexes, else the next chunk whose CRC passes. ``found`` is filled in
+    as it goes: what was dropped, and why reading stopped (``followbus recover`` rewrites the records)."""
+    import mmap
+
+    with open_recording(path) as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+        layout = _layout(f, buf)
+        found.complete = layout.summary is not None
+        if layout.summary is not None:
+            yield from layout.summary.schemas.values()
+            yield from layout.summary.channels.values()
+        walked: list[CorruptChunk] = []
+        last_bad: CorruptChunk | None = None
+        for offset, record in _walk(buf, layout, walked):
+            found.damage.extend(walked)
+            walked.clear()
+            if isinstance(record, MessageIndex):
+                if last_bad is not None:
+                    last_bad.messages += len(record.records)
+                continue
+            last_bad = None
+            if isinstance(record, Chunk):
+                last_bad = yield from _salvage_chunk(path, offset, record, layout, found)
+            elif not isinstance(record, DataEnd):
+                yield record
+        if walked and layout.summary is None and walked[-1].offset + walked[-1].length == layout.data_end:
+            found.stopped_by = walked.pop().reason  # the cut of a file its recorder never finished
+        found.damage.extend(walked)
+
+
+def _salvage_chunk(path: str | Path, offset: int, chunk: Any, layout: _Layout,
+                   found: Salvage) -> Iterator[Any]:
+    """A chunk's records when its CRC passes; else nothing but the schema and channel records nothing else defines
+    (a damaged chunk's, named in ``found.doubtful``), and its damage record, returned (its message indexes follow)."""
+    found.compression = found.compression or chunk.compression or "none"
+    try:
+        records = breakup_chunk(chunk, validate_crc=True)
+    except Exception as exc:  # a corrupt chunk body (any codec error): skipped, the rest kept
+        bad = CorruptChunk(offset, chunk.message_start_time, chunk.message_end_time,
+                           str(exc) if isinstance(exc, ValueError) and "crc" in str(exc) else
+                           f"unreadable ({type(exc).__name__}: {exc})")
+        found.damage.append(bad)
+        log.warning("%s: skipping corrupt %s", path, bad.describe())
+        for record in [] if layout.summary is not None else _definitions(chunk):  # the summary has them all
+            found.doubtful.append(f"{type(record).__name__.lower()} {record.id}"
+                                  + (f" ({record.topic})" if isinstance(record, Channel) else f" ({record.name})"))
+            yield record
+        return bad
+    found.chunks += 1
+    yield from records
+    return None

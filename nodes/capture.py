@@ -1,8 +1,8 @@
 """capture: publishes camera frames (raw, via shared memory locally), a small JPEG preview for
 remote viewers, and ground truth when the source has it.
 
-Sources (``source`` param): ``camera:<index>``, a video file, an image folder (optionally in the
-../shared/data layouts, with ground truth), ``scene:<name>`` (built-in synthetic scenes with exact
+Sources (``source`` param): ``camera:<index>`` or ``camera:<device path>``, a video file, an image folder
+(optionally in the ../shared/data layouts, with ground truth), ``scene:<name>`` (built-in synthetic scenes with exact
 ground truth), or an MCAP recording (``*.mcap``: its raw frames, and its ground truth when recorded,
 re-published with their original spacing), or a ROS 2 image topic (``ros2:/camera/image_raw``:
 sensor_msgs/Image; a ``.../compressed`` topic: CompressedImage; over rmw_zenoh's format, nodes/ros2.py).
@@ -25,7 +25,10 @@ from ..bus.node import DownstreamBarrier, Node, ParamError
 from ..bus.schemas import Frame, Message, decode
 from ..msgs.perception import GroundTruth
 from ..msgs.tracking import Track
-from ..vision.sources import SourceError, check_source, open_source
+from ..vision.sources import SourceError, SourceReadError, check_source, open_source
+
+MAX_SIDE_PX = 8192  # frames larger than 8K are refused at check time, not allocated by a crash-looping node
+_END = object()  # the source has no more frames (None is a live source's "no new frame yet")
 
 
 @dataclass
@@ -66,6 +69,10 @@ class Capture(Node):
                          ("start_delay_s", 0)):
             if getattr(params, key) < low:
                 raise ParamError(key, f"{key} must be >= {low}, not {getattr(params, key)!r}")
+        for key in ("width_px", "height_px", "preview_width_px"):
+            if getattr(params, key) > MAX_SIDE_PX:
+                raise ParamError(key, f"{key} must be at most {MAX_SIDE_PX} (an 8K frame's side), "
+                                      f"not {getattr(params, key)!r}")
         if params.jpeg_quality > 100:
             raise ParamError("jpeg_quality", f"jpeg_quality must be in 1..100, not {params.jpeg_quality!r}")
         return params
@@ -103,7 +110,8 @@ class Capture(Node):
     def setup(self) -> None:
         p = self.params
         self.source = self._open()
-        self.frames = iter(self.source)
+        self.frames: Any = iter(self.source)  # None after a failed read: the next poll resumes at `position`
+        self.position = 0  # the source's index of the next frame in this pass
         self.fps = p.fps or getattr(self.source, "fps", 30.0) or 30.0
         self.published = 0
         # Names this session's frame numbering: a restarted capture counts from 0 again under a new epoch,
@@ -158,23 +166,11 @@ class Capture(Node):
         in_flight = self.published - 1 - self.acked
         if p.pace == "fast" and "ack" in self.runtime.spec.inputs and in_flight >= p.max_in_flight:
             return 0.002  # consumers are behind: wait for the ack of an earlier frame
-        try:
-            item = next(self.frames)
-            if item is None:  # a live source (ROS 2) with no new image yet
-                return 0.0
-        except StopIteration:
-            if p.loop:
-                # A source that can run again does so (a scene keeps its rendered assets: re-opening one
-                # cost a ~180 ms stall at every pass, 300+ ms on a busy CPU); others are re-opened.
-                if not getattr(self.source, "rewindable", False):
-                    self.source.close()
-                    self.source = self._open()
-                self.frames = iter(self.source)
-                self.first_source_ns -= self.last_source_ns + int(1e9 / self.fps)
-                return 0.0
-            self.log.info("source exhausted after %d frames", self.published)
-            self.done = True
-            return None
+        item = self._next_item()
+        if item is None:  # a live source (ROS 2) with no new image yet
+            return 0.0
+        if item is _END:
+            return self._source_ended()
         if self.t0_wall_ns is None:
             self.t0_wall_ns = self.wall_ns()
             self.first_source_ns = item.t_ns
@@ -189,6 +185,43 @@ class Capture(Node):
         if p.pace == "fast":
             return 0.0
         return max(0.0, (stamp + int(1e9 / self.fps) - self.wall_ns()) / 1e9)
+
+    def _next_item(self) -> Any:
+        """The source's next frame, None (none yet) or _END. A source that raises is never taken for exhausted: its
+        generator is finished, so the next poll resumes the source at the same frame (a camera reopens) and the
+        runtime's poll budget (bus/liveness.py) retries it with backoff, then fails the node, whose launcher
+        restarts it and names the error."""
+        try:
+            if self.frames is None:
+                self.frames = self.source.resume(self.position)
+                self.log.info("source %s resumed at frame %d", self.params.source, self.position)
+            item = next(self.frames)
+        except StopIteration:
+            return _END
+        except Exception as exc:
+            self.frames = None
+            if isinstance(exc, SourceReadError):
+                raise  # its message names the source (the image, the camera)
+            raise SourceReadError(f"source {self.params.source!r}: {type(exc).__name__}: {exc}") from exc
+        if item is not None:
+            self.position = item.index + 1
+        return item
+
+    def _source_ended(self) -> float | None:
+        """Every frame of the source was published: again from its first with ``loop``, else done for good."""
+        if self.params.loop:
+            # A source that can run again does so (a scene keeps its rendered assets: re-opening one
+            # cost a ~180 ms stall at every pass, 300+ ms on a busy CPU); others are re-opened.
+            if not getattr(self.source, "rewindable", False):
+                self.source.close()
+                self.source = self._open()
+            self.frames = iter(self.source)
+            self.position = 0
+            self.first_source_ns -= self.last_source_ns + int(1e9 / self.fps)
+            return 0.0
+        self.log.info("source exhausted after %d frames", self.published)
+        self.done = True
+        return None
 
     def _publish(self, item, stamp_ns: int) -> None:
         bgr = np.ascontiguousarray(item.bgr)
@@ -227,6 +260,9 @@ class Capture(Node):
                     data=np.frombuffer(jpeg.tobytes() if ok else b"", np.uint8), source_width=w, source_height=h)
         msg.header.stamp_ns, msg.header.frame_seq, msg.header.epoch_ns = stamp_ns, seq, self.epoch_ns
         return msg
+
+    def holding(self) -> bool:
+        return self.t0_wall_ns is None and not self.barrier.opened
 
     def status_extra(self) -> dict[str, Any]:
         return {"published": self.published, "acked": self.acked, "done": self.done}
@@ -282,7 +318,10 @@ class McapFrameSource:
     def __iter__(self):
         return self.frames()
 
-    def frames(self):
+    def resume(self, start: int):
+        return self.frames(start)
+
+    def frames(self, start: int = 0):
         from ..bus.recording import iter_bus_messages  # here: a camera-fed capture never loads mcap
         from ..vision.sources import SourceFrame
 
@@ -308,6 +347,9 @@ class McapFrameSource:
                 extras.update(visible_fraction=gt.visible_fraction, distractor_boxes=gt.others.tolist(),
                               distractor_visible_fractions=gt.others_visible.tolist())
             box = None if gt is None or gt.box is None else tuple(float(v) for v in gt.box)
+            if index < start:
+                index += 1
+                continue
             yield SourceFrame(index, msg.header.stamp_ns - first_stamp, np.array(msg.data), box, extras)
             index += 1
 

@@ -29,6 +29,9 @@ from ..vision.detectors import (
 )
 
 WARM_UP_INFERENCES = 2
+# The largest network input accepted: a 4K frame's long side. `check` refuses more (one line) rather than the node
+# crash-looping on an allocation no machine has.
+MAX_INPUT_SIZE_PX = 4096
 
 
 @dataclass
@@ -92,6 +95,10 @@ class Detection(Node):
         if params.input_size_px < 32 or params.input_size_px % 32:
             raise ParamError("input_size_px", "input_size_px must be a positive multiple of 32 (the detector's "
                                               f"largest stride), e.g. 416 or 640, not {params.input_size_px!r}")
+        if params.input_size_px > MAX_INPUT_SIZE_PX:
+            raise ParamError("input_size_px", f"input_size_px must be at most {MAX_INPUT_SIZE_PX} (a 4K frame's "
+                                              "long side: a larger input only scales the frame up, and its tensors "
+                                              f"take gigabytes), not {params.input_size_px!r}")
         if params.input_shape not in INPUT_SHAPES or (params.input_shape == "fit" and params.backend == "yolov8"):
             raise ParamError("input_shape", f"input_shape must be one of {', '.join(INPUT_SHAPES)} (fit: YOLOX "
                                             f"only), not {params.input_shape!r}")

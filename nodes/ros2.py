@@ -194,5 +194,9 @@ class Ros2ImageSource:
             yield SourceFrame(index, stamp, bgr, None, {})
             index += 1
 
+    def resume(self, _start: int) -> Iterator[SourceFrame | None]:
+        """After a failed iteration: the images that arrive from now on."""
+        return iter(self)
+
     def close(self) -> None:
         self._node.close()

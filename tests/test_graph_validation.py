@@ -112,6 +112,11 @@ CANNOT_RUN = [
      "input_size_px must be a positive multiple of 32"),
     ("capture of width 0", [('      pace: realtime ', '      width_px: 0\n      pace: realtime ')],
      "width_px must be >= 16"),
+    # issue 36: accepted, then detection crash-looped on a 20 PiB allocation (a scene of that width alike)
+    ("impossible input size", [("      input_size_px: 416\n", "      input_size_px: 100000000\n")],
+     "input_size_px must be at most 4096"),
+    ("scene wider than 8K", [('      pace: realtime ', '      width_px: 100000000\n      pace: realtime ')],
+     "width_px must be at most 8192"),
     ("unknown zenoh config key", [("zenoh:\n", "zenoh:\n  config: {transport/auth/usrpwdd: {user: a}}\n")],
      "zenoh: config: transport/auth/usrpwdd: unknown key"),
     ("mistyped zenoh config value", [("zenoh:\n", "zenoh:\n  config: {transport/link/tls/enable_mtls: 'yes'}\n")],
@@ -140,6 +145,18 @@ def test_check_refuses_a_graph_that_cannot_run(tmp_path, capsys, what, edits, me
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err, err
     assert message in err and str(path) in err, err
+
+
+def test_an_impossible_model_size_is_one_line_at_its_line(tmp_path, capsys):
+    from followbus.tools.cli import main
+
+    text = GRAPH_YAML.replace("      input_size_px: 416\n", "      input_size_px: 100000000\n", 1)
+    path = tmp_path / "graph.yaml"
+    path.write_text(text)
+    assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"followbus: {path}:{_line_of(text, 'input_size_px: 100000000')}: node 'detection': "
+                          "input_size_px must be at most 4096"), err
 
 
 def test_check_refuses_a_set_override_that_is_not_finite(capsys):

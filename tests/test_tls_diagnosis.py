@@ -9,14 +9,18 @@ import contextlib
 import shutil
 import socket
 import ssl
+import subprocess
 import threading
+import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
 from followbus.bus.session import ZenohSettings
 from followbus.tools.connect import explain_connect_failure
 
+from .conftest import run_followbus
 from .test_security import _certificates
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="the openssl CLI makes the certificates")
@@ -99,3 +103,49 @@ def test_the_right_ca_leaves_the_password_as_the_reason(robot_tls):
     port, certs = robot_tls
     line = explain_connect_failure(_client(f"tls/127.0.0.1:{port}", ca=certs["ca"]))
     assert "authentication failed for user monitor" in line and "wrong or missing password" in line, line
+
+
+def _expired(tmp: Path) -> dict[str, Path]:
+    """A CA and a certificate for 127.0.0.1 signed by it that expired in 2020 (`openssl ca` sets past dates)."""
+    certs = _certificates(tmp)
+    conf, key, csr, cert = (tmp / n for n in ("ca.cnf", "expired.key", "expired.csr", "expired.pem"))
+    (tmp / "index.txt").write_text("")
+    (tmp / "serial").write_text("1000\n")
+    conf.write_text(f"[ca]\ndefault_ca = test\n[test]\ndir = {tmp}\ndatabase = {tmp}/index.txt\nnew_certs_dir = {tmp}\n"
+                    f"serial = {tmp}/serial\ndefault_md = sha256\npolicy = any\ncopy_extensions = copy\n"
+                    "[any]\ncommonName = supplied\n")
+    for argv in (
+        ["req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-keyout", key, "-out", csr,
+         "-subj", "/CN=robot", "-addext", "subjectAltName=IP:127.0.0.1", "-addext", "extendedKeyUsage=serverAuth"],
+        ["ca", "-batch", "-config", conf, "-cert", certs["ca"], "-keyfile", tmp / "ca.key", "-in", csr, "-out", cert,
+         "-startdate", "20200101000000Z", "-enddate", "20200201000000Z"],
+    ):
+        subprocess.run(["openssl", *map(str, argv)], check=True, capture_output=True, timeout=30)
+    return {"ca": certs["ca"], "key": key, "cert": cert}
+
+
+def test_an_expired_certificate_is_named_as_such(tmp_path):
+    certs = _expired(tmp_path)
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.load_cert_chain(certs["cert"], certs["key"])
+    with _listener(context) as port:
+        line = explain_connect_failure(_client(f"tls/127.0.0.1:{port}", ca=certs["ca"]))
+    assert "TLS handshake" in line and "certificate has expired" in line and "validity dates" in line, line
+
+
+def test_launch_with_an_expired_certificate_names_tls_at_once(tmp_path, port):
+    """On d899b0d: "startup timeout after 30 s: no liveliness from ticker", no word of TLS."""
+    certs = _expired(tmp_path)
+    endpoint = f"tls/127.0.0.1:{port}"
+    graph = tmp_path / "graph.yaml"
+    graph.write_text(f"name: test\nnamespace: t\nzenoh:\n  mode: router\n  listen: [{endpoint}]\n"
+                     f"  connect: [{endpoint}]\n  config:\n    transport/link/tls:\n"
+                     f"      listen_certificate: {certs['cert']}\n      listen_private_key: {certs['key']}\n"
+                     f"      root_ca_certificate: {certs['ca']}\n"
+                     "nodes:\n  ticker: {run: followbus.nodes.diagnostics, outputs: [tick]}\n")
+    started = time.monotonic()
+    result = run_followbus("launch", str(graph), "--duration", "3", "--startup-timeout", "60", timeout=120)
+    assert result.returncode == 2, result.stdout + result.stderr
+    line = result.stderr.strip().splitlines()[-1]
+    assert line.startswith(f"followbus launch: TLS handshake with {endpoint} failed: certificate has expired"), line
+    assert time.monotonic() - started < 30, "named only at the start-up timeout"

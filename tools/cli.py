@@ -35,7 +35,7 @@ examples:
   followbus node detection                run one node of ./graph.yaml in this terminal
   followbus demo --domain auto            in the first domain where no graph runs (FOLLOWBUS_DOMAIN=N: that one)
   followbus up graph.yaml                 in the background, a log file per node; then: ps, logs, down
-  followbus logs followbus-demo reid -f   one node's log of a graph started with up
+  followbus logs followbus reid -f        one node's log of a graph started with up
   followbus param set reid.reid_threshold 0.8   change a live-tunable parameter of a running node
   followbus graph graph.yaml --svg -o g.svg     draw the nodes and keys (or --dot)
   followbus topics                        keys seen on the bus with their rates
@@ -278,6 +278,9 @@ def cmd_launch(args) -> int:
         status = launcher.run(args.duration)
     finally:
         held.close()
+    if launcher.refusal:
+        print(f"followbus launch: {launcher.refusal}", file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
     problems = launcher.problems() if args.duration is not None else []
     if problems:
         # A scripted run (CI, a smoke test) must not pass with a node that crash-looped or stayed silent.

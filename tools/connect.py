@@ -85,6 +85,20 @@ def tls_ca(config: dict[str, Any]) -> str | None:
     return str(value) if value else None
 
 
+CERT_DATE_ERRORS = (9, 10)  # X509_V_ERR_CERT_NOT_YET_VALID, X509_V_ERR_CERT_HAS_EXPIRED
+
+
+def graph_tls_problem(settings: ZenohSettings) -> str | None:
+    """Why the nodes of a graph would fail the TLS handshake with its endpoints that listen now (the launcher's own,
+    or a router the graph joins), with the graph's own CA; None when none does (or none is TLS)."""
+    for endpoint in settings.connect:
+        if endpoint.startswith("tls/") and endpoint_listening(endpoint):
+            problem = tls_problem(endpoint, settings.config)
+            if problem:
+                return problem
+    return None
+
+
 def _tls_handshake(host: str, port: int, context: ssl.SSLContext) -> None:
     with socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S * 4) as raw, \
             context.wrap_socket(raw, server_hostname=host):
@@ -128,6 +142,9 @@ def tls_problem(endpoint: str, config: dict[str, Any]) -> str | None:
     try:
         _tls_handshake(host, port, context)
     except ssl.SSLCertVerificationError as exc:
+        if exc.verify_code in CERT_DATE_ERRORS:
+            return (f"TLS handshake with {endpoint} failed: {exc.verify_message} (the robot's certificate is "
+                    "outside its validity dates: renew it, or check this machine's clock)")
         return (f"TLS handshake with {endpoint} failed: {exc.verify_message} (is the robot's certificate signed "
                 f"by {ca}, and for {host}?)")
     except ssl.SSLError as exc:

@@ -233,6 +233,9 @@ def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: 
     summary = watcher.summary()
     watcher.close()
     print()
+    if launcher.refusal:
+        print(f"followbus demo: {launcher.refusal}", file=sys.stderr, flush=True)
+        return 2
     print_summary(summary)
     problems = launcher.problems()
     if summary["frames"] == 0 and not launcher.interrupted:

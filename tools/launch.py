@@ -15,6 +15,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from ..bus.children import die_with_parent
 from ..bus.graph import Graph, NodeSpec
@@ -24,6 +25,7 @@ from ..bus.health import (
     LaunchedProcess,
     launcher_id,
     launcher_key,
+    node_state,
     process_table,
 )
 from ..bus.hosts import host_plan, nodes_on
@@ -32,9 +34,11 @@ from ..bus.liveness import STOPPED_WORKING_EXIT
 from ..bus.node import LAUNCH_ID_ENV, LAUNCHED_NODES_ENV, LEFT_OUT_NODES_ENV
 from ..bus.pubsub import Publisher, direct_callback
 from ..bus.session import open_session
+from .runs.claims import health_path, write_health
 
 log = logging.getLogger("followbus.launch")
 LINK_CHECK_PERIOD_S = 1.0  # a graph spread over hosts: its links are judged this often (statuses come once a second)
+INTERRUPTED_EXIT = 130  # every command's status after Ctrl-C (tools/cli.py)
 TOOL_GRACE_S = 30.0  # a tool beside the graph (the recorder) gets this long to stop after SIGTERM
 
 # A node that fails again after being restarted this recently is crash-looping: its restarts are not helping.
@@ -79,6 +83,7 @@ class Launcher:
         # Subscribe to every node's outputs until its first message: problems() names the silent ones.
         self.watch_outputs = watch_outputs
         self.interrupted = False  # stopped by Ctrl-C/SIGTERM rather than by its duration
+        self.refusal = ""  # why the graph could not start at all (TLS), one line
         self.ran_s = 0.0
         self.grace_s = grace_s
         self.startup_timeout_s = startup_timeout_s
@@ -171,7 +176,7 @@ class Launcher:
         log_fn("%s exited with status %d", child.name, code)
         wants_restart = policy.policy == "always" or (policy.policy == "on-failure" and code != 0)
         if child.spec.run == "<tool>" or self.stop_event.is_set() or not wants_restart:
-            child.failed = code != 0
+            child.failed = code != 0 and not _interrupted(code)
             child.finished = True
             if child.failed:
                 log.error("%s failed for good (status %d, restart policy %s)", child.name, code, policy.policy)
@@ -205,6 +210,32 @@ class Launcher:
         except Exception as exc:  # monitoring must never take the graph down
             log.warning("could not publish the process table: %r", exc)
         self._table_due = time.monotonic() + LAUNCHER_PERIOD_S
+
+    def node_states(self) -> dict[str, dict[str, Any]]:
+        """Each node's state as `followbus ps` shows it: up, stalled, done (bus/health.py node_state), starting (no
+        token yet), restarting, failed; and its restarts."""
+        snapshot = self.health.snapshot() if self.health is not None else {}
+        out = {}
+        for child in self.children:
+            if child.spec.run == "<tool>":
+                continue
+            health = snapshot.get(child.name)
+            if child.failed:
+                state = "failed"
+            elif child.proc is None:
+                state = "exited" if child.finished else "restarting"
+            elif health is None or not health.alive:
+                state = "starting"
+            else:
+                state = node_state(True, health.status.extra if health.status else None)
+            out[child.name] = {"state": state, "restarts": child.restarts}
+        return out
+
+    def _write_health(self) -> None:
+        try:
+            write_health(health_path(self.graph), self.node_states())
+        except OSError as exc:  # `ps` shows less; the graph runs on
+            log.debug("could not write the health file: %r", exc)
 
     def request_stop(self, *_args) -> None:
         self.stop_event.set()
@@ -244,6 +275,9 @@ class Launcher:
         """Run until duration elapses (counted from the moment every node is up, so start-up on a busy
         machine does not eat the run), Ctrl-C/SIGTERM, or every node has finished. Returns the exit status."""
         self._open_bus()
+        self.refusal = self._tls_refusal()
+        if self.refusal:
+            return self._shutdown(2)
         for child in self.children:
             self._start(child)
         node_names = {c.name for c in self.children if c.spec.run != "<tool>"}
@@ -282,9 +316,9 @@ class Launcher:
     def _open_bus(self) -> None:
         """Open the session, the liveliness watch, the process table and (with watch_outputs) the output watch."""
         self.session = open_session(self.graph.zenoh)
-        # Raw tokens for readiness (no cross-check); the statuses too when the links are watched.
-        self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=self.links is not None,
-                                    cross_check=False)
+        # Statuses too: `followbus ps` shows a stalled source from the health file (_write_health), and a graph
+        # spread over hosts judges its links from them.
+        self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=True, cross_check=False)
         self._table_pub = Publisher(self.session, launcher_key(self.graph.namespace, self.launcher_id),
                                     self.launcher_id, congestion="drop")
         if self.watch_outputs:
@@ -300,6 +334,7 @@ class Launcher:
                 self._start(child)
         if now >= self._table_due:
             self._publish_table()
+            self._write_health()
         if self.links is not None and self.health is not None and now >= self._links_due:
             self._links_due = now + LINK_CHECK_PERIOD_S
             for level, line in self.links.check(self.health.snapshot(), now):
@@ -314,15 +349,30 @@ class Launcher:
             self._on_exit(child, code)
 
     def _announce_ready(self, n_nodes: int, startup_s: float, on_ready) -> None:
+        self._write_health()  # before the line `followbus up` waits for: a `ps` after it sees every node up
         self.ready_event.set()
         # `followbus up` waits for this line in a detached run's launch.log (READY_MARK).
         log.info("graph %r ready: %d nodes up in %.1f s", self.graph.name, n_nodes, startup_s)
         if on_ready is not None:
             on_ready()
 
+    def _tls_refusal(self) -> str:
+        """A graph whose nodes cannot pass the TLS handshake with its endpoints (an expired certificate, a CA that did
+        not sign it) would end in a start-up timeout that names no cause: said at once instead, naming TLS."""
+        from .connect import graph_tls_problem
+
+        problem = graph_tls_problem(self.graph.zenoh)
+        if problem:
+            log.error("%s", problem)
+        return problem or ""
+
     def _report_startup_timeout(self, missing: set[str]) -> None:
-        log.error("startup timeout after %.0f s: no liveliness from %s", self.startup_timeout_s,
-                  ", ".join(sorted(missing)))
+        from .connect import graph_tls_problem
+
+        tls = graph_tls_problem(self.graph.zenoh)
+        log.error("startup timeout after %.0f s: no liveliness from %s%s", self.startup_timeout_s,
+                  ", ".join(sorted(missing)), f" ({tls})" if tls else "")
+        self.refusal = self.refusal or (tls or "")
 
     def _should_stop(self) -> bool:
         """Every child has finished, or a node (not a tool) failed for good."""
@@ -358,6 +408,8 @@ class Launcher:
         if failed:
             log.error("node(s) failed for good: %s", ", ".join(failed))
         self._publish_table(stopped=True)
+        with contextlib.suppress(OSError):
+            health_path(self.graph).unlink()
         self._unwatch(every=True)
         if self.health is not None:
             self.health.close()
@@ -376,10 +428,17 @@ def _link_watch(graph: Graph, host: str | None) -> LinkWatch | None:
     return LinkWatch(edges_of_graph(graph), hosts, host, peer_mode=graph.zenoh.mode == "peer")
 
 
+def _interrupted(code: int) -> bool:
+    """A child that exited as every command does after Ctrl-C (the terminal sent it SIGINT with the launcher)."""
+    from .errors import INTERRUPTED
+
+    return code == INTERRUPTED_EXIT and INTERRUPTED.is_set()
+
+
 def _failure(child: Child) -> str | None:
     """One phrase for a child that failed for good, crash-looped or stopped working (bus/liveness.py); else None."""
     said = child.last_error or child.last_line
-    why = f": {said[:160]}" if said else ""
+    why = f": {said[:320]}" if said else ""  # room for a source and its error
     last_t, last_code = child.failures[-1] if child.failures else (0.0, child.exit_code)
     recent = [t for t, _ in child.failures if t >= last_t - CRASH_LOOP_WINDOW_S]
     if child.failed or len(recent) >= CRASH_LOOP_EXITS:

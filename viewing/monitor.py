@@ -385,6 +385,19 @@ class BusMonitor:
                     if health.status.pid and health.status.pid not in node.pids:
                         node.pids.append(health.status.pid)
 
+    def graph_svg(self) -> str:
+        """The graph's drawing: of the graph file when the monitor has one, else of what the nodes' statuses say
+        they publish and read (a laptop without the robot's graph.yaml still sees the dataflow)."""
+        if self.info.graph_svg:
+            return self.info.graph_svg
+        from ..bus.graph_drawing import to_svg
+
+        self._merge_status()
+        with self.lock:
+            statuses = {name: node.status for name, node in self.nodes.items() if node.status is not None}
+        graph = graph_from_statuses(self.info.namespace, statuses)
+        return to_svg(graph) if graph.nodes else ""
+
     def snapshot(self) -> dict[str, Any]:
         """A JSON-friendly picture of everything the monitor knows (the views: viewing/views.py)."""
         self._merge_status()
@@ -419,3 +432,24 @@ class BusMonitor:
                                   "height": preview.height, "frame_seq": preview.header.frame_seq,
                                   "stamp_ns": preview.header.stamp_ns}
             return out
+
+
+def graph_from_statuses(namespace: str, statuses: dict[str, NodeStatus]) -> Any:
+    """A graph as bus/graph_drawing.py draws it, from the topics each node's status lists (key, direction): its
+    outputs under its own name, its inputs by the key they read. Which input is feedback is not in a status."""
+    from types import SimpleNamespace
+
+    prefix = f"{namespace}/"
+    nodes: dict[str, Any] = {}
+    for name, status in sorted(statuses.items()):
+        outputs, inputs = [], {}
+        for key, topic in sorted(status.topics.items()):
+            if not key.startswith(prefix):
+                continue
+            source = key[len(prefix):]
+            if topic.get("direction") == "out" and source.startswith(f"{name}/"):
+                outputs.append(source[len(name) + 1:])
+            elif topic.get("direction") == "in" and "/" in source:
+                inputs[source] = SimpleNamespace(topic=source, offset=0)
+        nodes[name] = SimpleNamespace(outputs=outputs, inputs=inputs)
+    return SimpleNamespace(name="drawn from the bus", namespace=namespace, nodes=nodes)

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from ..bus.health import node_state
 from ..msgs.group import GroundPoints, GroupState
 from ..msgs.robot import MotorCommand
 from ..msgs.tracking import Measurement, Prior, Template, Track
@@ -73,7 +74,8 @@ def node_row(name: str, node: Any, now_ns: int) -> dict[str, Any]:
     st = node.status
     fresh = st is not None and now_ns - node.status_ns < STATUS_FRESH_NS
     return {
-        "name": name, "alive": node.alive, "since_ns": node.since_ns, "restarts": node.restarts, "ups": node.ups,
+        "name": name, "alive": node.alive, "state": node_state(node.alive, st.extra if st and fresh else None),
+        "since_ns": node.since_ns, "restarts": node.restarts, "ups": node.ups,
         "pid": st.pid if st else None, "uptime_s": st.uptime_s if st else None,
         "status_age_s": (now_ns - node.status_ns) / 1e9 if st else None,
         "topics": (st.topics if st and fresh else {}),

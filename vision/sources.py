@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import configparser
 import difflib
+import itertools
 import json
 import logging
 import math
@@ -68,8 +69,14 @@ class _Source:
     def __iter__(self) -> Iterator[SourceFrame]:
         return self.frames()
 
-    def frames(self) -> Iterator[SourceFrame]:  # pragma: no cover - overridden
+    def frames(self, start: int = 0) -> Iterator[SourceFrame]:  # pragma: no cover - overridden
+        """The frames from index ``start`` on."""
         raise NotImplementedError
+
+    def resume(self, start: int) -> Iterator[SourceFrame]:
+        """The frames from ``start`` on, after an iteration that raised at frame ``start`` (a generator that raised
+        is finished, so resuming means a new one): the same frame is tried again. A live source reopens its device."""
+        return self.frames(start)
 
     def close(self) -> None:
         """Release device/file handles (no-op for sources that hold none)."""
@@ -84,34 +91,52 @@ class _Source:
 # ----------------------------------------------------------------------------- camera / video
 
 
-class CameraSource(_Source):
-    """Live camera via OpenCV; stamps are ``time.monotonic_ns()`` at capture."""
+class SourceReadError(OSError):
+    """A source that did not deliver its next frame: an unreadable image, a camera that stopped delivering. The
+    capture node tries the same frame again (a camera: reopened) and fails when that keeps failing."""
 
-    def __init__(self, index: int = 0, width: int | None = None, height: int | None = None,
+
+class CameraSource(_Source):
+    """Live camera via OpenCV (``device``: an index, or a device path such as /dev/v4l/by-id/...); stamps are
+    ``time.monotonic_ns()`` at capture. A read that fails raises SourceReadError: a camera that stops delivering
+    is a failure to retry (:meth:`resume` reopens the device), never the end of the stream."""
+
+    def __init__(self, device: int | str = 0, width: int | None = None, height: int | None = None,
                  fps: float | None = None) -> None:
-        self.index = int(index)
-        self.name = f"camera:{self.index}"
-        self.cap = cv2.VideoCapture(self.index)
-        if not self.cap.isOpened():
-            raise RuntimeError(f"cannot open camera {self.index} (no device, or it is busy)")
-        if width:
-            self.cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
-        if height:
-            self.cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
-        if fps:
-            self.cap.set(cv2.CAP_PROP_FPS, fps)
+        self.device = device
+        self.name = f"camera:{device}"
+        self._settings = (width, height, fps)
+        self.cap = self._open()
         self.fps = float(self.cap.get(cv2.CAP_PROP_FPS) or fps or DEFAULT_FPS)
 
-    def frames(self) -> Iterator[SourceFrame]:
-        i = 0
+    def _open(self) -> cv2.VideoCapture:
+        cap = cv2.VideoCapture(self.device)
+        if not cap.isOpened():
+            cap.release()
+            raise SourceReadError(f"cannot open {self.name} (no device, or it is busy)")
+        width, height, fps = self._settings
+        for prop, value in ((cv2.CAP_PROP_FRAME_WIDTH, width), (cv2.CAP_PROP_FRAME_HEIGHT, height),
+                            (cv2.CAP_PROP_FPS, fps)):
+            if value:
+                cap.set(prop, value)
+        return cap
+
+    def frames(self, start: int = 0) -> Iterator[SourceFrame]:
+        i = start
         while True:
             ok, bgr = self.cap.read()
             t_ns = time.monotonic_ns()
             if not ok:
-                log.warning("camera %d stopped delivering frames after %d", self.index, i)
-                return
+                raise SourceReadError(f"{self.name} delivered no frame (frame {i})")
             yield SourceFrame(i, t_ns, bgr, None, {})
             i += 1
+
+    def resume(self, start: int) -> Iterator[SourceFrame]:
+        """Reopen the device (a camera that stopped delivering is often back once reopened), then read on."""
+        self.cap.release()
+        self.cap = self._open()
+        log.warning("%s reopened at frame %d", self.name, start)
+        return self.frames(start)
 
     def close(self) -> None:
         self.cap.release()
@@ -136,10 +161,15 @@ class VideoFileSource(_Source):
     def __len__(self) -> int:
         return self._n
 
-    def frames(self) -> Iterator[SourceFrame]:
+    def frames(self, start: int = 0) -> Iterator[SourceFrame]:
         cap = cv2.VideoCapture(str(self.path))
         try:
-            i = 0
+            if not cap.isOpened():
+                raise SourceReadError(f"OpenCV cannot decode video {self.path}")
+            for _ in range(start):  # grab, not seek: exact whatever the codec's key frames
+                if not cap.grab():
+                    return
+            i = start
             while True:
                 ok, bgr = cap.read()
                 if not ok:
@@ -285,11 +315,12 @@ class ImageFolderSource(_Source):
                 gt = next(((x, y, w, h) for tid, x, y, w, h in rows if tid == self.target_id), None)
         return gt, extras
 
-    def frames(self) -> Iterator[SourceFrame]:
-        for i, p in enumerate(self.images):
+    def frames(self, start: int = 0) -> Iterator[SourceFrame]:
+        for i in range(start, len(self.images)):
+            p = self.images[i]
             bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
             if bgr is None:
-                raise OSError(f"cannot read image {p}")
+                raise SourceReadError(f"cannot read image {p}")
             gt, extras = self.ground_truth(i)
             yield SourceFrame(i, synthetic_stamp_ns(i, self.fps), bgr, gt, extras)
 
@@ -317,8 +348,8 @@ class SceneSource(_Source):
     def __len__(self) -> int:
         return self.scene.n_frames
 
-    def frames(self) -> Iterator[SourceFrame]:
-        for f in self.scene.frames():
+    def frames(self, start: int = 0) -> Iterator[SourceFrame]:
+        for f in itertools.islice(self.scene.frames(), start, None):
             extras = {
                 "scene": self.name,
                 "visible_fraction": f.target_visible_fraction,
@@ -351,11 +382,15 @@ def _scene_name(spec: str) -> str:
     return name
 
 
-def _camera_index(spec: str) -> int:
-    idx = spec.split(":", 1)[1] or "0"
-    if not idx.isdigit():
-        raise SourceError(f"camera spec needs a numeric index, got {spec!r}")
-    return int(idx)
+def _camera_device(spec: str) -> int | str:
+    """``camera:<index>`` -> the index; ``camera:<path>`` (a device such as /dev/v4l/by-id/..., whose name stays
+    the same whichever USB port the camera is in) -> the path."""
+    device = spec.split(":", 1)[1] or "0"
+    if device.isdigit():
+        return int(device)
+    if device.startswith("/"):
+        return device
+    raise SourceError(f"camera spec needs a numeric index or a device path (camera:/dev/video0), got {spec!r}")
 
 
 def _missing_path(spec: str, p: Path) -> SourceError:
@@ -373,12 +408,29 @@ def _unknown_spec(spec: str) -> SourceError:
                        f"a video file ({', '.join(VIDEO_EXTS)}), an image folder or an MCAP recording")
 
 
+def _check_camera(spec: str, device: int | str) -> None:
+    """The device path, or on Linux /dev/video<N>, exists; elsewhere OpenCV opens the index."""
+    if isinstance(device, str) or sys.platform.startswith("linux"):
+        path = Path(device if isinstance(device, str) else f"/dev/video{device}")
+        if not path.exists():
+            present = sorted(str(d) for d in Path("/dev").glob("video*"))
+            raise SourceError(f"source {spec!r}: {path} does not exist (video devices here: "
+                              f"{', '.join(present) or 'none'})")
+        return
+    cap = cv2.VideoCapture(device)
+    try:
+        if not cap.isOpened():
+            raise SourceError(f"source {spec!r}: OpenCV cannot open camera {device} (no device, or it is busy)")
+    finally:
+        cap.release()
+
+
 def check_source(spec: str, *, groundtruth: str = "") -> None:
     """Check, cheaply and before anything starts, that a capture source can be opened. Raises SourceError.
 
     Scenes: the name is known. Files and folders: they exist and open (a video opens in OpenCV, a folder
-    holds images and its first one decodes; MCAP recordings are the capture node's). Cameras: on
-    Linux ``/dev/video<N>`` exists (opening it here could take it from a graph already running); elsewhere
+    holds images and its first one decodes; MCAP recordings are the capture node's). Cameras: the device path,
+    or on Linux ``/dev/video<N>``, exists (opening it here could take it from a graph already running); elsewhere
     OpenCV opens the index.
     """
     s = spec.strip()
@@ -388,20 +440,7 @@ def check_source(spec: str, *, groundtruth: str = "") -> None:
         _scene_name(s)
         return
     if s.startswith("camera:"):
-        index = _camera_index(s)
-        if sys.platform.startswith("linux"):
-            device = Path(f"/dev/video{index}")
-            if not device.exists():
-                present = sorted(str(d) for d in Path("/dev").glob("video*"))
-                raise SourceError(f"source {spec!r}: {device} does not exist (video devices here: "
-                                  f"{', '.join(present) or 'none'})")
-            return
-        cap = cv2.VideoCapture(index)
-        try:
-            if not cap.isOpened():
-                raise SourceError(f"source {spec!r}: OpenCV cannot open camera {index} (no device, or it is busy)")
-        finally:
-            cap.release()
+        _check_camera(spec, _camera_device(s))
         return
     p = Path(s).expanduser()
     if p.suffix.lower() == ".mcap":  # the capture node checks those with the bus's reader of recordings
@@ -427,13 +466,13 @@ def check_source(spec: str, *, groundtruth: str = "") -> None:
 def open_source(spec: str, **kw: Any) -> _Source:
     """Open a source from a spec string.
 
-    ``camera:<index>``, ``scene:<name>`` (keywords: seed, width, height, fps), a video file
+    ``camera:<index>`` or ``camera:<device path>``, ``scene:<name>`` (keywords: seed, width, height, fps), a video file
     path, or an image folder path (keywords: groundtruth, fps, target_id). MCAP recordings are
     replayed by the bus tools, not here. Raises ValueError (SourceError) for anything else.
     """
     s = spec.strip()
     if s.startswith("camera:"):
-        return CameraSource(_camera_index(s), **kw)
+        return CameraSource(_camera_device(s), **kw)
     if s.startswith("scene:"):
         return SceneSource(_scene_name(s), **kw)
     p = Path(s).expanduser()

@@ -16,7 +16,7 @@ import numpy as np
 import zenoh
 
 from ...bus.codec import DecodeError
-from ...bus.health import HealthWatcher, live_namespaces, namespaces_hint
+from ...bus.health import HealthWatcher, live_namespaces, namespaces_hint, node_state
 from ...bus.links import PublishedKeys, links_of_statuses, short_of_sent
 from ...bus.pubsub import declare_subscriber, frame_bytes, payload_bytes
 from ...bus.schemas import decode, to_plain
@@ -267,12 +267,12 @@ def cmd_nodes(args, settings: ZenohSettings, namespace: str) -> int:
     if not snapshot:
         print(namespaces_hint(namespace, found))
         return 1
-    print(f"{'node':<14} {'state':<6} {'pid':>7} {'uptime s':>9} {'handler errs':>12} {'lost in':>8}  check")
+    print(f"{'node':<14} {'state':<7} {'pid':>7} {'uptime s':>9} {'handler errs':>12} {'lost in':>8}  check")
     for name in sorted(snapshot):
         h = snapshot[name]
         st = h.status
         lost = sum(int(t.get("lost", 0)) for t in st.topics.values() if t.get("direction") == "in") if st else "-"
-        print(f"{name:<14} {'up' if h.alive else 'down':<6} {st.pid if st else '-':>7} "
+        print(f"{name:<14} {node_state(h.alive, st.extra if st else None):<7} {st.pid if st else '-':>7} "
               f"{(f'{st.uptime_s:.0f}' if st else '-'):>9} {(st.extra.get('handler_errors', 0) if st else '-'):>12} "
               f"{lost:>8}  {h.trust}{f' ({h.trust_reason})' if h.trust_reason else ''}")
     _print_links({name: h.status for name, h in snapshot.items() if h.status is not None}, args.links)

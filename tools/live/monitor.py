@@ -32,14 +32,19 @@ def monitor_settings(graph_path: str | None, connect: list[str] | None, user: st
 
 def graph_info(graph_path: str | None, namespace: str | None = None) -> GraphInfo:
     """What the viewers take from ``graph_path`` (when it exists; with this process's identity applied, as
-    every command loads a graph), ``namespace`` winning over the graph's."""
+    every command loads a graph), ``namespace`` winning over the graph's; without a graph file the namespace
+    every other command would use ($FOLLOWBUS_NAMESPACE, $FOLLOWBUS_DOMAIN: tools/identity.py)."""
     from ..command import load_graph
+    from ..identity import DefaultGraph, apply_identity
 
     graph = load_graph(graph_path) if graph_path and Path(graph_path).exists() else None
+    if graph is None and not namespace:
+        namespace = apply_identity(DefaultGraph()).namespace
     return GraphInfo.from_graph(graph, namespace)
 
 
 # -- terminal rendering (rich: colours and in-place redraw on a terminal, plain text in a pipe) ------------
+STATE_STYLE = {"up": "green", "stalled": "bold yellow", "done": "cyan", "down": "bold red"}
 TRUST_STYLE = {"verified": "green", "unverified": "yellow", "spoofed?": "bold red"}
 TARGET_STYLE = {"TRACKING": "green", "REACQUIRED": "cyan", "OCCLUDED": "yellow", "LOST": "red"}
 PIPE_WIDTH = 200  # not a terminal: wide enough that no row wraps (scripts split lines into fields)
@@ -95,7 +100,9 @@ def render(snap: dict[str, Any], height: int | None = None, width: int | None = 
     for n in snap["nodes"]:
         for_s = (snap["now_ns"] - n["since_ns"]) / 1e9 if n["since_ns"] else None
         trust = n["trust"] + (f" ({n['trust_reason']})" if n["trust_reason"] else "")
-        nodes.append([n["name"], Text("up", "green") if n["alive"] else Text("DOWN", "bold red"), _num(for_s, ".0f"),
+        state = n.get("state") or ("up" if n["alive"] else "down")
+        nodes.append([n["name"], Text(state.upper() if state == "down" else state, STATE_STYLE.get(state, "")),
+                      _num(for_s, ".0f"),
                       str(n["restarts"]), _num(n["pid"], "d"), _num(n["uptime_s"], ".0f"),
                       _count(n["handler_errors"], "red"), Text(trust, TRUST_STYLE.get(n["trust"], ""))])
         topics += [[f"{key} @{n['name']}", t.get("direction", "?"), _num(t.get("rate_hz")),

@@ -10,17 +10,21 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from ...bus.live_params import EVENTS_OUTPUT
+
 SILENCE_S = 1.0
 
 
 def graph_keys(graph_path: str | None) -> dict[str, str]:
-    """Every output key of the graph file (with this process's identity) -> the node publishing it."""
+    """Every key a node of the graph file (with this process's identity) publishes -> that node: its outputs, and
+    the parameter_events every node publishes (bus/live_params.py)."""
     if not graph_path or not Path(graph_path).exists():
         return {}
     from ..command import load_graph
 
     graph = load_graph(graph_path)
-    return {graph.key(name, out): name for name, spec in graph.nodes.items() for out in spec.outputs}
+    return {graph.key(name, out): name for name, spec in graph.nodes.items()
+            for out in [*spec.outputs, EVENTS_OUTPUT]}
 
 
 def alive_nodes(session: Any, namespace: str, timeout_s: float = 0.5) -> set[str]:
@@ -32,6 +36,10 @@ def explain_silence(key: str, namespace: str, keys: dict[str, str], alive: set[s
     """One line: why nothing arrived on ``key``."""
     if not alive:
         return f"nothing on {key}: no graph is running in namespace {namespace} (no node is alive)"
+    events_of = key[:-len(EVENTS_OUTPUT) - 1].rsplit("/", 1)[-1] if key.endswith(f"/{EVENTS_OUTPUT}") else None
+    if events_of in alive:  # every node publishes its parameter events: no graph file needed to know that
+        return (f"nothing on {key} yet: no parameter of {events_of} changed since it started (`followbus param set "
+                f"{events_of}.PARAM VALUE` publishes one)")
     if any(ch in key for ch in "*$"):
         return f"nothing on {key} yet: no publisher matches it (`followbus topics` lists the keys with traffic)"
     if keys and key not in keys:

@@ -130,8 +130,9 @@ def health_rows(snap: dict[str, Any]) -> list[dict[str, Any]]:
     prefix = f"{snap.get('namespace', '')}/"
     rows: list[dict[str, Any]] = []
     for node in snap.get("nodes", []):
-        base = {"node": node["name"], "alive": bool(node.get("alive")), "restarts": node.get("restarts", 0),
-                "pid": node.get("pid")}
+        base = {"node": node["name"], "alive": bool(node.get("alive")),
+                "state": node.get("state") or ("up" if node.get("alive") else "down"),
+                "restarts": node.get("restarts", 0), "pid": node.get("pid")}
         topics = node.get("topics") or {}
         order = sorted(topics, key=lambda k: (topics[k].get("direction") != "out", k))
         if not order:
@@ -251,8 +252,9 @@ def make_handler(monitor: BusMonitor, gate: PreviewGate, token: str | None = Non
                 elif url.path == "/preview.jpg":
                     self._preview(query)
                 elif url.path == "/graph.svg":
-                    svg = monitor.info.graph_svg
-                    self._send(200 if svg else 404, (svg or "no graph file given\n").encode(),
+                    svg = monitor.graph_svg()
+                    self._send(200 if svg else 404,
+                               (svg or "no graph file given, and no node has said what it publishes yet\n").encode(),
                                "image/svg+xml" if svg else "text/plain")
                 elif url.path == "/healthz":
                     self._send(200, b"ok\n", "text/plain")
@@ -383,7 +385,8 @@ td,th{border-bottom:1px solid #333;padding:2px 6px;text-align:right;vertical-ali
 th{color:#aaa;font-weight:normal} td.l,th.l{text-align:left} tr.first td{border-top:1px solid #555}
 td.topic{white-space:nowrap}
 #ground{display:block;width:100%;height:320px;background:#1a1a1a;border:1px solid #333}
-.up{color:#6c6} .down{color:#e55} .dir{color:#888} .na{color:#555}
+.up{color:#6c6} .down{color:#e55} .stalled{color:#fc6;font-weight:bold} .done{color:#6cc}
+.dir{color:#888} .na{color:#555}
 </style></head><body>
 <header><h1>followbus monitor</h1><span id="screen" data-state="waiting">waiting for the monitor's first state</span>
  <span id="link">connecting...</span></header>
@@ -622,7 +625,7 @@ function healthTable(rows) {
     if (first) {
       const n = span[r.node];
       tr += `<td class="l" rowspan="${n}" title="pid ${r.pid ?? "-"}">${esc(r.node)}</td>` +
-        `<td class="l ${r.alive ? "up" : "down"}" rowspan="${n}">${r.alive ? "up" : "DOWN"}</td>` +
+        `<td class="l ${esc(r.state)}" rowspan="${n}">${r.state === "down" ? "DOWN" : esc(r.state)}</td>` +
         `<td rowspan="${n}">${r.restarts}</td>`;
     }
     const na = '<td class="na">-</td>';

@@ -67,6 +67,7 @@ from ...bus.recording import (
     salvage_records,
     scan_data_section,
     schema_document,
+    structure_damage,
 )
 from .. import __version__
 from . import foxglove_schemas as fox
@@ -336,72 +337,120 @@ class RecoverResult:
     chunks: int = 0
     messages: int = 0
     metadata: int = 0
-    bad_chunks: int = 0
-    complete: bool = False  # the input had its footer: nothing was lost
+    bad_chunks: int = 0  # chunks dropped: they failed their CRC, or did not decompress or parse
+    complete: bool = False  # the input was finalised (its footer and summary hold)
     stopped_by: str = ""
     channels: dict[str, int] = field(default_factory=dict)
+    dropped: list[str] = field(default_factory=list)  # one line per thing not rewritten, and why
+
+    @property
+    def lost_anything(self) -> bool:
+        return any(not line.startswith("read all the same") for line in self.dropped)
+
+
+class _Rewriter:
+    """The output file, opened on the first record to write, with the input's schemas and channels re-registered
+    as its messages need them."""
+
+    def __init__(self, out_path: str | Path, compression: str | None, found: Salvage):
+        self.out_path, self.compression, self.found = Path(out_path), compression, found
+        self.header: Header | None = None
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.schema_ids: dict[int, int] = {}
+        self.channel_ids: dict[int, int] = {}
+        self.lost_schemas: set[int] = set()  # channels written without the schema their record names
+        self.orphans: dict[int, int] = {}  # channel id -> messages whose channel record was lost
+        self._out: Writer | None = None
+        self._file: IO[bytes] | None = None
+
+    def writer(self) -> Writer:
+        if self._out is None:
+            self._file = open(self.out_path, "wb")  # noqa: SIM115 (closed by finish)
+            chosen = self.compression or self.found.compression or DEFAULT_COMPRESSION
+            self._out = Writer(self._file, compression=COMPRESSIONS.get(chosen, COMPRESSIONS[DEFAULT_COMPRESSION]))
+            self._out.start(profile=self.header.profile if self.header else PROFILE,
+                            library=f"followbus/{__version__} recover")
+        return self._out
+
+    def channel_id(self, channel: Channel) -> int:
+        if channel.id not in self.channel_ids:
+            sid = 0
+            schema = self.schemas.get(channel.schema_id) if channel.schema_id else None
+            if schema is not None:
+                if schema.id not in self.schema_ids:
+                    self.schema_ids[schema.id] = self.writer().register_schema(schema.name, schema.encoding,
+                                                                               schema.data)
+                sid = self.schema_ids[schema.id]
+            elif channel.schema_id:
+                self.lost_schemas.add(channel.id)
+            self.channel_ids[channel.id] = self.writer().register_channel(
+                channel.topic, channel.message_encoding, sid, dict(channel.metadata))
+        return self.channel_ids[channel.id]
+
+    def message(self, record: Message, result: RecoverResult) -> None:
+        channel = self.channels.get(record.channel_id)
+        if channel is None:
+            self.orphans[record.channel_id] = self.orphans.get(record.channel_id, 0) + 1
+            return
+        self.writer().add_message(self.channel_id(channel), record.log_time, record.data, record.publish_time,
+                                  record.sequence)
+        result.messages += 1
+        result.channels[channel.topic] = result.channels.get(channel.topic, 0) + 1
+
+    def finish(self) -> None:
+        self.writer().finish()
+        assert self._file is not None
+        self._file.close()
 
 
 def recover(in_path: str | Path, out_path: str | Path, compression: str | None = None) -> RecoverResult:
-    """Rewrite every complete chunk (and metadata) of a possibly truncated MCAP file into a valid one."""
+    """Rewrite every record of a possibly truncated or damaged MCAP file that can be trusted into a valid one: every
+    chunk whose CRC passes, whichever chunk is bad (bus/recording.py salvage_records); what could not be rewritten
+    is listed in ``dropped``."""
     with open_recording(in_path) as f:  # a regular file, long enough, and an MCAP one: else nothing is written
-        if f.read(8) != MCAP0_MAGIC:
+        if f.read(8) != MCAP0_MAGIC and not _ends_as_mcap(f):
             raise RecordingError(f"{in_path}: not an MCAP file")
     result = RecoverResult()
     found = Salvage()
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    out: Writer | None = None
-    out_file = None
-    header: Header | None = None
-    schema_ids: dict[int, int] = {}
-    channel_ids: dict[int, int] = {}
-
-    def writer() -> Writer:
-        nonlocal out, out_file
-        if out is None:
-            out_file = open(out_path, "wb")  # noqa: SIM115 (closed below)
-            chosen = compression or found.compression or DEFAULT_COMPRESSION
-            out = Writer(out_file, compression=COMPRESSIONS.get(chosen, COMPRESSIONS[DEFAULT_COMPRESSION]))
-            out.start(profile=header.profile if header else PROFILE, library=f"followbus/{__version__} recover")
-        return out
-
+    out = _Rewriter(out_path, compression, found)
     for record in salvage_records(in_path, found):
         if isinstance(record, Header):
-            header = record
+            out.header = record
         elif isinstance(record, Schema):
-            schemas[record.id] = record
+            out.schemas[record.id] = record
         elif isinstance(record, Channel):
-            channels[record.id] = record
+            out.channels[record.id] = record
         elif isinstance(record, Message):
-            channel = channels.get(record.channel_id)
-            if channel is None:
-                continue  # its channel record was in a lost chunk (cannot happen with our writer)
-            w = writer()
-            if channel.id not in channel_ids:
-                sid = 0
-                if channel.schema_id:
-                    schema = schemas[channel.schema_id]
-                    if schema.id not in schema_ids:
-                        schema_ids[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
-                    sid = schema_ids[schema.id]
-                channel_ids[channel.id] = w.register_channel(channel.topic, channel.message_encoding, sid,
-                                                             dict(channel.metadata))
-            w.add_message(channel_ids[channel.id], record.log_time, record.data, record.publish_time,
-                          record.sequence)
-            result.messages += 1
-            result.channels[channel.topic] = result.channels.get(channel.topic, 0) + 1
+            out.message(record, result)
         elif isinstance(record, Metadata):
-            writer().add_metadata(record.name, dict(record.metadata))
+            out.writer().add_metadata(record.name, dict(record.metadata))
             result.metadata += 1
         elif isinstance(record, Attachment):
-            writer().add_attachment(record.create_time, record.log_time, record.name, record.media_type, record.data)
-    writer().finish()
-    assert out_file is not None
-    out_file.close()
+            out.writer().add_attachment(record.create_time, record.log_time, record.name, record.media_type,
+                                        record.data)
+    out.finish()
     result.chunks, result.bad_chunks = found.chunks, found.bad_chunks
     result.complete, result.stopped_by = found.complete, found.stopped_by
+    result.dropped = _dropped_lines(found, out)
     return result
+
+
+def _ends_as_mcap(f: IO[bytes]) -> bool:
+    """Whether a file whose first bytes are damaged ends as an MCAP file does (its closing magic)."""
+    f.seek(-len(MCAP0_MAGIC), os.SEEK_END)
+    return f.read(len(MCAP0_MAGIC)) == MCAP0_MAGIC
+
+
+def _dropped_lines(found: Salvage, out: _Rewriter) -> list[str]:
+    lines = [f"{'read all the same' if d.repaired else 'dropped'} {d.describe()}" for d in found.damage]
+    lines += [f"dropped {n} messages of channel {cid}: its channel record was in a dropped part"
+              for cid, n in sorted(out.orphans.items())]
+    lines += [f"channel {out.channels[cid].topic}: its schema was in a dropped part; written without one"
+              for cid in sorted(out.lost_schemas)]
+    if found.doubtful:
+        lines.append(f"taken from a damaged chunk for want of another copy (check them): {', '.join(found.doubtful)}")
+    return lines
 
 
 # --- commands --------------------------------------------------------------------------------------
@@ -445,10 +494,12 @@ def cmd_info(args) -> int:
     else:
         print("recorder:    no recording_stats (the recorder did not stop cleanly)")
     bad = corrupt_chunks(path)
+    damaged = structure_damage(path)  # the magic, the header, the records between the chunks, the summary's CRC
     print(f"integrity:   {len(summary.chunk_indexes) - len(bad)} of {len(summary.chunk_indexes)} chunks pass their "
-          "CRC" + "".join(f"\n  corrupt:   {c.describe()}" for c in bad))
+          "CRC" + ("; magic, header and record framing hold" if not damaged else "")
+          + "".join(f"\n  corrupt:   {c.describe()}" for c in damaged + bad))
     _print_channels(summary, stats, duration)
-    return 1 if bad else 0
+    return 1 if bad or damaged else 0
 
 
 def _print_channels(summary: Any, stats: Any, duration: float) -> None:
@@ -481,8 +532,11 @@ def cmd_recover(args) -> int:
         print(f"followbus: {exc}" if isinstance(exc, RecordingError) else f"followbus: {src}: not an MCAP file ({exc})",
               file=sys.stderr)
         return 2
-    state = "the file was complete" if result.complete else f"stopped at the cut ({result.stopped_by or 'EOF'})"
+    state = "the file was finalised" if result.complete else f"stopped at the cut ({result.stopped_by or 'EOF'})"
     print(f"recovered {result.messages} messages from {result.chunks} complete chunks and {result.metadata} "
-          f"metadata records into {dst}; {state}"
-          + (f"; {result.bad_chunks} corrupt chunks skipped" if result.bad_chunks else ""))
-    return 0 if result.messages or result.metadata else 1
+          f"metadata records into {dst}; {state}")
+    for line in result.dropped:
+        print(f"  {line}")
+    if not (result.messages or result.metadata):
+        return 1
+    return 1 if result.lost_anything else 0

@@ -672,7 +672,9 @@ def _follows_announced(settings, graph, options: RecordOptions) -> bool:
 
 def cmd_record(args, settings, graph) -> int:
     """``followbus record``; ``graph`` is the loaded --graph (with --set applied) or None."""
-    namespace = getattr(args, "namespace", None) or (graph.namespace if graph is not None else "fb")
+    from ..command import namespace as command_namespace
+
+    namespace = command_namespace(args) if graph is None else (getattr(args, "namespace", None) or graph.namespace)
     options = record_options(args, namespace, graph.name if graph is not None else "")
     if isinstance(options, str):
         print(f"followbus: {options}", file=sys.stderr)
@@ -692,6 +694,10 @@ def cmd_record(args, settings, graph) -> int:
 
     def on_signal(signum, _frame):
         log.info("received %s: finalising %s", signal.Signals(signum).name, output)
+        if signum == signal.SIGINT:
+            from ..errors import INTERRUPTED
+
+            INTERRUPTED.set()  # exit 130 once the file is finalised, as every command after Ctrl-C
         stop.set()
 
     signal.signal(signal.SIGINT, on_signal)

@@ -52,9 +52,25 @@ class RunRecord:
     command: str = "launch"
     log_dir: str = ""
     domain: int = 0
+    uid: int = -1  # who started it: the claim file's owner (set when read)
+    claim: str = ""  # the claim file (set when read)
 
     def uptime_s(self) -> float:
         return max(0.0, time.time() - self.started)
+
+    @property
+    def mine(self) -> bool:
+        """Started by the user running this command (on a shared machine another user's graph runs beside)."""
+        return self.uid == os.getuid()
+
+    @property
+    def user(self) -> str:
+        import pwd
+
+        try:
+            return pwd.getpwuid(self.uid).pw_name
+        except (KeyError, OverflowError):
+            return str(self.uid)
 
 
 def _claim_stem(port: int | None, namespace: str) -> str:
@@ -71,7 +87,9 @@ def _guard_path(port: int | None, namespace: str) -> Path:
 
 def _read_record(path: Path) -> RunRecord | None:
     try:
-        return RunRecord(**json.loads(path.read_text() or "{}"))
+        record = RunRecord(**json.loads(path.read_text() or "{}"))
+        record.uid, record.claim = path.stat().st_uid, str(path)
+        return record
     except (OSError, ValueError, TypeError):
         return None
 
@@ -171,12 +189,46 @@ def _live_claims(graph: Any) -> list[tuple[Path, RunRecord]]:
 
 
 def _remove_dead_claims(graph: Any) -> None:
-    """Claims of ended launches (their lock is free) go; called under the guard, so no claim is half made."""
+    """Claims of ended launches (their lock is free) go, with their health files; called under the guard, so no
+    claim is half made."""
     stem = _claim_stem(well_known_port(graph.zenoh), graph.namespace)
     for path in (runs_root() / "claims").glob(f"{stem}-*.lock"):
         if not _held(path):
             with contextlib.suppress(OSError):
                 path.unlink()
+            with contextlib.suppress(OSError):
+                path.with_suffix(HEALTH_SUFFIX).unlink()
+
+
+# --- node health beside a run record (`followbus ps`) ----------------------------------------------------------
+
+HEALTH_SUFFIX = ".health"
+HEALTH_STALE_S = 5.0  # a launcher rewrites its health file every second: an older one says nothing
+
+
+def health_path(graph: Any) -> Path:
+    """The health file of this process's claim on ``graph`` (beside the claim: `<claim>.health`)."""
+    return _claim_path(well_known_port(graph.zenoh), graph.namespace, os.getpid()).with_suffix(HEALTH_SUFFIX)
+
+
+def write_health(path: Path, nodes: dict[str, dict[str, Any]]) -> None:
+    """Replace the health file at once (a reader never sees half of one): each node's state and restarts."""
+    if not path.with_suffix(".lock").exists():
+        return  # no claim (a launcher run by a test or a bench, not by launch/demo/up): nobody lists it
+    tmp = path.with_suffix(HEALTH_SUFFIX + ".tmp")
+    tmp.write_text(json.dumps({"time": time.time(), "nodes": nodes}))
+    os.replace(tmp, path)
+
+
+def read_health(record: RunRecord) -> dict[str, dict[str, Any]] | None:
+    """The nodes' health a running graph's launcher last wrote; None when there is none or it is stale."""
+    try:
+        data = json.loads(Path(record.claim).with_suffix(HEALTH_SUFFIX).read_text())
+        if time.time() - float(data["time"]) > HEALTH_STALE_S or not isinstance(data["nodes"], dict):
+            return None
+        return data["nodes"]
+    except (OSError, ValueError, TypeError, KeyError):
+        return None
 
 
 def holder(graph: Any, starting: set[str] | None = None) -> str | None:

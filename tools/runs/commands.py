@@ -25,22 +25,25 @@ def _up_args(p: argparse.ArgumentParser) -> None:
 
 def _ps_args(p: argparse.ArgumentParser) -> None:
     describe(p, "The graphs running on this machine (up, launch, demo): name, namespace, endpoint, uptime, nodes, "
-                "the launcher's pid.", "example: followbus ps")
+                "their health (all up, or which are stalled, done, restarting, failed), the launcher's pid and "
+                "the user who started it.", "example: followbus ps")
 
 
 def _logs_args(p: argparse.ArgumentParser) -> None:
     describe(p, "Print a node's log file of a graph started with `followbus up` (the running one, else its latest "
                 "run); -f follows it until the graph stops.",
-             "example: followbus logs followbus-demo detection -f")
+             "example: followbus logs followbus detection -f")
     p.add_argument("names", nargs="+", metavar="[GRAPH] NODE",
-                   help="the graph's name or pid (optional when one graph runs) and the node")
+                   help="the graph's name or pid (optional: your one running graph, else your latest run) and the "
+                        "node")
     p.add_argument("-f", "--follow", action="store_true", help="keep printing what the node writes")
 
 
 def _down_args(p: argparse.ArgumentParser) -> None:
     describe(p, "Stop a running graph: its launcher stops every node (SIGTERM, then SIGKILL after its grace).",
-             "example: followbus down followbus-demo")
-    p.add_argument("name", nargs="?", help="the graph's name or its launcher's pid (optional when one graph runs)")
+             "example: followbus down followbus")
+    p.add_argument("name", nargs="?", help="the graph's name or its launcher's pid (optional when one graph of yours "
+                                           "runs: another user's is never picked for you)")
 
 
 def _graph_args(p: argparse.ArgumentParser) -> None:

@@ -9,6 +9,7 @@ while it runs); ``down`` sends the launcher SIGTERM (it stops its nodes) and wai
 
 from __future__ import annotations
 
+import copy
 import os
 import signal
 import subprocess
@@ -84,7 +85,28 @@ def cmd_up(args) -> int:
     where = f"{record.endpoint}, namespace {record.namespace}, " if record else ""
     print(f"{graph.name} is up: pid {proc.pid}, {where}{len(graph.nodes)} nodes; logs in {log_dir}\n"
           f"  followbus logs {graph.name} NODE [-f]    followbus down {graph.name}")
+    for note in plays_once(graph, args.overrides):
+        print(f"  note: {note}")
     return 0
+
+
+def plays_once(graph, overrides: list[str]) -> list[str]:
+    """The nodes that play a finite source once (a scene, a video, a folder, a recording; not a camera or a topic)
+    with ``loop`` off: a graph in the background then runs on with nothing to follow, which `up` says."""
+    from ...bus.graph import apply_overrides
+    from ...bus.node import validate_node
+
+    graph = copy.deepcopy(graph)
+    apply_overrides(graph, overrides)
+    notes = []
+    for name, spec in graph.nodes.items():
+        params = validate_node(graph, spec)[1]
+        source, loop = getattr(params, "source", None), getattr(params, "loop", None)
+        if isinstance(source, str) and loop is False and not source.startswith(("camera:", "ros2:")):
+            length = " (a scene lasts 8-20 s)" if source.startswith("scene:") else ""
+            notes.append(f"{name} plays {source} once{length}, then publishes nothing: "
+                         f"`--set {name}.loop=true` plays it again and again")
+    return notes
 
 
 def _uptime(seconds: float) -> str:
@@ -93,38 +115,66 @@ def _uptime(seconds: float) -> str:
     return f"{hours}h{minutes:02d}m" if hours else f"{minutes}m{sec:02d}s"
 
 
+def health_text(nodes: dict[str, dict] | None) -> str:
+    """A graph's node health in a few words: "all up", or how many are up and what the others do."""
+    if nodes is None:
+        return "?"
+    others = {name: n for name, n in sorted(nodes.items()) if n.get("state") != "up"}
+    restarts = sum(int(n.get("restarts", 0)) for n in nodes.values())
+    again = f", {restarts} restarts" if restarts else ""
+    if not others:
+        return f"all up{again}"
+    return (f"{len(nodes) - len(others)}/{len(nodes)} up: "
+            + ", ".join(f"{name} {n.get('state')}" for name, n in others.items()) + again)
+
+
 def cmd_ps(args) -> int:
+    from .claims import read_health
+
     runs = live_runs()
     if not runs:
         print("no graph is running (start one with `followbus up GRAPH`, `launch` or `demo`)")
         return 0
-    rows = [("NAME", "NAMESPACE", "ENDPOINT", "UPTIME", "NODES", "PID", "STARTED BY")]
-    rows += [(r.name, r.namespace, r.endpoint, _uptime(r.uptime_s()), str(len(r.nodes)), str(r.pid), r.command)
-             for r in runs]
+    rows = [("NAME", "NAMESPACE", "ENDPOINT", "UPTIME", "NODES", "HEALTH", "PID", "USER", "STARTED BY")]
+    rows += [(r.name, r.namespace, r.endpoint, _uptime(r.uptime_s()), str(len(r.nodes)), health_text(read_health(r)),
+              str(r.pid), r.user, r.command) for r in runs]
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     for row in rows:
         print("  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True)).rstrip())
     return 0
 
 
+def _listing(runs: list[RunRecord]) -> str:
+    return ", ".join(f"{r.name} (pid {r.pid}, {r.namespace}{'' if r.mine else ', user ' + r.user})" for r in runs)
+
+
 def find_run(which: str | None, runs: list[RunRecord] | None = None) -> RunRecord:
-    """The running graph a command names (its name or its launcher's pid; None: the only one running)."""
+    """The running graph a command names (its name or its launcher's pid). Without a name, the one graph this user
+    started: on a shared machine the one graph running may be someone else's, so it is never picked for them."""
     runs = live_runs() if runs is None else runs
     if not runs:
         raise UsageError("no graph is running (`followbus up GRAPH` starts one)")
-    matches = [r for r in runs if which is None or which in (r.name, str(r.pid))]
+    if which is None:
+        mine = [r for r in runs if r.mine]
+        if len(mine) == 1:
+            return mine[0]
+        if not mine:
+            raise UsageError(f"no graph of yours is running (others': {_listing(runs)}); name one to act on it")
+        raise UsageError(f"{len(mine)} graphs of yours are running: {_listing(mine)}; name one by its name or pid")
+    matches = [r for r in runs if which in (r.name, str(r.pid))]
     if len(matches) == 1:
         return matches[0]
-    listing = ", ".join(f"{r.name} (pid {r.pid}, {r.namespace})" for r in runs)
     if not matches:
-        raise UsageError(f"no graph named {which!r} is running (running: {listing})")
-    raise UsageError(f"{len(matches)} graphs match{'' if which is None else ' ' + repr(which)}: {listing}; "
-                     "name one by its pid")
+        raise UsageError(f"no graph named {which!r} is running (running: {_listing(runs)})")
+    raise UsageError(f"{len(matches)} graphs match {which!r}: {_listing(matches)}; name one by its pid")
 
 
 def cmd_down(args) -> int:
     run = find_run(args.name)
-    os.kill(run.pid, signal.SIGTERM)
+    try:
+        os.kill(run.pid, signal.SIGTERM)
+    except PermissionError:
+        raise UsageError(f"{run.name} (pid {run.pid}) was started by user {run.user}: only they can stop it") from None
     started = time.monotonic()
     while any(r.pid == run.pid for r in live_runs()):
         if time.monotonic() - started > DOWN_TIMEOUT_S:
@@ -138,15 +188,19 @@ def cmd_down(args) -> int:
 
 
 def _log_dir(which: str | None) -> tuple[Path, RunRecord | None]:
-    """A running graph's log directory, else the newest finished run of that name."""
+    """A running graph's log directory, else the newest finished run of that name; without a name, only this user's
+    (a running graph of theirs, else their newest run)."""
     runs = [r for r in live_runs() if r.log_dir]
-    named = [r for r in runs if which in (None, r.name, str(r.pid))]
+    named = [r for r in runs if which in (r.name, str(r.pid)) or (which is None and r.mine)]
     if named:
         run = find_run(which, named)  # two of them: which one, by pid
         return Path(run.log_dir), run
-    dirs = sorted((d for d in runs_root().glob(f"{which or ''}*-*") if (d / "launch.log").exists()),
-                  key=lambda d: d.stat().st_mtime)
+    dirs = sorted((d for d in runs_root().glob(f"{which or ''}*-*") if (d / "launch.log").exists()
+                   and (which is not None or d.stat().st_uid == os.getuid())), key=lambda d: d.stat().st_mtime)
     if not dirs:
+        if which is None and runs:
+            raise UsageError(f"no graph of yours was started with `followbus up` (others': {_listing(runs)}); "
+                             "name one to read its logs")
         what = f"graph {which!r}" if which else "graph"
         raise UsageError(f"no logs of a {what} started with `followbus up` in {runs_root()}")
     return dirs[-1], None
