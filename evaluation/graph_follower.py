@@ -106,6 +106,17 @@ def node_params(graph: Graph, node: str, cls: type) -> Any:
     return next(p for p in (params if isinstance(params, tuple) else (params,)) if isinstance(p, cls))
 
 
+def best_detection(measurement: Measurement | None) -> tuple[float, ...] | None:
+    """Re-ID's best-scoring candidate of the frame when it is a detector box (None: no candidate, or the best was a
+    motion blob): what the missed-re-acquisition count compares with the target (evaluation/metrics.py)."""
+    if measurement is None or not len(measurement.candidates):
+        return None
+    best = int(np.argmax(measurement.candidates[:, 4]))
+    if measurement.candidate_sources[best] == "motion":
+        return None
+    return tuple(float(v) for v in measurement.candidates[best, :4])
+
+
 class GraphFollower:
     """A follower (evaluation/runner.py's protocol) that is the graph: its first :meth:`step` (which carries the
     initial box, if any) builds the in-process graph, every step publishes one frame with its detections and
@@ -138,7 +149,7 @@ class GraphFollower:
         if init_box is not None:
             graph = graph.override({t.node(t.measurement): {"init_box": [float(v) for v in init_box]}})
         nodes = list(t.nodes)
-        self.recorded = [t.track, t.template, *([t.prior, t.measurement] if self.details else [])]
+        self.recorded = [t.track, t.template, t.measurement, *([t.prior] if self.details else [])]
         if t.camera_motion and not self.compensates_camera_motion:
             nodes.remove(t.node(t.camera_motion))  # as in the graph without the node: priors are not warped
         self.loose = [t.camera_motion] if self.trace and t.camera_motion and t.node(t.camera_motion) in nodes else []
@@ -206,7 +217,7 @@ class GraphFollower:
         self.last = out = self._outputs_of(g, k)
         self.k += 1
         box = None if out.track.box is None else tuple(float(v) for v in out.track.box)
-        info: dict[str, Any] = {"state": out.track.state,
+        info: dict[str, Any] = {"state": out.track.state, "best_candidate": best_detection(out.measurement),
                                 "eta": 0.0 if out.template is None else float(out.template.eta),
                                 # each node's share of this step (the report's tracker time per part)
                                 "part_ms": {n: (s - spent[n]) * 1e3 for n, s in g.handler_s.items()}}

@@ -530,8 +530,10 @@ def _score_methods(result: SequenceRun, truth: _Truth) -> None:
     result.ceiling = evaluate_single_target(nearest_detections(truth.detections, gts), gts, other_gt=others,
                                             fps=seq.fps, image_size=(seq.width, seq.height))
     for run in result.runs.values():
+        reports_candidates = any("best_candidate" in info for info in run.infos)
+        best = [info.get("best_candidate") for info in run.infos] if reports_candidates else None
         run.metrics = evaluate_single_target(run.boxes, gts, other_gt=others, fps=seq.fps,
-                                             image_size=(seq.width, seq.height))
+                                             image_size=(seq.width, seq.height), best_candidates=best)
         if seq.kind == "mot" and any("mot" in info for info in run.infos):
             run.mot_frames = [info.get("mot") for info in run.infos]
             if seq.gt_regions:
