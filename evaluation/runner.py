@@ -70,6 +70,8 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o camera-motion uncertainty": {"camera_motion_uncertainty": False},
     # issue 22: the coasting prediction output however uncertain it has grown (KalmanParams)
     "followbus w/o withholding an uncertain coasting box": {"occluded_output_max_std_heights": 0.0},
+    # re-acquisition only on T_reid and δ_id, not on evidence accumulated over N_id frames (tracking/reacquisition.py)
+    "followbus w/o re-acquisition on evidence": {"reacquire_on_evidence": False},
     # issue 22: a far re-lock on δ_switch alone, as before (no δ_id / N_id confirmation)
     "followbus w/o identity-confirmed far re-lock": {"far_relock_needs_identity": False},
     # issue 22: after a crossing, colour's choice (a lone detection unscored) even when the classifier, which just told

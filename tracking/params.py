@@ -180,6 +180,17 @@ class ReidParams(_FramePeriod, _ColourHistogram):
     far_relock_needs_identity: bool = True
     relock_far_height_fraction: float = 0.5
     n_id_frames: int = 2
+    # Re-acquisition on accumulated evidence (tracking/reacquisition.py): while OCCLUDED or LOST, a detection that
+    # is, on reacquire_frames frames (seed 001's N_id = 5) within reacquire_window_frames, re-ID's best candidate
+    # among those that are none of the people seen beside the target, ahead of the others by identity_margin in
+    # M_fuse, with the target's colours (S_color >= τ_occ), not rejected by the classifier (>= δ_switch) and moving
+    # consistently (within reacquire_max_step_heights of its height a frame of where its velocity carries it, the
+    # height within a factor 1.5), is re-acquired, however far from the prior and whatever T_reid says: the target
+    # came back looking a little different. False: only T_reid and δ_id re-lock.
+    reacquire_on_evidence: bool = True
+    reacquire_frames: int = 5
+    reacquire_window_frames: int = 10
+    reacquire_max_step_heights: float = 0.5
     # While TRACKING, colour + geometry's choice stands when the classifier scores every contender below δ_switch,
     # and a lone contender is not even scored. Both fail in a crossing or a group: the target hides behind another
     # person of the same colours, the detector drops or merges it, and the lone (or best) detection in the gate is
@@ -215,7 +226,7 @@ class ReidParams(_FramePeriod, _ColourHistogram):
             positive=("morph_kernel_px", "bins_h", "bins_s", "dt_ms", "gamma", "lost_after_ms",
                       "motion_max_changed_fraction", "identity_sample_every_frames", "identity_max_crops",
                       "ridge_lambda", "gate_scale_max", "gate_fast_height_fraction", "relock_far_height_fraction",
-                      "n_id_frames"),
+                      "n_id_frames", "reacquire_frames", "reacquire_window_frames", "reacquire_max_step_heights"),
             non_negative=("diff_threshold", "geo_scale", "ambiguity_margin", "min_blob_area_px",
                           "reacquired_hold_frames", "identity_margin", "identity_veto_after_crowd_frames"),
             unit_interval=("reid_threshold", "tau_occ", "delta_iou", "delta_id", "delta_switch", "low_score_min_iou",

@@ -35,6 +35,7 @@ from .appearance import bhattacharyya, hs_histogram
 from .identity import CROP_H_PX, CROP_W_PX, IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
 from .params import ReidParams
+from .reacquisition import BystanderTracks, ReacquisitionEvidence
 
 logger = logging.getLogger(__name__)
 
@@ -282,6 +283,13 @@ class ReIdentifier:
         self._confirming: tuple[Box, int] | None = None  # a far re-lock candidate and its δ_id confirmations
         self._frames_since_crowd: int | None = None  # frames since another detection shared the gate (None: never)
         self._crowd_told_apart = False  # in that crowd, the classifier scored its choice among several δ_id or more
+        p = self.params
+        self._frame = 0  # frames stepped: the clock of the re-acquisition evidence
+        self._evidence = ReacquisitionEvidence(p.reacquire_frames, p.reacquire_window_frames,
+                                               p.reacquire_max_step_heights)
+        self._bystanders = BystanderTracks(p.reacquire_window_frames, p.reacquire_max_step_heights)
+        self._frame_boxes: list[Box] = []  # this frame's detections and which of them are bystanders
+        self._frame_bystanders: list[bool] = []
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
              template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None,
@@ -290,12 +298,14 @@ class ReIdentifier:
         sample of the frame (descriptors: a few ms) is taken at the end, or with ``defer_learning`` when the
         caller calls :meth:`learn_pending` (the node: after publishing the measurement, off the motor's path)."""
         self._pending = None
+        self._frame += 1
         previous, self._t_last_frame_ns = self._t_last_frame_ns, int(t_ns)
         if previous is not None:
             self._unseen_since_accept_ns += max(int(t_ns) - previous - int(self.params.dt_ms * 1e6), 0)
         result = self._step(frame_bgr, detections, prior, template_hist, t_ns, init_box, low_detections)
         if result.accepted and result.box is not None:
             self._last_box = tuple(float(v) for v in result.box)
+            self._bystanders.adopt(self._frame_boxes, self._frame_bystanders, self._last_box, self._frame)
         if not defer_learning:
             self.learn_pending()
         return result
@@ -329,6 +339,7 @@ class ReIdentifier:
         grey = to_grey(frame_bgr)
         prev_grey, self._prev_grey = self._prev_grey, grey
         boxes = _valid_boxes(detections)
+        self._frame_boxes, self._frame_bystanders = boxes, self._bystanders.link(boxes, self._frame)
         if init_box is not None or prior is None or template_hist is None:
             return self._initialise(frame_bgr, boxes, prev_grey, grey, t_ns, init_box, template_hist, prior)
 
@@ -340,6 +351,7 @@ class ReIdentifier:
         match = self._second_stage(frame_bgr, low_detections, prior, template_hist, match)
         if not match.candidates and self._background_still(prev_grey, grey):
             match = self._motion_stage(frame_bgr, prev_grey, grey, prior, template_hist)
+        match = self._reacquire_on_evidence(frame_bgr, match)
         self._advance_state(match.accepted, t_ns)
         result = self._result(t_ns, match)
         if match.accepted and match.best is not None:
@@ -382,6 +394,54 @@ class ReIdentifier:
         if match.accepted:
             return _Match(candidates, match.best, True, match.c_t, match.omega)
         return dataclasses.replace(first, candidates=candidates)
+
+    def _reacquire_on_evidence(self, frame_bgr: np.ndarray, match: _Match) -> _Match:
+        """While OCCLUDED or LOST, count the frames on which one detection is the clear best candidate
+        (tracking/reacquisition.py) and re-acquire it once they are enough; any accepted match ends the count."""
+        p = self.params
+        if match.accepted or self.state not in (TrackState.OCCLUDED, TrackState.LOST):
+            self._evidence.reset()
+            return match
+        best = self._clear_best(match) if p.reacquire_on_evidence else None
+        if best is None:
+            return match
+        if self._rejected_by_classifier(frame_bgr, best):
+            self._evidence.reset()  # whoever the evidence was on, this frame's best is someone else
+            return match
+        if self._evidence.observe(best.located, self._frame):
+            logger.info("re-acquired on %d frames of evidence at %s", self._evidence.count,
+                        tuple(round(v, 1) for v in best.located))
+            return dataclasses.replace(match, best=best, accepted=True)
+        return match
+
+    def _clear_best(self, match: _Match) -> Candidate | None:
+        """The frame's best plausible detection (none of the people seen beside the target: BystanderTracks) when it
+        has the target's colours (S_color >= τ_occ) and leads every other plausible detection by identity_margin in
+        M_fuse; else None."""
+        p = self.params
+        plausible = [c for c in match.candidates if c.source == "detection" and not self._bystander(c.box)]
+        if not plausible:
+            return None
+        best = max(plausible, key=lambda c: c.m_fuse)
+        if best.s_color < p.tau_occ:
+            return None
+        if any(c is not best and c.m_fuse > best.m_fuse - p.identity_margin for c in plausible):
+            return None
+        return best
+
+    def _bystander(self, box: Box) -> bool:
+        """Whether ``box`` is one of this frame's detections that continues a bystander track."""
+        return any(flag and b == tuple(box) for b, flag in zip(self._frame_boxes, self._frame_bystanders, strict=True))
+
+    def _rejected_by_classifier(self, frame_bgr: np.ndarray, candidate: Candidate) -> bool:
+        """The classifier, when it has learnt the target, takes ``candidate`` for someone else (below δ_switch)."""
+        p = self.params
+        if not (p.learned_appearance and self.identity.ready):
+            return False
+        embs = self._embed(frame_bgr, [candidate.box])
+        if embs is None or not len(embs):
+            return False
+        return float(self.identity.score(embs)[0]) < p.delta_switch
 
     def _background_still(self, prev_grey: np.ndarray | None, grey: np.ndarray) -> bool:
         """Alg. 1 line 2's background subtraction presumes a still background: see
