@@ -46,6 +46,30 @@ class Detections(Message):
 
 
 @dataclass
+class RegionDetections(Message):
+    """Seed 002 §3.2's local re-detection of one frame (nodes/redetection.py): the detector run again on the square
+    ``region`` (x0, y0, x1, y1 frame pixels) around the Kalman prediction, at the frame's own resolution. ``reason``
+    says why ("occluded", "small", "missed", "crowded"); "" : no region was needed, published all the same so that
+    re-ID's join of the frame never waits for it. Boxes as in Detections, in frame pixels."""
+
+    TYPE: ClassVar[str] = "RegionDetections"
+    MEASURED: ClassVar[frozenset[str]] = frozenset({"infer_ms"})
+    reason: str = ""
+    region: np.ndarray = field(default_factory=lambda: np.zeros(4, np.int64))
+    boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))
+    low_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))
+    input_px: int = 0  # the detector's input side for the region
+    infer_ms: float = 0.0
+
+    def check(self) -> None:
+        check_shape(self, "region", self.region, (4,))
+        require(not self.reason or (self.region[2] > self.region[0] and self.region[3] > self.region[1]), self,
+                f"empty region {self.region.tolist()}")
+        check_box_rows(self, "boxes")
+        check_box_rows(self, "low_boxes")
+
+
+@dataclass
 class CameraMotion(Message):
     """Global image motion from the frame stamped ``from_stamp_ns`` to this one (``header.stamp_ns``):
     p_k = M p_prev + t in full-resolution pixels (tracking/egomotion.py estimates it, seed 002 §3.3).

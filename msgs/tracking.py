@@ -36,6 +36,11 @@ def mahalanobis_sq_from_cov(z: Sequence[float], centre: Sequence[float], S: np.n
     return float(d @ np.linalg.solve(S, d))
 
 
+# Measurement sources that are detector boxes, of the whole frame or of the region re-detected around the prediction
+# (seed 002 §3.2): the same association and identity rules apply to both, and both measure the person's size.
+DETECTOR_SOURCES = ("detection", "redetection")
+
+
 @dataclass
 class Prior(Message):
     """Kalman prior for a frame (seed 000 Eq. 4-8): what re-identification gates and scores against.
@@ -94,12 +99,14 @@ class Measurement(Message):
     """Re-identification result for a frame (seed 000 Algorithm 1), stamped with the frame's capture."""
 
     TYPE: ClassVar[str] = "Measurement"
+    ADDED: ClassVar[frozenset[str]] = frozenset({"detector_score"})
     state: str = "LOST"  # a TrackState value
     accepted: bool = False
     secure: bool = False
     box: np.ndarray | None = None  # the accepted box (Alg. 1 line 11)
     best_box: np.ndarray | None = None  # argmax M_fuse, even when rejected
-    # Where the chosen box came from: "detection", "low-score", "motion", or on an initialisation frame "init"
+    # Where the chosen box came from: "detection", "redetection", "low-score", "motion", or on an initialisation
+    # frame "init"
     # (new target: the template restarts from it) or "template" (re-lock with an existing template).
     source: str = ""
     m_fuse: float = 0.0
@@ -111,6 +118,9 @@ class Measurement(Message):
     candidate_sources: list[str] = field(default_factory=list)
     candidate_hist: np.ndarray | None = None  # H-S histogram C* of the chosen candidate
     init_box: np.ndarray | None = None  # set on the frame the target was initialised
+    # The detector's score of the box the target was last accepted on (-1: none, or not a detector box): what seed
+    # 002 §3.2's search scale doubts (tracking/redetection.py search_scale).
+    detector_score: float = -1.0
 
     def check(self) -> None:
         require(self.state in TRACK_STATES, self, f"unknown state {self.state!r}")

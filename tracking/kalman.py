@@ -18,7 +18,7 @@ import numpy as np
 
 from ..msgs.box import Box, box_array, box_centre, centre_size_to_box
 from ..msgs.perception import CameraMotion
-from ..msgs.tracking import Measurement, Prior, Track, mahalanobis_sq_from_cov
+from ..msgs.tracking import DETECTOR_SOURCES, Measurement, Prior, Track, mahalanobis_sq_from_cov
 from .params import KalmanParams
 
 logger = logging.getLogger(__name__)
@@ -320,7 +320,7 @@ class Predictor:
             return self._posterior(reid, measured=False)
         # Motion-blob boxes cover only the moving part of the target, so they locate it but do
         # not measure its extent: only detector boxes update the size.
-        wh = (box[2], box[3]) if reid.source == "detection" else None
+        wh = (box[2], box[3]) if reid.source in DETECTOR_SOURCES else None
         self.kf.update(box_centre(box), wh, self.kf.measurement_noise(v_ego_mps))
         return self._posterior(reid, measured=True)
 

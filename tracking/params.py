@@ -68,6 +68,20 @@ class _UpdateSuspension:
     suspend_updates: bool = True
 
 
+@dataclass
+class SearchScaleParams:
+    """Seed 002 §3.2's adaptive search scale k (tracking/redetection.py search_scale), read by re-ID for its gate
+    (χ² × k²) and by the redetection node for the side of its region: 1 for a slow target last seen on a confident
+    detection, gate_scale_max when it moves fast in the image (gate_fast_height_fraction of its height a frame or
+    more) or its last detection was weak (score gate_low_score or less; gate_high_score or more is confident)."""
+
+    adaptive_gate: bool = True
+    gate_scale_max: float = 1.5  # the seed's k in [1, 1.5]
+    gate_fast_height_fraction: float = 0.05
+    gate_high_score: float = 0.7
+    gate_low_score: float = 0.3
+
+
 # --- prediction ----------------------------------------------------------------------------------
 
 
@@ -117,7 +131,7 @@ class KalmanParams(_FramePeriod, _UpdateSuspension):
 
 
 @dataclass
-class ReidParams(_FramePeriod, _ColourHistogram):
+class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     """What the re-ID node's Algorithm 1 reads (seed 000 Alg. 1 with seeds 001 and 002)."""
 
     diff_threshold: int = 25  # Table 1 Thresh_diff: frame-difference grey-level threshold (§2.1)
@@ -133,15 +147,7 @@ class ReidParams(_FramePeriod, _ColourHistogram):
     # A match is "ambiguous" (not secure, template frozen) if another candidate's M_fuse is
     # within this margin of the best one.
     ambiguity_margin: float = 0.05
-    # Adaptive search region (seed 002 §3.2): the gate's χ² is scaled by k² with k in [1, gate_scale_max]:
-    # 1 for a slow target last seen on a confident detection, gate_scale_max when it moves fast in the image
-    # (gate_fast_height_fraction of its height per frame or more) or its last detection was weak (score
-    # gate_low_score or less; gate_high_score or more counts as confident).
-    adaptive_gate: bool = True
-    gate_scale_max: float = 1.5
-    gate_fast_height_fraction: float = 0.05
-    gate_high_score: float = 0.7
-    gate_low_score: float = 0.3
+    # Adaptive search region (seed 002 §3.2): the gate's χ² is scaled by k² (SearchScaleParams above).
     # Seed 002 / ByteTrack's second association stage: when no detection in the gate matches, the low-score
     # ones (the detection node's low_boxes, score in [low_score_threshold, score_threshold)) are tried, never
     # as training samples, and with ByteTrack's caution: only for a target matched on the previous frame (not
@@ -234,6 +240,28 @@ class ReidParams(_FramePeriod, _ColourHistogram):
         if not self.merged_min_extent_ratio > 1.0:  # at 1 or under, every box taller than predicted would be cut
             raise InvalidParam("merged_min_extent_ratio", "ReidParams.merged_min_extent_ratio must be > 1, "
                                f"got {self.merged_min_extent_ratio!r}")
+
+
+# --- re-detection --------------------------------------------------------------------------------
+
+
+@dataclass
+class RedetectionParams(_FramePeriod, SearchScaleParams):
+    """What the redetection node reads (seed 002 §3.2, tracking/redetection.py)."""
+
+    # Ablation switch: False: no region is ever re-detected (the node publishes empty results).
+    local_redetection: bool = True
+    # A person predicted shorter than this at the detector's input scale is re-detected at the frame's resolution
+    # every frame: YOLOX-nano's finest stride is 8 px, and under ~48 px a person's box becomes unreliable (it
+    # merges with a neighbour or is missed); a 1280x720 frame inferred at 416 makes a 150 px person 48 px.
+    min_resolvable_px: float = 48.0
+    # The region's largest side; 0: the detector's own input size (a region never costs more than one full-size
+    # inference; a larger region is inferred at this size).
+    max_side_px: int = 0
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("dt_ms", "gate_scale_max", "gate_fast_height_fraction"),
+                     non_negative=("min_resolvable_px", "max_side_px"))
 
 
 # --- template ------------------------------------------------------------------------------------

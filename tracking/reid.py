@@ -30,12 +30,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..msgs.box import Box, box_array, box_centre, box_iou
-from ..msgs.tracking import Measurement, Prior, TrackState
+from ..msgs.tracking import DETECTOR_SOURCES, Measurement, Prior, TrackState
 from .appearance import bhattacharyya, hs_histogram
 from .identity import CROP_H_PX, CROP_W_PX, IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
 from .params import ReidParams
 from .reacquisition import BystanderTracks, ReacquisitionEvidence
+from .redetection import RegionBoxes, merge_region_boxes, search_scale
 
 logger = logging.getLogger(__name__)
 
@@ -156,7 +157,7 @@ def fuse(s_color: float, s_geo: float, omega: float) -> float:
 @dataclass
 class Candidate:
     box: Box
-    source: str  # "detection" or "motion"
+    source: str  # "detection", "redetection" (seed 002 §3.2's region), "low-score" or "motion"
     maha_sq: float
     s_color: float
     s_geo: float
@@ -195,6 +196,7 @@ class ReidResult:
     candidates: list[Candidate] = field(default_factory=list)
     candidate_hist: np.ndarray | None = None  # H-S histogram C* of the chosen candidate
     init_box: Box | None = None  # set on the frame the target was (re)initialised
+    detector_score: float | None = None  # the score of the box the target was last accepted on (search_scale)
 
     def to_message(self) -> Measurement:
         """The result as prediction and template update consume it, stamped with the frame (candidates as
@@ -206,7 +208,8 @@ class ReidResult:
             candidates=np.array([(*c.box, c.m_fuse) for c in self.candidates], dtype=np.float64).reshape(-1, 5),
             candidate_sources=[c.source for c in self.candidates],
             candidate_hist=None if self.candidate_hist is None else np.asarray(self.candidate_hist),
-            init_box=box_array(self.init_box))
+            init_box=box_array(self.init_box),
+            detector_score=-1.0 if self.detector_score is None else float(self.detector_score))
         msg.header.stamp_ns = int(self.t_ns)
         return msg
 
@@ -241,6 +244,34 @@ def _detection_score(detections: np.ndarray | None, box: Box) -> float | None:
     hit = np.all(np.abs(rows[:, :4] - np.asarray(box, dtype=np.float64)) < 1e-3, axis=1)
     score = float(rows[hit, 4][0]) if hit.any() else None
     return score if score is not None and math.isfinite(score) else None
+
+
+@dataclass
+class _FrameBoxes:
+    """The frame's detector boxes: the whole frame's and the re-detected region's (merged, tracking/redetection.py),
+    and every row with its score, high and low."""
+
+    frame: list[Box]
+    region: list[Box]
+    rows: np.ndarray
+    low_rows: np.ndarray
+
+    @property
+    def all(self) -> list[Box]:
+        return self.frame + self.region
+
+
+def _rows(detections: np.ndarray | None) -> np.ndarray:
+    return np.zeros((0, 5), np.float32) if detections is None else np.asarray(detections, np.float32).reshape(-1, 5)
+
+
+def _frame_boxes(detections: np.ndarray | None, low_detections: np.ndarray | None, region: RegionBoxes | None,
+                 frame_wh: tuple[int, int]) -> _FrameBoxes:
+    if region is None:
+        return _FrameBoxes(_valid_boxes(detections), [], _rows(detections), _rows(low_detections))
+    rows, from_region = merge_region_boxes(_rows(detections), region.boxes, region.rect, frame_wh)
+    low_rows, _ = merge_region_boxes(_rows(low_detections), region.low_boxes, region.rect, frame_wh)
+    return _FrameBoxes(_valid_boxes(rows[~from_region]), _valid_boxes(rows[from_region]), rows, low_rows)
 
 
 @dataclass
@@ -293,16 +324,20 @@ class ReIdentifier:
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
              template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None,
-             defer_learning: bool = False, low_detections: np.ndarray | None = None) -> ReidResult:
+             defer_learning: bool = False, low_detections: np.ndarray | None = None,
+             region: RegionBoxes | None = None) -> ReidResult:
         """Run one frame (see :meth:`_step`); remembers the accepted box. The learned appearance's training
         sample of the frame (descriptors: a few ms) is taken at the end, or with ``defer_learning`` when the
-        caller calls :meth:`learn_pending` (the node: after publishing the measurement, off the motor's path)."""
+        caller calls :meth:`learn_pending` (the node: after publishing the measurement, off the motor's path).
+        ``region``: what the re-detection of the region around the prediction found (seed 002 §3.2), merged with
+        the frame's detections (tracking/redetection.py)."""
         self._pending = None
         self._frame += 1
         previous, self._t_last_frame_ns = self._t_last_frame_ns, int(t_ns)
         if previous is not None:
             self._unseen_since_accept_ns += max(int(t_ns) - previous - int(self.params.dt_ms * 1e6), 0)
-        result = self._step(frame_bgr, detections, prior, template_hist, t_ns, init_box, low_detections)
+        boxes = _frame_boxes(detections, low_detections, region, (frame_bgr.shape[1], frame_bgr.shape[0]))
+        result = self._step(frame_bgr, boxes, prior, template_hist, t_ns, init_box)
         if result.accepted and result.box is not None:
             self._last_box = tuple(float(v) for v in result.box)
             self._bystanders.adopt(self._frame_boxes, self._frame_bystanders, self._last_box, self._frame)
@@ -319,15 +354,14 @@ class ReIdentifier:
     def _step(
         self,
         frame_bgr: np.ndarray,
-        detections: np.ndarray | None,
+        dets: _FrameBoxes,
         prior: Prior | None,
         template_hist: np.ndarray | None,
         t_ns: int,
         init_box: Sequence[float] | None = None,
-        low_detections: np.ndarray | None = None,
     ) -> ReidResult:
-        """Run one frame. ``low_detections`` (x, y, w, h, score rows under the detector's threshold)
-        are a second stage when no detection in the gate matched (seed 002's ByteTrack association).
+        """Run one frame. The low-score rows (under the detector's threshold) are a second stage when no
+        detection in the gate matched (seed 002's ByteTrack association).
         Without a prior or a template (or with an explicit ``init_box``) this initialises the target
         instead: ``init_box``, else (when a template exists, e.g. restored after a restart) the detection
         best matching it if above Thresh_reid, else (when a prior exists: this re-ID was restarted while
@@ -338,26 +372,29 @@ class ReIdentifier:
         t_ns = int(t_ns)
         grey = to_grey(frame_bgr)
         prev_grey, self._prev_grey = self._prev_grey, grey
-        boxes = _valid_boxes(detections)
+        boxes = dets.all
         self._frame_boxes, self._frame_bystanders = boxes, self._bystanders.link(boxes, self._frame)
         if init_box is not None or prior is None or template_hist is None:
             return self._initialise(frame_bgr, boxes, prev_grey, grey, t_ns, init_box, template_hist, prior)
 
         prior = self._scaled_gate(prior)
-        # Stage 1: the detections (score >= the detector's threshold) in the gate.
-        candidates = self._gate_candidates(boxes, prior, "detection")
+        # Stage 1: the detections (score >= the detector's threshold) in the gate, the frame's and the region's.
+        candidates = (self._gate_candidates(dets.frame, prior, "detection")
+                      + self._gate_candidates(dets.region, prior, "redetection"))
         self._note_crowd(len(candidates))
         match = self._match(frame_bgr, candidates, prior, template_hist)
-        match = self._second_stage(frame_bgr, low_detections, prior, template_hist, match)
+        match = self._second_stage(frame_bgr, dets.low_rows, prior, template_hist, match)
         if not match.candidates and self._background_still(prev_grey, grey):
             match = self._motion_stage(frame_bgr, prev_grey, grey, prior, template_hist)
         match = self._reacquire_on_evidence(frame_bgr, match)
         self._advance_state(match.accepted, t_ns)
         result = self._result(t_ns, match)
         if match.accepted and match.best is not None:
-            scored = {"detection": detections, "low-score": low_detections}.get(match.best.source)
+            scored = {"detection": dets.rows, "redetection": dets.rows, "low-score": dets.low_rows}.get(
+                match.best.source)
             self._last_score = (_detection_score(scored, match.best.box) if scored is not None
                                 else self.params.gate_low_score)  # a motion blob: as weak as a detection can be
+        result.detector_score = self._last_score
         if result.secure and result.box is not None:
             self._pending = (frame_bgr, result.box, boxes)
         logger.debug(
@@ -419,7 +456,7 @@ class ReIdentifier:
         has the target's colours (S_color >= τ_occ) and leads every other plausible detection by identity_margin in
         M_fuse; else None."""
         p = self.params
-        plausible = [c for c in match.candidates if c.source == "detection" and not self._bystander(c.box)]
+        plausible = [c for c in match.candidates if c.source in DETECTOR_SOURCES and not self._bystander(c.box)]
         if not plausible:
             return None
         best = max(plausible, key=lambda c: c.m_fuse)
@@ -477,7 +514,7 @@ class ReIdentifier:
         if match.accepted:
             result.box = best.located
             # A partial view is no training sample: its whole box covers the occluder.
-            result.secure = (self.state is TrackState.TRACKING and not ambiguous and best.source == "detection"
+            result.secure = (self.state is TrackState.TRACKING and not ambiguous and best.source in DETECTOR_SOURCES
                              and best.whole is None)
         return result
 
@@ -499,19 +536,9 @@ class ReIdentifier:
         return best, c_t, omega
 
     def gate_scale(self, prior: Prior) -> float:
-        """Seed 002 §3.2's search scale k in [1, gate_scale_max]: 1 for a slow target whose last accepted
-        detection was confident, up to gate_scale_max for a fast one (speed in image heights per frame) or a
-        weak last detection (a motion blob counts as weak)."""
-        p = self.params
-        if not p.adaptive_gate:
-            return 1.0
-        speed_px = math.hypot(*prior.velocity_px_s) * p.dt_ms / 1000.0
-        fast = speed_px / max(prior.size[1], 1.0) / p.gate_fast_height_fraction
-        score = self._last_score  # None: an initial box, no detector score to doubt
-        weak = 0.0 if score is None else (p.gate_high_score - score) / max(p.gate_high_score - p.gate_low_score,
-                                                                              1e-6)
-        urgency = min(max(max(fast, weak), 0.0), 1.0)
-        return 1.0 + (p.gate_scale_max - 1.0) * urgency
+        """Seed 002 §3.2's search scale k for this target (tracking/redetection.py search_scale; a motion blob's
+        last match counts as weak)."""
+        return search_scale(prior, self._last_score, self.params.dt_ms, self.params)
 
     def _scaled_gate(self, prior: Prior) -> Prior:
         k = self.gate_scale(prior)

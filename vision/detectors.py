@@ -367,6 +367,17 @@ class YoloxDetector(_OnnxDetector):
         return yolox_postprocess(raw, (blob.shape[2], blob.shape[3]), ratio, bgr.shape, self.score_threshold,
                                  self.nms_iou)
 
+    def detect_at(self, bgr: np.ndarray, input_size: int) -> np.ndarray:
+        """:meth:`detect` with the long side inferred at ``input_size`` px (a multiple of 32; a model that takes
+        any height and width, input_shape fit): a region inferred at its own resolution (seed 002 §3.2)."""
+        if self.input_shape != "fit":
+            raise ModelError(f"{self.name}: detect_at needs input_shape 'fit' (a model of free height and width)")
+        size, self.input_size = self.input_size, int(input_size)
+        try:
+            return self.detect(bgr)
+        finally:
+            self.input_size = size
+
 
 # ----------------------------------------------------------------------------- YOLOv8
 
