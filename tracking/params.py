@@ -107,6 +107,11 @@ class KalmanParams(_FramePeriod, _UpdateSuspension):
     # the egomotion node that measures it; `followbus eval --ablations` scores "followbus w/o camera-motion
     # compensation".
     camera_motion_compensation: bool = True
+    # With compensation, a second motion model beside it (tracking/kalman.py Predictor, an IMM): the target keeping
+    # its course in the image whatever the camera does, as under a camera that follows it (a robot turning towards
+    # the person, a drone tracking a boat). The models' probabilities switch by model_switch_probability a frame.
+    image_motion_model: bool = True
+    model_switch_probability: float = 0.05
     # Issue 22: the camera motion's uncertainty (egomotion's std_px) widens the prior's position covariance by
     # std² (and so the gate); a fit more doubtful than camera_motion_doubt_px does not move a coasting prior
     # (no detection matched on the previous frame), it widens it by the displacement it would have applied.
@@ -124,7 +129,7 @@ class KalmanParams(_FramePeriod, _UpdateSuspension):
         check_ranges(self, positive=("dt_ms", "gate_chi2", "r0_px2", "camera_motion_doubt_px"),
                      non_negative=("accel_std_px_s2", "kappa_px2_per_mps2", "init_velocity_std_px_s",
                                    "occluded_output_max_std_heights"),
-                     unit_interval=("size_smoothing",))
+                     unit_interval=("size_smoothing", "model_switch_probability"))
 
 
 # --- re-ID ---------------------------------------------------------------------------------------
@@ -194,6 +199,10 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # height within a factor 1.5), is re-acquired, however far from the prior and whatever T_reid says: the target
     # came back looking a little different. False: only T_reid and δ_id re-lock.
     reacquire_on_evidence: bool = True
+    # A lone detector box overlapping the prediction (low_score_min_iou) of a target matched on the last frame, while
+    # no other detection has shared the gate for identity_veto_after_crowd_frames, is accepted below T_reid: the
+    # target alone, whose colours changed (reid.ReIdentifier._uncontested). False: T_reid decides.
+    uncontested_lone_candidate: bool = True
     reacquire_frames: int = 5
     reacquire_window_frames: int = 10
     reacquire_max_step_heights: float = 0.5

@@ -123,21 +123,25 @@ def complete_partial_view(box: Sequence[float], predicted_box: Sequence[float], 
 
 def trim_merged_view(box: Sequence[float], predicted_box: Sequence[float], min_ratio: float = 1.5,
                      edge_tolerance: float = 0.15) -> Box:
-    """The target inside a merged view: a detector box taller than the prediction (over ``min_ratio`` of its height)
-    whose top or bottom agrees with the prediction's (within ``edge_tolerance`` of the predicted height) while the
-    other edge reaches well beyond it boxes the target together with someone in line with it (a person behind
-    them from a high camera, a group seen from above). The target is the predicted height from the agreeing edge;
-    otherwise the box is kept. The mirror of :func:`complete_partial_view`, and only the height for its reasons.
+    """The target inside a merged view: a detector box over ``min_ratio`` of the prediction's height (or width) whose
+    top or bottom (left or right) edge agrees with the prediction's (within ``edge_tolerance`` of the predicted
+    extent) while the other edge reaches well beyond it boxes the target together with someone in line with it (a
+    person behind them from a high camera, a group seen from above) or beside it (look-alikes side by side, seen
+    too coarsely to be told apart). Along each such axis the target is the predicted extent from the agreeing edge;
+    otherwise the box is kept. The mirror of :func:`complete_partial_view`, but on both axes: a stride or a swing
+    of the arms widens a person by far less than half.
 
-    Why: taken whole, such a box moves the Kalman centre by half the other person's height in one frame and gives
+    Why: taken whole, such a box moves the Kalman centre by half the other person's extent in one frame and gives
     it a velocity of that size; once the two part again the prior runs on in that direction, the gate leaves the
     target behind, and the coasting prediction ends on someone else (uav-group1-3 frames 289-326, EVALUATION.md).
     A person coming closer grows at both edges, so no edge agrees and nothing is trimmed."""
-    ph = float(predicted_box[3])
-    if ph <= 0.0 or float(box[3]) <= min_ratio * ph:
-        return tuple(float(v) for v in box)  # type: ignore[return-value]
-    y, h = _anchor_to_agreeing_edge(float(box[1]), float(box[3]), float(predicted_box[1]), ph, edge_tolerance)
-    return (float(box[0]), y, float(box[2]), h)
+    x, y, w, h = (float(v) for v in box[:4])
+    px, py, pw, ph = (float(v) for v in predicted_box[:4])
+    if ph > 0.0 and h > min_ratio * ph:
+        y, h = _anchor_to_agreeing_edge(y, h, py, ph, edge_tolerance)
+    if pw > 0.0 and w > min_ratio * pw:
+        x, w = _anchor_to_agreeing_edge(x, w, px, pw, edge_tolerance)
+    return (x, y, w, h)
 
 
 def appearance_weight(c_t: float, tau_occ: float = 0.60, gamma: float = 10.0) -> float:
@@ -411,7 +415,22 @@ class ReIdentifier:
         accepted = best is not None and best.m_fuse > self.params.reid_threshold
         if accepted and best is not None:
             best, accepted = self._identity_decision(frame_bgr, candidates, best, prior)
+        elif best is not None and self._uncontested(candidates, best, prior):
+            accepted = True
         return _Match(candidates, best, accepted, c_t, omega)
+
+    def _uncontested(self, candidates: list[Candidate], best: Candidate, prior: Prior) -> bool:
+        """A lone detector box where the target is predicted, with nobody else near it: the target, whatever its
+        colours now say (it turned, the light changed, spray hides it). ByteTrack's caution: only for a target
+        matched on the last frame and a box overlapping the prediction by low_score_min_iou; and only while no
+        other detection has shared the gate for identity_veto_after_crowd_frames (an occluder walking in front is
+        such a detection before it hides the target)."""
+        p = self.params
+        if not p.uncontested_lone_candidate or self.state not in (TrackState.TRACKING, TrackState.REACQUIRED):
+            return False
+        detections = [c for c in candidates if c.source in DETECTOR_SOURCES]
+        alone = self._frames_since_crowd is None or self._frames_since_crowd > p.identity_veto_after_crowd_frames
+        return (detections == [best] and alone and box_iou(best.located, prior.box) >= p.low_score_min_iou)
 
     def _second_stage(self, frame_bgr: np.ndarray, low_detections: np.ndarray | None, prior: Prior,
                       template_hist: np.ndarray, first: _Match) -> _Match:
