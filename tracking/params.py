@@ -199,7 +199,7 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # height within a factor 1.5), is re-acquired, however far from the prior and whatever T_reid says: the target
     # came back looking a little different. False: only T_reid and δ_id re-lock.
     reacquire_on_evidence: bool = True
-    # A lone detector box overlapping the prediction (low_score_min_iou) of a target matched on the last frame, while
+    # A lone detector box centred inside the predicted box of a target matched on the last frame, while
     # no other detection has shared the gate for identity_veto_after_crowd_frames, is accepted below T_reid: the
     # target alone, whose colours changed (reid.ReIdentifier._uncontested). False: T_reid decides.
     uncontested_lone_candidate: bool = True

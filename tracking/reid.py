@@ -420,17 +420,19 @@ class ReIdentifier:
         return _Match(candidates, best, accepted, c_t, omega)
 
     def _uncontested(self, candidates: list[Candidate], best: Candidate, prior: Prior) -> bool:
-        """A lone detector box where the target is predicted, with nobody else near it: the target, whatever its
+        """A lone detector box centred inside the predicted box, with nobody else near it: the target, whatever its
         colours now say (it turned, the light changed, spray hides it). ByteTrack's caution: only for a target
-        matched on the last frame and a box overlapping the prediction by low_score_min_iou; and only while no
-        other detection has shared the gate for identity_veto_after_crowd_frames (an occluder walking in front is
-        such a detection before it hides the target)."""
+        matched on the last frame; and only while no other detection has shared the gate for
+        identity_veto_after_crowd_frames (an occluder walking in front is such a detection before it hides the
+        target)."""
         p = self.params
         if not p.uncontested_lone_candidate or self.state not in (TrackState.TRACKING, TrackState.REACQUIRED):
             return False
         detections = [c for c in candidates if c.source in DETECTOR_SOURCES]
         alone = self._frames_since_crowd is None or self._frames_since_crowd > p.identity_veto_after_crowd_frames
-        return (detections == [best] and alone and box_iou(best.located, prior.box) >= p.low_score_min_iou)
+        (cx, cy), (px, py) = box_centre(best.located), prior.centre
+        inside = abs(cx - px) <= prior.size[0] / 2.0 and abs(cy - py) <= prior.size[1] / 2.0
+        return detections == [best] and alone and inside
 
     def _second_stage(self, frame_bgr: np.ndarray, low_detections: np.ndarray | None, prior: Prior,
                       template_hist: np.ndarray, first: _Match) -> _Match:
