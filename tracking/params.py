@@ -118,18 +118,17 @@ class KalmanParams(_FramePeriod, _UpdateSuspension):
     # (A frame without a transform is not widened: whether one came in time depends on live timing.)
     camera_motion_uncertainty: bool = True
     camera_motion_doubt_px: float = 4.0
-    # Issue 22: while OCCLUDED the output is the coasting prediction (seed 000 §2.3) only while it still locates
-    # the person: once the prior centre's 1 σ exceeds this many box heights, the person is as likely outside the
-    # box's own height as in it, and the box could sit on a neighbour, so none is output (the controller stops;
-    # the gate keeps searching). 0: always output it. 1 rather than 2: under 1 px of detector jitter (EVALUATION.md)
-    # a coast dragged by a merged box stayed on nobody for 10+ frames before 2 heights were reached.
-    occluded_output_max_std_heights: float = 1.0
+    # While OCCLUDED the output is the coasting prediction (seed 000 §2.3) only while the person is more likely inside
+    # its box than not: the prior's position covariance puts the centre within the box with at least this
+    # probability (Prior.centre_inside_probability). Past it the box could sit on a neighbour or on nobody, so none
+    # is output (the controller stops; the gate keeps searching). 0: always output it.
+    occluded_output_min_inside_probability: float = 0.5
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("dt_ms", "gate_chi2", "r0_px2", "camera_motion_doubt_px"),
-                     non_negative=("accel_std_px_s2", "kappa_px2_per_mps2", "init_velocity_std_px_s",
-                                   "occluded_output_max_std_heights"),
-                     unit_interval=("size_smoothing", "model_switch_probability"))
+                     non_negative=("accel_std_px_s2", "kappa_px2_per_mps2", "init_velocity_std_px_s"),
+                     unit_interval=("size_smoothing", "model_switch_probability",
+                                    "occluded_output_min_inside_probability"))
 
 
 # --- re-ID ---------------------------------------------------------------------------------------
