@@ -69,7 +69,7 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o reference across failed fits": {"max_reference_age_frames": 0},
     "followbus w/o camera-motion uncertainty": {"camera_motion_uncertainty": False},
     # issue 22: the coasting prediction output however uncertain it has grown (KalmanParams)
-    "followbus w/o withholding an uncertain coasting box": {"occluded_output_min_inside_probability": 0.0},
+    "followbus w/o withholding an uncertain coasting box": {"occluded_output_min_overlap_probability": 0.0},
     # re-acquisition only on T_reid and δ_id, not on evidence accumulated over N_id frames (tracking/reacquisition.py)
     "followbus w/o re-acquisition on evidence": {"reacquire_on_evidence": False},
     # issue 22: a far re-lock on δ_switch alone, as before (no δ_id / N_id confirmation)

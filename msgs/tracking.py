@@ -78,12 +78,13 @@ class Prior(Message):
         """The centre's 1 σ along its most uncertain direction (P_k's position block), px."""
         return math.sqrt(max(float(np.linalg.eigvalsh(self.covariance[:2, :2]).max()), 0.0))
 
-    def centre_inside_probability(self) -> float:
-        """The probability that the person's centre lies inside the predicted box, under P_k's position block (its
-        marginals along x and y: a box of w x h holds the centre with erf(w / (2√2 σx)) · erf(h / (2√2 σy)))."""
+    def overlap_probability(self) -> float:
+        """The probability that the predicted box still overlaps the person's, under P_k's position block: that the
+        centres are less than one box width and height apart, erf(w / (√2 σx)) · erf(h / (√2 σy)) (its marginals
+        along x and y)."""
         sx, sy = (math.sqrt(max(float(self.covariance[i, i]), 1e-12)) for i in (0, 1))
         w, h = float(self.size[0]), float(self.size[1])
-        return math.erf(w / (2.0 * math.sqrt(2.0) * sx)) * math.erf(h / (2.0 * math.sqrt(2.0) * sy))
+        return math.erf(w / (math.sqrt(2.0) * sx)) * math.erf(h / (math.sqrt(2.0) * sy))
 
     @property
     def velocity_px_s(self) -> tuple[float, float]:

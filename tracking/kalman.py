@@ -288,6 +288,13 @@ class Predictor:
         self.filters = {m: KalmanCV.from_params(self.params) for m in self.models}
         self.mode = np.full(len(self.models), 1.0 / len(self.models))
 
+    def initialise(self, box: Sequence[float], t_ns: int | None = None) -> None:
+        """Every model starts at ``box`` (no velocity), both equally likely."""
+        for kf in self.filters.values():
+            kf.initialise(box, t_ns)
+        self.mode = np.full(len(self.models), 1.0 / len(self.models))
+        self._motion_t_ns = None if t_ns is None else int(t_ns)
+
     def _combined(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The moment-matched mixture of the filters' states: mean, and covariance including their spread."""
         xs = [self.filters[m].x for m in self.models]
@@ -382,10 +389,7 @@ class Predictor:
         t_ns = reid.header.stamp_ns
         self._coasting = not reid.accepted and reid.init_box is None
         if reid.init_box is not None:
-            for kf in self.filters.values():
-                kf.initialise(reid.init_box, t_ns)
-            self.mode = np.full(len(self.models), 1.0 / len(self.models))
-            self._motion_t_ns = int(t_ns)
+            self.initialise(reid.init_box, t_ns)
             logger.info("predictor initialised at %s", tuple(round(float(v), 1) for v in reid.init_box))
             return self._posterior(reid, measured=True)
         if not self.initialised:

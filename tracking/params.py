@@ -118,17 +118,18 @@ class KalmanParams(_FramePeriod, _UpdateSuspension):
     # (A frame without a transform is not widened: whether one came in time depends on live timing.)
     camera_motion_uncertainty: bool = True
     camera_motion_doubt_px: float = 4.0
-    # While OCCLUDED the output is the coasting prediction (seed 000 §2.3) only while the person is more likely inside
-    # its box than not: the prior's position covariance puts the centre within the box with at least this
-    # probability (Prior.centre_inside_probability). Past it the box could sit on a neighbour or on nobody, so none
-    # is output (the controller stops; the gate keeps searching). 0: always output it.
-    occluded_output_min_inside_probability: float = 0.5
+    # While OCCLUDED the output is the coasting prediction (seed 000 §2.3) only while it more likely overlaps the
+    # person than not: the prior's position covariance puts the person's box in touch with it with at least this
+    # probability (Prior.overlap_probability). Past it the box is as likely on nobody, or on a neighbour, as on the
+    # person (a wrong re-lock is an output not touching the target), so none is output (the controller stops; the
+    # gate keeps searching). 0: always output it.
+    occluded_output_min_overlap_probability: float = 0.5
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("dt_ms", "gate_chi2", "r0_px2", "camera_motion_doubt_px"),
                      non_negative=("accel_std_px_s2", "kappa_px2_per_mps2", "init_velocity_std_px_s"),
                      unit_interval=("size_smoothing", "model_switch_probability",
-                                    "occluded_output_min_inside_probability"))
+                                    "occluded_output_min_overlap_probability"))
 
 
 # --- re-ID ---------------------------------------------------------------------------------------

@@ -15,8 +15,10 @@ redetection node (nodes/redetection.py) runs the detector, re-ID (tracking/reid.
   more in it ("crowded": look-alikes a coarse view merges), or a person smaller than ``min_resolvable_px`` at the
   detector's input scale ("small"). LOST is not a trigger: the prior no longer says where the person is, and
   re-ID searches the whole frame.
-* Merging: a frame box lying mostly inside the region is replaced by what the region saw (the same pixels at a
-  finer scale); a region box cut by the region's inner edge is dropped (the frame box has that person whole).
+* Merging: a frame box the region saw again (a region box overlapping it by IoU 0.5, or centred inside it: the same
+  person seen finer, or people the coarse view merged) is replaced by what the region saw; a frame box the region
+  did not see stays (the region pass can miss what the frame pass found). A region box cut by the region's inner
+  edge is dropped (the frame box has that person whole).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..msgs.box import box_iou
 from ..msgs.tracking import Prior
 from .params import SearchScaleParams
 
@@ -40,7 +43,7 @@ class RegionBoxes:
     boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))
     low_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))
 EDGE_PX = 2.0  # a region box within this of an inner edge of the region is cut by it
-INSIDE_FRACTION = 0.7  # a frame box with this much of its area inside the region is replaced by the region's boxes
+SAME_BOX_IOU = 0.5  # a frame box and a region box overlapping this much box the same person
 MIN_INPUT_PX = 96  # a smaller region is enlarged to this for the detector (its coarsest stride is 32 px)
 STRIDE_PX = 32
 
@@ -108,11 +111,12 @@ def reason_to_redetect(prior: Prior, boxes: np.ndarray, k: float, occluded: bool
     return "crowded" if gated >= 2 else ""
 
 
-def _inside_fraction(box: np.ndarray, rect: Rect) -> float:
-    x, y, w, h = (float(v) for v in box[:4])
-    iw = min(x + w, rect[2]) - max(x, rect[0])
-    ih = min(y + h, rect[3]) - max(y, rect[1])
-    return 0.0 if iw <= 0 or ih <= 0 or w * h <= 0 else iw * ih / (w * h)
+def _superseded(frame_box: np.ndarray, region_boxes: list[np.ndarray]) -> bool:
+    """A frame box the region saw again: a region box overlapping it by SAME_BOX_IOU or centred inside it (the same
+    person seen finer, or people it merged)."""
+    x, y, w, h = (float(v) for v in frame_box[:4])
+    return any(box_iou(frame_box[:4], r[:4]) >= SAME_BOX_IOU
+               or (x <= r[0] + r[2] / 2.0 <= x + w and y <= r[1] + r[3] / 2.0 <= y + h) for r in region_boxes)
 
 
 def _cut_by_region(box: np.ndarray, rect: Rect, frame_wh: tuple[int, int]) -> bool:
@@ -125,11 +129,11 @@ def _cut_by_region(box: np.ndarray, rect: Rect, frame_wh: tuple[int, int]) -> bo
 
 def merge_region_boxes(frame_rows: np.ndarray, region_rows: np.ndarray, rect: Rect,
                        frame_wh: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """The frame's rows (x, y, w, h, score) with those mostly inside the region replaced by the region's own, less
-    the region's cut ones. Returns (rows, from_region) with ``from_region`` a bool per row."""
+    """The frame's rows (x, y, w, h, score) less those the region saw again, with the region's own rows less its cut
+    ones. Returns (rows, from_region) with ``from_region`` a bool per row."""
     frame_rows = np.asarray(frame_rows, np.float32).reshape(-1, 5)
     region_rows = np.asarray(region_rows, np.float32).reshape(-1, 5)
-    kept = [r for r in frame_rows if _inside_fraction(r, rect) < INSIDE_FRACTION]
     added = [r for r in region_rows if not _cut_by_region(r, rect, frame_wh)]
+    kept = [r for r in frame_rows if not _superseded(r, added)]
     rows = np.array([*kept, *added], np.float32).reshape(-1, 5)
     return rows, np.array([False] * len(kept) + [True] * len(added), bool)

@@ -18,17 +18,17 @@ import numpy as np
 from ..msgs.tracking import Measurement, Prior, TrackState
 
 
-def output_box(reid: Measurement, prior: Prior | None, min_inside_probability: float) -> np.ndarray | None:
+def output_box(reid: Measurement, prior: Prior | None, min_overlap_probability: float) -> np.ndarray | None:
     """The tracker's output for a frame: the accepted box; while OCCLUDED the predicted box (§2.3:
-    keep following the hidden trajectory) as long as the person is more likely inside it than not: the probability
-    that the centre lies within the box, under the prior's position covariance, at least ``min_inside_probability``
-    (0: no limit; KalmanParams.occluded_output_min_inside_probability); None when LOST, before initialisation or when
-    the prediction no longer locates the person. The prediction node publishes exactly this as its Track message's
-    ``box``."""
+    keep following the hidden trajectory) as long as it more likely overlaps the person than not: the probability,
+    under the prior's position covariance, that the box still touches the person's (Prior.overlap_probability) at
+    least ``min_overlap_probability`` (0: no limit; KalmanParams.occluded_output_min_overlap_probability); None when
+    LOST, before initialisation or when the prediction no longer locates the person. The prediction node publishes
+    exactly this as its Track message's ``box``."""
     if reid.accepted:
         return reid.box
     if reid.state != TrackState.OCCLUDED or prior is None or not prior.initialised:
         return None
-    if min_inside_probability > 0.0 and prior.centre_inside_probability() < min_inside_probability:
+    if min_overlap_probability > 0.0 and prior.overlap_probability() < min_overlap_probability:
         return None
     return prior.box
