@@ -49,6 +49,7 @@ class Prior(Message):
     ``innovation_cov`` the 2x2 S = H P⁻ Hᵀ + R used by the gate (Eq. 8), ``box`` the predicted box."""
 
     TYPE: ClassVar[str] = "Prior"
+    ADDED: ClassVar[frozenset[str]] = frozenset({"likeliest_box"})
     initialised: bool = False
     state: np.ndarray = field(default_factory=lambda: np.zeros(4))  # x, y, vx, vy (px, px/s)
     size: np.ndarray = field(default_factory=lambda: np.zeros(2))  # w, h (px)
@@ -56,6 +57,10 @@ class Prior(Message):
     innovation_cov: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))  # S = H P H^T + R
     gate_chi2: float = 9.488
     box: np.ndarray | None = None
+    # The box of the likeliest motion model (tracking/kalman.py's IMM; None: one model, the ``box``): the state, its
+    # covariance and ``box`` are the models' mixture, which can lie between two places the person may be and be at
+    # neither, so a coasting output is this one.
+    likeliest_box: np.ndarray | None = None
 
     @classmethod
     def of_filter(cls, t_ns: int, state: np.ndarray, size: Sequence[float], covariance: np.ndarray,
@@ -99,7 +104,7 @@ class Prior(Message):
     def check(self) -> None:
         for name, shape in (("state", (4,)), ("covariance", (4, 4)), ("innovation_cov", (2, 2))):
             check_shape(self, name, getattr(self, name), shape)
-        check_boxes(self, "box")
+        check_boxes(self, "box", "likeliest_box")
 
 
 @dataclass

@@ -143,7 +143,9 @@ class Prediction(Node):
         return {"state": self.last_state, "initialised": self.predictor.initialised,
                 "filter_resets": self.filter_resets, "priors_warped": self.predictor.warped,
                 "camera_motion_mismatched": self.predictor.motion_mismatched,
-                "camera_motion_held": self.predictor.motion_held}
+                "camera_motion_held": self.predictor.motion_held,
+                "camera_motion_unfitted": self.predictor.motion_unfitted,
+                "image_model_probability": round(self.predictor.image_model_probability, 3)}
 
 
 NODE = Prediction

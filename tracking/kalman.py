@@ -263,6 +263,8 @@ class Predictor:
         self.motion_held = 0  # doubtful motions that only widened a coasting prior
         self._motion_t_ns: int | None = None  # the stamp up to which the camera's motion has been applied
         self._coasting = False  # no detection matched on the last applied frame
+        self.recent_shift_px2 = 0.0  # running mean of the camera's squared displacement at the target (px²)
+        self.motion_unfitted = 0  # frames whose camera motion could not be measured: the prior widened instead
 
     @property
     def initialised(self) -> bool:
@@ -338,6 +340,7 @@ class Predictor:
         """
         if not self.initialised:
             return None
+        unfitted = camera_motion is not None and not camera_motion.valid and camera_motion.header.stamp_ns == t_ns
         if camera_motion is not None and not camera_motion.valid:
             camera_motion = None
         from_t_ns = self.filters[self.models[0]].t_ns
@@ -346,10 +349,18 @@ class Predictor:
             self.filters[m].predict(t_ns)
         if SCENE in self.models:
             self._compensate(self.filters[SCENE], camera_motion, from_t_ns, int(t_ns))
+            if unfitted and self.params.camera_motion_uncertainty:
+                # The camera moved by an unknown amount: as much as it has lately, in any direction (a jerk
+                # blurred the frame past fitting), not by nothing.
+                self.motion_unfitted += 1
+                self.filters[SCENE].widen(self.recent_shift_px2 * np.eye(2))
         first = self.filters[self.models[0]]
         R = first.measurement_noise(v_ego_mps)  # Eq. 7 with the current ego speed
         x, P = self._combined(self.mode)
-        return Prior.of_filter(int(t_ns), x, self._combined_size(self.mode), P, H @ P @ H.T + R, first.gate_chi2)
+        prior = Prior.of_filter(int(t_ns), x, self._combined_size(self.mode), P, H @ P @ H.T + R, first.gate_chi2)
+        if len(self.models) > 1:  # ties go to the first, "scene": seed 002's compensated prediction
+            prior.likeliest_box = box_array(self.filters[self.models[int(np.argmax(self.mode))]].box)
+        return prior
 
     def _compensate(self, kf: KalmanCV, motion: CameraMotion | None, from_t_ns: int | None, t_ns: int) -> None:
         """Seed 002 §3.3's warp with issue 22's doubt, on the "scene" model. A motion that starts where the applied
@@ -370,6 +381,7 @@ class Predictor:
         self._motion_t_ns = t_ns
         centre = kf.x[:2].copy()
         shift = motion.matrix[:, :2] @ centre + motion.matrix[:, 2] - centre
+        self.recent_shift_px2 = 0.9 * self.recent_shift_px2 + 0.1 * float(shift @ shift)
         if not p.camera_motion_uncertainty:
             kf.warp(motion.matrix)
             self.warped += 1

@@ -645,10 +645,13 @@ class ReIdentifier:
                 and self._crowd_told_apart)
 
     def _far(self, box: Box, prior: Prior) -> bool:
-        """A re-lock candidate farther from the prior's centre than relock_far_height_fraction of its height."""
+        """A re-lock candidate farther than relock_far_height_fraction of the target's height from where the prior
+        puts it: its centre, and the likeliest motion model's box when the prior mixes several (the mixture's mean
+        can lie between two places the person may be)."""
         cx, cy = box_centre(box)
-        px, py = prior.centre
-        return math.hypot(cx - px, cy - py) > self.params.relock_far_height_fraction * max(prior.size[1], 1.0)
+        centres = [prior.centre] + ([box_centre(prior.likeliest_box)] if prior.likeliest_box is not None else [])
+        limit = self.params.relock_far_height_fraction * max(prior.size[1], 1.0)
+        return all(math.hypot(cx - px, cy - py) > limit for px, py in centres)
 
     def _confirmed(self, box: Box, score: float) -> bool:
         """Seed 001's N_id: a far re-lock needs δ_id on n_id_frames consecutive frames, on the same person (overlapping

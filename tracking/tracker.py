@@ -20,7 +20,8 @@ from ..msgs.tracking import Measurement, Prior, TrackState
 
 def output_box(reid: Measurement, prior: Prior | None, min_overlap_probability: float) -> np.ndarray | None:
     """The tracker's output for a frame: the accepted box; while OCCLUDED the predicted box (§2.3:
-    keep following the hidden trajectory) as long as it more likely overlaps the person than not: the probability,
+    keep following the hidden trajectory: the likeliest motion model's) as long as it more likely overlaps the person
+    than not: the probability,
     under the prior's position covariance, that the box still touches the person's (Prior.overlap_probability) at
     least ``min_overlap_probability`` (0: no limit; KalmanParams.occluded_output_min_overlap_probability); None when
     LOST, before initialisation or when the prediction no longer locates the person. The prediction node publishes
@@ -31,4 +32,4 @@ def output_box(reid: Measurement, prior: Prior | None, min_overlap_probability: 
         return None
     if min_overlap_probability > 0.0 and prior.overlap_probability() < min_overlap_probability:
         return None
-    return prior.box
+    return prior.box if prior.likeliest_box is None else prior.likeliest_box
