@@ -70,6 +70,16 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o camera-motion uncertainty": {"camera_motion_uncertainty": False},
     # issue 22: the coasting prediction output however uncertain it has grown (KalmanParams)
     "followbus w/o withholding an uncertain coasting box": {"occluded_output_min_overlap_probability": 0.0},
+    # seed 002 §3.2: no region around the prediction re-detected at the frame's resolution (nodes/redetection.py)
+    "followbus w/o local re-detection": {"local_redetection": False},
+    # the prediction's single scene model (seed 002 §3.3), no "camera follows the person" model beside it (IMM)
+    "followbus w/o the image motion model": {"image_motion_model": False},
+    # a lone box centred in the predicted box, nobody else near, still judged by T_reid on its colours
+    "followbus w/o taking an uncontested lone box": {"uncontested_lone_candidate": False},
+    # Eq. 3's ω as the seed has it when colours tie (geometry does not decide between look-alikes)
+    "followbus w/o geometry deciding colour ties": {"colour_ties_to_geometry": False},
+    # no phase correlation when the corner fit fails (a smeared frame has no camera motion)
+    "followbus w/o the phase-correlation fallback": {"phase_fallback": False},
     # re-acquisition only on T_reid and δ_id, not on evidence accumulated over N_id frames (tracking/reacquisition.py)
     "followbus w/o re-acquisition on evidence": {"reacquire_on_evidence": False},
     # issue 22: a far re-lock on δ_switch alone, as before (no δ_id / N_id confirmation)

@@ -152,6 +152,9 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # A match is "ambiguous" (not secure, template frozen) if another candidate's M_fuse is
     # within this margin of the best one.
     ambiguity_margin: float = 0.05
+    # Eq. 3's ω scaled by how far the two best colour scores are apart (in ambiguity_margins, at most 1): between
+    # candidates whose colours tie, geometry decides (reid.ReIdentifier._colour_separation). False: the seed's ω.
+    colour_ties_to_geometry: bool = True
     # Adaptive search region (seed 002 §3.2): the gate's χ² is scaled by k² (SearchScaleParams above).
     # Seed 002 / ByteTrack's second association stage: when no detection in the gate matches, the low-score
     # ones (the detection node's low_boxes, score in [low_score_threshold, score_threshold)) are tried, never

@@ -553,8 +553,23 @@ class ReIdentifier:
         omega = appearance_weight(c_t, p.tau_occ, p.gamma) if p.use_geometry else 1.0  # Eq. 3
         for c in candidates:
             c.m_fuse = fuse(c.s_color, c.s_geo, omega)  # Eq. 2, Alg. 1 line 6
-        best = max(candidates, key=lambda c: c.m_fuse) if candidates else None
+        # The choice between candidates: Eq. 2 with ω scaled by how far colour tells them apart
+        ranking = omega * self._colour_separation(candidates)
+        best = max(candidates, key=lambda c: fuse(c.s_color, c.s_geo, ranking)) if candidates else None
         return best, c_t, omega
+
+    def _colour_separation(self, candidates: list[Candidate]) -> float:
+        """How far colour tells the two likeliest-looking candidates apart, in [0, 1]: their S_color gap over
+        ambiguity_margin. Eq. 3's ω weighs appearance by how visible the target is (C_t), and among look-alikes
+        every candidate is visible: two boxes of similar colours (the target, and a box merging it with a
+        neighbour) tie at 0.94, and with ω 0.97 geometry, which tells them apart, would count for 3 %. Scaling ω
+        by this gap lets geometry decide what colour cannot (Eq. 2 with β = 1 - ω); one candidate, or colours
+        apart by the margin: the seed's ω."""
+        p = self.params
+        if not p.colour_ties_to_geometry or len(candidates) < 2:
+            return 1.0
+        low, high = sorted(c.s_color for c in candidates)[-2:]
+        return min(max(high - low, 0.0) / max(p.ambiguity_margin, 1e-6), 1.0)
 
     def gate_scale(self, prior: Prior) -> float:
         """Seed 002 §3.2's search scale k for this target (tracking/redetection.py search_scale; a motion blob's

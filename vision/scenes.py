@@ -58,6 +58,8 @@ SCENES: dict[str, str] = {
     "a logo and a strip of the robot's own body fixed in the image; a look-alike crosses behind the target",
     "bumpy": "10 s hall from a robot on a bumpy floor: seven 54-58 px jerks of the whole image, each smearing its "
     "frame (no detection of anyone there), settling over ~2 s; three people around the target",
+    "runners": "10 s street: the target runs away among three runners dressed alike, side by side 0.5-0.9 m apart "
+    "at 7-16 m (small to a coarse detector, which boxes neighbours together), two of them overtaking it",
     "shaky": "10 s hall from a hand-held camera: five jerks that re-aim it by 70-100 px over 3 frames, every "
     "frame of a jerk smeared along it (too blurred to fit the camera's motion on, not to detect the target in); "
     "a bystander far off",
@@ -541,6 +543,15 @@ def _spec(name: str) -> _Spec:
             _Actor("distractor", _LOOKALIKE, [(0.0, 1.6, 5.6), (10.0, -1.2, 6.0)], sway_m=0.05),
             _Actor("distractor", _BYSTANDER, [(0.0, -2.6, 7.0), (10.0, -1.8, 7.5)], sway_m=0.04),
         ], camera="pan", overlay=True)
+    if name == "runners":
+        street = replace(_HALL, kind="street", ceiling=False, half_width_m=5.0, wall_height_m=9.0, far_m=45.0,
+                         lights=[], tile_m=0.8)
+        return _Spec(name, 10.0, street, [
+            _Actor("target", _TARGET, [(0.0, 0.0, 7.0), (10.0, 0.1, 16.0)], sway_m=0.06),
+            _Actor("distractor", _LOOKALIKE, [(0.0, -0.6, 7.4), (10.0, -0.5, 16.6)], sway_m=0.06),
+            _Actor("distractor", _LOOKALIKE, [(0.0, 0.7, 6.0), (10.0, 0.55, 17.5)], sway_m=0.06),
+            _Actor("distractor", _LOOKALIKE, [(0.0, -1.3, 5.5), (10.0, 0.9, 16.3)], sway_m=0.06),
+        ])
     if name == "shaky":
         return _Spec(name, 10.0, _HALL, [
             _Actor("target", _TARGET, [(0.0, 0.0, 3.0), (5.0, 0.6, 4.2), (10.0, -0.2, 5.0)], sway_m=0.06),
