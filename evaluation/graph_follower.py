@@ -29,6 +29,7 @@ from ..msgs.perception import CameraMotion, Detections
 from ..msgs.robot import Odometry
 from ..msgs.tracking import Measurement, Prior, Template, Track
 from ..tracking.params import KalmanParams, ReidParams
+from ..vision.detector_presets import apply_detector_preset
 from .trace import ReidCapture, frame_record
 
 GRAPH_PATH = Path(__file__).resolve().parents[1] / "graph.yaml"
@@ -54,10 +55,11 @@ class GraphFrame:
     template: Template | None
 
 
-def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH) -> Graph:
+def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH, detector: str = "graph") -> Graph:
     """graph.yaml with each of ``settings`` (parameter name -> value: an ablation's switches) given to every
-    tracking node that reads it, and no template file read or written. A setting no tracking node reads is a
-    ValueError: it would change nothing."""
+    tracking node that reads it, the detection node's params switched to ``detector`` (a preset of
+    vision/detector_presets.py: the detector of the fed detections, which the redetection node runs again), and no
+    template file read or written. A setting no tracking node reads is a ValueError: it would change nothing."""
     graph = load_graph(graph_path)
     topics = GraphTopics(graph)
     unread = set(settings)
@@ -69,14 +71,21 @@ def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH) -
     if unread:
         raise ValueError(f"no tracking node of {graph_path} reads {', '.join(sorted(unread))}")
     changes[topics.node(topics.template)]["state_file"] = ""
+    if detector != "graph":
+        source = detection_node(graph)
+        changes[source] = apply_detector_preset(dict(graph.nodes[source].params), detector)
     return graph.override(changes)
+
+
+def detection_node(graph: Graph) -> str:
+    """The name of the graph's node that publishes Detections."""
+    return next(name for name, spec in graph.nodes.items() if Detections in load_node_class(spec.run).OUTPUTS.values())
 
 
 def detector_params(graph_path: Path = GRAPH_PATH) -> dict[str, Any]:
     """The params of the graph's detection node (the one that publishes Detections), as the file says them."""
     graph = load_graph(graph_path)
-    node = next(name for name, spec in graph.nodes.items() if Detections in load_node_class(spec.run).OUTPUTS.values())
-    return dict(graph.nodes[node].params)
+    return dict(graph.nodes[detection_node(graph)].params)
 
 
 class GraphTopics:
@@ -124,8 +133,8 @@ class GraphFollower:
     for that frame, :meth:`node` a node instance (as a test would inspect it)."""
 
     def __init__(self, settings: Mapping[str, Any] | None = None, graph_path: Path = GRAPH_PATH, *,
-                 details: bool = False, trace: bool = False) -> None:
-        self.planned = tracking_graph(settings or {}, graph_path)  # built at the first step
+                 details: bool = False, trace: bool = False, detector: str = "graph") -> None:
+        self.planned = tracking_graph(settings or {}, graph_path, detector)  # built at the first step
         t = self.topics = GraphTopics(self.planned)
         # What the graph's settings decide before it is built: whether re-ID takes low-score boxes, and whether
         # prediction warps its prior by the camera's motion (without it the camera-motion node is not run).

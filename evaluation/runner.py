@@ -125,33 +125,33 @@ class _NoEgo:
         self.inner.update_reference(box)
 
 
-def method_factories(methods: Sequence[str], ablations: bool = False, trace: bool = False
-                     ) -> dict[str, Callable[[float], Follower]]:
+def method_factories(methods: Sequence[str], ablations: bool = False, trace: bool = False,
+                     detector: str = DEFAULT_DETECTOR) -> dict[str, Callable[[float], Follower]]:
     """Method name → factory(fps) of a fresh follower. Unknown names raise ValueError. ``trace``: followbus and
     its ablations record every frame's prior, candidates, camera motion and reason (info["trace"])."""
     out: dict[str, Callable[[float], Follower]] = {}
     for m in methods:
         if m == "followbus":
-            out[m] = lambda fps: GraphFollower(trace=trace)
+            out[m] = lambda fps: GraphFollower(trace=trace, detector=detector)
         elif m == "kalman":
             out[m] = lambda fps: _NoEgo(_kalman_baseline())
         elif m.startswith("peer:"):
             kind = peer_kind(m.split(":", 1)[1])
             out[m] = lambda fps, k=kind: _NoEgo(PeerFollower(k, fps))
         elif m in ABLATIONS:  # one ablation on its own
-            out[m] = _ablation(ABLATIONS[m], trace)
+            out[m] = _ablation(ABLATIONS[m], trace, detector)
         else:
             raise ValueError(f"unknown method {m!r} (followbus, kalman, peer:bytetrack|ocsort|botsort, or an "
                              f"ablation: {', '.join(repr(a) for a in ABLATIONS)})")
     if ablations:
         for name, switches in ABLATIONS.items():
-            out[name] = _ablation(switches, trace)
+            out[name] = _ablation(switches, trace, detector)
     return out
 
 
-def _ablation(switches: dict[str, Any], trace: bool) -> Callable[[float], Follower]:
+def _ablation(switches: dict[str, Any], trace: bool, detector: str) -> Callable[[float], Follower]:
     """The factory of followbus with ``switches`` (an ABLATIONS entry) applied."""
-    return lambda fps: GraphFollower(switches, trace=trace)
+    return lambda fps: GraphFollower(switches, trace=trace, detector=detector)
 
 
 def _kalman_baseline() -> KalmanFollower:

@@ -94,7 +94,7 @@ class EgoMotionParams:
     # A failed fit keeps the last fitted frame as the reference for this many frames: the next motion then
     # spans the failed frame too (a jerk's smeared frame), so prediction misses no step of the camera's motion.
     max_reference_age_frames: int = 3
-    # When no corner fit holds (a smeared frame: a jerk blurs the corners away), the translation is measured by phase
+    # When the reference's corners are lost in a frame (smeared by a jerk), the translation is measured by phase
     # correlation of the work frames instead (cv2.phaseCorrelate, people masked out), accepted when its peak
     # response is at least phase_min_response; its 1-σ is phase_std_px or phase_std_fraction of the shift, whichever
     # is larger (a translation of a blurred frame, no rotation, no scale). False: such a frame has no motion.
@@ -160,6 +160,7 @@ class _Prepared(NamedTuple):
 
 
 CORNER_REGIONS = (4, 3)  # columns, rows of the corner budget's regions
+FALLBACK_REASONS = ("few_tracked", "few_inliers", "no_fit")  # corner-fit failures phase correlation stands in for
 
 
 class EgoMotionEstimator:
@@ -406,7 +407,9 @@ class EgoMotionEstimator:
     def _fit(self, grey: np.ndarray, mask: np.ndarray, s: tuple[float, float], t_ns: int) -> CameraMotion | None:
         """The corner fit, or when it fails the phase-correlation fallback (EgoMotionParams.phase_fallback)."""
         motion = self._corner_fit(grey, mask, s, t_ns)
-        if motion is None and self.params.phase_fallback:
+        # Only when the reference had corners and they were lost in this frame (smeared): a textureless view has
+        # no motion to measure, and a fit refused for its scale was refused on purpose.
+        if motion is None and self.params.phase_fallback and self.last_reason in FALLBACK_REASONS:
             motion = self._phase_motion(grey, mask, s, t_ns)
         return motion
 
