@@ -28,6 +28,7 @@ from ..bus.schemas import Frame
 from ..msgs.perception import CameraMotion, Detections
 from ..msgs.robot import Odometry
 from ..msgs.tracking import Measurement, Prior, Template, Track
+from ..nodes.detection import resolve_input_size
 from ..tracking.params import KalmanParams, ReidParams
 from ..vision.detector_presets import apply_detector_preset
 from .trace import ReidCapture, frame_record
@@ -71,9 +72,8 @@ def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH, d
     if unread:
         raise ValueError(f"no tracking node of {graph_path} reads {', '.join(sorted(unread))}")
     changes[topics.node(topics.template)]["state_file"] = ""
-    if detector != "graph":
-        source = detection_node(graph)
-        changes[source] = apply_detector_preset(dict(graph.nodes[source].params), detector)
+    source = detection_node(graph)
+    changes[source] = resolve_input_size(apply_detector_preset(dict(graph.nodes[source].params), detector))
     return graph.override(changes)
 
 
@@ -136,6 +136,10 @@ class GraphFollower:
                  details: bool = False, trace: bool = False, detector: str = "graph") -> None:
         self.planned = tracking_graph(settings or {}, graph_path, detector)  # built at the first step
         t = self.topics = GraphTopics(self.planned)
+        # The fed detections' input side, as the detection node says it in each message (the region's scale)
+        size = self.planned.nodes[t.node(t.detections)].params.get("input_size_px", 416)
+        backend = self.planned.nodes[t.node(t.detections)].params.get("backend", "auto")
+        self.input_px = int(size) if backend in ("auto", "yolox", "yolov8") else 0
         # What the graph's settings decide before it is built: whether re-ID takes low-score boxes, and whether
         # prediction warps its prior by the camera's motion (without it the camera-motion node is not run).
         self.uses_low_scores = node_params(self.planned, t.node(t.measurement), ReidParams).low_score_stage
@@ -221,7 +225,7 @@ class GraphFollower:
                                                 data=bgr)), handover=not bgr.flags.writeable)
         low = low_detections if low_detections is not None and self.uses_low_scores else None
         g.inject(t.detections, stamped(Detections(
-            boxes=np.asarray(detections, np.float32).reshape(-1, 5), backend="eval",
+            boxes=np.asarray(detections, np.float32).reshape(-1, 5), backend="eval", input_px=self.input_px,
             low_boxes=np.zeros((0, 5), np.float32) if low is None else np.asarray(low, np.float32).reshape(-1, 5))))
         self.last = out = self._outputs_of(g, k)
         self.k += 1

@@ -301,9 +301,10 @@ def read_ahead(read: Callable[[int], Any], n: int, depth: int = READ_AHEAD_FRAME
 
 def detection_params(name: str) -> dict[str, Any]:
     """graph.yaml's detection-node params switched to the detector ``name`` (``graph``: as they are)."""
+    from ..nodes.detection import resolve_input_size
     from .graph_follower import detector_params
 
-    return apply_detector_preset(detector_params(), name)
+    return resolve_input_size(apply_detector_preset(detector_params(), name))
 
 
 def detector_key(name: str) -> str:

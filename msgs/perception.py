@@ -31,7 +31,7 @@ class GroundTruth(Message):
 class Detections(Message):
     TYPE: ClassVar[str] = "Detections"
     MEASURED: ClassVar[frozenset[str]] = frozenset({"infer_ms"})
-    ADDED: ClassVar[frozenset[str]] = frozenset({"low_boxes"})
+    ADDED: ClassVar[frozenset[str]] = frozenset({"low_boxes", "input_px"})
     boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))  # x,y,w,h,score
     backend: str = ""
     infer_ms: float = 0.0
@@ -39,6 +39,7 @@ class Detections(Message):
     # layout): only for a consumer that opts in (re-ID's second association stage, seed 002 / ByteTrack);
     # everything else reads ``boxes`` alone.
     low_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))
+    input_px: int = 0  # the detector's input side (the long side): its scale on the frame; 0: not an image detector
 
     def check(self) -> None:
         check_box_rows(self, "boxes")

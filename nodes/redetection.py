@@ -25,7 +25,7 @@ from ..msgs.perception import Detections, RegionDetections
 from ..msgs.tracking import Measurement, Prior, TrackState
 from ..tracking.params import RedetectionParams
 from ..tracking.redetection import input_side_px, reason_to_redetect, region_of, search_scale
-from ..vision.detectors import DYNAMIC_YOLOX_FILE, DetectorUnavailable, SimulatedDetector
+from ..vision.detectors import AUTO_SIZES_PX, DYNAMIC_YOLOX_FILE, DetectorUnavailable, SimulatedDetector
 from .detection import Detection, DetectionParams, detector_from_params, split_detections
 
 
@@ -38,6 +38,10 @@ class Redetection(Node):
     def setup(self) -> None:
         self.detection = self._graph_detection_params()
         self.detector = self._region_detector(self.detection)
+        # The detector's input side when its detections do not say it (an older recording): the param, or for auto
+        # the smallest it chooses.
+        size = self.detection.input_size_px
+        self._input_px = min(AUTO_SIZES_PX) if isinstance(size, str) else int(size)
         self.redetected: dict[str, int] = {}
         self.infer_ms_total = 0.0
 
@@ -50,8 +54,8 @@ class Redetection(Node):
         """The graph's detector for regions: YOLOX on its dynamic-size model; None for a simulated one."""
         if not self.params.local_redetection or detection.backend == "simulated":
             return None
-        params = DetectionParams(**{**vars(detection), "input_shape": "fit", "model_file": DYNAMIC_YOLOX_FILE}) \
-            if detection.backend in ("auto", "yolox") else detection
+        params = DetectionParams(**{**vars(detection), "input_shape": "fit", "model_file": DYNAMIC_YOLOX_FILE,
+                                    "input_size_px": 416}) if detection.backend in ("auto", "yolox") else detection
         try:
             detector = detector_from_params(params)
         except DetectorUnavailable as exc:
@@ -74,11 +78,12 @@ class Redetection(Node):
         score = None if last is None or last.detector_score < 0 else last.detector_score
         k = search_scale(prior, score, p.dt_ms, p)
         occluded = last is not None and not last.accepted and last.state == TrackState.OCCLUDED.value
-        input_scale = self.detection.input_size_px / max(width, height)
+        input_px = dets.input_px or self._input_px
+        input_scale = input_px / max(width, height)
         reason = reason_to_redetect(prior, dets.boxes, k, occluded, input_scale, p.min_resolvable_px)
         if not reason:
             return RegionDetections()
-        rect = region_of(prior, k, (width, height), p.max_side_px or self.detection.input_size_px)
+        rect = region_of(prior, k, (width, height), p.max_side_px or input_px)
         x0, y0, x1, y1 = rect
         side = input_side_px(rect)
         t0 = time.perf_counter()

@@ -250,6 +250,17 @@ def _detection_score(detections: np.ndarray | None, box: Box) -> float | None:
     return score if score is not None and math.isfinite(score) else None
 
 
+def _people_among(boxes: list[Box]) -> int:
+    """How many people ``boxes`` show: a box centred inside a larger one is a part of that person (a detector's
+    second box on a legs, a board, a torso), not someone else."""
+    people: list[Box] = []
+    for box in sorted(boxes, key=lambda b: -b[2] * b[3]):
+        cx, cy = box_centre(box)
+        if not any(x <= cx <= x + w and y <= cy <= y + h for x, y, w, h in people):
+            people.append(box)
+    return len(people)
+
+
 @dataclass
 class _FrameBoxes:
     """The frame's detector boxes: the whole frame's and the re-detected region's (merged, tracking/redetection.py),
@@ -385,7 +396,7 @@ class ReIdentifier:
         # Stage 1: the detections (score >= the detector's threshold) in the gate, the frame's and the region's.
         candidates = (self._gate_candidates(dets.frame, prior, "detection")
                       + self._gate_candidates(dets.region, prior, "redetection"))
-        self._note_crowd(len(candidates))
+        self._note_crowd(_people_among([c.box for c in candidates]))
         match = self._match(frame_bgr, candidates, prior, template_hist)
         match = self._second_stage(frame_bgr, dets.low_rows, prior, template_hist, match)
         if not match.candidates and self._background_still(prev_grey, grey):
@@ -642,10 +653,10 @@ class ReIdentifier:
             self._crowd_told_apart = True
         return contenders, scores
 
-    def _note_crowd(self, gated_detections: int) -> None:
-        """Count the frames since another detection shared the gate with the target; a crowd over forgets whether
-        the classifier told its people apart."""
-        if gated_detections >= 2:
+    def _note_crowd(self, gated_people: int) -> None:
+        """Count the frames since another person's detection shared the gate with the target; a crowd over forgets
+        whether the classifier told its people apart."""
+        if gated_people >= 2:
             self._frames_since_crowd = 0
         elif self._frames_since_crowd is not None:
             self._frames_since_crowd += 1
