@@ -49,7 +49,7 @@ class Prior(Message):
     ``innovation_cov`` the 2x2 S = H P⁻ Hᵀ + R used by the gate (Eq. 8), ``box`` the predicted box."""
 
     TYPE: ClassVar[str] = "Prior"
-    ADDED: ClassVar[frozenset[str]] = frozenset({"likeliest_box"})
+    ADDED: ClassVar[frozenset[str]] = frozenset({"likeliest_box", "locates_person"})
     initialised: bool = False
     state: np.ndarray = field(default_factory=lambda: np.zeros(4))  # x, y, vx, vy (px, px/s)
     size: np.ndarray = field(default_factory=lambda: np.zeros(2))  # w, h (px)
@@ -61,6 +61,9 @@ class Prior(Message):
     # covariance and ``box`` are the models' mixture, which can lie between two places the person may be and be at
     # neither, so a coasting output is this one.
     likeliest_box: np.ndarray | None = None
+    # The predicted box more likely overlaps the person than not (KalmanParams.occluded_output_min_overlap_probability
+    # on overlap_probability): a coast worth following, and where a lone box is the person's (tracking/reid.py).
+    locates_person: bool = True
 
     @classmethod
     def of_filter(cls, t_ns: int, state: np.ndarray, size: Sequence[float], covariance: np.ndarray,

@@ -117,7 +117,7 @@ class Prediction(Node):
         """The track of a measurement: the filter's posterior (none: no filtered box, no velocity) with the
         tracker's output box (tracking/tracker.py)."""
         track = posterior or Track(state=msg.state)
-        track.box = output_box(msg, prior, self.predictor.params.occluded_output_min_overlap_probability)
+        track.box = output_box(msg, prior)
         return track
 
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:

@@ -110,7 +110,7 @@ def test_the_graph_is_deterministic_and_is_the_seeds_order_of_the_pure_modules()
         ta, tb = a[k][3], b[k][3]
         assert ta.track.state == tb.track.state == r.state
         assert ta.measurement.m_fuse == tb.measurement.m_fuse == r.m_fuse
-        expected = output_box(r, prior, KalmanParams().occluded_output_min_overlap_probability)
+        expected = output_box(r, prior)
         assert (ta.track.box is None) == (expected is None)
         assert ta.track.box is None or tuple(ta.track.box) == tuple(expected)
         assert ta.template.eta == tb.template.eta == eta
@@ -142,16 +142,22 @@ def test_an_uncertain_coast_is_not_output() -> None:
     (P(|dx| < w, |dy| < h) under the prior's covariance, occluded_output_min_overlap_probability); then none (the
     controller stops), the state stays OCCLUDED."""
     occluded = Measurement(state="OCCLUDED")
-    prior_of = lambda std_px: Prior.of_filter(0, np.array([100.0, 100.0, 0.0, 0.0]), (30.0, 60.0),  # noqa: E731
-                                              np.diag([std_px**2, 1.0, 1.0, 1.0]), np.eye(2), 9.488)
+
+    def prior_of(std_px: float, limit: float = 0.5) -> Prior:
+        params = KalmanParams(occluded_output_min_overlap_probability=limit, image_motion_model=False)
+        predictor = Predictor(params)
+        predictor.initialise((85.0, 70.0, 30.0, 60.0), 0)
+        predictor.filters["scene"].P = np.diag([std_px**2, 1.0, 1.0, 1.0])
+        return predictor.predict(0)
+
     # σx = w / 0.6745 puts |dx| < w at probability 0.5 (the normal's quartile); |dy| < 60 with σy = 1: certain.
-    assert prior_of(30.0 / 0.6745).overlap_probability() == pytest.approx(0.5, abs=1e-4)
-    np.testing.assert_array_equal(output_box(occluded, prior_of(43.0), 0.5), prior_of(43.0).box)
-    assert output_box(occluded, prior_of(46.0), 0.5) is None
-    assert output_box(occluded, prior_of(20.0), 0.9) is None
-    assert output_box(occluded, prior_of(1e4), 0.0) is not None  # 0: no limit (the ablation)
+    assert prior_of(30.0 / 0.6745).overlap_probability() == pytest.approx(0.5, abs=1e-3)
+    np.testing.assert_array_equal(output_box(occluded, prior_of(43.0)), prior_of(43.0).box)
+    assert output_box(occluded, prior_of(46.0)) is None
+    assert output_box(occluded, prior_of(20.0, limit=0.9)) is None
+    assert output_box(occluded, prior_of(1e4, limit=0.0)) is not None  # 0: no limit (the ablation)
     accepted = Measurement(state="REACQUIRED", accepted=True, box=np.array([1.0, 2.0, 3.0, 4.0]))
-    np.testing.assert_array_equal(output_box(accepted, prior_of(1e4), 0.5), accepted.box)
+    np.testing.assert_array_equal(output_box(accepted, prior_of(1e4)), accepted.box)
 
     follower = GraphFollower({"lost_after_ms": 5000.0}, details=True)
     img, dets, _, _ = scene(0)

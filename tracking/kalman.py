@@ -360,6 +360,8 @@ class Predictor:
         prior = Prior.of_filter(int(t_ns), x, self._combined_size(self.mode), P, H @ P @ H.T + R, first.gate_chi2)
         if len(self.models) > 1:  # ties go to the first, "scene": seed 002's compensated prediction
             prior.likeliest_box = box_array(self.filters[self.models[int(np.argmax(self.mode))]].box)
+        limit = self.params.occluded_output_min_overlap_probability
+        prior.locates_person = limit <= 0.0 or prior.overlap_probability() >= limit
         return prior
 
     def _compensate(self, kf: KalmanCV, motion: CameraMotion | None, from_t_ns: int | None, t_ns: int) -> None:

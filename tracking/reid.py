@@ -432,12 +432,15 @@ class ReIdentifier:
 
     def _uncontested(self, candidates: list[Candidate], best: Candidate, prior: Prior) -> bool:
         """A lone detector box centred inside the predicted box, with nobody else near it: the target, whatever its
-        colours now say (it turned, the light changed, spray hides it). ByteTrack's caution: only for a target
-        matched on the last frame; and only while no other detection has shared the gate for
+        colours now say (it turned, the light changed, spray hides it). ByteTrack's caution, widened to the coast:
+        only while the prediction still locates the person (matched on the last frame, or OCCLUDED with a prior that
+        still locates them, Prior.locates_person); and only while no other detection has shared the gate for
         identity_veto_after_crowd_frames (an occluder walking in front is such a detection before it hides the
         target)."""
         p = self.params
-        if not p.uncontested_lone_candidate or self.state not in (TrackState.TRACKING, TrackState.REACQUIRED):
+        fresh = self.state in (TrackState.TRACKING, TrackState.REACQUIRED) or (
+            self.state is TrackState.OCCLUDED and prior.locates_person)
+        if not p.uncontested_lone_candidate or not fresh:
             return False
         detections = [c for c in candidates if c.source in DETECTOR_SOURCES]
         alone = self._frames_since_crowd is None or self._frames_since_crowd > p.identity_veto_after_crowd_frames

@@ -18,18 +18,14 @@ import numpy as np
 from ..msgs.tracking import Measurement, Prior, TrackState
 
 
-def output_box(reid: Measurement, prior: Prior | None, min_overlap_probability: float) -> np.ndarray | None:
+def output_box(reid: Measurement, prior: Prior | None) -> np.ndarray | None:
     """The tracker's output for a frame: the accepted box; while OCCLUDED the predicted box (§2.3:
-    keep following the hidden trajectory: the likeliest motion model's) as long as it more likely overlaps the person
-    than not: the probability,
-    under the prior's position covariance, that the box still touches the person's (Prior.overlap_probability) at
-    least ``min_overlap_probability`` (0: no limit; KalmanParams.occluded_output_min_overlap_probability); None when
-    LOST, before initialisation or when the prediction no longer locates the person. The prediction node publishes
-    exactly this as its Track message's ``box``."""
+    keep following the hidden trajectory: the likeliest motion model's) as long as it still locates the person
+    (Prior.locates_person: it more likely overlaps them than not, KalmanParams.occluded_output_min_overlap_probability);
+    None when LOST, before initialisation or when the prediction no longer locates the person. The prediction node
+    publishes exactly this as its Track message's ``box``."""
     if reid.accepted:
         return reid.box
-    if reid.state != TrackState.OCCLUDED or prior is None or not prior.initialised:
-        return None
-    if min_overlap_probability > 0.0 and prior.overlap_probability() < min_overlap_probability:
+    if reid.state != TrackState.OCCLUDED or prior is None or not prior.initialised or not prior.locates_person:
         return None
     return prior.box if prior.likeliest_box is None else prior.likeliest_box
