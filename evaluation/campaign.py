@@ -106,5 +106,7 @@ def campaign_notes(runs: list[SequenceRun], detector: str) -> list[str]:
     notes.append("Miss = gt frames without an output; Switch = output moved from the target onto another "
                  "annotated person (SOT sequences annotate only the target, so switches there are always 0); "
                  "Wrong re-lock = an episode of >= 10 frames with an output that does not overlap the target's box "
-                 "(following someone else; counted on every sequence).")
+                 "(following someone else; counted on every sequence); Missed re-acq. = gt frames without an output "
+                 "while re-ID's best-scoring candidate was a detection on the target (a robot that stops although "
+                 "the person it follows is the best thing it sees; followbus only).")
     return notes

@@ -28,7 +28,9 @@ from ..bus.schemas import Frame
 from ..msgs.perception import CameraMotion, Detections
 from ..msgs.robot import Odometry
 from ..msgs.tracking import Measurement, Prior, Template, Track
+from ..nodes.detection import resolve_input_size
 from ..tracking.params import KalmanParams, ReidParams
+from ..vision.detector_presets import apply_detector_preset
 from .trace import ReidCapture, frame_record
 
 GRAPH_PATH = Path(__file__).resolve().parents[1] / "graph.yaml"
@@ -54,10 +56,11 @@ class GraphFrame:
     template: Template | None
 
 
-def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH) -> Graph:
+def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH, detector: str = "graph") -> Graph:
     """graph.yaml with each of ``settings`` (parameter name -> value: an ablation's switches) given to every
-    tracking node that reads it, and no template file read or written. A setting no tracking node reads is a
-    ValueError: it would change nothing."""
+    tracking node that reads it, the detection node's params switched to ``detector`` (a preset of
+    vision/detector_presets.py: the detector of the fed detections, which the redetection node runs again), and no
+    template file read or written. A setting no tracking node reads is a ValueError: it would change nothing."""
     graph = load_graph(graph_path)
     topics = GraphTopics(graph)
     unread = set(settings)
@@ -69,14 +72,20 @@ def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH) -
     if unread:
         raise ValueError(f"no tracking node of {graph_path} reads {', '.join(sorted(unread))}")
     changes[topics.node(topics.template)]["state_file"] = ""
+    source = detection_node(graph)
+    changes[source] = resolve_input_size(apply_detector_preset(dict(graph.nodes[source].params), detector))
     return graph.override(changes)
+
+
+def detection_node(graph: Graph) -> str:
+    """The name of the graph's node that publishes Detections."""
+    return next(name for name, spec in graph.nodes.items() if Detections in load_node_class(spec.run).OUTPUTS.values())
 
 
 def detector_params(graph_path: Path = GRAPH_PATH) -> dict[str, Any]:
     """The params of the graph's detection node (the one that publishes Detections), as the file says them."""
     graph = load_graph(graph_path)
-    node = next(name for name, spec in graph.nodes.items() if Detections in load_node_class(spec.run).OUTPUTS.values())
-    return dict(graph.nodes[node].params)
+    return dict(graph.nodes[detection_node(graph)].params)
 
 
 class GraphTopics:
@@ -106,6 +115,17 @@ def node_params(graph: Graph, node: str, cls: type) -> Any:
     return next(p for p in (params if isinstance(params, tuple) else (params,)) if isinstance(p, cls))
 
 
+def best_detection(measurement: Measurement | None) -> tuple[float, ...] | None:
+    """Re-ID's best-scoring candidate of the frame when it is a detector box (None: no candidate, or the best was a
+    motion blob): what the missed-re-acquisition count compares with the target (evaluation/metrics.py)."""
+    if measurement is None or not len(measurement.candidates):
+        return None
+    best = int(np.argmax(measurement.candidates[:, 4]))
+    if measurement.candidate_sources[best] == "motion":
+        return None
+    return tuple(float(v) for v in measurement.candidates[best, :4])
+
+
 class GraphFollower:
     """A follower (evaluation/runner.py's protocol) that is the graph: its first :meth:`step` (which carries the
     initial box, if any) builds the in-process graph, every step publishes one frame with its detections and
@@ -113,9 +133,13 @@ class GraphFollower:
     for that frame, :meth:`node` a node instance (as a test would inspect it)."""
 
     def __init__(self, settings: Mapping[str, Any] | None = None, graph_path: Path = GRAPH_PATH, *,
-                 details: bool = False, trace: bool = False) -> None:
-        self.planned = tracking_graph(settings or {}, graph_path)  # built at the first step
+                 details: bool = False, trace: bool = False, detector: str = "graph") -> None:
+        self.planned = tracking_graph(settings or {}, graph_path, detector)  # built at the first step
         t = self.topics = GraphTopics(self.planned)
+        # The fed detections' input side, as the detection node says it in each message (the region's scale)
+        size = self.planned.nodes[t.node(t.detections)].params.get("input_size_px", 416)
+        backend = self.planned.nodes[t.node(t.detections)].params.get("backend", "auto")
+        self.input_px = int(size) if backend in ("auto", "yolox", "yolov8") else 0
         # What the graph's settings decide before it is built: whether re-ID takes low-score boxes, and whether
         # prediction warps its prior by the camera's motion (without it the camera-motion node is not run).
         self.uses_low_scores = node_params(self.planned, t.node(t.measurement), ReidParams).low_score_stage
@@ -138,7 +162,7 @@ class GraphFollower:
         if init_box is not None:
             graph = graph.override({t.node(t.measurement): {"init_box": [float(v) for v in init_box]}})
         nodes = list(t.nodes)
-        self.recorded = [t.track, t.template, *([t.prior, t.measurement] if self.details else [])]
+        self.recorded = [t.track, t.template, t.measurement, *([t.prior] if self.details else [])]
         if t.camera_motion and not self.compensates_camera_motion:
             nodes.remove(t.node(t.camera_motion))  # as in the graph without the node: priors are not warped
         self.loose = [t.camera_motion] if self.trace and t.camera_motion and t.node(t.camera_motion) in nodes else []
@@ -201,12 +225,12 @@ class GraphFollower:
                                                 data=bgr)), handover=not bgr.flags.writeable)
         low = low_detections if low_detections is not None and self.uses_low_scores else None
         g.inject(t.detections, stamped(Detections(
-            boxes=np.asarray(detections, np.float32).reshape(-1, 5), backend="eval",
+            boxes=np.asarray(detections, np.float32).reshape(-1, 5), backend="eval", input_px=self.input_px,
             low_boxes=np.zeros((0, 5), np.float32) if low is None else np.asarray(low, np.float32).reshape(-1, 5))))
         self.last = out = self._outputs_of(g, k)
         self.k += 1
         box = None if out.track.box is None else tuple(float(v) for v in out.track.box)
-        info: dict[str, Any] = {"state": out.track.state,
+        info: dict[str, Any] = {"state": out.track.state, "best_candidate": best_detection(out.measurement),
                                 "eta": 0.0 if out.template is None else float(out.template.eta),
                                 # each node's share of this step (the report's tracker time per part)
                                 "part_ms": {n: (s - spent[n]) * 1e3 for n, s in g.handler_s.items()}}

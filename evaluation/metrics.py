@@ -96,6 +96,9 @@ class SingleTargetMetrics:
     frames_on_distractor: int
     reid_events: list[ReidEvent] = field(default_factory=list)
     wrong_relocks: int = 0  # episodes of >= WRONG_RELOCK_FRAMES outputs with zero overlap on the target's box
+    # gt frames without an output while re-ID's best-scoring candidate was a detection on the target
+    # (missed_reacquisition_frames); None for a method that reports no candidates
+    missed_reacquisitions: int | None = None
     center_errors: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per frame, NaN if undefined
     ious: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per frame, NaN if undefined
     tsr_px: float = 20.0
@@ -133,6 +136,7 @@ class SingleTargetMetrics:
             "frames_on_distractor": self.frames_on_distractor, "reid_events": len(self.reid_events),
             "reid_latency_frames_mean": self.reid_latency_frames_mean,
             "reid_latency_ms_mean": self.reid_latency_ms_mean, "reid_censored": self.reid_censored,
+            "wrong_relocks": self.wrong_relocks, "missed_reacquisitions": self.missed_reacquisitions,
         }
 
 
@@ -183,6 +187,18 @@ def wrong_relock_episodes(ious: np.ndarray, has_out: np.ndarray, gt_present: np.
         else:
             run = 0
     return episodes
+
+
+def missed_reacquisition_frames(pred_boxes: Sequence[Box | None], gt_boxes: Sequence[Box | None],
+                                best_candidates: Sequence[Box | None], tsr_px: float = 20.0) -> int:
+    """Frames where the follower output nothing although the target was in view and re-ID's best-scoring candidate
+    was a detection on it (centre within ``tsr_px``): the failure opposite a wrong re-lock, a robot that stops
+    while the person it follows is the best thing it sees. ``best_candidates[t]`` is that detection (None: the best
+    candidate was no detection, or there was none)."""
+    if len(best_candidates) != len(gt_boxes):
+        raise ValueError(f"best_candidates has {len(best_candidates)} frames, gt has {len(gt_boxes)}")
+    return sum(1 for pred, gt, best in zip(pred_boxes, gt_boxes, best_candidates, strict=True)
+               if pred is None and gt is not None and best is not None and _center_dist(best, gt) < tsr_px)
 
 
 def _reid_events(gt_present: np.ndarray, success: np.ndarray, min_occlusion_frames: int,
@@ -296,11 +312,13 @@ def evaluate_single_target(
     fps: float = 30.0,
     min_occlusion_frames: int = 5,
     image_size: tuple[int, int] | None = None,
+    best_candidates: Sequence[Box | None] | None = None,
 ) -> SingleTargetMetrics:
     """Score one follower run against the per-frame target ground truth.
 
     ``other_gt[t]`` lists the boxes of the *other* people on frame t (needed for target switches; without it
-    the switch count is 0). ``image_size`` = (width, height) enables ``cle_all``.
+    the switch count is 0). ``image_size`` = (width, height) enables ``cle_all``. ``best_candidates`` (a follower
+    that reports its re-ID's best-scoring detection per frame) enables ``missed_reacquisitions``.
     """
     _check_run_shapes(pred_boxes, gt_boxes, other_gt, fps)
     errors, ious = _per_frame_errors(pred_boxes, gt_boxes)
@@ -326,6 +344,8 @@ def evaluate_single_target(
         target_switches=switches, frames_on_distractor=on_distractor,
         reid_events=_reid_events(gt_present, success, min_occlusion_frames, fps),
         wrong_relocks=wrong_relock_episodes(ious, has_out, gt_present),
+        missed_reacquisitions=(None if best_candidates is None
+                               else missed_reacquisition_frames(pred_boxes, gt_boxes, best_candidates, tsr_px)),
         center_errors=errors, ious=ious, tsr_px=tsr_px, iou_threshold=iou_threshold, fps=fps,
         image_diagonal=diag,
     )
@@ -362,12 +382,14 @@ def aggregate(metrics: Iterable[SingleTargetMetrics]) -> SingleTargetMetrics:
     with np.errstate(invalid="ignore"):
         succ_err = errors[errors < tau]
     counts = {name: sum(getattr(m, name) for m in items) for name in _SUMMED_COUNTS}
+    missed = [m.missed_reacquisitions for m in items if m.missed_reacquisitions is not None]
     n_gt, n_out, n_succ = counts["frames_with_gt"], counts["outputs"], counts["successes"]
     return SingleTargetMetrics(
         **counts, false_positives=n_out - n_succ, **_rates(n_succ, n_out, n_gt, counts["iou_hits"]),
         cle=_mean_or_nan(errors[np.isfinite(errors)]), cle_all=_pooled_cle_all(items, n_gt),
         stability=_std_or_nan(succ_err), mean_iou=_mean_or_nan(ious[np.isfinite(ious)]),
         reid_events=[e for m in items for e in m.reid_events], center_errors=errors, ious=ious,
+        missed_reacquisitions=sum(missed) if missed else None,
         tsr_px=tau, iou_threshold=items[0].iou_threshold, fps=items[0].fps, image_diagonal=None,
     )
 
@@ -398,6 +420,7 @@ _COLUMNS: list[tuple[str, Callable[[SingleTargetMetrics], str]]] = [
     ("Miss", lambda m: str(m.missing_outputs)),
     ("Switch", lambda m: str(m.target_switches)),
     ("Wrong re-lock", lambda m: str(m.wrong_relocks)),
+    ("Missed re-acq.", lambda m: "–" if m.missed_reacquisitions is None else str(m.missed_reacquisitions)),
     ("Re-ID ms (locked/events)", _reid),
 ]
 

@@ -69,7 +69,19 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o reference across failed fits": {"max_reference_age_frames": 0},
     "followbus w/o camera-motion uncertainty": {"camera_motion_uncertainty": False},
     # issue 22: the coasting prediction output however uncertain it has grown (KalmanParams)
-    "followbus w/o withholding an uncertain coasting box": {"occluded_output_max_std_heights": 0.0},
+    "followbus w/o withholding an uncertain coasting box": {"occluded_output_min_overlap_probability": 0.0},
+    # seed 002 §3.2: no region around the prediction re-detected at the frame's resolution (nodes/redetection.py)
+    "followbus w/o local re-detection": {"local_redetection": False},
+    # the prediction's single scene model (seed 002 §3.3), no "camera follows the person" model beside it (IMM)
+    "followbus w/o the image motion model": {"image_motion_model": False},
+    # a lone box centred in the predicted box, nobody else near, still judged by T_reid on its colours
+    "followbus w/o taking an uncontested lone box": {"uncontested_lone_candidate": False},
+    # Eq. 3's ω as the seed has it when colours tie (geometry does not decide between look-alikes)
+    "followbus w/o geometry deciding colour ties": {"colour_ties_to_geometry": False},
+    # no phase correlation when the corner fit fails (a smeared frame has no camera motion)
+    "followbus w/o the phase-correlation fallback": {"phase_fallback": False},
+    # re-acquisition only on T_reid and δ_id, not on evidence accumulated over N_id frames (tracking/reacquisition.py)
+    "followbus w/o re-acquisition on evidence": {"reacquire_on_evidence": False},
     # issue 22: a far re-lock on δ_switch alone, as before (no δ_id / N_id confirmation)
     "followbus w/o identity-confirmed far re-lock": {"far_relock_needs_identity": False},
     # issue 22: after a crossing, colour's choice (a lone detection unscored) even when the classifier, which just told
@@ -113,33 +125,33 @@ class _NoEgo:
         self.inner.update_reference(box)
 
 
-def method_factories(methods: Sequence[str], ablations: bool = False, trace: bool = False
-                     ) -> dict[str, Callable[[float], Follower]]:
+def method_factories(methods: Sequence[str], ablations: bool = False, trace: bool = False,
+                     detector: str = DEFAULT_DETECTOR) -> dict[str, Callable[[float], Follower]]:
     """Method name → factory(fps) of a fresh follower. Unknown names raise ValueError. ``trace``: followbus and
     its ablations record every frame's prior, candidates, camera motion and reason (info["trace"])."""
     out: dict[str, Callable[[float], Follower]] = {}
     for m in methods:
         if m == "followbus":
-            out[m] = lambda fps: GraphFollower(trace=trace)
+            out[m] = lambda fps: GraphFollower(trace=trace, detector=detector)
         elif m == "kalman":
             out[m] = lambda fps: _NoEgo(_kalman_baseline())
         elif m.startswith("peer:"):
             kind = peer_kind(m.split(":", 1)[1])
             out[m] = lambda fps, k=kind: _NoEgo(PeerFollower(k, fps))
         elif m in ABLATIONS:  # one ablation on its own
-            out[m] = _ablation(ABLATIONS[m], trace)
+            out[m] = _ablation(ABLATIONS[m], trace, detector)
         else:
             raise ValueError(f"unknown method {m!r} (followbus, kalman, peer:bytetrack|ocsort|botsort, or an "
                              f"ablation: {', '.join(repr(a) for a in ABLATIONS)})")
     if ablations:
         for name, switches in ABLATIONS.items():
-            out[name] = _ablation(switches, trace)
+            out[name] = _ablation(switches, trace, detector)
     return out
 
 
-def _ablation(switches: dict[str, Any], trace: bool) -> Callable[[float], Follower]:
+def _ablation(switches: dict[str, Any], trace: bool, detector: str) -> Callable[[float], Follower]:
     """The factory of followbus with ``switches`` (an ABLATIONS entry) applied."""
-    return lambda fps: GraphFollower(switches, trace=trace)
+    return lambda fps: GraphFollower(switches, trace=trace, detector=detector)
 
 
 def _kalman_baseline() -> KalmanFollower:
@@ -289,9 +301,10 @@ def read_ahead(read: Callable[[int], Any], n: int, depth: int = READ_AHEAD_FRAME
 
 def detection_params(name: str) -> dict[str, Any]:
     """graph.yaml's detection-node params switched to the detector ``name`` (``graph``: as they are)."""
+    from ..nodes.detection import resolve_input_size
     from .graph_follower import detector_params
 
-    return apply_detector_preset(detector_params(), name)
+    return resolve_input_size(apply_detector_preset(detector_params(), name))
 
 
 def detector_key(name: str) -> str:
@@ -530,8 +543,10 @@ def _score_methods(result: SequenceRun, truth: _Truth) -> None:
     result.ceiling = evaluate_single_target(nearest_detections(truth.detections, gts), gts, other_gt=others,
                                             fps=seq.fps, image_size=(seq.width, seq.height))
     for run in result.runs.values():
+        reports_candidates = any("best_candidate" in info for info in run.infos)
+        best = [info.get("best_candidate") for info in run.infos] if reports_candidates else None
         run.metrics = evaluate_single_target(run.boxes, gts, other_gt=others, fps=seq.fps,
-                                             image_size=(seq.width, seq.height))
+                                             image_size=(seq.width, seq.height), best_candidates=best)
         if seq.kind == "mot" and any("mot" in info for info in run.infos):
             run.mot_frames = [info.get("mot") for info in run.infos]
             if seq.gt_regions:

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..tracking.kalman import gate_ellipse_from_cov
-from .metrics import Box, box_center, box_iou
+from .metrics import Box, box_center, box_iou, missed_reacquisition_frames
 
 TAU_PX = 20.0  # an output farther than this from the target's centre is a failure (TSR@20px)
 
@@ -142,6 +142,8 @@ def write_trace(path: Path, boxes: Sequence[Box | None], infos: Sequence[dict[st
         for k, (box, info, gt) in enumerate(zip(boxes, infos, gts, strict=True)):
             row = {"frame": k, "box": _plain(box), "gt": _plain(gt), "state": info.get("state")}
             row.update(info.get("trace") or {})
+            if missed_reacquisition_frames([box], [gt], [info.get("best_candidate")], TAU_PX):
+                row["reason"] = f"{row.get('reason', '')}; MISSED RE-ACQUISITION (the best candidate is the target)"
             f.write(json.dumps(row, ensure_ascii=False) + "\n")
     return path
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from ..bus.schemas import Message
 from .group import GroundPoints, GroupState
-from .perception import CameraMotion, Detections, GroundTruth
+from .perception import CameraMotion, Detections, GroundTruth, RegionDetections
 from .robot import MotorCommand, Odometry
 from .tracking import Measurement, Prior, Template, Track
 
 APPLICATION_TYPES: tuple[type[Message], ...] = (
-    GroundTruth, Detections, CameraMotion, Prior, Measurement, Track, Template, MotorCommand, Odometry,
-    GroundPoints, GroupState)
+    GroundTruth, Detections, RegionDetections, CameraMotion, Prior, Measurement, Track, Template, MotorCommand,
+    Odometry, GroundPoints, GroupState)

@@ -31,7 +31,7 @@ class GroundTruth(Message):
 class Detections(Message):
     TYPE: ClassVar[str] = "Detections"
     MEASURED: ClassVar[frozenset[str]] = frozenset({"infer_ms"})
-    ADDED: ClassVar[frozenset[str]] = frozenset({"low_boxes"})
+    ADDED: ClassVar[frozenset[str]] = frozenset({"low_boxes", "input_px"})
     boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))  # x,y,w,h,score
     backend: str = ""
     infer_ms: float = 0.0
@@ -39,8 +39,33 @@ class Detections(Message):
     # layout): only for a consumer that opts in (re-ID's second association stage, seed 002 / ByteTrack);
     # everything else reads ``boxes`` alone.
     low_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))
+    input_px: int = 0  # the detector's input side (the long side): its scale on the frame; 0: not an image detector
 
     def check(self) -> None:
+        check_box_rows(self, "boxes")
+        check_box_rows(self, "low_boxes")
+
+
+@dataclass
+class RegionDetections(Message):
+    """Seed 002 §3.2's local re-detection of one frame (nodes/redetection.py): the detector run again on the square
+    ``region`` (x0, y0, x1, y1 frame pixels) around the Kalman prediction, at the frame's own resolution. ``reason``
+    says why ("occluded", "small", "missed", "crowded"); "" : no region was needed, published all the same so that
+    re-ID's join of the frame never waits for it. Boxes as in Detections, in frame pixels."""
+
+    TYPE: ClassVar[str] = "RegionDetections"
+    MEASURED: ClassVar[frozenset[str]] = frozenset({"infer_ms"})
+    reason: str = ""
+    region: np.ndarray = field(default_factory=lambda: np.zeros(4, np.int64))
+    boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))
+    low_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))
+    input_px: int = 0  # the detector's input side for the region
+    infer_ms: float = 0.0
+
+    def check(self) -> None:
+        check_shape(self, "region", self.region, (4,))
+        require(not self.reason or (self.region[2] > self.region[0] and self.region[3] > self.region[1]), self,
+                f"empty region {self.region.tolist()}")
         check_box_rows(self, "boxes")
         check_box_rows(self, "low_boxes")
 

@@ -36,6 +36,11 @@ def mahalanobis_sq_from_cov(z: Sequence[float], centre: Sequence[float], S: np.n
     return float(d @ np.linalg.solve(S, d))
 
 
+# Measurement sources that are detector boxes, of the whole frame or of the region re-detected around the prediction
+# (seed 002 §3.2): the same association and identity rules apply to both, and both measure the person's size.
+DETECTOR_SOURCES = ("detection", "redetection")
+
+
 @dataclass
 class Prior(Message):
     """Kalman prior for a frame (seed 000 Eq. 4-8): what re-identification gates and scores against.
@@ -44,6 +49,7 @@ class Prior(Message):
     ``innovation_cov`` the 2x2 S = H P⁻ Hᵀ + R used by the gate (Eq. 8), ``box`` the predicted box."""
 
     TYPE: ClassVar[str] = "Prior"
+    ADDED: ClassVar[frozenset[str]] = frozenset({"likeliest_box", "locates_person"})
     initialised: bool = False
     state: np.ndarray = field(default_factory=lambda: np.zeros(4))  # x, y, vx, vy (px, px/s)
     size: np.ndarray = field(default_factory=lambda: np.zeros(2))  # w, h (px)
@@ -51,6 +57,13 @@ class Prior(Message):
     innovation_cov: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))  # S = H P H^T + R
     gate_chi2: float = 9.488
     box: np.ndarray | None = None
+    # The box of the likeliest motion model (tracking/kalman.py's IMM; None: one model, the ``box``): the state, its
+    # covariance and ``box`` are the models' mixture, which can lie between two places the person may be and be at
+    # neither, so a coasting output is this one.
+    likeliest_box: np.ndarray | None = None
+    # The predicted box more likely overlaps the person than not (KalmanParams.occluded_output_min_overlap_probability
+    # on overlap_probability): a coast worth following, and where a lone box is the person's (tracking/reid.py).
+    locates_person: bool = True
 
     @classmethod
     def of_filter(cls, t_ns: int, state: np.ndarray, size: Sequence[float], covariance: np.ndarray,
@@ -73,6 +86,14 @@ class Prior(Message):
         """The centre's 1 σ along its most uncertain direction (P_k's position block), px."""
         return math.sqrt(max(float(np.linalg.eigvalsh(self.covariance[:2, :2]).max()), 0.0))
 
+    def overlap_probability(self) -> float:
+        """The probability that the predicted box still overlaps the person's, under P_k's position block: that the
+        centres are less than one box width and height apart, erf(w / (√2 σx)) · erf(h / (√2 σy)) (its marginals
+        along x and y)."""
+        sx, sy = (math.sqrt(max(float(self.covariance[i, i]), 1e-12)) for i in (0, 1))
+        w, h = float(self.size[0]), float(self.size[1])
+        return math.erf(w / (math.sqrt(2.0) * sx)) * math.erf(h / (math.sqrt(2.0) * sy))
+
     @property
     def velocity_px_s(self) -> tuple[float, float]:
         return (float(self.state[2]), float(self.state[3]))
@@ -86,7 +107,7 @@ class Prior(Message):
     def check(self) -> None:
         for name, shape in (("state", (4,)), ("covariance", (4, 4)), ("innovation_cov", (2, 2))):
             check_shape(self, name, getattr(self, name), shape)
-        check_boxes(self, "box")
+        check_boxes(self, "box", "likeliest_box")
 
 
 @dataclass
@@ -94,12 +115,14 @@ class Measurement(Message):
     """Re-identification result for a frame (seed 000 Algorithm 1), stamped with the frame's capture."""
 
     TYPE: ClassVar[str] = "Measurement"
+    ADDED: ClassVar[frozenset[str]] = frozenset({"detector_score"})
     state: str = "LOST"  # a TrackState value
     accepted: bool = False
     secure: bool = False
     box: np.ndarray | None = None  # the accepted box (Alg. 1 line 11)
     best_box: np.ndarray | None = None  # argmax M_fuse, even when rejected
-    # Where the chosen box came from: "detection", "low-score", "motion", or on an initialisation frame "init"
+    # Where the chosen box came from: "detection", "redetection", "low-score", "motion", or on an initialisation
+    # frame "init"
     # (new target: the template restarts from it) or "template" (re-lock with an existing template).
     source: str = ""
     m_fuse: float = 0.0
@@ -111,6 +134,9 @@ class Measurement(Message):
     candidate_sources: list[str] = field(default_factory=list)
     candidate_hist: np.ndarray | None = None  # H-S histogram C* of the chosen candidate
     init_box: np.ndarray | None = None  # set on the frame the target was initialised
+    # The detector's score of the box the target was last accepted on (-1: none, or not a detector box): what seed
+    # 002 §3.2's search scale doubts (tracking/redetection.py search_scale).
+    detector_score: float = -1.0
 
     def check(self) -> None:
         require(self.state in TRACK_STATES, self, f"unknown state {self.state!r}")

@@ -9,6 +9,7 @@ The frame input should be a 1-deep drop_oldest queue so the detector always work
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -19,11 +20,13 @@ from ..bus.node import Node, ParamError
 from ..bus.schemas import Frame, Message
 from ..msgs.perception import Detections, GroundTruth
 from ..vision.detectors import (
+    AUTO_SIZES_PX,
     BACKENDS,
     INPUT_SHAPES,
     RUNTIMES,
     DetectorUnavailable,
     SimulatedDetector,
+    largest_size_within,
     make_detector,
     split_by_score,
 )
@@ -32,6 +35,7 @@ WARM_UP_INFERENCES = 2
 # The largest network input accepted: a 4K frame's long side. `check` refuses more (one line) rather than the node
 # crash-looping on an allocation no machine has.
 MAX_INPUT_SIZE_PX = 4096
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -39,7 +43,10 @@ class DetectionParams:
     backend: str = "auto"
     model_dir: str = ""  # first place on the model search path
     model_file: str = ""  # default: yolox_nano_<input_size_px>.onnx
-    input_size_px: int = 416  # the network input's side (the long side with input_shape: fit)
+    # The network input's side (the long side with input_shape: fit), or auto: the largest of 640, 512, 416, 320 this
+    # machine infers a 640x480 frame at in auto_budget_ms or less, measured at start-up and logged (input_shape fit).
+    input_size_px: int | str = 416
+    auto_budget_ms: float = 12.0  # a third of a 30 Hz frame period: the region's second look and the loop need the rest
     # square: the frame letterboxed into input_size_px x input_size_px (a model per size); fit: the frame's own
     # aspect, long side input_size_px, padded to a multiple of 32 (yolox_nano_dynamic.onnx; 4:3 at 416: 416x320)
     input_shape: str = "square"
@@ -60,19 +67,60 @@ class DetectionParams:
     seed: int = 0
 
 
+def _check_input_size(p: DetectionParams) -> None:
+    if p.input_size_px == AUTO:
+        if p.input_shape != "fit" or p.backend not in ("auto", "yolox"):
+            raise ParamError("input_size_px", "input_size_px: auto needs YOLOX with input_shape: fit (the model "
+                                              "that takes any size)")
+        return
+    if isinstance(p.input_size_px, str) or p.input_size_px < 32 or p.input_size_px % 32:
+        raise ParamError("input_size_px", "input_size_px must be a positive multiple of 32 (the detector's "
+                                          f"largest stride), e.g. 416 or 640, or auto, not {p.input_size_px!r}")
+    if p.input_size_px > MAX_INPUT_SIZE_PX:
+        raise ParamError("input_size_px", f"input_size_px must be at most {MAX_INPUT_SIZE_PX} (a 4K frame's long "
+                                          "side: a larger input only scales the frame up, and its tensors take "
+                                          f"gigabytes), not {p.input_size_px!r}")
+
+
+AUTO = "auto"
+
+
 def detector_from_params(p: DetectionParams):
     """The detector this node runs for these params (also what `followbus eval --graph-check` runs
-    in-process, so both paths infer the same way)."""
+    in-process, so both paths infer the same way). ``input_size_px: auto`` is measured here (logged)."""
+    auto = p.input_size_px == AUTO
     detector = make_detector(
         p.backend, model_dir=p.model_dir or None, model_file=p.model_file or None,
-        input_size=p.input_size_px, input_shape=p.input_shape,
+        input_size=max(AUTO_SIZES_PX) if auto else int(p.input_size_px), input_shape=p.input_shape,
         score_threshold=min(p.low_score_threshold, p.score_threshold), nms_iou=p.nms_iou,
         threads=p.threads or None, runtime=p.runtime, noise_px=p.sim_noise_px, miss_rate=p.sim_miss_rate,
         false_positive_rate=p.sim_false_positive_rate, seed=p.seed,
     )
     if isinstance(detector, SimulatedDetector):
         detector.delay_ms = p.sim_delay_ms
+    if auto:
+        size, timings = largest_size_within(detector, p.auto_budget_ms)
+        detector.input_size = size
+        detector.name = detector.name.replace(f"@{max(AUTO_SIZES_PX)}", f"@{size}")
+        log.info("input_size_px auto: %d (ms a 640x480 frame on this machine: %s; budget %.0f ms)", size,
+                 ", ".join(f"{k} {v:.1f}" for k, v in timings.items()), p.auto_budget_ms)
     return detector
+
+
+_RESOLVED: dict[tuple[Any, ...], int] = {}
+
+
+def resolve_input_size(params: dict[str, Any]) -> dict[str, Any]:
+    """``params`` (a detection node's graph.yaml params) with ``input_size_px: auto`` replaced by the size this
+    machine chooses (measured once a process): what evaluation runs and names, so the cache, the report and the
+    redetection node all see one size."""
+    if params.get("input_size_px") != AUTO:
+        return params
+    p = Detection.parse_params(params)
+    key = (p.backend, p.model_dir, p.runtime, p.threads, p.auto_budget_ms)
+    if key not in _RESOLVED:
+        _RESOLVED[key] = int(detector_from_params(p).input_size)
+    return {**params, "input_size_px": _RESOLVED[key]}
 
 
 def split_detections(p: DetectionParams, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -92,13 +140,7 @@ class Detection(Node):
         params = super().parse_params(raw)
         if params.backend not in BACKENDS:
             raise ParamError("backend", f"backend must be one of {', '.join(BACKENDS)}, not {params.backend!r}")
-        if params.input_size_px < 32 or params.input_size_px % 32:
-            raise ParamError("input_size_px", "input_size_px must be a positive multiple of 32 (the detector's "
-                                              f"largest stride), e.g. 416 or 640, not {params.input_size_px!r}")
-        if params.input_size_px > MAX_INPUT_SIZE_PX:
-            raise ParamError("input_size_px", f"input_size_px must be at most {MAX_INPUT_SIZE_PX} (a 4K frame's "
-                                              "long side: a larger input only scales the frame up, and its tensors "
-                                              f"take gigabytes), not {params.input_size_px!r}")
+        _check_input_size(params)
         if params.input_shape not in INPUT_SHAPES or (params.input_shape == "fit" and params.backend == "yolov8"):
             raise ParamError("input_shape", f"input_shape must be one of {', '.join(INPUT_SHAPES)} (fit: YOLOX "
                                             f"only), not {params.input_shape!r}")
@@ -129,6 +171,7 @@ class Detection(Node):
             self.log.error("backend 'simulated' needs the ground_truth input wired (capture/ground_truth)")
             raise SystemExit(1)
         self.log.info("detector backend: %s", self.detector.name)
+        self.input_px = int(getattr(self.detector, "input_size", 0) or 0)
         if not self.simulated:
             # The first inferences allocate the runtime's buffers (2x a frame's time): on a blank VGA frame here,
             # before the node is up, not on the camera's first frames.
@@ -160,11 +203,12 @@ class Detection(Node):
         self.infer_ms_total += infer_ms
         high, low = split_detections(self.params, boxes)
         self.publish("detections", Detections(boxes=high, low_boxes=low, backend=self.detector.name,
-                                              infer_ms=infer_ms), like=frame)
+                                              infer_ms=infer_ms, input_px=self.input_px), like=frame)
 
     def status_extra(self) -> dict[str, Any]:
         mean = self.infer_ms_total / self.frames if self.frames else 0.0
-        return {"backend": self.detector.name, "frames": self.frames, "infer_ms_mean": round(mean, 2)}
+        return {"backend": self.detector.name, "frames": self.frames, "infer_ms_mean": round(mean, 2),
+                "input_size_px": self.input_px}
 
 
 NODE = Detection

@@ -117,7 +117,7 @@ class Prediction(Node):
         """The track of a measurement: the filter's posterior (none: no filtered box, no velocity) with the
         tracker's output box (tracking/tracker.py)."""
         track = posterior or Track(state=msg.state)
-        track.box = output_box(msg, prior, self.predictor.params.occluded_output_max_std_heights)
+        track.box = output_box(msg, prior)
         return track
 
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
@@ -143,7 +143,9 @@ class Prediction(Node):
         return {"state": self.last_state, "initialised": self.predictor.initialised,
                 "filter_resets": self.filter_resets, "priors_warped": self.predictor.warped,
                 "camera_motion_mismatched": self.predictor.motion_mismatched,
-                "camera_motion_held": self.predictor.motion_held}
+                "camera_motion_held": self.predictor.motion_held,
+                "camera_motion_unfitted": self.predictor.motion_unfitted,
+                "image_model_probability": round(self.predictor.image_model_probability, 3)}
 
 
 NODE = Prediction

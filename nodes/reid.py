@@ -9,10 +9,10 @@ appearance of seed 001 decides: OSNet descriptors and an online ridge-regression
 against the other people (tracking/identity.py; ``learned_appearance: false`` turns it off, and without the
 model the node warns once and goes on with colour).
 
-Inputs joined by frame: frame k, detections k, prior k, and the template learnt at frame k-1
-(offset -1). If that template is missing (a dropped frame upstream), the last one received is used; after
-this node initialised the target, that is the histogram of the initial box (what the template node learns
-from it), until the template node's own comes back.
+Inputs joined by frame: frame k, detections k, prior k, the region re-detected around prior k (the redetection
+node, seed 002 §3.2: optional) and the template learnt at frame k-1 (offset -1). If that template is missing (a
+dropped frame upstream), the last one received is used; after this node initialised the target, that is the
+histogram of the initial box (what the template node learns from it), until the template node's own comes back.
 """
 
 from __future__ import annotations
@@ -25,9 +25,10 @@ import numpy as np
 from ..bus.background import BackgroundJob
 from ..bus.node import Node, ParamError
 from ..bus.schemas import Frame, Message
-from ..msgs.perception import Detections
+from ..msgs.perception import Detections, RegionDetections
 from ..msgs.tracking import Measurement, Prior, Template
 from ..tracking.params import ReidParams
+from ..tracking.redetection import RegionBoxes
 from ..tracking.reid import ReIdentifier
 
 # init_box describes the target at the start of the source: a re-ID node (re)started later in the run, or
@@ -41,7 +42,8 @@ class ReidNodeParams:
 
 
 class Reid(Node):
-    INPUTS = {"frame": Frame, "detections": Detections, "prior": Prior, "template": Template}
+    INPUTS = {"frame": Frame, "detections": Detections, "prior": Prior, "template": Template,
+              "region": RegionDetections}
     REQUIRED_INPUTS = frozenset({"frame", "detections", "prior"})
     OUTPUTS = {"measurement": Measurement}
     INIT_BOX_PARAM = "init_box"  # followbus demo sets it from the source's first ground-truth box
@@ -92,9 +94,11 @@ class Reid(Node):
         init_box = None
         if self.node_params.init_box and new_source and frame_seq < INIT_BOX_MAX_FRAME:
             init_box = self.node_params.init_box
+        region = inputs.get("region")
         result = self.reid.step(frame.data, dets.boxes, prior if prior.initialised else None, self.template_hist,
                                 frame.header.stamp_ns, init_box=init_box, defer_learning=True,
-                                low_detections=dets.low_boxes)  # the second stage's (low_score_stage)
+                                low_detections=dets.low_boxes,  # the second stage's (low_score_stage)
+                                region=_region_boxes(region))
         self.frames += 1
         if result.init_box is not None and result.candidate_hist is not None:
             # The template node initialises its template from this box (tracking/template.py); until that template
@@ -125,6 +129,14 @@ class Reid(Node):
             return {"frames": 0}
         return {"frames": self.frames, "state": self.last.state, "m_fuse": round(self.last.m_fuse, 3),
                 "learned_appearance": self.learned_appearance, "identity_decisions": self.reid.identity_decisions}
+
+
+def _region_boxes(msg: Message | None) -> RegionBoxes | None:
+    """What the redetection node found around the prediction (seed 002 §3.2), when it looked."""
+    if not isinstance(msg, RegionDetections) or not msg.reason:
+        return None
+    x0, y0, x1, y1 = (int(v) for v in msg.region)
+    return RegionBoxes((x0, y0, x1, y1), np.asarray(msg.boxes), np.asarray(msg.low_boxes))
 
 
 NODE = Reid

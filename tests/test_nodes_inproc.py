@@ -401,7 +401,7 @@ def test_whole_graph_agrees_with_what_eval_runs():
 
     n = 60
     seq = open_sequence("scene:wall-occlusion", max_frames=n)
-    detector, follower = SimulatedDetector(seed=0), GraphFollower()  # the detection node's defaults
+    detector, follower = SimulatedDetector(seed=0), GraphFollower(detector="simulated")  # the node's defaults
     expected, init_box = [], None
     for item in seq.frames():
         box, _ = follower.step(item.bgr, detector.detect(item.bgr, item.truth), item.t_ns, (0.0, 0.0),

@@ -147,17 +147,18 @@ def test_warped_prior_lands_on_the_moved_target() -> None:
 
     def prior(params: KalmanParams, m):
         pred = Predictor(params)
-        pred.kf.initialise(box0, t_ns=0)
+        pred.initialise(box0, t_ns=0)
         return pred, pred.predict(33_000_000, (0.0, 0.0), m)
 
-    pred, warped = prior(KalmanParams(camera_motion_compensation=True), motion)
+    scene_model = KalmanParams(camera_motion_compensation=True, image_motion_model=False)  # the warp alone
+    pred, warped = prior(scene_model, motion)
     assert warped.centre == pytest.approx(target, abs=1.0) and warped.in_gate(target)
     assert pred.warped == 1
     _, plain = prior(KalmanParams(camera_motion_compensation=False), motion)
     assert plain.centre == pytest.approx((240.0, 220.0)) and not plain.in_gate(target)
     # A motion that does not start at the filter's stamp (a frame either side did not see) is not applied.
     stale = _motion_of(motion.matrix, -33_000_000, 33_000_000)
-    pred, unwarped = prior(KalmanParams(camera_motion_compensation=True), stale)
+    pred, unwarped = prior(scene_model, stale)
     assert unwarped.centre == pytest.approx((240.0, 220.0)) and pred.motion_mismatched == 1
 
 
@@ -215,7 +216,7 @@ nodes:
   prediction:
     inputs:
       transform: {{from: egomotion/transform, queue: 32, optional: true}}
-    params: {{camera_motion_compensation: true}}
+    params: {{camera_motion_compensation: true, image_motion_model: false}}   # the scene model's warp alone
 """)
     graph = load_graph(tmp_path / "g.yaml")
     img0 = textured(8)
@@ -302,7 +303,7 @@ def test_a_rival_hypothesis_raises_the_published_uncertainty() -> None:
 def _prior_after(motion: CameraMotion, coasting: bool, params: KalmanParams | None = None):
     from followbus.tracking.reid import ReidResult, TrackState
 
-    pred = Predictor(params or KalmanParams())
+    pred = Predictor(params or KalmanParams(image_motion_model=False))  # the scene model's warp alone
     pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)).to_message())
     if coasting:
         pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED).to_message())
@@ -330,14 +331,14 @@ def test_a_doubtful_motion_widens_a_coasting_prior_instead_of_dragging_it() -> N
     assert doubt.centre[0] == pytest.approx(start[0], abs=1e-6)  # not dragged
     assert doubt.innovation_cov[0, 0] > sure.innovation_cov[0, 0] + 30.0**2  # the gate covers both
     off, _ = _prior_after(_motion(30.0, 12.0, 33_000_000, 66_000_000), coasting=True,
-                          params=KalmanParams(camera_motion_uncertainty=False))
+                          params=KalmanParams(camera_motion_uncertainty=False, image_motion_model=False))
     assert off.centre[0] == pytest.approx(start[0] + 30.0, abs=1e-6)  # the ablation moves it with confidence
 
 
 def test_a_motion_spanning_a_frame_without_one_is_applied() -> None:
     from followbus.tracking.reid import ReidResult, TrackState
 
-    pred = Predictor(KalmanParams())
+    pred = Predictor(KalmanParams(image_motion_model=False))  # the scene model's warp alone
     pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)).to_message())
     pred.predict(33_000_000)  # the jerk's frame: no motion came
     pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED).to_message())

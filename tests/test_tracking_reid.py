@@ -147,8 +147,9 @@ def test_geometry_decides_when_appearance_is_unreliable() -> None:
     assert res.omega < 0.01
     assert res.s_geo == pytest.approx(1.0)
     assert res.accepted
-    # Without the geometric cue (ablation) ω = 1 and the washed-out box is rejected.
-    reid2, template2 = started(ReidParams(use_geometry=False))
+    # Without the geometric cue (ablation) ω = 1 and the washed-out box is rejected (by Eq. 2-3: the uncontested
+    # lone box, which would take it, is off here).
+    reid2, template2 = started(ReidParams(use_geometry=False, uncontested_lone_candidate=False))
     res2 = reid2.step(frame, dets(TARGET), prior_at(TARGET, 33 * MS), template2, 33 * MS)
     assert res2.omega == 1.0 and res2.s_geo == 0.0 and not res2.accepted
 

@@ -31,7 +31,7 @@ def _torso_mean(frame: SceneFrame) -> np.ndarray:
 
 def test_catalogue_is_complete_and_unknown_names_fail() -> None:
     assert set(SCENES) == {"corridor-occlusion", "lookalike", "wall-occlusion", "night-puddles", "sun-shadow",
-                           "ego-motion", "lost-target", "group-walk", "overlay", "bumpy"}
+                           "ego-motion", "lost-target", "group-walk", "overlay", "bumpy", "runners", "shaky"}
     assert make_scene("corridor-occlusion").n_frames == 600
     assert make_scene("wall-occlusion").n_frames == 240
     assert make_scene("wall-occlusion", fps=10).n_frames == 80

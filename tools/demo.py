@@ -193,7 +193,7 @@ def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: 
     try:
         model = resolve_detector_model(backend, model_dir=params.get("model_dir") or None,
                                        model_file=params.get("model_file") or None,
-                                       input_size=int(params.get("input_size_px", 416)),
+                                       input_size=_size(params.get("input_size_px", 416)),
                                        input_shape=str(params.get("input_shape", "square")))
     except DetectorUnavailable as exc:
         print(f"followbus demo: {exc}", file=sys.stderr, flush=True)
@@ -250,3 +250,8 @@ def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: 
         sys.stderr.flush()
         return status or 1
     return status
+
+
+def _size(value: object) -> int:
+    """input_size_px as the model's file name needs it (auto: the dynamic model, any size)."""
+    return 416 if value == "auto" else int(value)  # type: ignore[call-overload]

@@ -94,11 +94,20 @@ class EgoMotionParams:
     # A failed fit keeps the last fitted frame as the reference for this many frames: the next motion then
     # spans the failed frame too (a jerk's smeared frame), so prediction misses no step of the camera's motion.
     max_reference_age_frames: int = 3
+    # When the reference's corners are lost in a frame (smeared by a jerk), the translation is measured by phase
+    # correlation of the work frames instead (cv2.phaseCorrelate, people masked out), accepted when its peak
+    # response is at least phase_min_response; its 1-σ is phase_std_px or phase_std_fraction of the shift, whichever
+    # is larger (a translation of a blurred frame, no rotation, no scale). False: such a frame has no motion.
+    phase_fallback: bool = True
+    phase_min_response: float = 0.05
+    phase_std_px: float = 6.0
+    phase_std_fraction: float = 0.1
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("corner_quality", "min_corner_distance_px", "ransac_reproj_px",
-                                     "max_scale_change"),
-                     non_negative=("lk_levels", "box_margin"), unit_interval=("min_inlier_fraction",))
+                                     "max_scale_change", "phase_std_px"),
+                     non_negative=("lk_levels", "box_margin", "phase_std_fraction"),
+                     unit_interval=("min_inlier_fraction", "phase_min_response"))
         if self.min_work_width_px < 32:
             raise InvalidParam("min_work_width_px", f"EgoMotionParams.min_work_width_px must be >= 32, got "
                                                     f"{self.min_work_width_px!r}")
@@ -151,6 +160,7 @@ class _Prepared(NamedTuple):
 
 
 CORNER_REGIONS = (4, 3)  # columns, rows of the corner budget's regions
+FALLBACK_REASONS = ("few_tracked", "few_inliers", "no_fit")  # corner-fit failures phase correlation stands in for
 
 
 class EgoMotionEstimator:
@@ -395,6 +405,39 @@ class EgoMotionEstimator:
         np.clip(flat, 0.0, None, out=flat)
 
     def _fit(self, grey: np.ndarray, mask: np.ndarray, s: tuple[float, float], t_ns: int) -> CameraMotion | None:
+        """The corner fit, or when it fails the phase-correlation fallback (EgoMotionParams.phase_fallback)."""
+        motion = self._corner_fit(grey, mask, s, t_ns)
+        # Only when the reference had corners and they were lost in this frame (smeared): a textureless view has
+        # no motion to measure, and a fit refused for its scale was refused on purpose.
+        if motion is None and self.params.phase_fallback and self.last_reason in FALLBACK_REASONS:
+            motion = self._phase_motion(grey, mask, s, t_ns)
+        return motion
+
+    def _phase_motion(self, grey: np.ndarray, mask: np.ndarray, s: tuple[float, float],
+                      t_ns: int) -> CameraMotion | None:
+        """The reference-to-frame translation by phase correlation: the whole image's motion survives a smear that
+        leaves no corner to follow. People (``mask`` 0) are filled with the frame's mean so they do not pull it."""
+        p = self.params
+        ref = self._prev_grey
+        if ref is None or ref.shape != grey.shape:
+            return None
+        a, b = (np.where(mask > 0, g, g.mean()).astype(np.float32) for g in (ref, grey))
+        window = cv2.createHanningWindow((grey.shape[1], grey.shape[0]), cv2.CV_32F)
+        (dx, dy), response = cv2.phaseCorrelate(a, b, window)
+        if not response >= p.phase_min_response:
+            return None
+        shift = np.array([dx / s[0], dy / s[1]])
+        std = max(p.phase_std_px, p.phase_std_fraction * float(np.linalg.norm(shift)))
+        motion = CameraMotion(valid=True, matrix=np.array([[1.0, 0.0, shift[0]], [0.0, 1.0, shift[1]]]),
+                              from_stamp_ns=self._prev_t_ns, reason="phase", std_px=std)
+        motion.header.stamp_ns = int(t_ns)
+        self._prev_shift = np.array([dx, dy])
+        self.counts["phase"] += 1
+        self.last_reason = ""
+        return motion
+
+    def _corner_fit(self, grey: np.ndarray, mask: np.ndarray, s: tuple[float, float],
+                    t_ns: int) -> CameraMotion | None:
         p = self.params
         tracked = self._track(grey, mask)
         if tracked is None:
@@ -412,17 +455,23 @@ class EgoMotionEstimator:
         if not hyps or len(np.flatnonzero(hyps[0][1])) < p.min_inlier_fraction * len(fa):
             self._degenerate("few_inliers" if hyps else "no_fit")
             return None
+        return self._fitted(hyps, a, b, cells, fa, fb, fcells, s, t_ns, grey.shape)
+    def _fitted(self, hyps: list[tuple[np.ndarray, np.ndarray]], a: np.ndarray, b: np.ndarray, cells: np.ndarray,
+                fa: np.ndarray, fb: np.ndarray, fcells: np.ndarray, s: tuple[float, float], t_ns: int,
+                shape: tuple[int, ...]) -> CameraMotion | None:
+        """The chosen hypothesis as the frame's motion (None: an implausible scale)."""
+        p = self.params
         cover = [self._cover(fcells[mask]) for _, mask in hyps]
-        best, rival = self._choose(hyps, cover, grey.shape)
+        best, rival = self._choose(hyps, cover, shape)
         m, inl = hyps[best]
         det = float(np.linalg.det(m[:, :2]))
         if det <= 0.0 or abs(math.sqrt(det) - 1.0) > p.max_scale_change:
             self._degenerate("implausible_scale")
             return None
-        centre = _image_centre(grey.shape)
+        centre = _image_centre(shape)
         shift = _shift(m, centre)
-        self._update_static(a, b, cells, self._moving_cover(hyps, cover, grey.shape))
-        motion = self._motion(m, fa, fb, inl, hyps[rival] if rival is not None else None, s, t_ns, grey.shape,
+        self._update_static(a, b, cells, self._moving_cover(hyps, cover, shape))
+        motion = self._motion(m, fa, fb, inl, hyps[rival] if rival is not None else None, s, t_ns, shape,
                               cover[best])
         motion = _replace_static(motion, int((self.static_map >= p.static_evidence_min).sum()))
         self._prev_shift = shift

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..msgs.box import Box, box_array, box_centre, centre_size_to_box
 from ..msgs.perception import CameraMotion
-from ..msgs.tracking import Measurement, Prior, Track, mahalanobis_sq_from_cov
+from ..msgs.tracking import DETECTOR_SOURCES, Measurement, Prior, Track, mahalanobis_sq_from_cov
 from .params import KalmanParams
 
 logger = logging.getLogger(__name__)
@@ -225,17 +225,37 @@ class KalmanCV:
         return centre_size_to_box(float(self.x[0]), float(self.x[1]), *self.size)
 
 
+# The two motion models of the prediction (an interacting multiple model filter, Blom & Bar-Shalom 1988):
+# "scene": the target moves at constant velocity in the scene, so its prior is carried by the camera's own image
+# motion (seed 002 §3.3's compensation); "image": it keeps its course in the image, the camera's motion aside (a
+# camera that follows the person: a robot turning towards them, a drone tracking a boat, a panning camera). Which
+# holds is weighed frame by frame by how well each predicted the target's measured position.
+SCENE, IMAGE = "scene", "image"
+
+
 class Predictor:
-    """The prediction process: owns the Kalman filter and the Eq. 7 noise, consumes re-ID results.
+    """The prediction process: owns the Kalman filters and the Eq. 7 noise, consumes re-ID results.
 
     Per frame k the graph calls ``predict(t_k, v_ego)`` → Prior (published to re-ID), then
     ``apply(reid_k, v_ego)`` once the measurement of frame k arrives. Suspension of the
     measurement update (§2.3, Alg. 1 line 17) is simply not updating when nothing was accepted.
+
+    With camera-motion compensation the prior is an interacting multiple model (IMM) of the "scene" and "image"
+    models above: each frame the two filters are mixed by the model probabilities (switching with
+    ``model_switch_probability`` a frame), predicted (only "scene" warped by the camera motion), combined into the
+    published prior, whose covariance includes how far the two disagree (a wider gate while it is unclear whether
+    the camera follows the target), and on a measurement each is updated and reweighed by its likelihood.
     """
 
     def __init__(self, params: KalmanParams | None = None) -> None:
         self.params = params or KalmanParams()
-        self.kf = KalmanCV.from_params(self.params)
+        p = self.params
+        if not p.camera_motion_compensation:
+            self.models: tuple[str, ...] = (IMAGE,)
+        else:
+            self.models = (SCENE, IMAGE) if p.image_motion_model else (SCENE,)
+        self.filters = {m: KalmanCV.from_params(p) for m in self.models}
+        self.mode = np.full(len(self.models), 1.0 / len(self.models))  # model probabilities
         # Priors warped by the camera motion, and motions not applied because they do not start at the
         # filter's stamp (a frame the motion estimate or this filter did not see).
         self.warped = 0
@@ -243,39 +263,113 @@ class Predictor:
         self.motion_held = 0  # doubtful motions that only widened a coasting prior
         self._motion_t_ns: int | None = None  # the stamp up to which the camera's motion has been applied
         self._coasting = False  # no detection matched on the last applied frame
+        self.recent_shift_px2 = 0.0  # running mean of the camera's squared displacement at the target (px²)
+        self.motion_unfitted = 0  # frames whose camera motion could not be measured: the prior widened instead
 
     @property
     def initialised(self) -> bool:
-        return self.kf.initialised
+        return self.filters[self.models[0]].initialised
+
+    @property
+    def kf(self) -> KalmanCV:
+        """The combined estimate as one filter's state (read it, do not step it)."""
+        first = self.filters[self.models[0]]
+        if len(self.models) == 1:
+            return first
+        combined = KalmanCV.from_params(self.params)
+        combined.x, combined.P = self._combined(self.mode)
+        combined.size = self._combined_size(self.mode)
+        combined.R, combined.t_ns, combined.initialised = first.R, first.t_ns, first.initialised
+        return combined
+
+    @property
+    def image_model_probability(self) -> float:
+        return float(self.mode[self.models.index(IMAGE)]) if IMAGE in self.models else 0.0
 
     def reset(self) -> None:
-        self.kf = KalmanCV.from_params(self.params)
+        self.filters = {m: KalmanCV.from_params(self.params) for m in self.models}
+        self.mode = np.full(len(self.models), 1.0 / len(self.models))
+
+    def initialise(self, box: Sequence[float], t_ns: int | None = None) -> None:
+        """Every model starts at ``box`` (no velocity), both equally likely."""
+        for kf in self.filters.values():
+            kf.initialise(box, t_ns)
+        self.mode = np.full(len(self.models), 1.0 / len(self.models))
+        self._motion_t_ns = None if t_ns is None else int(t_ns)
+
+    def _combined(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The moment-matched mixture of the filters' states: mean, and covariance including their spread."""
+        xs = [self.filters[m].x for m in self.models]
+        x = sum(w * xi for w, xi in zip(weights, xs, strict=True))
+        P = sum(w * (self.filters[m].P + np.outer(xi - x, xi - x))
+                for w, m, xi in zip(weights, self.models, xs, strict=True))
+        return np.asarray(x, dtype=np.float64), 0.5 * (P + P.T)
+
+    def _combined_size(self, weights: np.ndarray) -> tuple[float, float]:
+        sizes = np.array([self.filters[m].size for m in self.models], dtype=np.float64)
+        w, h = (weights[:, None] * sizes).sum(axis=0)
+        return float(w), float(h)
+
+    def _mix(self) -> np.ndarray:
+        """IMM step 1: each filter restarts from the mixture of all, weighted by how likely the system was in
+        each model given it is now in this one. Returns the predicted model probabilities."""
+        n = len(self.models)
+        if n == 1:
+            return self.mode
+        q = self.params.model_switch_probability
+        switch = np.full((n, n), q / (n - 1))
+        np.fill_diagonal(switch, 1.0 - q)
+        predicted = switch.T @ self.mode
+        mixing = switch * self.mode[:, None] / np.maximum(predicted[None, :], 1e-300)  # [from, to]
+        states = [(self.filters[m].x.copy(), self.filters[m].P.copy(), self.filters[m].size) for m in self.models]
+        for j, m in enumerate(self.models):
+            kf = self.filters[m]
+            kf.x = sum(mixing[i, j] * states[i][0] for i in range(n))
+            kf.P = sum(mixing[i, j] * (states[i][1] + np.outer(states[i][0] - kf.x, states[i][0] - kf.x))
+                       for i in range(n))
+            kf.P = 0.5 * (kf.P + kf.P.T)
+            kf.size = tuple(float(v) for v in sum(mixing[i, j] * np.asarray(states[i][2]) for i in range(n)))
+        return predicted
 
     def predict(self, t_ns: int, v_ego_mps: Sequence[float] = (0.0, 0.0),
                 camera_motion: CameraMotion | None = None) -> Prior | None:
         """Prior of frame ``t_ns``; None before initialisation.
 
-        ``camera_motion`` (frame k-1 → k image motion) warps the predicted state before it is published
-        and gated, when ``camera_motion_compensation`` is on and the motion starts at the filter's stamp; one
-        marked not valid (no trustworthy fit) is as none.
+        ``camera_motion`` (frame k-1 → k image motion) warps the "scene" model's prediction when it starts at the
+        filter's stamp; one marked not valid (no trustworthy fit) is as none.
         """
-        if not self.kf.initialised:
+        if not self.initialised:
             return None
+        unfitted = camera_motion is not None and not camera_motion.valid and camera_motion.header.stamp_ns == t_ns
         if camera_motion is not None and not camera_motion.valid:
             camera_motion = None
-        from_t_ns = self.kf.t_ns
-        self.kf.predict(t_ns)
-        if self.params.camera_motion_compensation:
-            self._compensate(camera_motion, from_t_ns, int(t_ns))
-        R = self.kf.measurement_noise(v_ego_mps)  # Eq. 7 with the current ego speed
-        return Prior.of_filter(int(t_ns), self.kf.x.copy(), self.kf.size, self.kf.P.copy(),
-                               self.kf.innovation_cov(R), self.kf.gate_chi2)
+        from_t_ns = self.filters[self.models[0]].t_ns
+        self.mode = self._mix()
+        for m in self.models:
+            self.filters[m].predict(t_ns)
+        if SCENE in self.models:
+            self._compensate(self.filters[SCENE], camera_motion, from_t_ns, int(t_ns))
+            if unfitted and self.params.camera_motion_uncertainty:
+                # The camera moved by an unknown amount: as much as it has lately, in any direction (a jerk
+                # blurred the frame past fitting), not by nothing.
+                self.motion_unfitted += 1
+                self.filters[SCENE].widen(self.recent_shift_px2 * np.eye(2))
+        first = self.filters[self.models[0]]
+        R = first.measurement_noise(v_ego_mps)  # Eq. 7 with the current ego speed
+        x, P = self._combined(self.mode)
+        prior = Prior.of_filter(int(t_ns), x, self._combined_size(self.mode), P, H @ P @ H.T + R, first.gate_chi2)
+        if len(self.models) > 1:  # ties go to the first, "scene": seed 002's compensated prediction
+            prior.likeliest_box = box_array(self.filters[self.models[int(np.argmax(self.mode))]].box)
+        limit = self.params.occluded_output_min_overlap_probability
+        prior.locates_person = limit <= 0.0 or prior.overlap_probability() >= limit
+        return prior
 
-    def _compensate(self, motion: CameraMotion | None, from_t_ns: int | None, t_ns: int) -> None:
-        """Seed 002 §3.3's warp with issue 22's doubt. A motion that starts where the applied chain ends (the
-        filter's last stamp, or an earlier frame whose fit failed: egomotion then spans both steps) warps the
-        prior and widens it by its std²; a doubtful one (std above camera_motion_doubt_px) leaves a coasting
-        prior in place, widened by the displacement it would have applied. No motion: the prior as predicted."""
+    def _compensate(self, kf: KalmanCV, motion: CameraMotion | None, from_t_ns: int | None, t_ns: int) -> None:
+        """Seed 002 §3.3's warp with issue 22's doubt, on the "scene" model. A motion that starts where the applied
+        chain ends (the filter's last stamp, or an earlier frame whose fit failed: egomotion then spans both steps)
+        warps the prior and widens it by its std²; a doubtful one (std above camera_motion_doubt_px) leaves a
+        coasting prior in place, widened by the displacement it would have applied. No motion: the prior as
+        predicted."""
         p = self.params
         chained = (motion is not None and motion.header.stamp_ns == t_ns
                    and motion.from_stamp_ns in (from_t_ns, self._motion_t_ns))
@@ -287,31 +381,32 @@ class Predictor:
             return
         assert motion is not None
         self._motion_t_ns = t_ns
-        centre = self.kf.x[:2].copy()
+        centre = kf.x[:2].copy()
         shift = motion.matrix[:, :2] @ centre + motion.matrix[:, 2] - centre
+        self.recent_shift_px2 = 0.9 * self.recent_shift_px2 + 0.1 * float(shift @ shift)
         if not p.camera_motion_uncertainty:
-            self.kf.warp(motion.matrix)
+            kf.warp(motion.matrix)
             self.warped += 1
             return
         if self._coasting and motion.std_px > p.camera_motion_doubt_px:
             self.motion_held += 1
-            self.kf.widen(np.outer(shift, shift) + motion.std_px**2 * np.eye(2))
+            kf.widen(np.outer(shift, shift) + motion.std_px**2 * np.eye(2))
             return
-        self.kf.warp(motion.matrix)
-        self.kf.widen(motion.std_px**2 * np.eye(2))
+        kf.warp(motion.matrix)
+        kf.widen(motion.std_px**2 * np.eye(2))
         self.warped += 1
 
     def apply(self, reid: Measurement, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> Track | None:
-        """Fold frame k's re-ID measurement into the filter (Alg. 1 lines 11/13 and 16/17); the posterior as a
-        track (its output ``box`` is the caller's: tracking/tracker.py ``output_box``), None before initialisation."""
+        """Fold frame k's re-ID measurement into the filters (Alg. 1 lines 11/13 and 16/17) and reweigh the models
+        by how well each predicted it; the posterior as a track (its output ``box`` is the caller's:
+        tracking/tracker.py ``output_box``), None before initialisation."""
         t_ns = reid.header.stamp_ns
         self._coasting = not reid.accepted and reid.init_box is None
         if reid.init_box is not None:
-            self.kf.initialise(reid.init_box, t_ns)
-            self._motion_t_ns = int(t_ns)
+            self.initialise(reid.init_box, t_ns)
             logger.info("predictor initialised at %s", tuple(round(float(v), 1) for v in reid.init_box))
             return self._posterior(reid, measured=True)
-        if not self.kf.initialised:
+        if not self.initialised:
             return None
         box = reid.box if reid.accepted else None
         if box is None and not self.params.suspend_updates:
@@ -320,12 +415,26 @@ class Predictor:
             return self._posterior(reid, measured=False)
         # Motion-blob boxes cover only the moving part of the target, so they locate it but do
         # not measure its extent: only detector boxes update the size.
-        wh = (box[2], box[3]) if reid.source == "detection" else None
-        self.kf.update(box_centre(box), wh, self.kf.measurement_noise(v_ego_mps))
+        wh = (box[2], box[3]) if reid.source in DETECTOR_SOURCES else None
+        R = self.filters[self.models[0]].measurement_noise(v_ego_mps)
+        likelihood = np.array([self._likelihood(self.filters[m], box_centre(box), R) for m in self.models])
+        for m in self.models:
+            self.filters[m].update(box_centre(box), wh, R)
+        weighted = self.mode * likelihood
+        if weighted.sum() > 0.0 and np.isfinite(weighted).all():
+            self.mode = weighted / weighted.sum()
         return self._posterior(reid, measured=True)
 
+    @staticmethod
+    def _likelihood(kf: KalmanCV, z: Sequence[float], R: np.ndarray) -> float:
+        """N(z; H x⁻, S): how well a model predicted the measured centre."""
+        S = kf.innovation_cov(R)
+        d2 = kf.mahalanobis_sq(z, R)
+        return math.exp(-0.5 * d2) / (2.0 * math.pi * math.sqrt(max(float(np.linalg.det(S)), 1e-300)))
+
     def _posterior(self, reid: Measurement, measured: bool) -> Track:
-        track = Track(state=reid.state, filtered_box=box_array(self.kf.box),
-                      velocity=np.array([float(self.kf.x[2]), float(self.kf.x[3])]), measured=measured)
+        combined = self.kf
+        track = Track(state=reid.state, filtered_box=box_array(combined.box),
+                      velocity=np.array([float(combined.x[2]), float(combined.x[3])]), measured=measured)
         track.header.stamp_ns = int(reid.header.stamp_ns)
         return track

@@ -68,6 +68,20 @@ class _UpdateSuspension:
     suspend_updates: bool = True
 
 
+@dataclass
+class SearchScaleParams:
+    """Seed 002 §3.2's adaptive search scale k (tracking/redetection.py search_scale), read by re-ID for its gate
+    (χ² × k²) and by the redetection node for the side of its region: 1 for a slow target last seen on a confident
+    detection, gate_scale_max when it moves fast in the image (gate_fast_height_fraction of its height a frame or
+    more) or its last detection was weak (score gate_low_score or less; gate_high_score or more is confident)."""
+
+    adaptive_gate: bool = True
+    gate_scale_max: float = 1.5  # the seed's k in [1, 1.5]
+    gate_fast_height_fraction: float = 0.05
+    gate_high_score: float = 0.7
+    gate_low_score: float = 0.3
+
+
 # --- prediction ----------------------------------------------------------------------------------
 
 
@@ -93,31 +107,36 @@ class KalmanParams(_FramePeriod, _UpdateSuspension):
     # the egomotion node that measures it; `followbus eval --ablations` scores "followbus w/o camera-motion
     # compensation".
     camera_motion_compensation: bool = True
+    # With compensation, a second motion model beside it (tracking/kalman.py Predictor, an IMM): the target keeping
+    # its course in the image whatever the camera does, as under a camera that follows it (a robot turning towards
+    # the person, a drone tracking a boat). The models' probabilities switch by model_switch_probability a frame.
+    image_motion_model: bool = True
+    model_switch_probability: float = 0.05
     # Issue 22: the camera motion's uncertainty (egomotion's std_px) widens the prior's position covariance by
     # std² (and so the gate); a fit more doubtful than camera_motion_doubt_px does not move a coasting prior
     # (no detection matched on the previous frame), it widens it by the displacement it would have applied.
     # (A frame without a transform is not widened: whether one came in time depends on live timing.)
     camera_motion_uncertainty: bool = True
     camera_motion_doubt_px: float = 4.0
-    # Issue 22: while OCCLUDED the output is the coasting prediction (seed 000 §2.3) only while it still locates
-    # the person: once the prior centre's 1 σ exceeds this many box heights, the person is as likely outside the
-    # box's own height as in it, and the box could sit on a neighbour, so none is output (the controller stops;
-    # the gate keeps searching). 0: always output it. 1 rather than 2: under 1 px of detector jitter (EVALUATION.md)
-    # a coast dragged by a merged box stayed on nobody for 10+ frames before 2 heights were reached.
-    occluded_output_max_std_heights: float = 1.0
+    # While OCCLUDED the output is the coasting prediction (seed 000 §2.3) only while it more likely overlaps the
+    # person than not: the prior's position covariance puts the person's box in touch with it with at least this
+    # probability (Prior.overlap_probability). Past it the box is as likely on nobody, or on a neighbour, as on the
+    # person (a wrong re-lock is an output not touching the target), so none is output (the controller stops; the
+    # gate keeps searching). 0: always output it.
+    occluded_output_min_overlap_probability: float = 0.5
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("dt_ms", "gate_chi2", "r0_px2", "camera_motion_doubt_px"),
-                     non_negative=("accel_std_px_s2", "kappa_px2_per_mps2", "init_velocity_std_px_s",
-                                   "occluded_output_max_std_heights"),
-                     unit_interval=("size_smoothing",))
+                     non_negative=("accel_std_px_s2", "kappa_px2_per_mps2", "init_velocity_std_px_s"),
+                     unit_interval=("size_smoothing", "model_switch_probability",
+                                    "occluded_output_min_overlap_probability"))
 
 
 # --- re-ID ---------------------------------------------------------------------------------------
 
 
 @dataclass
-class ReidParams(_FramePeriod, _ColourHistogram):
+class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     """What the re-ID node's Algorithm 1 reads (seed 000 Alg. 1 with seeds 001 and 002)."""
 
     diff_threshold: int = 25  # Table 1 Thresh_diff: frame-difference grey-level threshold (§2.1)
@@ -133,15 +152,10 @@ class ReidParams(_FramePeriod, _ColourHistogram):
     # A match is "ambiguous" (not secure, template frozen) if another candidate's M_fuse is
     # within this margin of the best one.
     ambiguity_margin: float = 0.05
-    # Adaptive search region (seed 002 §3.2): the gate's χ² is scaled by k² with k in [1, gate_scale_max]:
-    # 1 for a slow target last seen on a confident detection, gate_scale_max when it moves fast in the image
-    # (gate_fast_height_fraction of its height per frame or more) or its last detection was weak (score
-    # gate_low_score or less; gate_high_score or more counts as confident).
-    adaptive_gate: bool = True
-    gate_scale_max: float = 1.5
-    gate_fast_height_fraction: float = 0.05
-    gate_high_score: float = 0.7
-    gate_low_score: float = 0.3
+    # Eq. 3's ω scaled by how far the two best colour scores are apart (in ambiguity_margins, at most 1): between
+    # candidates whose colours tie, geometry decides (reid.ReIdentifier._colour_separation). False: the seed's ω.
+    colour_ties_to_geometry: bool = True
+    # Adaptive search region (seed 002 §3.2): the gate's χ² is scaled by k² (SearchScaleParams above).
     # Seed 002 / ByteTrack's second association stage: when no detection in the gate matches, the low-score
     # ones (the detection node's low_boxes, score in [low_score_threshold, score_threshold)) are tried, never
     # as training samples, and with ByteTrack's caution: only for a target matched on the previous frame (not
@@ -180,6 +194,21 @@ class ReidParams(_FramePeriod, _ColourHistogram):
     far_relock_needs_identity: bool = True
     relock_far_height_fraction: float = 0.5
     n_id_frames: int = 2
+    # Re-acquisition on accumulated evidence (tracking/reacquisition.py): while OCCLUDED or LOST, a detection that
+    # is, on reacquire_frames frames (seed 001's N_id = 5) within reacquire_window_frames, re-ID's best candidate
+    # among those that are none of the people seen beside the target, ahead of the others by identity_margin in
+    # M_fuse, with the target's colours (S_color >= τ_occ), not rejected by the classifier (>= δ_switch) and moving
+    # consistently (within reacquire_max_step_heights of its height a frame of where its velocity carries it, the
+    # height within a factor 1.5), is re-acquired, however far from the prior and whatever T_reid says: the target
+    # came back looking a little different. False: only T_reid and δ_id re-lock.
+    reacquire_on_evidence: bool = True
+    # A lone detector box centred inside the predicted box of a target matched on the last frame, while
+    # no other detection has shared the gate for identity_veto_after_crowd_frames, is accepted below T_reid: the
+    # target alone, whose colours changed (reid.ReIdentifier._uncontested). False: T_reid decides.
+    uncontested_lone_candidate: bool = True
+    reacquire_frames: int = 5
+    reacquire_window_frames: int = 10
+    reacquire_max_step_heights: float = 0.5
     # While TRACKING, colour + geometry's choice stands when the classifier scores every contender below δ_switch,
     # and a lone contender is not even scored. Both fail in a crossing or a group: the target hides behind another
     # person of the same colours, the detector drops or merges it, and the lone (or best) detection in the gate is
@@ -215,7 +244,7 @@ class ReidParams(_FramePeriod, _ColourHistogram):
             positive=("morph_kernel_px", "bins_h", "bins_s", "dt_ms", "gamma", "lost_after_ms",
                       "motion_max_changed_fraction", "identity_sample_every_frames", "identity_max_crops",
                       "ridge_lambda", "gate_scale_max", "gate_fast_height_fraction", "relock_far_height_fraction",
-                      "n_id_frames"),
+                      "n_id_frames", "reacquire_frames", "reacquire_window_frames", "reacquire_max_step_heights"),
             non_negative=("diff_threshold", "geo_scale", "ambiguity_margin", "min_blob_area_px",
                           "reacquired_hold_frames", "identity_margin", "identity_veto_after_crowd_frames"),
             unit_interval=("reid_threshold", "tau_occ", "delta_iou", "delta_id", "delta_switch", "low_score_min_iou",
@@ -223,6 +252,28 @@ class ReidParams(_FramePeriod, _ColourHistogram):
         if not self.merged_min_extent_ratio > 1.0:  # at 1 or under, every box taller than predicted would be cut
             raise InvalidParam("merged_min_extent_ratio", "ReidParams.merged_min_extent_ratio must be > 1, "
                                f"got {self.merged_min_extent_ratio!r}")
+
+
+# --- re-detection --------------------------------------------------------------------------------
+
+
+@dataclass
+class RedetectionParams(_FramePeriod, SearchScaleParams):
+    """What the redetection node reads (seed 002 §3.2, tracking/redetection.py)."""
+
+    # Ablation switch: False: no region is ever re-detected (the node publishes empty results).
+    local_redetection: bool = True
+    # A person predicted shorter than this at the detector's input scale is re-detected at the frame's resolution
+    # every frame: YOLOX-nano's finest stride is 8 px, and under ~48 px a person's box becomes unreliable (it
+    # merges with a neighbour or is missed); a 1280x720 frame inferred at 416 makes a 150 px person 48 px.
+    min_resolvable_px: float = 48.0
+    # The region's largest side; 0: the detector's own input size (a region never costs more than one full-size
+    # inference; a larger region is inferred at this size).
+    max_side_px: int = 0
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("dt_ms", "gate_scale_max", "gate_fast_height_fraction"),
+                     non_negative=("min_resolvable_px", "max_side_px"))
 
 
 # --- template ------------------------------------------------------------------------------------

@@ -30,11 +30,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..msgs.box import Box, box_array, box_centre, box_iou
-from ..msgs.tracking import Measurement, Prior, TrackState
+from ..msgs.tracking import DETECTOR_SOURCES, Measurement, Prior, TrackState
 from .appearance import bhattacharyya, hs_histogram
 from .identity import CROP_H_PX, CROP_W_PX, IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
 from .params import ReidParams
+from .reacquisition import BystanderTracks, ReacquisitionEvidence
+from .redetection import RegionBoxes, merge_region_boxes, search_scale
 
 logger = logging.getLogger(__name__)
 
@@ -121,21 +123,25 @@ def complete_partial_view(box: Sequence[float], predicted_box: Sequence[float], 
 
 def trim_merged_view(box: Sequence[float], predicted_box: Sequence[float], min_ratio: float = 1.5,
                      edge_tolerance: float = 0.15) -> Box:
-    """The target inside a merged view: a detector box taller than the prediction (over ``min_ratio`` of its height)
-    whose top or bottom agrees with the prediction's (within ``edge_tolerance`` of the predicted height) while the
-    other edge reaches well beyond it boxes the target together with someone in line with it (a person behind
-    them from a high camera, a group seen from above). The target is the predicted height from the agreeing edge;
-    otherwise the box is kept. The mirror of :func:`complete_partial_view`, and only the height for its reasons.
+    """The target inside a merged view: a detector box over ``min_ratio`` of the prediction's height (or width) whose
+    top or bottom (left or right) edge agrees with the prediction's (within ``edge_tolerance`` of the predicted
+    extent) while the other edge reaches well beyond it boxes the target together with someone in line with it (a
+    person behind them from a high camera, a group seen from above) or beside it (look-alikes side by side, seen
+    too coarsely to be told apart). Along each such axis the target is the predicted extent from the agreeing edge;
+    otherwise the box is kept. The mirror of :func:`complete_partial_view`, but on both axes: a stride or a swing
+    of the arms widens a person by far less than half.
 
-    Why: taken whole, such a box moves the Kalman centre by half the other person's height in one frame and gives
+    Why: taken whole, such a box moves the Kalman centre by half the other person's extent in one frame and gives
     it a velocity of that size; once the two part again the prior runs on in that direction, the gate leaves the
     target behind, and the coasting prediction ends on someone else (uav-group1-3 frames 289-326, EVALUATION.md).
     A person coming closer grows at both edges, so no edge agrees and nothing is trimmed."""
-    ph = float(predicted_box[3])
-    if ph <= 0.0 or float(box[3]) <= min_ratio * ph:
-        return tuple(float(v) for v in box)  # type: ignore[return-value]
-    y, h = _anchor_to_agreeing_edge(float(box[1]), float(box[3]), float(predicted_box[1]), ph, edge_tolerance)
-    return (float(box[0]), y, float(box[2]), h)
+    x, y, w, h = (float(v) for v in box[:4])
+    px, py, pw, ph = (float(v) for v in predicted_box[:4])
+    if ph > 0.0 and h > min_ratio * ph:
+        y, h = _anchor_to_agreeing_edge(y, h, py, ph, edge_tolerance)
+    if pw > 0.0 and w > min_ratio * pw:
+        x, w = _anchor_to_agreeing_edge(x, w, px, pw, edge_tolerance)
+    return (x, y, w, h)
 
 
 def appearance_weight(c_t: float, tau_occ: float = 0.60, gamma: float = 10.0) -> float:
@@ -155,7 +161,7 @@ def fuse(s_color: float, s_geo: float, omega: float) -> float:
 @dataclass
 class Candidate:
     box: Box
-    source: str  # "detection" or "motion"
+    source: str  # "detection", "redetection" (seed 002 §3.2's region), "low-score" or "motion"
     maha_sq: float
     s_color: float
     s_geo: float
@@ -194,6 +200,7 @@ class ReidResult:
     candidates: list[Candidate] = field(default_factory=list)
     candidate_hist: np.ndarray | None = None  # H-S histogram C* of the chosen candidate
     init_box: Box | None = None  # set on the frame the target was (re)initialised
+    detector_score: float | None = None  # the score of the box the target was last accepted on (search_scale)
 
     def to_message(self) -> Measurement:
         """The result as prediction and template update consume it, stamped with the frame (candidates as
@@ -205,7 +212,8 @@ class ReidResult:
             candidates=np.array([(*c.box, c.m_fuse) for c in self.candidates], dtype=np.float64).reshape(-1, 5),
             candidate_sources=[c.source for c in self.candidates],
             candidate_hist=None if self.candidate_hist is None else np.asarray(self.candidate_hist),
-            init_box=box_array(self.init_box))
+            init_box=box_array(self.init_box),
+            detector_score=-1.0 if self.detector_score is None else float(self.detector_score))
         msg.header.stamp_ns = int(self.t_ns)
         return msg
 
@@ -240,6 +248,45 @@ def _detection_score(detections: np.ndarray | None, box: Box) -> float | None:
     hit = np.all(np.abs(rows[:, :4] - np.asarray(box, dtype=np.float64)) < 1e-3, axis=1)
     score = float(rows[hit, 4][0]) if hit.any() else None
     return score if score is not None and math.isfinite(score) else None
+
+
+def _people_among(boxes: list[Box]) -> int:
+    """How many people ``boxes`` show: a box centred inside a larger one is a part of that person (a detector's
+    second box on a legs, a board, a torso), not someone else."""
+    people: list[Box] = []
+    for box in sorted(boxes, key=lambda b: -b[2] * b[3]):
+        cx, cy = box_centre(box)
+        if not any(x <= cx <= x + w and y <= cy <= y + h for x, y, w, h in people):
+            people.append(box)
+    return len(people)
+
+
+@dataclass
+class _FrameBoxes:
+    """The frame's detector boxes: the whole frame's and the re-detected region's (merged, tracking/redetection.py),
+    and every row with its score, high and low."""
+
+    frame: list[Box]
+    region: list[Box]
+    rows: np.ndarray
+    low_rows: np.ndarray
+
+    @property
+    def all(self) -> list[Box]:
+        return self.frame + self.region
+
+
+def _rows(detections: np.ndarray | None) -> np.ndarray:
+    return np.zeros((0, 5), np.float32) if detections is None else np.asarray(detections, np.float32).reshape(-1, 5)
+
+
+def _frame_boxes(detections: np.ndarray | None, low_detections: np.ndarray | None, region: RegionBoxes | None,
+                 frame_wh: tuple[int, int]) -> _FrameBoxes:
+    if region is None:
+        return _FrameBoxes(_valid_boxes(detections), [], _rows(detections), _rows(low_detections))
+    rows, from_region = merge_region_boxes(_rows(detections), region.boxes, region.rect, frame_wh)
+    low_rows, _ = merge_region_boxes(_rows(low_detections), region.low_boxes, region.rect, frame_wh)
+    return _FrameBoxes(_valid_boxes(rows[~from_region]), _valid_boxes(rows[from_region]), rows, low_rows)
 
 
 @dataclass
@@ -282,20 +329,33 @@ class ReIdentifier:
         self._confirming: tuple[Box, int] | None = None  # a far re-lock candidate and its δ_id confirmations
         self._frames_since_crowd: int | None = None  # frames since another detection shared the gate (None: never)
         self._crowd_told_apart = False  # in that crowd, the classifier scored its choice among several δ_id or more
+        p = self.params
+        self._frame = 0  # frames stepped: the clock of the re-acquisition evidence
+        self._evidence = ReacquisitionEvidence(p.reacquire_frames, p.reacquire_window_frames,
+                                               p.reacquire_max_step_heights)
+        self._bystanders = BystanderTracks(p.reacquire_window_frames, p.reacquire_max_step_heights)
+        self._frame_boxes: list[Box] = []  # this frame's detections and which of them are bystanders
+        self._frame_bystanders: list[bool] = []
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
              template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None,
-             defer_learning: bool = False, low_detections: np.ndarray | None = None) -> ReidResult:
+             defer_learning: bool = False, low_detections: np.ndarray | None = None,
+             region: RegionBoxes | None = None) -> ReidResult:
         """Run one frame (see :meth:`_step`); remembers the accepted box. The learned appearance's training
         sample of the frame (descriptors: a few ms) is taken at the end, or with ``defer_learning`` when the
-        caller calls :meth:`learn_pending` (the node: after publishing the measurement, off the motor's path)."""
+        caller calls :meth:`learn_pending` (the node: after publishing the measurement, off the motor's path).
+        ``region``: what the re-detection of the region around the prediction found (seed 002 §3.2), merged with
+        the frame's detections (tracking/redetection.py)."""
         self._pending = None
+        self._frame += 1
         previous, self._t_last_frame_ns = self._t_last_frame_ns, int(t_ns)
         if previous is not None:
             self._unseen_since_accept_ns += max(int(t_ns) - previous - int(self.params.dt_ms * 1e6), 0)
-        result = self._step(frame_bgr, detections, prior, template_hist, t_ns, init_box, low_detections)
+        boxes = _frame_boxes(detections, low_detections, region, (frame_bgr.shape[1], frame_bgr.shape[0]))
+        result = self._step(frame_bgr, boxes, prior, template_hist, t_ns, init_box)
         if result.accepted and result.box is not None:
             self._last_box = tuple(float(v) for v in result.box)
+            self._bystanders.adopt(self._frame_boxes, self._frame_bystanders, self._last_box, self._frame)
         if not defer_learning:
             self.learn_pending()
         return result
@@ -309,15 +369,14 @@ class ReIdentifier:
     def _step(
         self,
         frame_bgr: np.ndarray,
-        detections: np.ndarray | None,
+        dets: _FrameBoxes,
         prior: Prior | None,
         template_hist: np.ndarray | None,
         t_ns: int,
         init_box: Sequence[float] | None = None,
-        low_detections: np.ndarray | None = None,
     ) -> ReidResult:
-        """Run one frame. ``low_detections`` (x, y, w, h, score rows under the detector's threshold)
-        are a second stage when no detection in the gate matched (seed 002's ByteTrack association).
+        """Run one frame. The low-score rows (under the detector's threshold) are a second stage when no
+        detection in the gate matched (seed 002's ByteTrack association).
         Without a prior or a template (or with an explicit ``init_box``) this initialises the target
         instead: ``init_box``, else (when a template exists, e.g. restored after a restart) the detection
         best matching it if above Thresh_reid, else (when a prior exists: this re-ID was restarted while
@@ -328,24 +387,29 @@ class ReIdentifier:
         t_ns = int(t_ns)
         grey = to_grey(frame_bgr)
         prev_grey, self._prev_grey = self._prev_grey, grey
-        boxes = _valid_boxes(detections)
+        boxes = dets.all
+        self._frame_boxes, self._frame_bystanders = boxes, self._bystanders.link(boxes, self._frame)
         if init_box is not None or prior is None or template_hist is None:
             return self._initialise(frame_bgr, boxes, prev_grey, grey, t_ns, init_box, template_hist, prior)
 
         prior = self._scaled_gate(prior)
-        # Stage 1: the detections (score >= the detector's threshold) in the gate.
-        candidates = self._gate_candidates(boxes, prior, "detection")
-        self._note_crowd(len(candidates))
+        # Stage 1: the detections (score >= the detector's threshold) in the gate, the frame's and the region's.
+        candidates = (self._gate_candidates(dets.frame, prior, "detection")
+                      + self._gate_candidates(dets.region, prior, "redetection"))
+        self._note_crowd(_people_among([c.box for c in candidates]))
         match = self._match(frame_bgr, candidates, prior, template_hist)
-        match = self._second_stage(frame_bgr, low_detections, prior, template_hist, match)
+        match = self._second_stage(frame_bgr, dets.low_rows, prior, template_hist, match)
         if not match.candidates and self._background_still(prev_grey, grey):
             match = self._motion_stage(frame_bgr, prev_grey, grey, prior, template_hist)
+        match = self._reacquire_on_evidence(frame_bgr, match)
         self._advance_state(match.accepted, t_ns)
         result = self._result(t_ns, match)
         if match.accepted and match.best is not None:
-            scored = {"detection": detections, "low-score": low_detections}.get(match.best.source)
+            scored = {"detection": dets.rows, "redetection": dets.rows, "low-score": dets.low_rows}.get(
+                match.best.source)
             self._last_score = (_detection_score(scored, match.best.box) if scored is not None
                                 else self.params.gate_low_score)  # a motion blob: as weak as a detection can be
+        result.detector_score = self._last_score
         if result.secure and result.box is not None:
             self._pending = (frame_bgr, result.box, boxes)
         logger.debug(
@@ -362,7 +426,27 @@ class ReIdentifier:
         accepted = best is not None and best.m_fuse > self.params.reid_threshold
         if accepted and best is not None:
             best, accepted = self._identity_decision(frame_bgr, candidates, best, prior)
+        elif best is not None and self._uncontested(candidates, best, prior):
+            accepted = True
         return _Match(candidates, best, accepted, c_t, omega)
+
+    def _uncontested(self, candidates: list[Candidate], best: Candidate, prior: Prior) -> bool:
+        """A lone detector box centred inside the predicted box, with nobody else near it: the target, whatever its
+        colours now say (it turned, the light changed, spray hides it). ByteTrack's caution, widened to the coast:
+        only while the prediction still locates the person (matched on the last frame, or OCCLUDED with a prior that
+        still locates them, Prior.locates_person); and only while no other detection has shared the gate for
+        identity_veto_after_crowd_frames (an occluder walking in front is such a detection before it hides the
+        target)."""
+        p = self.params
+        fresh = self.state in (TrackState.TRACKING, TrackState.REACQUIRED) or (
+            self.state is TrackState.OCCLUDED and prior.locates_person)
+        if not p.uncontested_lone_candidate or not fresh:
+            return False
+        detections = [c for c in candidates if c.source in DETECTOR_SOURCES]
+        alone = self._frames_since_crowd is None or self._frames_since_crowd > p.identity_veto_after_crowd_frames
+        (cx, cy), (px, py) = box_centre(best.located), prior.centre
+        inside = abs(cx - px) <= prior.size[0] / 2.0 and abs(cy - py) <= prior.size[1] / 2.0
+        return detections == [best] and alone and inside
 
     def _second_stage(self, frame_bgr: np.ndarray, low_detections: np.ndarray | None, prior: Prior,
                       template_hist: np.ndarray, first: _Match) -> _Match:
@@ -382,6 +466,54 @@ class ReIdentifier:
         if match.accepted:
             return _Match(candidates, match.best, True, match.c_t, match.omega)
         return dataclasses.replace(first, candidates=candidates)
+
+    def _reacquire_on_evidence(self, frame_bgr: np.ndarray, match: _Match) -> _Match:
+        """While OCCLUDED or LOST, count the frames on which one detection is the clear best candidate
+        (tracking/reacquisition.py) and re-acquire it once they are enough; any accepted match ends the count."""
+        p = self.params
+        if match.accepted or self.state not in (TrackState.OCCLUDED, TrackState.LOST):
+            self._evidence.reset()
+            return match
+        best = self._clear_best(match) if p.reacquire_on_evidence else None
+        if best is None:
+            return match
+        if self._rejected_by_classifier(frame_bgr, best):
+            self._evidence.reset()  # whoever the evidence was on, this frame's best is someone else
+            return match
+        if self._evidence.observe(best.located, self._frame):
+            logger.info("re-acquired on %d frames of evidence at %s", self._evidence.count,
+                        tuple(round(v, 1) for v in best.located))
+            return dataclasses.replace(match, best=best, accepted=True)
+        return match
+
+    def _clear_best(self, match: _Match) -> Candidate | None:
+        """The frame's best plausible detection (none of the people seen beside the target: BystanderTracks) when it
+        has the target's colours (S_color >= τ_occ) and leads every other plausible detection by identity_margin in
+        M_fuse; else None."""
+        p = self.params
+        plausible = [c for c in match.candidates if c.source in DETECTOR_SOURCES and not self._bystander(c.box)]
+        if not plausible:
+            return None
+        best = max(plausible, key=lambda c: c.m_fuse)
+        if best.s_color < p.tau_occ:
+            return None
+        if any(c is not best and c.m_fuse > best.m_fuse - p.identity_margin for c in plausible):
+            return None
+        return best
+
+    def _bystander(self, box: Box) -> bool:
+        """Whether ``box`` is one of this frame's detections that continues a bystander track."""
+        return any(flag and b == tuple(box) for b, flag in zip(self._frame_boxes, self._frame_bystanders, strict=True))
+
+    def _rejected_by_classifier(self, frame_bgr: np.ndarray, candidate: Candidate) -> bool:
+        """The classifier, when it has learnt the target, takes ``candidate`` for someone else (below δ_switch)."""
+        p = self.params
+        if not (p.learned_appearance and self.identity.ready):
+            return False
+        embs = self._embed(frame_bgr, [candidate.box])
+        if embs is None or not len(embs):
+            return False
+        return float(self.identity.score(embs)[0]) < p.delta_switch
 
     def _background_still(self, prev_grey: np.ndarray | None, grey: np.ndarray) -> bool:
         """Alg. 1 line 2's background subtraction presumes a still background: see
@@ -417,7 +549,7 @@ class ReIdentifier:
         if match.accepted:
             result.box = best.located
             # A partial view is no training sample: its whole box covers the occluder.
-            result.secure = (self.state is TrackState.TRACKING and not ambiguous and best.source == "detection"
+            result.secure = (self.state is TrackState.TRACKING and not ambiguous and best.source in DETECTOR_SOURCES
                              and best.whole is None)
         return result
 
@@ -435,23 +567,28 @@ class ReIdentifier:
         omega = appearance_weight(c_t, p.tau_occ, p.gamma) if p.use_geometry else 1.0  # Eq. 3
         for c in candidates:
             c.m_fuse = fuse(c.s_color, c.s_geo, omega)  # Eq. 2, Alg. 1 line 6
-        best = max(candidates, key=lambda c: c.m_fuse) if candidates else None
+        # The choice between candidates: Eq. 2 with ω scaled by how far colour tells them apart
+        ranking = omega * self._colour_separation(candidates)
+        best = max(candidates, key=lambda c: fuse(c.s_color, c.s_geo, ranking)) if candidates else None
         return best, c_t, omega
 
-    def gate_scale(self, prior: Prior) -> float:
-        """Seed 002 §3.2's search scale k in [1, gate_scale_max]: 1 for a slow target whose last accepted
-        detection was confident, up to gate_scale_max for a fast one (speed in image heights per frame) or a
-        weak last detection (a motion blob counts as weak)."""
+    def _colour_separation(self, candidates: list[Candidate]) -> float:
+        """How far colour tells the two likeliest-looking candidates apart, in [0, 1]: their S_color gap over
+        ambiguity_margin. Eq. 3's ω weighs appearance by how visible the target is (C_t), and among look-alikes
+        every candidate is visible: two boxes of similar colours (the target, and a box merging it with a
+        neighbour) tie at 0.94, and with ω 0.97 geometry, which tells them apart, would count for 3 %. Scaling ω
+        by this gap lets geometry decide what colour cannot (Eq. 2 with β = 1 - ω); one candidate, or colours
+        apart by the margin: the seed's ω."""
         p = self.params
-        if not p.adaptive_gate:
+        if not p.colour_ties_to_geometry or len(candidates) < 2:
             return 1.0
-        speed_px = math.hypot(*prior.velocity_px_s) * p.dt_ms / 1000.0
-        fast = speed_px / max(prior.size[1], 1.0) / p.gate_fast_height_fraction
-        score = self._last_score  # None: an initial box, no detector score to doubt
-        weak = 0.0 if score is None else (p.gate_high_score - score) / max(p.gate_high_score - p.gate_low_score,
-                                                                              1e-6)
-        urgency = min(max(max(fast, weak), 0.0), 1.0)
-        return 1.0 + (p.gate_scale_max - 1.0) * urgency
+        low, high = sorted(c.s_color for c in candidates)[-2:]
+        return min(max(high - low, 0.0) / max(p.ambiguity_margin, 1e-6), 1.0)
+
+    def gate_scale(self, prior: Prior) -> float:
+        """Seed 002 §3.2's search scale k for this target (tracking/redetection.py search_scale; a motion blob's
+        last match counts as weak)."""
+        return search_scale(prior, self._last_score, self.params.dt_ms, self.params)
 
     def _scaled_gate(self, prior: Prior) -> Prior:
         k = self.gate_scale(prior)
@@ -519,10 +656,10 @@ class ReIdentifier:
             self._crowd_told_apart = True
         return contenders, scores
 
-    def _note_crowd(self, gated_detections: int) -> None:
-        """Count the frames since another detection shared the gate with the target; a crowd over forgets whether
-        the classifier told its people apart."""
-        if gated_detections >= 2:
+    def _note_crowd(self, gated_people: int) -> None:
+        """Count the frames since another person's detection shared the gate with the target; a crowd over forgets
+        whether the classifier told its people apart."""
+        if gated_people >= 2:
             self._frames_since_crowd = 0
         elif self._frames_since_crowd is not None:
             self._frames_since_crowd += 1
@@ -537,10 +674,13 @@ class ReIdentifier:
                 and self._crowd_told_apart)
 
     def _far(self, box: Box, prior: Prior) -> bool:
-        """A re-lock candidate farther from the prior's centre than relock_far_height_fraction of its height."""
+        """A re-lock candidate farther than relock_far_height_fraction of the target's height from where the prior
+        puts it: its centre, and the likeliest motion model's box when the prior mixes several (the mixture's mean
+        can lie between two places the person may be)."""
         cx, cy = box_centre(box)
-        px, py = prior.centre
-        return math.hypot(cx - px, cy - py) > self.params.relock_far_height_fraction * max(prior.size[1], 1.0)
+        centres = [prior.centre] + ([box_centre(prior.likeliest_box)] if prior.likeliest_box is not None else [])
+        limit = self.params.relock_far_height_fraction * max(prior.size[1], 1.0)
+        return all(math.hypot(cx - px, cy - py) > limit for px, py in centres)
 
     def _confirmed(self, box: Box, score: float) -> bool:
         """Seed 001's N_id: a far re-lock needs δ_id on n_id_frames consecutive frames, on the same person (overlapping

@@ -18,16 +18,14 @@ import numpy as np
 from ..msgs.tracking import Measurement, Prior, TrackState
 
 
-def output_box(reid: Measurement, prior: Prior | None, max_std_heights: float) -> np.ndarray | None:
+def output_box(reid: Measurement, prior: Prior | None) -> np.ndarray | None:
     """The tracker's output for a frame: the accepted box; while OCCLUDED the predicted box (§2.3:
-    keep following the hidden trajectory) as long as its centre's 1 σ is at most ``max_std_heights`` box
-    heights (0: no limit; KalmanParams.occluded_output_max_std_heights); None when LOST, before initialisation
-    or when the prediction no longer locates the person. The prediction node publishes exactly this as its
-    Track message's ``box``."""
+    keep following the hidden trajectory: the likeliest motion model's) as long as it still locates the person
+    (Prior.locates_person: it more likely overlaps them than not, KalmanParams.occluded_output_min_overlap_probability);
+    None when LOST, before initialisation or when the prediction no longer locates the person. The prediction node
+    publishes exactly this as its Track message's ``box``."""
     if reid.accepted:
         return reid.box
-    if reid.state != TrackState.OCCLUDED or prior is None or not prior.initialised:
+    if reid.state != TrackState.OCCLUDED or prior is None or not prior.initialised or not prior.locates_person:
         return None
-    if max_std_heights > 0.0 and prior.centre_std_px > max_std_heights * float(prior.size[1]):
-        return None
-    return prior.box
+    return prior.box if prior.likeliest_box is None else prior.likeliest_box

@@ -367,6 +367,17 @@ class YoloxDetector(_OnnxDetector):
         return yolox_postprocess(raw, (blob.shape[2], blob.shape[3]), ratio, bgr.shape, self.score_threshold,
                                  self.nms_iou)
 
+    def detect_at(self, bgr: np.ndarray, input_size: int) -> np.ndarray:
+        """:meth:`detect` with the long side inferred at ``input_size`` px (a multiple of 32; a model that takes
+        any height and width, input_shape fit): a region inferred at its own resolution (seed 002 §3.2)."""
+        if self.input_shape != "fit":
+            raise ModelError(f"{self.name}: detect_at needs input_shape 'fit' (a model of free height and width)")
+        size, self.input_size = self.input_size, int(input_size)
+        try:
+            return self.detect(bgr)
+        finally:
+            self.input_size = size
+
 
 # ----------------------------------------------------------------------------- YOLOv8
 
@@ -666,6 +677,29 @@ def make_detector(
     return det
 
 
+AUTO_SIZES_PX = (640, 512, 416, 320)  # input_size_px: auto chooses among these, largest first
+
+
+def largest_size_within(detector: YoloxDetector, budget_ms: float, frame_wh: tuple[int, int] = (640, 480),
+                        sizes: Sequence[int] = AUTO_SIZES_PX, repeats: int = 5) -> tuple[int, dict[int, float]]:
+    """The largest of ``sizes`` at which ``detector`` (a model of free height and width) infers a ``frame_wh`` frame
+    in ``budget_ms`` or less (median of ``repeats``, after one warm-up), the smallest when none fits; and each size's
+    median ms. On this machine, now: what the robot's detector can afford (input_size_px: auto)."""
+    frame = np.zeros((frame_wh[1], frame_wh[0], 3), np.uint8)
+    timings: dict[int, float] = {}
+    for size in sorted(sizes, reverse=True):
+        detector.detect_at(frame, size)
+        runs = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            detector.detect_at(frame, size)
+            runs.append((time.perf_counter() - t0) * 1e3)
+        timings[size] = float(np.median(runs))
+        if timings[size] <= budget_ms:
+            return size, timings
+    return min(sizes), timings
+
+
 def best_iou(dets: np.ndarray, box: Sequence[float]) -> float:
     """Best IoU of any detection row with ``box`` (0 when there is none)."""
     return max((iou_xywh(d[:4], box) for d in dets), default=0.0)
@@ -679,6 +713,7 @@ __all__ = [
     "HogDetector",
     "SimulatedDetector",
     "best_iou",
+    "largest_size_within",
     "YoloV8Detector",
     "YoloxDetector",
     "clip_detections",

@@ -58,6 +58,11 @@ SCENES: dict[str, str] = {
     "a logo and a strip of the robot's own body fixed in the image; a look-alike crosses behind the target",
     "bumpy": "10 s hall from a robot on a bumpy floor: seven 54-58 px jerks of the whole image, each smearing its "
     "frame (no detection of anyone there), settling over ~2 s; three people around the target",
+    "runners": "10 s street: the target runs away among three runners dressed alike, side by side 0.5-0.9 m apart "
+    "at 7-16 m (small to a coarse detector, which boxes neighbours together), two of them overtaking it",
+    "shaky": "10 s hall from a hand-held camera: five jerks that re-aim it by 70-100 px over 3 frames, every "
+    "frame of a jerk smeared along it (too blurred to fit the camera's motion on, not to detect the target in); "
+    "a bystander far off",
 }
 DEFAULT_SCENE = "corridor-occlusion"
 
@@ -197,7 +202,8 @@ class _Spec:
     occluders: list[_Occluder] = field(default_factory=list)
     noise_sigma: float = 2.0
     ego: bool = False  # strafing/yawing camera (ego-motion scene)
-    camera: str = "still"  # still | ego (strafe + yaw) | pan (follows the target) | bumpy (jerks)
+    # still | ego (strafe + yaw) | pan (follows the target) | bumpy (jerks) | shaky (hand-held re-aims)
+    camera: str = "still"
     overlay: bool = False  # screen-fixed content: clock, logo, the robot's own body (scene:overlay)
 
     def __post_init__(self) -> None:
@@ -409,7 +415,12 @@ BUMPS = [(1.2, 30.0, 45.0), (2.5, -10.0, -55.0), (3.7, 45.0, 30.0), (5.0, -25.0,
          (7.6, -25.0, -50.0), (8.8, 35.0, 45.0)]
 BUMP_SETTLE_S = 2.0
 SMEAR_EXPOSURE = 0.8
-VIBRATION_PX = {"ego": (2.0, 1.2), "bumpy": (0.6, 0.6)}  # per-frame jitter σ (x, y) of a vibrating camera
+# scene:shaky: jerks (t_s, dx, dy) in px at 640x480 (scaled with the height), each spread evenly over
+# SHAKE_FRAMES frames and kept (the camera is re-aimed, it does not settle back).
+SHAKES = [(1.3, 200.0, 90.0), (3.1, -200.0, -90.0), (4.9, 190.0, -90.0), (6.6, -190.0, 90.0), (8.4, 200.0, 60.0)]
+SHAKE_FRAMES = 3
+SHAKE_EXPOSURE = 1.0  # a hand-held camera indoors exposes the whole frame period
+VIBRATION_PX = {"ego": (2.0, 1.2), "bumpy": (0.6, 0.6), "shaky": (1.0, 1.0)}  # per-frame jitter σ (x, y)
 SMEAR_DETECTABLE = 0.2  # below SimulatedDetector.MIN_VISIBLE_FRACTION (0.3): the jerk frame has no detection
 
 
@@ -532,6 +543,20 @@ def _spec(name: str) -> _Spec:
             _Actor("distractor", _LOOKALIKE, [(0.0, 1.6, 5.6), (10.0, -1.2, 6.0)], sway_m=0.05),
             _Actor("distractor", _BYSTANDER, [(0.0, -2.6, 7.0), (10.0, -1.8, 7.5)], sway_m=0.04),
         ], camera="pan", overlay=True)
+    if name == "runners":
+        street = replace(_HALL, kind="street", ceiling=False, half_width_m=5.0, wall_height_m=9.0, far_m=45.0,
+                         lights=[], tile_m=0.8)
+        return _Spec(name, 10.0, street, [
+            _Actor("target", _TARGET, [(0.0, 0.0, 7.0), (10.0, 0.1, 16.0)], sway_m=0.06),
+            _Actor("distractor", _LOOKALIKE, [(0.0, -0.6, 7.4), (10.0, -0.5, 16.6)], sway_m=0.06),
+            _Actor("distractor", _LOOKALIKE, [(0.0, 0.7, 6.0), (10.0, 0.55, 17.5)], sway_m=0.06),
+            _Actor("distractor", _LOOKALIKE, [(0.0, -1.3, 5.5), (10.0, 0.9, 16.3)], sway_m=0.06),
+        ])
+    if name == "shaky":
+        return _Spec(name, 10.0, _HALL, [
+            _Actor("target", _TARGET, [(0.0, 0.0, 3.0), (5.0, 0.6, 4.2), (10.0, -0.2, 5.0)], sway_m=0.06),
+            _Actor("distractor", _BYSTANDER, [(0.0, 3.0, 11.0), (10.0, 2.2, 10.0)], sway_m=0.04),
+        ], camera="shaky")
     if name == "bumpy":
         return _Spec(name, 10.0, _HALL, [
             _Actor("target", _TARGET, [(0.0, 0.0, 2.8), (10.0, 0.2, 4.4)], sway_m=0.06),
@@ -714,7 +739,7 @@ class Scene:
                                                                                          j[3:], strict=True)))
             self._actors.append((replace(a, style=st), float(rng.uniform(0, 2 * math.pi))))
         margins = {"still": (0.0, 0.0), "ego": (0.12, 0.06), "pan": (PAN_AMPLITUDE_FRACTION + 0.02, 0.0),
-                   "bumpy": (0.12, 0.16)}
+                   "bumpy": (0.12, 0.16), "shaky": (0.34, 0.2)}
         mfx, mfy = margins[spec.camera]
         self._margin = (round(mfx * self.width), round(mfy * self.height))
         self._background: np.ndarray | None = None
@@ -790,6 +815,14 @@ class Scene:
                 dx, dy = dx + jx * decay * self.height / 480.0, dy + jy * decay * self.height / 480.0
         return dx, dy
 
+    def _shake_px(self, t: float) -> tuple[float, float]:
+        """scene:shaky's image offset: each jerk moves the image by (dx, dy), evenly over SHAKE_FRAMES frames."""
+        span = SHAKE_FRAMES / self.fps
+        scale = self.height / 480.0
+        dx = sum(jx * min(max((t - tj) / span, 0.0), 1.0) for tj, jx, _ in SHAKES) * scale
+        dy = sum(jy * min(max((t - tj) / span, 0.0), 1.0) for tj, _, jy in SHAKES) * scale
+        return dx, dy
+
     def _ego(self, t: float) -> tuple[float, float, float, float]:
         """(camera lateral offset m, rotation image shift x px, y px, lateral velocity m/s).
 
@@ -801,6 +834,8 @@ class Scene:
             return 0.0, self._pan_px(t), 0.0, 0.0
         if self._spec.camera == "bumpy":
             return (0.0, *self._jerk_px(t), 0.0)
+        if self._spec.camera == "shaky":
+            return (0.0, *self._shake_px(t), 0.0)
         if self._spec.camera != "ego":
             return 0.0, 0.0, 0.0, 0.0
         w = 2 * math.pi / 4.0
@@ -815,10 +850,20 @@ class Scene:
         length (0: none)."""
         if self._spec.overlay:
             draw_overlay(frame, t)
-        blur_px = self._jerk_blur_px(t, dt)
+        blur_px, direction = self._jerk_blur_px(t, dt), self._jerk_direction
+        if self._spec.camera == "shaky":
+            blur_px, direction = self._shake_blur(t, dt)
         if blur_px > 0.0:
-            frame = motion_smear(frame, self._jerk_direction(t, dt), blur_px)
+            frame = motion_smear(frame, direction(t, dt) if callable(direction) else direction, blur_px)
         return frame, blur_px
+
+    def _shake_blur(self, t: float, dt: float) -> tuple[float, tuple[float, float]]:
+        """scene:shaky's smear: the image's own motion during the frame's exposure, along it."""
+        (x0, y0), (x1, y1) = self._shake_px(t - dt), self._shake_px(t)
+        length = math.hypot(x1 - x0, y1 - y0)
+        if length < 1.0:
+            return 0.0, (1.0, 0.0)
+        return SHAKE_EXPOSURE * length, ((x1 - x0) / length, (y1 - y0) / length)
 
     def _jerk_blur_px(self, t: float, dt: float) -> float:
         """Smear length of the frame at ``t``: a bump's own frame is exposed while the image jolts."""
@@ -855,7 +900,8 @@ class Scene:
             frame, blur_px = self._screen_effects(frame, t, dt)
             frame, noise_idx = _optics_and_sensor(frame, bank, noise_idx, rng)
             target_box, target_vis, d_boxes, d_vis = self._ground_truth(placed, vis)
-            target_vis, d_vis = _detectable(target_vis, d_vis, blur_px)
+            # bumpy's smear (40-60 px in one frame) hides everyone from a detector; shaky's (~25 px) does not
+            target_vis, d_vis = _detectable(target_vis, d_vis, blur_px if self._spec.camera == "bumpy" else 0.0)
             # Ego velocity: forward speed of a robot keeping pace with the walker, plus the strafe.
             ego_v = {"ego": (0.9, view.vy), "bumpy": (0.5, 0.0)}.get(self._spec.camera, (0.0, 0.0))
             yield SceneFrame(

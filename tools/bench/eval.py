@@ -122,7 +122,8 @@ def _methods(args, notes: list[str]) -> dict[str, Any]:
               "pip install -e '.[peers]' && pip install --no-deps -r requirements-peers.txt)", file=sys.stderr)
         notes.append(f"peer trackers {', '.join(peers)} skipped: {reason}")
         methods = [m for m in methods if m not in peers]
-    return method_factories(methods, ablations=args.ablations, trace=_wants_trace(args))
+    return method_factories(methods, ablations=args.ablations, trace=_wants_trace(args),
+                            detector=args.detector or DEFAULT_DETECTOR)
 
 
 def _no_model(exc: Exception, detector: str) -> int:
@@ -240,7 +241,8 @@ def graph_check(spec: str, *, detector: str | None = None, max_frames: int = 0, 
     shipped = load_graph(REPO / "graph.yaml")
     seq = open_sequence(spec, seed=seed, max_frames=max_frames)
     n = seq.n_frames
-    inproc, init_box = _run_in_process(spec, seq, _graph_detector(shipped, detector), "egomotion" in shipped.nodes)
+    inproc, init_box = _run_in_process(spec, seq, _graph_detector(shipped, detector), "egomotion" in shipped.nodes,
+                                       detector)
     if port is None:
         import socket
 
@@ -274,12 +276,13 @@ def _graph_detector(graph: Any, detector: str) -> Any:
     return lambda item: split_detections(node_params, real.detect(item.bgr))
 
 
-def _run_in_process(spec: str, seq: Any, detect: Any, has_egomotion: bool) -> tuple[list[Any], list[float]]:
+def _run_in_process(spec: str, seq: Any, detect: Any, has_egomotion: bool,
+                    detector: str) -> tuple[list[Any], list[float]]:
     """The same frames, detector and initial box through the graph's nodes in-process (v_ego = 0): the boxes
     and the initial box. The prior is warped by camera motion only where the graph has an egomotion node."""
     from ...evaluation.graph_follower import GraphFollower
 
-    follower = GraphFollower({"camera_motion_compensation": has_egomotion})
+    follower = GraphFollower({"camera_motion_compensation": has_egomotion}, detector=detector)
     inproc: list[Any] = []
     init_box: list[float] | None = None
     for item in seq.frames():

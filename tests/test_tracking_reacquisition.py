@@ -1,0 +1,129 @@
+"""Re-acquisition on accumulated evidence (tracking/reacquisition.py) and its use by re-ID (tracking/reid.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from followbus.msgs.tracking import Prior, TrackState
+from followbus.tracking.params import ReidParams
+from followbus.tracking.reacquisition import BystanderTracks, PersonTrack, ReacquisitionEvidence
+from followbus.tracking.reid import ReIdentifier
+
+
+def test_a_person_continues_where_its_velocity_carries_it():
+    walker = PersonTrack((100.0, 100.0, 40.0, 100.0), 0).moved_to((130.0, 100.0, 40.0, 100.0), 1)
+    assert walker.velocity == (30.0, 0.0)
+    assert walker.continues((160.0, 102.0, 40.0, 100.0), 2, 0.5)  # on course
+    assert walker.continues((220.0, 100.0, 40.0, 100.0), 4, 0.5)  # on course after a gap
+    assert not walker.continues((130.0, 100.0, 40.0, 100.0), 2, 0.5 * 0.5)  # stopped dead: 30 px off, 25 allowed
+    assert not walker.continues((160.0, 100.0, 40.0, 160.0), 2, 0.5)  # another size: someone else
+
+
+def test_evidence_needs_enough_frames_of_one_person_within_the_window():
+    evidence = ReacquisitionEvidence(frames_needed=3, window_frames=4, max_step_heights=0.5)
+    assert not evidence.observe((100.0, 100.0, 40.0, 100.0), 1)
+    assert not evidence.observe((110.0, 100.0, 40.0, 100.0), 2)
+    assert evidence.observe((120.0, 100.0, 40.0, 100.0), 3)
+    evidence.reset()
+    assert not evidence.observe((100.0, 100.0, 40.0, 100.0), 1)
+    assert not evidence.observe((600.0, 100.0, 40.0, 100.0), 2)  # someone else far away: counting starts again
+    assert evidence.count == 1
+    assert not evidence.observe((600.0, 100.0, 40.0, 100.0), 3)
+    assert not evidence.observe((600.0, 100.0, 40.0, 100.0), 9)  # beyond the window: the old frames no longer count
+    assert evidence.count == 1
+
+
+def test_only_people_seen_beside_the_target_are_bystanders():
+    tracks = BystanderTracks(max_age_frames=5, max_step_heights=0.5)
+    target, other = (100.0, 100.0, 40.0, 100.0), (400.0, 100.0, 40.0, 100.0)
+    flags = tracks.link([target, other], 1)
+    tracks.adopt([target, other], flags, target, 1)  # the target tracked: the other is a bystander
+    assert tracks.link([(420.0, 100.0, 40.0, 100.0)], 2) == [True]
+    assert tracks.link([(440.0, 100.0, 40.0, 100.0), (800.0, 90.0, 40.0, 100.0)], 3) == [True, False]
+    assert tracks.link([(700.0, 100.0, 40.0, 100.0)], 20) == [False]  # unseen too long: forgotten
+
+
+def _prior(box: tuple[float, float, float, float], std_px: float) -> Prior:
+    x, y, w, h = box
+    cov = np.diag([std_px**2, std_px**2, 1e4, 1e4])
+    return Prior.of_filter(0, np.array([x + w / 2, y + h / 2, 0.0, 0.0]), (w, h), cov,
+                           cov[:2, :2] + 64.0 * np.eye(2), 9.488)
+
+
+def _frame_with(boxes_colours: list[tuple[tuple[float, ...], tuple[int, int, int]]],
+                legs: tuple[int, int, int] | None = None) -> np.ndarray:
+    """Boxes of one colour each on grey; ``legs``: the first box's lower half in that colour."""
+    frame = np.full((480, 640, 3), 90, np.uint8)
+    for (x, y, w, h), bgr in boxes_colours:
+        frame[int(y):int(y + h), int(x):int(x + w)] = bgr
+    if legs is not None:
+        x, y, w, h = boxes_colours[0][0]
+        frame[int(y + h / 2):int(y + h), int(x):int(x + w)] = legs
+    return frame
+
+
+def _reid_lost_in_a_wide_gate(params: ReidParams) -> tuple[ReIdentifier, np.ndarray]:
+    """A re-ID that has tracked a red person at the left with a grey one at the right, then lost them both."""
+    reid = ReIdentifier(params)
+    red, grey = (60.0, 200.0, 40.0, 100.0), (500.0, 200.0, 40.0, 100.0)
+    frame = _frame_with([(red, (0, 0, 200)), (grey, (60, 60, 60))])
+    dets = np.array([[*red, 0.9], [*grey, 0.9]], np.float32)
+    first = reid.step(frame, dets, None, None, 0, init_box=red)
+    template = first.candidate_hist
+    for k in range(1, 4):
+        reid.step(frame, dets, _prior(red, 10.0), template, k * 33_000_000)
+    t = 4 * 33_000_000
+    for _ in range(3):  # nobody detected in a still image: the target is occluded
+        assert not reid.step(frame, np.zeros((0, 5), np.float32), _prior(red, 10.0), template, t).accepted
+        t += 33_000_000
+    assert reid.state is TrackState.OCCLUDED
+    return reid, template
+
+
+def test_a_returning_target_far_from_the_prior_is_reacquired_on_evidence_and_a_bystander_never():
+    params = ReidParams(learned_appearance=False, reacquire_frames=4)
+    reid, template = _reid_lost_in_a_wide_gate(params)
+    far_prior = _prior((60.0, 200.0, 40.0, 100.0), 400.0)  # the gate covers the image: both are candidates
+    accepted_at = None
+    for k in range(8):
+        red, grey = (300.0 + 5 * k, 150.0, 40.0, 100.0), (520.0 + 5 * k, 200.0, 40.0, 100.0)
+        # The returning target shows other legs (S_color ~0.7: the target's colours, M_fuse below T_reid).
+        frame = _frame_with([(red, (0, 0, 200)), (grey, (60, 60, 60))], legs=(200, 0, 0))
+        result = reid.step(frame, np.array([[*red, 0.9], [*grey, 0.9]], np.float32), far_prior, template,
+                           (8 + k) * 33_000_000)
+        if result.accepted:
+            accepted_at = k
+            assert result.box == red  # the target, never the grey bystander
+            break
+    assert accepted_at == params.reacquire_frames - 1
+
+
+def test_without_evidence_the_same_target_is_never_reacquired():
+    params = ReidParams(learned_appearance=False, reacquire_frames=4, reacquire_on_evidence=False)
+    reid, template = _reid_lost_in_a_wide_gate(params)
+    far_prior = _prior((60.0, 200.0, 40.0, 100.0), 400.0)
+    for k in range(8):
+        red, grey = (300.0 + 5 * k, 150.0, 40.0, 100.0), (520.0 + 5 * k, 200.0, 40.0, 100.0)
+        frame = _frame_with([(red, (0, 0, 200)), (grey, (60, 60, 60))], legs=(200, 0, 0))
+        assert not reid.step(frame, np.array([[*red, 0.9], [*grey, 0.9]], np.float32), far_prior, template,
+                             (8 + k) * 33_000_000).accepted
+
+
+def test_a_look_alike_seen_beside_the_target_is_never_reacquired_on_evidence():
+    params = ReidParams(learned_appearance=False, reacquire_frames=4)
+    reid = ReIdentifier(params)
+    target, twin = (60.0, 200.0, 40.0, 100.0), (300.0, 200.0, 40.0, 100.0)
+    frame = _frame_with([(target, (0, 0, 200)), (twin, (0, 0, 200))])
+    template = reid.step(frame, np.array([[*target, 0.9], [*twin, 0.9]], np.float32), None, None, 0,
+                         init_box=target).candidate_hist
+    t = 33_000_000
+    for _ in range(3):  # tracked, the twin beside it
+        assert reid.step(frame, np.array([[*target, 0.9], [*twin, 0.9]], np.float32), _prior(target, 10.0),
+                         template, t).accepted
+        t += 33_000_000
+    far_prior = _prior(target, 400.0)
+    for k in range(10):  # the target gone; the twin walks on, with other legs now (below T_reid)
+        twin = (300.0 + 5 * k, 200.0, 40.0, 100.0)
+        frame = _frame_with([(twin, (0, 0, 200))], legs=(200, 0, 0))
+        assert not reid.step(frame, np.array([[*twin, 0.9]], np.float32), far_prior, template, t).accepted
+        t += 33_000_000

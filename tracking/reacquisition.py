@@ -1,0 +1,125 @@
+"""Re-acquisition on accumulated evidence (seed 001 §IV's N_id confirmations, counted over a window).
+
+After an occlusion the target often comes back looking a little different (another pose, another side, an aerial
+view from another angle), far from where the prior coasted to. Seed 001 confirms a re-lock when the classifier
+scores a candidate above δ_id on N_id consecutive frames; a classifier that has learnt a few dozen samples of one
+view rarely reaches δ_id on another, and seed 000's T_reid on M_fuse is out of reach for a candidate the gate has
+lost (S_geo = 0). A robot that then waits for one high score stops for good while the person it follows is the
+best thing it sees.
+
+So a re-lock is also confirmed by evidence that accumulates: one candidate that is, on ``frames_needed`` frames
+within ``window_frames``, the best one and clear of every other, with the target's colours and not rejected by the
+classifier, and whose boxes move consistently with one another (one person, not a different winner each frame).
+Each condition is checked by the re-ID step (tracking/reid.py); this module keeps the one hypothesis and counts.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+from ..msgs.box import Box, box_centre, box_iou
+
+
+@dataclass
+class PersonTrack:
+    """One person followed by :meth:`continues`: the last box, its frame, the centre's velocity in px a frame."""
+
+    box: Box
+    frame: int
+    velocity: tuple[float, float] = (0.0, 0.0)
+    moved: bool = False  # velocity measured (two boxes seen)
+
+    def continues(self, box: Box, frame: int, max_step_heights: float) -> bool:
+        """Whether ``box`` on ``frame`` can be this person: its height within a factor 1.5 of the last, its centre
+        within ``max_step_heights`` of that height per frame elapsed from where the velocity carries the last one
+        (twice that before a velocity is known: a runner seen at 10 fps moves half a height a frame)."""
+        gap = max(frame - self.frame, 1)
+        height = max(float(self.box[3]), 1.0)
+        if not 1 / 1.5 <= float(box[3]) / height <= 1.5:
+            return False
+        (cx, cy), (px, py) = box_centre(box), box_centre(self.box)
+        px, py = px + self.velocity[0] * gap, py + self.velocity[1] * gap
+        tolerance = max_step_heights * height * gap * (1.0 if self.moved else 2.0)
+        return math.hypot(cx - px, cy - py) <= tolerance
+
+    def moved_to(self, box: Box, frame: int) -> PersonTrack:
+        gap = max(frame - self.frame, 1)
+        (cx, cy), (px, py) = box_centre(box), box_centre(self.box)
+        return PersonTrack(tuple(float(v) for v in box), frame, ((cx - px) / gap, (cy - py) / gap), True)
+
+
+class ReacquisitionEvidence:
+    """Counts the frames on which one moving person was the clear best candidate (see the module docstring)."""
+
+    def __init__(self, frames_needed: int, window_frames: int, max_step_heights: float) -> None:
+        self.frames_needed = int(frames_needed)
+        self.window_frames = int(window_frames)
+        self.max_step_heights = float(max_step_heights)
+        self.person: PersonTrack | None = None
+        self.counted: deque[int] = deque()  # the frames on which the person counted
+
+    def reset(self) -> None:
+        self.person = None
+        self.counted.clear()
+
+    @property
+    def count(self) -> int:
+        return len(self.counted)
+
+    def observe(self, box: Box, frame: int) -> bool:
+        """``box`` was the clear best candidate on ``frame``: count it for its person (a new count if it is
+        someone else) and say whether the re-lock is now confirmed."""
+        person = self.person
+        if person is None or frame - person.frame > self.window_frames \
+                or not person.continues(box, frame, self.max_step_heights):
+            self.person, self.counted = PersonTrack(tuple(float(v) for v in box), frame), deque()
+        else:
+            self.person = person.moved_to(box, frame)
+        self.counted.append(frame)
+        while self.counted and self.counted[0] <= frame - self.window_frames:
+            self.counted.popleft()
+        return len(self.counted) >= self.frames_needed
+
+
+class BystanderTracks:
+    """The people seen beside the target, followed from frame to frame (:class:`PersonTrack`), so that none of them
+    is re-acquired as the target by accumulated evidence: whoever was in view at the same time as the target is
+    someone else. Only a detection seen while the target is tracked starts such a track; one that first appears
+    while the target is hidden may be the target coming back. A track not seen for ``max_age_frames`` ends."""
+
+    def __init__(self, max_age_frames: int, max_step_heights: float) -> None:
+        self.max_age_frames = int(max_age_frames)
+        self.max_step_heights = float(max_step_heights)
+        self.tracks: list[PersonTrack] = []
+
+    def reset(self) -> None:
+        self.tracks = []
+
+    def link(self, boxes: list[Box], frame: int) -> list[bool]:
+        """Continue each track with the nearest unclaimed box that can be its person; which boxes are bystanders."""
+        claimed = [False] * len(boxes)
+        kept: list[PersonTrack] = []
+        for track in sorted(self.tracks, key=lambda t: -t.frame):
+            if frame - track.frame > self.max_age_frames:
+                continue
+            options = [i for i, box in enumerate(boxes)
+                       if not claimed[i] and track.continues(box, frame, self.max_step_heights)]
+            if not options:
+                kept.append(track)
+                continue
+            lx, ly = box_centre(track.box)
+            i = min(options, key=lambda j: math.hypot(box_centre(boxes[j])[0] - lx, box_centre(boxes[j])[1] - ly))
+            claimed[i] = True
+            kept.append(track.moved_to(boxes[i], frame))
+        self.tracks = kept
+        return claimed
+
+    def adopt(self, boxes: list[Box], bystander: list[bool], target: Box, frame: int) -> None:
+        """The target is tracked on ``frame`` at ``target``: every other box there starts a bystander track, and a
+        track that was on the target (the two met) is the target's and ends."""
+        self.tracks = [t for t in self.tracks if box_iou(t.box, target) < 0.5]
+        self.tracks += [PersonTrack(tuple(float(v) for v in box), frame)
+                        for box, flag in zip(boxes, bystander, strict=True)
+                        if not flag and box_iou(box, target) < 0.5]
