@@ -89,6 +89,8 @@ def _type_schema(hint: Any) -> dict[str, Any]:
         if all(set(o) == {"type"} for o in options):
             return {"type": [o["type"] for o in options]}
         return {"anyOf": options}
+    if origin is typing.Literal:
+        return {"enum": list(args)}
     if hint is bool:
         return {"type": "boolean"}
     if hint is int:

@@ -22,6 +22,8 @@ class TypeMismatch(ValueError):
 
 
 def type_name(hint: Any) -> str:
+    if typing.get_origin(hint) is typing.Literal:
+        return " or ".join(repr(a) for a in typing.get_args(hint))
     return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
 
 
@@ -32,6 +34,10 @@ def conform(value: Any, hint: Any) -> Any:
     origin = typing.get_origin(hint)
     if origin in (Union, types.UnionType):
         return _conform_union(value, typing.get_args(hint))
+    if origin is typing.Literal:
+        if value not in typing.get_args(hint):
+            raise TypeMismatch(" or ".join(repr(a) for a in typing.get_args(hint)), value)
+        return value
     if hint is Any:
         return value
     if hint is float:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -45,7 +45,7 @@ class DetectionParams:
     model_file: str = ""  # default: yolox_nano_<input_size_px>.onnx
     # The network input's side (the long side with input_shape: fit), or auto: the largest of 640, 512, 416, 320 this
     # machine infers a 640x480 frame at in auto_budget_ms or less, measured at start-up and logged (input_shape fit).
-    input_size_px: int | str = 416
+    input_size_px: int | Literal["auto"] = 416
     auto_budget_ms: float = 12.0  # a third of a 30 Hz frame period: the region's second look and the loop need the rest
     # square: the frame letterboxed into input_size_px x input_size_px (a model per size); fit: the frame's own
     # aspect, long side input_size_px, padded to a multiple of 32 (yolox_nano_dynamic.onnx; 4:3 at 416: 416x320)

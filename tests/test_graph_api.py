@@ -74,7 +74,7 @@ def test_the_evaluation_follower_and_the_monitor_find_topics_by_type():
 
     topics = GraphTopics(_renamed_graph())
     assert (topics.track, topics.prior) == ("predictor/track", "predictor/prior")
-    assert topics.nodes == ["egomotion", "predictor", "reid", "template"]
+    assert topics.nodes == ["egomotion", "predictor", "redetection", "reid", "template"]
     assert (topics.frame, topics.detections, topics.odometry) == ("capture/frame", "detection/detections",
                                                                   "motor/odometry")
     info = GraphInfo.from_graph(_renamed_graph(), "ht")

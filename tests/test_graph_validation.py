@@ -213,7 +213,7 @@ def test_an_unread_parameter_is_reported_in_the_file_that_sets_it(tmp_path, caps
     over.write_text("extends: base.yaml\nnodes:\n  template:\n    params:\n      tau_v: 200\n")
     err = _check_error(capsys, over)
     assert f"{base}:{_line_of(base_text, 'dt_ms: 33.0', 'eta_base')}: node 'template': template does not read " \
-           "'dt_ms'; prediction and reid do" in err, err
+           "'dt_ms'; prediction and redetection and reid do" in err, err
 
 
 def test_a_parameter_out_of_range_points_at_its_line(tmp_path, capsys):

@@ -32,7 +32,9 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
     describe(p,
              "Launch graph.yaml at 30 Hz on a synthetic scene and measure per-edge latency "
              "p50/p99 from the message headers, CPU per node and dropped frames.",
-             "example: followbus bench pipeline --duration 20 --detector yolox")
+             "examples: followbus bench pipeline --duration 20 --detector yolox\n"
+             "  followbus bench pipeline --set redetection.local_redetection=false   the loop without seed 002's "
+             "second look")
     p.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds of measurement (default 20)")
     p.add_argument("--detector", default="graph", choices=tuple(DETECTOR_PRESETS),
                    help="detector (default graph: graph.yaml's own detection params; yolox = YOLOX-nano@416, "
@@ -46,6 +48,8 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
     p.add_argument("--namespace", default="", help="graph namespace (default bench<port>)")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
+                   help="override a node's parameter for this run (repeatable), as `followbus launch --set`")
 
 
 def _soak_args(p: argparse.ArgumentParser) -> None:

@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import socket
+import sys
 import tempfile
 import threading
 import time
@@ -59,7 +60,8 @@ class LaunchedPipeline:
     Use as a context manager; ``pids`` maps each node to its process (from its status messages)."""
 
     def __init__(self, *, detector: str, scene: str, resolution: tuple[int, int], lane: bool, port: int = 0,
-                 namespace: str = "") -> None:
+                 namespace: str = "", overrides: list[str] | None = None) -> None:
+        self.overrides = list(overrides or [])
         if not port:
             with socket.socket() as s:
                 s.bind(("127.0.0.1", 0))
@@ -84,7 +86,7 @@ class LaunchedPipeline:
         self._stack.close()
 
     def _start(self) -> None:
-        from ...bus.graph import load_graph
+        from ...bus.graph import apply_overrides, load_graph
         from ...bus.session import open_session
         from ...reliability.chaos import scene_graph
         from ..launch import Launcher
@@ -94,11 +96,12 @@ class LaunchedPipeline:
         path.write_text(scene_graph(scene=self.scene, port=self.port, namespace=self.namespace,
                                     detector=self.detector, resolution=self.resolution, lane=self.lane))
         graph = load_graph(path)
+        apply_overrides(graph, self.overrides)
         session = open_session(graph.zenoh)
         self._stack.callback(session.close)
         self._subscribe(session, graph)
         logging.getLogger("followbus.launch").setLevel(logging.WARNING)  # the bench's output is its figures
-        launcher = Launcher(graph, quiet=True, startup_timeout_s=60.0)
+        launcher = Launcher(graph, quiet=True, startup_timeout_s=60.0, overrides=self.overrides)
         ready = threading.Event()
         runner = threading.Thread(target=launcher.run, kwargs={"duration_s": 10 ** 6, "on_ready": ready.set},
                                   daemon=True)
@@ -182,11 +185,17 @@ def pipeline_detector(detector: str, command: str) -> str:
 
 
 def run_bench_pipeline(args) -> int:
+    from ...bus.graph import GraphError
+
     detector = pipeline_detector(args.detector, "pipeline")
     try:
         with LaunchedPipeline(detector=detector, scene=args.scene, resolution=args.resolution,
-                              lane=args.lane == "on", port=args.port, namespace=args.namespace) as pipeline:
+                              lane=args.lane == "on", port=args.port, namespace=args.namespace,
+                              overrides=getattr(args, "overrides", [])) as pipeline:
             result = pipeline.measure(args.duration)
+    except GraphError as exc:
+        print(f"followbus bench pipeline: {exc}", file=sys.stderr, flush=True)
+        return 2
     except RuntimeError as exc:
         print(f"bench pipeline: {exc}", flush=True)
         return 1
