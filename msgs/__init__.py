@@ -14,9 +14,9 @@ from __future__ import annotations
 from . import catalogue  # noqa: F401  (every type registered on import)
 from .box import Box
 from .group import GroundPoints, GroupState
-from .perception import CameraMotion, Detections, GroundTruth
+from .perception import CameraMotion, Detections, GroundTruth, RegionDetections
 from .robot import MotorCommand, Odometry
 from .tracking import TRACK_STATES, Measurement, Prior, Template, Track, TrackState
 
 __all__ = ["TRACK_STATES", "Box", "CameraMotion", "Detections", "GroundPoints", "GroundTruth", "GroupState",
-           "Measurement", "MotorCommand", "Odometry", "Prior", "Template", "Track", "TrackState"]
+           "Measurement", "MotorCommand", "Odometry", "Prior", "RegionDetections", "Template", "Track", "TrackState"]

@@ -24,7 +24,14 @@ from ..bus.schemas import Frame, Message
 from ..msgs.perception import Detections, RegionDetections
 from ..msgs.tracking import Measurement, Prior, TrackState
 from ..tracking.params import RedetectionParams
-from ..tracking.redetection import input_side_px, reason_to_redetect, region_of, search_scale
+from ..tracking.redetection import (
+    finer_than_the_frame,
+    input_side_px,
+    reason_to_redetect,
+    region_cap_px,
+    region_of,
+    search_scale,
+)
 from ..vision.detectors import AUTO_SIZES_PX, DYNAMIC_YOLOX_FILE, DetectorUnavailable, SimulatedDetector
 from .detection import Detection, DetectionParams, detector_from_params, split_detections
 
@@ -43,6 +50,7 @@ class Redetection(Node):
         size = self.detection.input_size_px
         self._input_px = min(AUTO_SIZES_PX) if isinstance(size, str) else int(size)
         self.redetected: dict[str, int] = {}
+        self.skipped_coarse = 0  # regions too large to be seen finer than the frame pass within the budget
         self.infer_ms_total = 0.0
 
     def _graph_detection_params(self) -> DetectionParams:
@@ -83,9 +91,13 @@ class Redetection(Node):
         reason = reason_to_redetect(prior, dets.boxes, k, occluded, input_scale, p.min_resolvable_px)
         if not reason:
             return RegionDetections()
-        rect = region_of(prior, k, (width, height), p.max_side_px or input_px)
+        cap = region_cap_px((width, height), input_px, p.region_budget_fraction)
+        rect = region_of(prior, k, (width, height), cap)
+        side = input_side_px(rect, cap)
+        if not finer_than_the_frame(rect, side, input_scale):
+            self.skipped_coarse += 1
+            return RegionDetections()
         x0, y0, x1, y1 = rect
-        side = input_side_px(rect)
         t0 = time.perf_counter()
         detect_at = getattr(self.detector, "detect_at", None)
         crop = bgr[y0:y1, x0:x1]
@@ -101,7 +113,7 @@ class Redetection(Node):
 
     def status_extra(self) -> dict[str, Any]:
         n = sum(self.redetected.values())
-        return {"redetected": dict(self.redetected),
+        return {"redetected": dict(self.redetected), "skipped_coarse": self.skipped_coarse,
                 "infer_ms_mean": round(self.infer_ms_total / n, 2) if n else None,
                 "detector": getattr(self.detector, "name", None)}
 

@@ -73,6 +73,8 @@ def _sample_messages() -> list[schemas.Message]:
                            others_m=rng.random((1, 2)), step_ms=1.5),
         msgs.CameraMotion(valid=True, matrix=np.array([[1.01, 0.02, -3.5], [-0.02, 1.01, 1.25]]), inliers=40,
                              tracked=55, from_stamp_ns=90, reason=""),
+        msgs.RegionDetections(reason="small", region=np.array([10, 20, 138, 148], np.int64),
+                              boxes=np.array([[20, 30, 40, 90, 0.9]], np.float32), input_px=128, infer_ms=2.5),
     ]
 
 

@@ -18,9 +18,11 @@ from followbus.tracking.kalman import IMAGE, SCENE, Predictor
 from followbus.tracking.params import KalmanParams, ReidParams, SearchScaleParams
 from followbus.tracking.redetection import (
     MIN_INPUT_PX,
+    finer_than_the_frame,
     input_side_px,
     merge_region_boxes,
     reason_to_redetect,
+    region_cap_px,
     region_of,
     search_scale,
 )
@@ -51,17 +53,24 @@ def test_search_scale_is_the_seeds_k_from_speed_and_last_score() -> None:
     assert search_scale(fast, 0.9, 33.0, SearchScaleParams(adaptive_gate=False)) == 1.0
 
 
-def test_the_region_is_the_seeds_square_widened_to_the_gate_and_kept_in_the_frame() -> None:
+def test_the_region_is_the_seeds_square_widened_to_the_gate_kept_in_the_frame_and_budgeted() -> None:
+    # 1280x720 at 416: 416 x 234 px; 60 % of them is 240 px square at most (a multiple of 32: 224).
+    cap = region_cap_px((1280, 720), 416, 0.6)
+    assert cap == 224
     tight = prior_at((600, 300, 40, 100), std_px=1.0)
-    x0, y0, x1, y1 = region_of(tight, 1.0, (1280, 720), 416)
+    x0, y0, x1, y1 = region_of(tight, 1.0, (1280, 720), cap)
     assert x1 - x0 == y1 - y0 and x1 - x0 >= 100  # S = k · max(w, h) at least
     assert x0 < 620 < x1 and y0 < 350 < y1  # around the prediction
-    wide = prior_at((600, 300, 40, 100), std_px=200.0)
-    x0, y0, x1, y1 = region_of(wide, 1.5, (1280, 720), 416)
-    assert x1 - x0 == 416  # capped: never more than one full-size inference
-    corner = region_of(prior_at((0, 0, 40, 100), std_px=1.0), 1.0, (1280, 720), 416)
+    corner = region_of(prior_at((0, 0, 40, 100), std_px=1.0), 1.0, (1280, 720), cap)
     assert corner[0] == 0 and corner[1] == 0  # moved inside the frame
-    assert input_side_px((0, 0, 40, 40)) == MIN_INPUT_PX and input_side_px((0, 0, 130, 100)) == 160
+    loose = region_of(prior_at((600, 300, 40, 100), std_px=300.0), 1.5, (1280, 720), cap)
+    assert loose[2] - loose[0] == cap  # widened towards the gate only as far as the budget
+    assert input_side_px((0, 0, 40, 40), cap) == MIN_INPUT_PX and input_side_px((0, 0, 130, 100), cap) == 160
+    assert input_side_px((0, 0, 500, 500), cap) == cap  # a large region is scaled down to the budget
+    frame_scale = 416 / 1280
+    assert finer_than_the_frame((0, 0, 150, 150), input_side_px((0, 0, 150, 150), cap), frame_scale)
+    big = region_of(prior_at((400, 100, 200, 500), std_px=5.0), 1.5, (1280, 720), cap)  # a person near the camera
+    assert not finer_than_the_frame(big, input_side_px(big, cap), frame_scale)  # no finer than the frame pass
 
 
 def test_when_the_region_is_redetected() -> None:

@@ -267,13 +267,14 @@ class RedetectionParams(_FramePeriod, SearchScaleParams):
     # every frame: YOLOX-nano's finest stride is 8 px, and under ~48 px a person's box becomes unreliable (it
     # merges with a neighbour or is missed); a 1280x720 frame inferred at 416 makes a 150 px person 48 px.
     min_resolvable_px: float = 48.0
-    # The region's largest side; 0: the detector's own input size (a region never costs more than one full-size
-    # inference; a larger region is inferred at this size).
-    max_side_px: int = 0
+    # What one second look may cost: its input at most this fraction of the frame pass's pixels (at 416: 256 px
+    # square on a 4:3 frame, 224 on 16:9). Tail latency, not the mean, is what a larger one costs on two cores
+    # (BENCHMARKS.md, the second look's cost).
+    region_budget_fraction: float = 0.6
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("dt_ms", "gate_scale_max", "gate_fast_height_fraction"),
-                     non_negative=("min_resolvable_px", "max_side_px"))
+                     non_negative=("min_resolvable_px",), unit_interval=("region_budget_fraction",))
 
 
 # --- template ------------------------------------------------------------------------------------

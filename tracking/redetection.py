@@ -9,8 +9,10 @@ redetection node (nodes/redetection.py) runs the detector, re-ID (tracking/reid.
 
 * Search scale k (seed 002 §3.2): 1 for a slow target last seen on a confident detection, up to ``scale_max`` for
   a fast one (``fast_height_fraction`` of its height a frame) or one last seen on a weak detection. Re-ID's
-  adaptive gate scales its χ² by k²; the region's side is k · max(w, h) (the seed's S), widened to cover that
-  gate, capped at the detector's input size so one region never costs more than one full-size inference.
+  adaptive gate scales its χ² by k²; the region's side is k · max(w, h) (the seed's S), widened towards that gate
+  as far as a cap (a budgeted fraction of the frame pass's pixels) and inferred at its own resolution. A person so
+  large that the seed's S exceeds the cap is scaled down to it; when that would not see them finer than the frame
+  pass (1.25 times its scale), there is no second look: it would find what the first found, at a frame's cost.
 * Trigger: the target missed on the last frame (OCCLUDED), no detection centre in the gate ("missed"), two or
   more in it ("crowded": look-alikes a coarse view merges), or a person smaller than ``min_resolvable_px`` at the
   detector's input scale ("small"). LOST is not a trigger: the prior no longer says where the person is, and
@@ -45,6 +47,7 @@ class RegionBoxes:
 EDGE_PX = 2.0  # a region box within this of an inner edge of the region is cut by it
 SAME_BOX_IOU = 0.5  # a frame box and a region box overlapping this much box the same person
 MIN_INPUT_PX = 96  # a smaller region is enlarged to this for the detector (its coarsest stride is 32 px)
+FINER_THAN_FRAME = 1.25  # a region is looked at again only at this many times the frame pass's scale, or finer
 STRIDE_PX = 32
 
 
@@ -67,12 +70,13 @@ def gate_radius_px(prior: Prior, k: float) -> float:
     return math.sqrt(prior.gate_chi2 * k * k * largest)
 
 
-def region_of(prior: Prior, k: float, frame_wh: tuple[int, int], max_side_px: int) -> Rect:
-    """The square region around the prediction: side S = k · max(w, h) (seed 002 §3.2), widened to the gate's
-    diameter plus the box, at most ``max_side_px``; moved inside the frame where it can be, clipped where not."""
+def region_of(prior: Prior, k: float, frame_wh: tuple[int, int], cap_px: int) -> Rect:
+    """The square region around the prediction: side S = k · max(w, h) (seed 002 §3.2), widened towards the gate's
+    diameter plus the box as far as ``cap_px`` (what can be inferred at the frame's resolution within the budget);
+    moved inside the frame where it can be, clipped where not."""
     w, h = float(prior.size[0]), float(prior.size[1])
-    side = max(k * max(w, h), 2.0 * gate_radius_px(prior, k) + max(w, h))
-    side = min(side, float(max_side_px), float(max(frame_wh)))
+    side = max(k * max(w, h), min(2.0 * gate_radius_px(prior, k) + max(w, h), float(cap_px)))
+    side = min(side, float(max(frame_wh)))
     cx, cy = prior.centre
     width, height = frame_wh
     x0 = min(max(cx - side / 2.0, 0.0), max(width - side, 0.0))
@@ -81,11 +85,26 @@ def region_of(prior: Prior, k: float, frame_wh: tuple[int, int], max_side_px: in
     return int(math.floor(x0)), int(math.floor(y0)), int(math.ceil(x1)), int(math.ceil(y1))
 
 
-def input_side_px(rect: Rect) -> int:
+def input_side_px(rect: Rect, cap_px: int) -> int:
     """The detector's input side for a region: its own size (native resolution) up to the next stride, at least
-    MIN_INPUT_PX."""
+    MIN_INPUT_PX, at most ``cap_px`` (a larger region is scaled down to it)."""
     side = max(rect[2] - rect[0], rect[3] - rect[1])
-    return max(MIN_INPUT_PX, int(math.ceil(side / STRIDE_PX)) * STRIDE_PX)
+    return max(MIN_INPUT_PX, min(int(math.ceil(side / STRIDE_PX)) * STRIDE_PX, cap_px))
+
+
+def region_cap_px(frame_wh: tuple[int, int], frame_input_px: int, budget_fraction: float) -> int:
+    """The largest region input side whose pixels are ``budget_fraction`` of the frame pass's (its long side
+    ``frame_input_px``, the short side in the frame's aspect): what one second look may cost."""
+    long_side, short_side = max(frame_wh), min(frame_wh)
+    frame_pixels = frame_input_px * frame_input_px * short_side / long_side
+    return max(MIN_INPUT_PX, int(math.sqrt(budget_fraction * frame_pixels) // STRIDE_PX) * STRIDE_PX)
+
+
+def finer_than_the_frame(rect: Rect, input_px: int, frame_scale: float) -> bool:
+    """Whether the region inferred at ``input_px`` sees its pixels at least FINER_THAN_FRAME times the frame pass's
+    scale: a second look at the same scale finds what the first found."""
+    side = max(rect[2] - rect[0], rect[3] - rect[1])
+    return input_px / max(side, 1) >= FINER_THAN_FRAME * frame_scale
 
 
 def _in_gate(boxes: np.ndarray, prior: Prior, k: float) -> int:
