@@ -62,7 +62,8 @@ def test_bench_soak_samples_every_node_each_window(tmp_path):
                for w in report["windows"]]
     assert len(windows) == 2, result.stdout + result.stderr
     for w in windows:
-        assert set(w.processes) == {"capture", "detection", "egomotion", "prediction", "reid", "template", "motor"}
+        assert set(w.processes) == {"capture", "detection", "egomotion", "prediction", "redetection", "reid",
+                                    "template", "motor"}
         assert all(p is not None and p.rss_mb > 10 and p.fds > 3 and p.threads > 1 for p in w.processes.values())
         assert w.figures["frames_published"] > 30 and w.answered > 0
     # The verdict is the judgement of what it printed and wrote, and the exit status says it.
