@@ -6,7 +6,7 @@ detection nearest the image centre-bottom, else the frame-difference ROI).
 
 When colour and geometry cannot tell candidates apart (or on a re-lock after an occlusion), the learned
 appearance of seed 001 decides: OSNet descriptors and an online ridge-regression classifier of the target
-against the other people (tracking/identity.py; ``learned_appearance: false`` turns it off, and without the
+against the other people (tracking/learned_appearance.py; ``learned_appearance: false`` turns it off, and without the
 model the node warns once and goes on with colour).
 
 Inputs joined by frame: frame k, detections k, prior k, the region re-detected around prior k (the redetection

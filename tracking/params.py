@@ -176,7 +176,7 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # as the predicted height from that edge, never as a training sample.
     merged_view_trimming: bool = True
     merged_min_extent_ratio: float = 1.5
-    # Learned appearance (seed 001, tracking/identity.py): an OSNet descriptor and an online ridge-regression
+    # Learned appearance (seed 001, tracking/learned_appearance.py): an OSNet descriptor and an online ridge-regression
     # classifier of the target against the other people decide when colour + geometry cannot: between
     # candidates within identity_margin of the best M_fuse, and on a re-lock after an occlusion.
     learned_appearance: bool = True

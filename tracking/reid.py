@@ -32,8 +32,8 @@ import numpy as np
 from ..msgs.box import Box, box_array, box_centre, box_iou
 from ..msgs.tracking import DETECTOR_SOURCES, Measurement, Prior, TrackState
 from .appearance import bhattacharyya, hs_histogram
-from .identity import CROP_H_PX, CROP_W_PX, IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
+from .learned_appearance import CROP_H_PX, CROP_W_PX, IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .params import ReidParams
 from .reacquisition import BystanderTracks, ReacquisitionEvidence
 from .redetection import RegionBoxes, merge_region_boxes, search_scale
@@ -594,7 +594,7 @@ class ReIdentifier:
         k = self.gate_scale(prior)
         return prior if k == 1.0 else dataclasses.replace(prior, gate_chi2=prior.gate_chi2 * k * k)
 
-    # --- learned appearance (seed 001, tracking/identity.py) ------------------------------------------------
+    # --- learned appearance (seed 001, tracking/learned_appearance.py) ------------------------------------------------
 
     def prepare(self) -> bool:
         """Load the descriptor model now rather than at the first decision that needs it (a live node: the
