@@ -20,7 +20,7 @@ from typing import Any
 
 from . import __version__
 from .bench.commands import COMMANDS as BENCH_COMMANDS
-from .command import Command, Lazy, add_commands, describe, graph_arg, identity_args, load_graph, settings
+from .command import Command, Lazy, add_commands, describe, domain_args, graph_arg, load_graph, settings
 from .live.commands import COMMANDS as LIVE_COMMANDS
 from .recording.commands import COMMANDS as RECORDING_COMMANDS
 from .runs.commands import COMMANDS as RUNS_COMMANDS
@@ -78,7 +78,7 @@ def _launch_args(p: argparse.ArgumentParser) -> None:
                    help="seconds between SIGTERM and SIGKILL at shutdown (default 5)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter (YAML value), e.g. --set capture.source=camera:0; repeatable")
-    identity_args(p, auto=True)
+    domain_args(p, auto=True)
     p.add_argument("--log-dir", metavar="DIR", help="also write each node's output to DIR/NODE.log (`followbus up`)")
 
 
@@ -98,7 +98,7 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
                    help="where this run's node logs go (default: a new state/demo-YYYYmmdd-HHMMSS.log per run)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter, e.g. --set detection.backend=hog; repeatable")
-    identity_args(p, auto=True)
+    domain_args(p, auto=True)
 
 
 def _node_args(p: argparse.ArgumentParser) -> None:

@@ -51,7 +51,7 @@ CASES = ("none", "monitor", "record-all", "record", "watch", "frames")
 LAPTOP_KEYS = {"watch": ("motor/command", "prediction/track", "capture/preview"),
                "frames": ("motor/command", "prediction/track", "capture/preview", "capture/frame")}
 LARGE_RULES = ("block_first", "drop")  # what the robot's router does with large messages to the laptop
-IDENTITY_ENV = ("FOLLOWBUS_DOMAIN", "FOLLOWBUS_NAMESPACE", "FOLLOWBUS_PORT")  # each namespace is a machine of its own
+DOMAIN_ENVS = ("FOLLOWBUS_DOMAIN", "FOLLOWBUS_NAMESPACE", "FOLLOWBUS_PORT")  # each namespace is a machine of its own
 USERS_FILE = REPO / "docs" / "zenoh-users.example.txt"  # robot, monitor, operator with their example passwords
 MONITOR_PASSWORD = "change-me-monitor"
 SETTLE_S = 3.0  # the laptop joins and its subscriptions reach the robot before a window opens
@@ -264,9 +264,9 @@ class LinkBench:
                                        drop_wait_us=drop_wait_us,
                                        old_large_rule_on=pair.links[0] if large_rule == "drop" else "")
         self.endpoint = f"tcp/{pair.addresses[0]}:{port}"
-        # The namespaces are machines of their own: this shell's graph identity (domain, namespace, port) is not
+        # The namespaces are machines of their own: this shell's domain settings (domain, namespace, port) is not
         # theirs, and the probes read the graph file as written.
-        env = {k: v for k, v in os.environ.items() if k not in IDENTITY_ENV}
+        env = {k: v for k, v in os.environ.items() if k not in DOMAIN_ENVS}
         self.env = dict(env, FOLLOWBUS_ZENOH_PASSWORD=MONITOR_PASSWORD, PYTHONUNBUFFERED="1")
         self.robot = subprocess.Popen(pair.argv(0, [sys.executable, "-m", "followbus.tools.cli", "launch",
                                                     str(self.graph), "--startup-timeout", "90"]),
