@@ -212,7 +212,7 @@ def test_follow_occluded_reduced_speed() -> None:
     assert occluded.vx_mps == pytest.approx(p.occluded_speed_scale * tracking.vx_mps)
     assert occluded.wz_radps == pytest.approx(p.occluded_speed_scale * tracking.wz_radps)
     assert 0 < occluded.vx_mps < tracking.vx_mps
-    # A coast too uncertain to locate the person comes without a box (tracking/tracker.py output_box): a stop.
+    # A coast too uncertain to locate the person comes without a box (tracking/kalman.py output_box): a stop.
     ctl = FollowController(p)
     assert not ctl.on_track(0, "OCCLUDED", _box(2.5, centre_u=280.0)).is_zero
     stop = ctl.on_track(33 * MS, "OCCLUDED", None)

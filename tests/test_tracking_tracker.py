@@ -9,11 +9,10 @@ import pytest
 from followbus.evaluation.graph_follower import GraphFollower
 from followbus.msgs.tracking import Measurement, Prior
 from followbus.tracking.init import frame_difference_roi, motion_blobs, nearest_to_centre_bottom, to_grey
-from followbus.tracking.kalman import Predictor
+from followbus.tracking.kalman import Predictor, output_box
 from followbus.tracking.params import InvalidParam, KalmanParams, ReidParams, TemplateParams
 from followbus.tracking.reid import ReIdentifier
 from followbus.tracking.template import TemplateUpdater
-from followbus.tracking.tracker import output_box
 
 W, H = 480, 270
 BAR_X = (200, 280)  # grey occluder, full height; the target passes behind it

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..msgs.box import Box, box_array, box_centre, centre_size_to_box
 from ..msgs.perception import CameraMotion
-from ..msgs.tracking import DETECTOR_SOURCES, Measurement, Prior, Track, mahalanobis_sq_from_cov
+from ..msgs.tracking import DETECTOR_SOURCES, Measurement, Prior, Track, TrackState, mahalanobis_sq_from_cov
 from .params import KalmanParams
 
 logger = logging.getLogger(__name__)
@@ -399,7 +399,7 @@ class Predictor:
     def apply(self, reid: Measurement, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> Track | None:
         """Fold frame k's re-ID measurement into the filters (Alg. 1 lines 11/13 and 16/17) and reweigh the models
         by how well each predicted it; the posterior as a track (its output ``box`` is the caller's:
-        tracking/tracker.py ``output_box``), None before initialisation."""
+        :func:`output_box`), None before initialisation."""
         t_ns = reid.header.stamp_ns
         self._coasting = not reid.accepted and reid.init_box is None
         if reid.init_box is not None:
@@ -438,3 +438,16 @@ class Predictor:
                       velocity=np.array([float(combined.x[2]), float(combined.x[3])]), measured=measured)
         track.header.stamp_ns = int(reid.header.stamp_ns)
         return track
+
+
+def output_box(reid: Measurement, prior: Prior | None) -> np.ndarray | None:
+    """The tracker's output for a frame: the accepted box; while OCCLUDED the predicted box (§2.3:
+    keep following the hidden trajectory: the likeliest motion model's) as long as it still locates the person
+    (Prior.locates_person: it more likely overlaps them than not, KalmanParams.occluded_output_min_overlap_probability);
+    None when LOST, before initialisation or when the prediction no longer locates the person. The prediction node
+    publishes exactly this as its Track message's ``box``."""
+    if reid.accepted:
+        return reid.box
+    if reid.state != TrackState.OCCLUDED or prior is None or not prior.initialised or not prior.locates_person:
+        return None
+    return prior.box if prior.likeliest_box is None else prior.likeliest_box
