@@ -107,9 +107,8 @@ class Reid(Node):
             # 2026-11-26, kill-reid).
             self.template_hist = np.array(result.candidate_hist)
             self.initialised_at = (frame.header.epoch_ns, frame_seq)
-        msg = result.to_message()
-        self.last = msg
-        self.publish("measurement", msg, like=frame)
+        self.last = result
+        self.publish("measurement", result, like=frame)
         # The learned appearance's sample (OSNet descriptors) after the measurement is out: off the motor's path.
         self.learner.submit(self.reid.learn_pending)
 

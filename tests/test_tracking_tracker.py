@@ -103,7 +103,7 @@ def test_the_graph_is_deterministic_and_is_the_seeds_order_of_the_pure_modules()
     for k in range(N_FRAMES):
         img, dets, _, _ = scene(k)
         prior = predictor.predict(k * FRAME_NS, (0.5, 0.0))
-        r = reid.step(img, dets, prior, hist, k * FRAME_NS).to_message()  # what the re-ID node publishes
+        r = reid.step(img, dets, prior, hist, k * FRAME_NS)  # what the re-ID node publishes
         predictor.apply(r, (0.5, 0.0))
         hist, eta, _ = template.step(img, r)
         ta, tb = a[k][3], b[k][3]
