@@ -101,9 +101,6 @@ class Prior(Message):
     def mahalanobis_sq(self, z: Sequence[float]) -> float:
         return mahalanobis_sq_from_cov(z, self.centre, self.innovation_cov)
 
-    def in_gate(self, z: Sequence[float]) -> bool:
-        return self.mahalanobis_sq(z) <= self.gate_chi2  # Eq. 8
-
     def check(self) -> None:
         for name, shape in (("state", (4,)), ("covariance", (4, 4)), ("innovation_cov", (2, 2))):
             check_shape(self, name, getattr(self, name), shape)

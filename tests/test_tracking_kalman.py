@@ -93,13 +93,13 @@ def test_gate_membership_uses_innovation_covariance() -> None:
     inside = (100.0 + math.sqrt(9.0 * 9.0), 50.0)  # d² = 9.0
     outside = (100.0 + math.sqrt(10.0 * 9.0), 50.0)  # d² = 10.0
     assert kf.mahalanobis_sq(inside, R) == pytest.approx(9.0)
-    assert kf.in_gate(inside, R)
+    assert kf.mahalanobis_sq(inside, R) <= kf.gate_chi2  # Eq. 8: in the gate
     assert kf.mahalanobis_sq(outside, R) == pytest.approx(10.0)
-    assert not kf.in_gate(outside, R)
+    assert kf.mahalanobis_sq(outside, R) > kf.gate_chi2
     diag_pt = (100.0 + 3.0 * 2.0, 50.0 + 4.0 * 2.0)  # 2 σ along both axes: d² = 4 + 4
     assert kf.mahalanobis_sq(diag_pt, R) == pytest.approx(8.0)
-    assert kf.in_gate(diag_pt, R)
-    assert not kf.in_gate((100.0, 50.0 + math.sqrt(10.0 * 16.0)), R)
+    assert kf.mahalanobis_sq(diag_pt, R) <= kf.gate_chi2
+    assert kf.mahalanobis_sq((100.0, 50.0 + math.sqrt(10.0 * 16.0)), R) > kf.gate_chi2
 
 
 def test_gate_ellipse_axes() -> None:

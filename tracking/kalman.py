@@ -188,9 +188,6 @@ class KalmanCV:
     def mahalanobis_sq(self, z: Sequence[float], R: np.ndarray | None = None) -> float:
         return mahalanobis_sq_from_cov(z, self.x[:2], self.innovation_cov(R))
 
-    def in_gate(self, z: Sequence[float], R: np.ndarray | None = None) -> bool:
-        return self.mahalanobis_sq(z, R) <= self.gate_chi2  # Eq. 8
-
     def gate_ellipse(self, R: np.ndarray | None = None) -> tuple[float, float, float, float, float]:
         return gate_ellipse_from_cov(self.x[:2], self.innovation_cov(R), self.gate_chi2)
 
