@@ -424,7 +424,7 @@ def _exit_interrupted() -> None:
     """End the process with status 130 at once. Called while the KeyboardInterrupt is still being handled: its
     traceback keeps the interrupted command's frames, and with them any Zenoh session or subscriber they held, alive.
     Leaving the handler would free them, and dropping a Zenoh session can block for a long time on a loaded machine
-    (seen: echo still running 60 s after Ctrl-C, beside two burners and two test workers)."""
+    (a minute, beside two burners and two test workers)."""
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(130)
@@ -446,8 +446,7 @@ def _note_interrupts() -> None:
 def run() -> None:
     """The `followbus` command: main(), then exit. After Ctrl-C (status 130) the command has already cleaned up
     what it owns (a recorder finalises its file before it returns); the process then ends at once, without the
-    interpreter's shutdown, which can wait for ever on a Zenoh session the interrupt left open (seen: echo on a
-    loaded machine still running 20 s after Ctrl-C)."""
+    interpreter's shutdown, which can wait for ever on a Zenoh session the interrupt left open."""
     global _EXIT_AT_INTERRUPT
     _EXIT_AT_INTERRUPT = True
     # `kill -USR1 <pid>` prints every thread's Python stack on stderr: what a command that seems stuck is doing.

@@ -165,7 +165,7 @@ class KalmanCV:
 
     def widen(self, cov_px2: np.ndarray) -> None:
         """Add a 2x2 position covariance (px²): an uncertain camera motion moves the target by an unknown amount
-        (issue 22), so the prior, and with it the gate (Eq. 8's S = H P Hᵀ + R), grows."""
+        (tracking/egomotion.py's std_px), so the prior, and with it the gate (Eq. 8's S = H P Hᵀ + R), grows."""
         self.P[:2, :2] += np.asarray(cov_px2, dtype=np.float64)
         self.P = 0.5 * (self.P + self.P.T)
 
@@ -362,11 +362,11 @@ class Predictor:
         return prior
 
     def _compensate(self, kf: KalmanCV, motion: CameraMotion | None, from_t_ns: int | None, t_ns: int) -> None:
-        """Seed 002 §3.3's warp with issue 22's doubt, on the "scene" model. A motion that starts where the applied
-        chain ends (the filter's last stamp, or an earlier frame whose fit failed: egomotion then spans both steps)
-        warps the prior and widens it by its std²; a doubtful one (std above camera_motion_doubt_px) leaves a
-        coasting prior in place, widened by the displacement it would have applied. No motion: the prior as
-        predicted."""
+        """Seed 002 §3.3's warp with the motion's doubt (its std_px), on the "scene" model. A motion that starts where
+        the applied chain ends (the filter's last stamp, or an earlier frame whose fit failed: egomotion then spans
+        both steps) warps the prior and widens it by its std²; a doubtful one (std above camera_motion_doubt_px)
+        leaves a coasting prior in place, widened by the displacement it would have applied. No motion: the prior
+        as predicted."""
         p = self.params
         chained = (motion is not None and motion.header.stamp_ns == t_ns
                    and motion.from_stamp_ns in (from_t_ns, self._motion_t_ns))

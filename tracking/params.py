@@ -160,8 +160,7 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # ones (the detection node's low_boxes, score in [low_score_threshold, score_threshold)) are tried, never
     # as training samples, and with ByteTrack's caution: only for a target matched on the previous frame (not
     # OCCLUDED or LOST) and only a box overlapping the predicted box by low_score_min_iou (its second stage's
-    # IoU 0.5). Without that caution a stranger's weak box in the gate of an occluded target was taken
-    # (mot17-mini-13 100 -> 40 % TSR@20px).
+    # IoU 0.5): without that caution a stranger's weak box in the gate of an occluded target is taken for it.
     low_score_stage: bool = True
     low_score_min_iou: float = 0.5
     # Partial views (reid.complete_partial_view): a detector box under partial_max_extent_ratio of the predicted

@@ -112,8 +112,8 @@ def complete_partial_view(box: Sequence[float], predicted_box: Sequence[float], 
     person. Taken as it is, a cut box drags the Kalman centre towards the visible part and gives it a velocity
     the occlusion then carries on (the prior drifts away while the person is hidden), and its height makes the
     person look farther away than they are. Only the height: a walking person's width changes with every
-    stride and swing of the arms, so a narrow box is no evidence of an occluder (completing widths anchored the
-    wrong side of a person walking behind a pillar), while the height of a standing or walking person holds."""
+    stride and swing of the arms, so a narrow box is no evidence of an occluder (completing widths would anchor
+    the wrong side of a person walking behind a pillar), while the height of a standing or walking person holds."""
     w, pw, ph = float(box[2]), float(predicted_box[2]), float(predicted_box[3])
     if w <= 0.0 or pw <= 0.0 or float(box[3]) / w >= max_ratio * ph / pw:
         return tuple(float(v) for v in box)  # type: ignore[return-value]  # a whole person's shape
@@ -594,7 +594,7 @@ class ReIdentifier:
         """Colour + geometry chose ``best``; the classifier decides when that choice is not clear (seed 001
         §III-D): among the contenders within ``identity_margin`` of it, the one it scores highest, if that
         one clears δ_switch; on a re-lock after an occlusion, a lone contender scoring below δ_switch is taken
-        for someone else and rejected (the target stays occluded), and a contender far from the prior (issue 22)
+        for someone else and rejected (the target stays occluded), and a contender far from the prior
         must score δ_id on ``n_id_frames`` consecutive frames (seed 001's Re-ID state). Returns (chosen, accepted)."""
         p = self.params
         relock = self.state in (TrackState.OCCLUDED, TrackState.LOST)
@@ -741,8 +741,8 @@ class ReIdentifier:
     def _recent_last_box(self, t_ns: int) -> Box | None:
         """The last accepted box, if accepted within lost_after_ms of the frames this re-ID was shown: a gap in
         which it was given no frame at all (prediction restarting: no prior, so no input set) is not time the
-        target was looked for and not seen. A prediction that took 3.3 s to restart made the box look 3 s
-        stale, and re-ID re-initialised on the person nearest the image bottom instead."""
+        target was looked for and not seen (a slow restart of prediction would make the box look stale, and re-ID
+        re-initialise on the person nearest the image bottom instead)."""
         seen_ns = t_ns - self._t_last_accept_ns - self._unseen_since_accept_ns
         if self._last_box is None or seen_ns > self.params.lost_after_ms * 1e6:
             return None
