@@ -2,7 +2,7 @@
 
 A node that publishes first and then does bookkeeping (a model's training step, a file write) still spends that
 CPU at its own priority, beside the loop's other nodes: on a two-core computer a 20-30 ms burst every few frames
-was enough to make the detector skip frames. ``BackgroundJob`` runs such work on a thread ``nice_increment``
+is enough to make the detector skip frames. ``BackgroundJob`` runs such work on a thread ``nice_increment``
 steps nicer than the node, so it takes CPU the loop leaves idle.
 
 The order of results stays the one a synchronous call gives: ``wait()`` (called by ``submit`` and by the node

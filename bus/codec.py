@@ -268,7 +268,7 @@ def _split(data: bytes | bytearray | memoryview,
 
 def _shape(raw: bytes) -> Any:
     """An inline array's shape: the form writers use ("[480, 640, 3]") read directly, anything else by json
-    (a message carries several small arrays, and json.loads was the largest part of decoding each)."""
+    (a message carries several small arrays, and json.loads would be the largest part of decoding each)."""
     if raw[:1] == b"[" and raw[-1:] == b"]":
         inner = raw[1:-1]
         parts = inner.split(b", ") if inner else []

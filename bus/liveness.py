@@ -1,8 +1,8 @@
 """Whether a node is working, not just alive: retry budgets for failing hooks and a source's production watch.
 
 A node's process can be up, its liveliness token declared, and still do nothing useful: a source whose
-``poll`` raised was never polled again (one failed camera read and capture published nothing for good while
-every table said "up"). The runtime (bus/node.py) uses these two pieces so that a failing hook is retried
+``poll`` raises and is never polled again publishes nothing for good after one failed camera read, while every
+table says "up". The runtime (bus/node.py) uses these two pieces so that a failing hook is retried
 with backoff, a node that keeps failing exits with :data:`STOPPED_WORKING_EXIT` (the launcher restarts it
 and reports it), and a source that has published nothing for many of its own periods does the same.
 """

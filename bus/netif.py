@@ -4,8 +4,8 @@ beyond loopback.
 Most followbus outputs are published with congestion control BLOCK (a node waits rather than lose a message
 to the next node on the robot). A router forwards each message on the thread that received it, so a BLOCK
 message routed to a laptop on a slow link (its TCP send queue full) stalls that thread, and with it every
-node behind it: measured with a laptop recording every key over 2 Mbit/s, the robot answered 0 of 89 frames
-(BENCHMARKS.md, bench link). Zenoh's ``qos/network`` overwrite turns the messages *sent* (egress) on chosen
+node behind it: with a laptop recording every key over 2 Mbit/s, the robot answers almost no frame
+(`followbus bench link`, BENCHMARKS.md). Zenoh's ``qos/network`` overwrite turns the messages *sent* (egress) on chosen
 interfaces into congestion control DROP: the laptop loses what its link cannot carry (its recorder reports
 the ``header.seq`` gaps), the robot's loop on loopback keeps BLOCK.
 

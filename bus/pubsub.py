@@ -32,9 +32,9 @@ PRIORITY = {"real_time": zenoh.Priority.REAL_TIME, "interactive_high": zenoh.Pri
             "data": zenoh.Priority.DATA}
 # A Publisher refuses (counts in TopicStats.refused, logs, does not send) payloads over this. Zenoh 1.10's
 # own limit is the receiver's transport/link/rx/max_message_size, 1 GiB by default: past it a message
-# vanishes with no error at either end (measured on loopback: 1000 MiB delivered, 1030 MiB not). Far
-# below that, a payload larger than the shared-memory pool (SHM_POOL_BYTES) cannot use it, and with
-# congestion "drop" large fragmented puts were dropped too (loopback: 1 of 2 at 32 MiB, 2 of 2 at 48 and 64).
+# vanishes with no error at either end. Far below that, a payload larger than the shared-memory pool
+# (SHM_POOL_BYTES) cannot use it, and with congestion "drop" large fragmented puts are dropped too from 32 MiB
+# on (RELIABILITY.md, incidents behind the code).
 # The largest payload the graph means to send, a 4K bgr8 frame, is 24.9 MB.
 MAX_PAYLOAD_BYTES = 48 * 1024 * 1024
 
@@ -285,8 +285,8 @@ class MatchingFlag:
     """Whether any subscriber (this session's included) listens to a publisher's key, kept up to date by Zenoh's
     matching listener rather than asked on every put.
 
-    Asking (``matching_status``) walks the session's routing tables: with the graph's peers that was about a
-    third of the CPU of a node publishing small messages at 100 Hz, two keys a message (py-spy, 2026-11-26). The
+    Asking (``matching_status``) walks the session's routing tables: with the graph's peers, about a third of the
+    CPU of a node publishing small messages at 100 Hz, two keys a message (RELIABILITY.md, incidents). The
     listener is told on every change, on Zenoh's thread, as soon as ``matching_status`` itself would say so
     (loopback: both within the same 0.1 ms); the status is read once at declaration for the subscribers already
     there.

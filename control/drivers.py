@@ -168,10 +168,6 @@ def format_command(wheel_radps: Sequence[float] | np.ndarray, hold_ms: float) ->
     return f"M {fields} {hold}\n".encode("ascii")
 
 
-def format_stop() -> bytes:
-    return STOP_LINE
-
-
 def parse_odometry_line(line: bytes | str, t_ns: int) -> Odometry:
     """Parse ``O <x> <y> <theta> <vx> <vy> <wz>``; raise ``ValueError`` if it is not one."""
     text = line.decode("ascii", errors="replace") if isinstance(line, (bytes, bytearray)) else line

@@ -135,11 +135,10 @@ class PeerFollower:
 
     All three have a ByteTrack-style second association stage for the boxes under their
     ``high_conf_det_threshold`` 0.6, and ByteTrack's design feeds it everything above 0.1 (BoT-SORT keeps > 0.1).
-    They are nevertheless given only the boxes above the evaluation's SCORE_THRESHOLD by default, as before the
-    detection node published low-score boxes: fed the 0.1-0.3 boxes too (``low_score_boxes=True``; the runner
-    then passes them as ``low_detections``) they do worse (`followbus eval all --detector yolox640`, 2026-11-24:
-    ByteTrack 66.7 -> 54.8 % TSR@20px, BoT-SORT 66.9 -> 61.1, OC-SORT 37.8 either way; ``trackers`` matches its
-    second stage at IoU 0.1, ByteTrack's own code at 0.5), so the default is the stronger peer.
+    They are nevertheless given only the boxes above the evaluation's SCORE_THRESHOLD by default: fed the 0.1-0.3
+    boxes too (``low_score_boxes=True``; the runner then passes them as ``low_detections``) ByteTrack and BoT-SORT
+    do worse and OC-SORT no better (EVALUATION.md; ``trackers`` matches its second stage at IoU 0.1, ByteTrack's
+    own code at 0.5), so the default is the stronger peer.
     """
 
     def __init__(self, kind: str, fps: float = 30.0, low_score_boxes: bool = False) -> None:

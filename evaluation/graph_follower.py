@@ -182,8 +182,9 @@ class GraphFollower:
 
         def traced_step(*args: Any, **kwargs: Any) -> Any:
             capture.clear()
-            capture.result = step(*args, **kwargs)
-            return capture.result
+            measurement = step(*args, **kwargs)
+            capture.candidates = reid.candidates
+            return measurement
 
         def traced_embed(frame_bgr: np.ndarray, boxes: list[Any]) -> Any:
             asked[:] = [tuple(float(v) for v in b) for b in boxes]

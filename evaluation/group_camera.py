@@ -1,4 +1,4 @@
-"""``followbus eval --group --camera``: the group trackers of seed 004 on real camera sequences (issue 11 part 5).
+"""``followbus eval --group --camera``: the group trackers of seed 004 on real camera sequences.
 
 What is measured: the **image-plane** group-centre error (pixels) of every method of
 :data:`followbus.tracking.group.METHODS`, fed the same YOLOX detections.

@@ -61,14 +61,15 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o partial-view completion": {"partial_view_completion": False},
     # a box merging the target with someone in line with it taken whole, not trimmed to the target's height
     "followbus w/o merged-view trimming": {"merged_view_trimming": False},
-    # issue 22, one part at a time (each switch goes to the node that reads it: egomotion, prediction or reid):
-    # the per-cell static-content map; the rival hypothesis and the temporal choice between the two; the
-    # reference kept across a failed fit; the prior widened by (and held against) the fit's uncertainty
+    # what the camera-motion estimate knows it does not know, one part at a time (each switch goes to the node that
+    # reads it: egomotion, prediction or reid): the per-cell static-content map; the rival hypothesis and the
+    # temporal choice between the two; the reference kept across a failed fit; the prior widened by (and held
+    # against) the fit's uncertainty
     "followbus w/o static-content map": {"static_evidence": False},
     "followbus w/o rival hypothesis": {"temporal_consistency": False},
     "followbus w/o reference across failed fits": {"max_reference_age_frames": 0},
     "followbus w/o camera-motion uncertainty": {"camera_motion_uncertainty": False},
-    # issue 22: the coasting prediction output however uncertain it has grown (KalmanParams)
+    # the coasting prediction output however uncertain it has grown (KalmanParams)
     "followbus w/o withholding an uncertain coasting box": {"occluded_output_min_overlap_probability": 0.0},
     # seed 002 §3.2: no region around the prediction re-detected at the frame's resolution (nodes/redetection.py)
     "followbus w/o local re-detection": {"local_redetection": False},
@@ -82,9 +83,9 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o the phase-correlation fallback": {"phase_fallback": False},
     # re-acquisition only on T_reid and δ_id, not on evidence accumulated over N_id frames (tracking/reacquisition.py)
     "followbus w/o re-acquisition on evidence": {"reacquire_on_evidence": False},
-    # issue 22: a far re-lock on δ_switch alone, as before (no δ_id / N_id confirmation)
+    # a far re-lock on δ_switch alone (no δ_id / N_id confirmation)
     "followbus w/o identity-confirmed far re-lock": {"far_relock_needs_identity": False},
-    # issue 22: after a crossing, colour's choice (a lone detection unscored) even when the classifier, which just told
+    # after a crossing, colour's choice (a lone detection unscored) even when the classifier, which just told
     # the people apart, scores every contender below δ_switch
     "followbus w/o identity veto after a crossing": {"identity_veto_after_crowd_frames": 0},
 }

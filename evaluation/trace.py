@@ -72,11 +72,11 @@ def prior_record(prior: Any, gate_chi2: float | None = None) -> dict[str, Any] |
             "gate": gate_of(centre, prior.innovation_cov, float(gate_chi2 or prior.gate_chi2))}
 
 
-def candidate_records(reid_result: Any, identity: dict[tuple[float, ...], float]) -> list[dict[str, Any]]:
-    """Re-ID's scored candidates: box, source, Mahalanobis², S_color, S_geo, M_fuse and the classifier's score
-    where it decided between them."""
+def candidate_records(candidates: Sequence[Any], identity: dict[tuple[float, ...], float]) -> list[dict[str, Any]]:
+    """Re-ID's scored candidates (tracking/reid.py Candidate): box, source, Mahalanobis², S_color, S_geo, M_fuse
+    and the classifier's score where it decided between them."""
     out = []
-    for c in getattr(reid_result, "candidates", None) or []:
+    for c in candidates:
         box = tuple(float(v) for v in c.box)
         out.append({"box": _plain(box), "source": c.source, "maha_sq": _plain(c.maha_sq), "s_color": _plain(c.s_color),
                     "s_geo": _plain(c.s_geo), "m_fuse": _plain(c.m_fuse), "identity": _plain(identity.get(box))})
@@ -101,11 +101,11 @@ def reason_of(measurement: Any, track: Any) -> str:
 class ReidCapture:
     """What the in-process re-ID computed for the last frame beyond its message (set by GraphFollower)."""
 
-    result: Any = None
+    candidates: list[Any] = dataclasses.field(default_factory=list)  # ReIdentifier.candidates
     identity: dict[tuple[float, ...], float] = dataclasses.field(default_factory=dict)
 
     def clear(self) -> None:
-        self.result, self.identity = None, {}
+        self.candidates, self.identity = [], {}
 
 
 def frame_record(graph_frame: Any, capture: ReidCapture | None, transform: Any) -> dict[str, Any]:
@@ -116,7 +116,7 @@ def frame_record(graph_frame: Any, capture: ReidCapture | None, transform: Any) 
     return {
         "state": track.state, "filtered_box": _plain(track.filtered_box), "velocity_px_s": _plain(track.velocity),
         "prior": prior_record(prior, scaled),
-        "candidates": candidate_records(capture.result if capture else None, capture.identity if capture else {}),
+        "candidates": candidate_records(capture.candidates, capture.identity) if capture else [],
         "measurement": None if meas is None else {
             "state": meas.state, "accepted": meas.accepted, "secure": meas.secure, "source": meas.source,
             "box": _plain(meas.box), "m_fuse": _plain(meas.m_fuse), "s_color": _plain(meas.s_color),

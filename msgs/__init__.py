@@ -7,6 +7,8 @@ nodes publish them. Importing it registers every type with the bus's codec, so a
 or the live bus imports it once (tools/cli.py does).
 
 Layering: bus/ ← msgs/ ← tracking/, control/, vision/ ← nodes/ ← tools/.
+
+"Seed NNN" names a method paper (glossary: tracking/__init__.py).
 """
 
 from __future__ import annotations

@@ -84,7 +84,7 @@ class CameraMotion(Message):
     tracked: int = 0  # points the fit was made from (corners LK followed, outside person boxes)
     from_stamp_ns: int = 0
     reason: str = ""
-    # The fit's uncertainty (issue 22; tracking/egomotion.py), px at full resolution.
+    # The fit's uncertainty (tracking/egomotion.py), px at full resolution.
     residual_px: float = 0.0  # RMS distance of the inliers from the fit
     spread: float = 0.0  # fraction of the image's grid cells holding an inlier
     rival_px: float = 0.0  # how far the competing hypothesis moves the image centre from this one

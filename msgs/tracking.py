@@ -101,9 +101,6 @@ class Prior(Message):
     def mahalanobis_sq(self, z: Sequence[float]) -> float:
         return mahalanobis_sq_from_cov(z, self.centre, self.innovation_cov)
 
-    def in_gate(self, z: Sequence[float]) -> bool:
-        return self.mahalanobis_sq(z) <= self.gate_chi2  # Eq. 8
-
     def check(self) -> None:
         for name, shape in (("state", (4,)), ("covariance", (4, 4)), ("innovation_cov", (2, 2))):
             check_shape(self, name, getattr(self, name), shape)
@@ -121,9 +118,9 @@ class Measurement(Message):
     secure: bool = False
     box: np.ndarray | None = None  # the accepted box (Alg. 1 line 11)
     best_box: np.ndarray | None = None  # argmax M_fuse, even when rejected
-    # Where the chosen box came from: "detection", "redetection", "low-score", "motion", or on an initialisation
-    # frame "init"
-    # (new target: the template restarts from it) or "template" (re-lock with an existing template).
+    # Where the chosen box came from: "detection", "redetection", "low-score" or "motion"; on an initialisation frame
+    # "init" (a new target: the template restarts from it), "template" (the detection matching a kept template),
+    # "prior" (the gated detection nearest a kept prior) or "last" (the detection on re-ID's last accepted box).
     source: str = ""
     m_fuse: float = 0.0
     s_color: float = 0.0

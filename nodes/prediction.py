@@ -29,9 +29,8 @@ from ..bus.schemas import Message
 from ..msgs.perception import CameraMotion, Detections
 from ..msgs.robot import Odometry
 from ..msgs.tracking import Measurement, Prior, Track
-from ..tracking.kalman import Predictor
+from ..tracking.kalman import Predictor, output_box
 from ..tracking.params import KalmanParams
-from ..tracking.tracker import output_box
 
 
 @dataclass
@@ -115,7 +114,7 @@ class Prediction(Node):
 
     def _track(self, msg: Measurement, prior: Prior | None, posterior: Track | None) -> Track:
         """The track of a measurement: the filter's posterior (none: no filtered box, no velocity) with the
-        tracker's output box (tracking/tracker.py)."""
+        tracker's output box (tracking/kalman.py output_box)."""
         track = posterior or Track(state=msg.state)
         track.box = output_box(msg, prior)
         return track

@@ -6,7 +6,7 @@ detection nearest the image centre-bottom, else the frame-difference ROI).
 
 When colour and geometry cannot tell candidates apart (or on a re-lock after an occlusion), the learned
 appearance of seed 001 decides: OSNet descriptors and an online ridge-regression classifier of the target
-against the other people (tracking/identity.py; ``learned_appearance: false`` turns it off, and without the
+against the other people (tracking/learned_appearance.py; ``learned_appearance: false`` turns it off, and without the
 model the node warns once and goes on with colour).
 
 Inputs joined by frame: frame k, detections k, prior k, the region re-detected around prior k (the redetection
@@ -71,7 +71,7 @@ class Reid(Node):
         self.initialised_at: tuple[int, int] | None = None  # (epoch_ns, frame_seq) of this node's last initialisation
         # The learned appearance's training sample (OSNet descriptors of several people: a 20-30 ms burst every
         # identity_sample_every_frames frames) below the loop's priority: at the loop's, on two cores, the
-        # detector skipped a frame at each burst (bus/background.py).
+        # detector skips a frame at each burst (bus/background.py).
         if not hasattr(self, "learner"):  # setup runs again on a reset (below): one worker thread per process
             self.learner = BackgroundJob("reid-learning")
 
@@ -102,14 +102,12 @@ class Reid(Node):
         self.frames += 1
         if result.init_box is not None and result.candidate_hist is not None:
             # The template node initialises its template from this box (tracking/template.py); until that template
-            # comes back, match against the same histogram. Without a template every frame re-initialised: a re-ID
-            # restarted with a backlog re-initialised on six frames in a row, the last time on a bystander (CI,
-            # 2026-11-26, kill-reid).
+            # comes back, match against the same histogram: without one every frame re-initialises, and a re-ID
+            # restarted with a backlog would re-initialise frame after frame, maybe on a bystander.
             self.template_hist = np.array(result.candidate_hist)
             self.initialised_at = (frame.header.epoch_ns, frame_seq)
-        msg = result.to_message()
-        self.last = msg
-        self.publish("measurement", msg, like=frame)
+        self.last = result
+        self.publish("measurement", result, like=frame)
         # The learned appearance's sample (OSNet descriptors) after the measurement is out: off the motor's path.
         self.learner.submit(self.reid.learn_pending)
 

@@ -47,7 +47,7 @@ def recording_first_frame(path: Path, skip_chunks: frozenset[int] = frozenset(),
     capture stamp, so the run's first recorded frame is among them); None when none carries a frame.
 
     Messages of no frame are passed over, however many: on a loaded machine the motor's 100 Hz odometry fills
-    the first seconds of a recording before the camera's first frame (2026-11-26: 200 of them at load 20)."""
+    the first seconds of a recording before the camera's first frame (hundreds of messages at a load of 20)."""
     seqs = []
     for msg in iter_bus_messages(path, skip_chunks=skip_chunks):
         frame_seq = frame_and_stamp(msg.data)[0]

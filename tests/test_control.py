@@ -13,10 +13,10 @@ import pytest
 
 from followbus.control.drivers import (
     MAX_HOLD_MS,
+    STOP_LINE,
     SerialDriver,
     SimDriver,
     format_command,
-    format_stop,
     integrate_twist,
     parse_odometry_line,
 )
@@ -212,7 +212,7 @@ def test_follow_occluded_reduced_speed() -> None:
     assert occluded.vx_mps == pytest.approx(p.occluded_speed_scale * tracking.vx_mps)
     assert occluded.wz_radps == pytest.approx(p.occluded_speed_scale * tracking.wz_radps)
     assert 0 < occluded.vx_mps < tracking.vx_mps
-    # A coast too uncertain to locate the person comes without a box (tracking/tracker.py output_box): a stop.
+    # A coast too uncertain to locate the person comes without a box (tracking/kalman.py output_box): a stop.
     ctl = FollowController(p)
     assert not ctl.on_track(0, "OCCLUDED", _box(2.5, centre_u=280.0)).is_zero
     stop = ctl.on_track(33 * MS, "OCCLUDED", None)
@@ -330,7 +330,7 @@ def test_serial_format_parse_round_trip() -> None:
     assert format_command([0, 0, 0, 0], 12.9).endswith(b" 12\n")
     assert format_command([0, 0, 0, 0], -5).endswith(b" 0\n")
     assert format_command([0, 0, 0, 0], 1e9).endswith(f" {MAX_HOLD_MS}\n".encode())
-    assert format_stop() == b"S\n"
+    assert STOP_LINE == b"S\n"  # the serial driver's stop, the line protocol's
     with pytest.raises(ValueError):
         format_command([float("nan"), 0, 0, 0], 100)
     with pytest.raises(ValueError):

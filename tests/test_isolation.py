@@ -11,7 +11,7 @@ import subprocess
 import pytest
 
 from followbus.bus.graph import load_graph
-from followbus.tools.identity import apply_identity
+from followbus.tools.domains import apply_domain
 
 from .conftest import REPO, followbus_argv, free_port, run_followbus
 
@@ -28,11 +28,11 @@ NODES = """\
 
 def test_a_domain_moves_the_port_and_the_namespace(graph_file, port):
     graph = load_graph(graph_file(NODES, namespace="o1iso"))
-    apply_identity(graph, {"FOLLOWBUS_DOMAIN": "3"})
+    apply_domain(graph, {"FOLLOWBUS_DOMAIN": "3"})
     assert graph.namespace == "o1iso-d3"
     assert graph.zenoh.listen == [f"tcp/127.0.0.1:{port + 3}"] and graph.zenoh.connect == graph.zenoh.listen
     # --namespace and --port replace the graph's; the domain moves them in turn.
-    graph = apply_identity(load_graph(graph.path), {"FOLLOWBUS_NAMESPACE": "o1x", "FOLLOWBUS_PORT": "21450",
+    graph = apply_domain(load_graph(graph.path), {"FOLLOWBUS_NAMESPACE": "o1x", "FOLLOWBUS_PORT": "21450",
                                                     "FOLLOWBUS_DOMAIN": "1"})
     assert (graph.namespace, graph.zenoh.connect) == ("o1x-d1", ["tcp/127.0.0.1:21451"])
     result = run_followbus("check", str(graph.path), "--domain", "x")  # check takes no identity: argparse says so

@@ -490,7 +490,7 @@ def test_group_scene_places_the_group_in_the_robot_frame():
     base_link (x forward, y left), i.e. the odometry-frame state taken through the pose of the same frame."""
     pytest.importorskip("foxglove", reason="foxglove-sdk not installed")
     from followbus.tools.live.foxglove_bridge import ROBOT_FRAME, group_scene, group_shapes
-    from followbus.viewing.views import group_view
+    from followbus.viewing.snapshot import group_view
 
     points, group = _group_messages(7, 1_000_000_000)
     view = group_view(group, (points.robot_x_m, points.robot_y_m, points.robot_theta_rad), points)

@@ -152,10 +152,10 @@ def test_warped_prior_lands_on_the_moved_target() -> None:
 
     scene_model = KalmanParams(camera_motion_compensation=True, image_motion_model=False)  # the warp alone
     pred, warped = prior(scene_model, motion)
-    assert warped.centre == pytest.approx(target, abs=1.0) and warped.in_gate(target)
+    assert warped.centre == pytest.approx(target, abs=1.0) and warped.mahalanobis_sq(target) <= warped.gate_chi2
     assert pred.warped == 1
     _, plain = prior(KalmanParams(camera_motion_compensation=False), motion)
-    assert plain.centre == pytest.approx((240.0, 220.0)) and not plain.in_gate(target)
+    assert plain.centre == pytest.approx((240.0, 220.0)) and plain.mahalanobis_sq(target) > plain.gate_chi2
     # A motion that does not start at the filter's stamp (a frame either side did not see) is not applied.
     stale = _motion_of(motion.matrix, -33_000_000, 33_000_000)
     pred, unwarped = prior(scene_model, stale)
@@ -301,12 +301,12 @@ def test_a_rival_hypothesis_raises_the_published_uncertainty() -> None:
 
 
 def _prior_after(motion: CameraMotion, coasting: bool, params: KalmanParams | None = None):
-    from followbus.tracking.reid import ReidResult, TrackState
+    from followbus.tracking.reid import TrackState, measurement
 
     pred = Predictor(params or KalmanParams(image_motion_model=False))  # the scene model's warp alone
-    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)).to_message())
+    pred.apply(measurement(0, TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)))
     if coasting:
-        pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED).to_message())
+        pred.apply(measurement(33_000_000, TrackState.OCCLUDED))
         pred.predict(33_000_000)
     start = pred.kf.x[:2].copy()
     prior = pred.predict(66_000_000 if coasting else 33_000_000, camera_motion=motion)
@@ -336,12 +336,12 @@ def test_a_doubtful_motion_widens_a_coasting_prior_instead_of_dragging_it() -> N
 
 
 def test_a_motion_spanning_a_frame_without_one_is_applied() -> None:
-    from followbus.tracking.reid import ReidResult, TrackState
+    from followbus.tracking.reid import TrackState, measurement
 
     pred = Predictor(KalmanParams(image_motion_model=False))  # the scene model's warp alone
-    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)).to_message())
+    pred.apply(measurement(0, TrackState.TRACKING, accepted=True, init_box=(300, 200, 40, 100)))
     pred.predict(33_000_000)  # the jerk's frame: no motion came
-    pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED).to_message())
+    pred.apply(measurement(33_000_000, TrackState.OCCLUDED))
     prior = pred.predict(66_000_000, camera_motion=_motion_of(np.array([[1.0, 0, 0], [0, 1.0, 45.0]]), 0, 66_000_000))
     assert prior.centre[1] == pytest.approx(250.0 + 45.0, abs=1e-6) and pred.motion_mismatched == 0
 

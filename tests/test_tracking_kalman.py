@@ -9,7 +9,7 @@ import pytest
 
 from followbus.tracking.kalman import KalmanCV, Predictor, gate_ellipse_from_cov
 from followbus.tracking.params import KalmanParams
-from followbus.tracking.reid import ReidResult, TrackState
+from followbus.tracking.reid import Candidate, TrackState, measurement
 
 
 def make_kf(**kw: float) -> KalmanCV:
@@ -93,13 +93,13 @@ def test_gate_membership_uses_innovation_covariance() -> None:
     inside = (100.0 + math.sqrt(9.0 * 9.0), 50.0)  # d² = 9.0
     outside = (100.0 + math.sqrt(10.0 * 9.0), 50.0)  # d² = 10.0
     assert kf.mahalanobis_sq(inside, R) == pytest.approx(9.0)
-    assert kf.in_gate(inside, R)
+    assert kf.mahalanobis_sq(inside, R) <= kf.gate_chi2  # Eq. 8: in the gate
     assert kf.mahalanobis_sq(outside, R) == pytest.approx(10.0)
-    assert not kf.in_gate(outside, R)
+    assert kf.mahalanobis_sq(outside, R) > kf.gate_chi2
     diag_pt = (100.0 + 3.0 * 2.0, 50.0 + 4.0 * 2.0)  # 2 σ along both axes: d² = 4 + 4
     assert kf.mahalanobis_sq(diag_pt, R) == pytest.approx(8.0)
-    assert kf.in_gate(diag_pt, R)
-    assert not kf.in_gate((100.0, 50.0 + math.sqrt(10.0 * 16.0)), R)
+    assert kf.mahalanobis_sq(diag_pt, R) <= kf.gate_chi2
+    assert kf.mahalanobis_sq((100.0, 50.0 + math.sqrt(10.0 * 16.0)), R) > kf.gate_chi2
 
 
 def test_gate_ellipse_axes() -> None:
@@ -122,8 +122,8 @@ def test_predictor_suspends_without_accepted_match() -> None:
     params = KalmanParams()
     pred = Predictor(params)
     assert pred.predict(0) is None
-    init = ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=(90.0, 40.0, 20.0, 40.0),
-                      source="init", init_box=(90.0, 40.0, 20.0, 40.0)).to_message()
+    init = measurement(0, TrackState.TRACKING, Candidate((90.0, 40.0, 20.0, 40.0), "init"), accepted=True,
+                       init_box=(90.0, 40.0, 20.0, 40.0))
     pred.apply(init)
     prior = pred.predict(33_000_000, (1.0, 0.0))
     assert prior is not None
@@ -133,15 +133,13 @@ def test_predictor_suspends_without_accepted_match() -> None:
     np.testing.assert_allclose(prior.innovation_cov, expected_S)
     assert prior.box == pytest.approx((90.0, 40.0, 20.0, 40.0))
 
-    rejected = ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED, best_box=(130.0, 40.0, 20.0, 40.0),
-                          source="detection").to_message()
+    rejected = measurement(33_000_000, TrackState.OCCLUDED, Candidate((130.0, 40.0, 20.0, 40.0), "detection"))
     post = pred.apply(rejected)
     assert post is not None and not post.measured
     np.testing.assert_array_equal(pred.kf.x, prior.state)  # Alg. 1 line 17: no update
 
-    accepted = ReidResult(t_ns=66_000_000, state=TrackState.TRACKING, accepted=True,
-                          box=(94.0, 40.0, 20.0, 40.0), best_box=(94.0, 40.0, 20.0, 40.0),
-                          source="detection").to_message()
+    accepted = measurement(66_000_000, TrackState.TRACKING, Candidate((94.0, 40.0, 20.0, 40.0), "detection"),
+                           accepted=True)
     pred.predict(66_000_000)
     post = pred.apply(accepted)
     assert post is not None and post.measured
@@ -151,11 +149,10 @@ def test_predictor_suspends_without_accepted_match() -> None:
 
 def test_predictor_without_suspension_updates_on_best_candidate() -> None:
     pred = Predictor(KalmanParams(suspend_updates=False))
-    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=(90.0, 40.0, 20.0, 40.0),
-                          source="init", init_box=(90.0, 40.0, 20.0, 40.0)).to_message())
+    pred.apply(measurement(0, TrackState.TRACKING, Candidate((90.0, 40.0, 20.0, 40.0), "init"), accepted=True,
+                           init_box=(90.0, 40.0, 20.0, 40.0)))
     pred.predict(33_000_000)
-    post = pred.apply(ReidResult(t_ns=33_000_000, state=TrackState.OCCLUDED, best_box=(130.0, 40.0, 20.0, 40.0),
-                                 source="detection").to_message())
+    post = pred.apply(measurement(33_000_000, TrackState.OCCLUDED, Candidate((130.0, 40.0, 20.0, 40.0), "detection")))
     assert post is not None and post.measured
     assert pred.kf.x[0] > 110.0
 
@@ -164,8 +161,7 @@ def test_predictor_uses_stamp_gaps_and_learns_size_only_from_detections() -> Non
     params = KalmanParams()
     pred = Predictor(params)
     box = (90.0, 40.0, 20.0, 40.0)
-    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=box, source="init",
-                          init_box=box).to_message())
+    pred.apply(measurement(0, TrackState.TRACKING, Candidate(box, "init"), accepted=True, init_box=box))
     prior = pred.predict(500_000_000)  # a 0.5 s gap (dropped frames), not dt_ms
     assert prior is not None
     dt = 0.5
@@ -173,13 +169,11 @@ def test_predictor_uses_stamp_gaps_and_learns_size_only_from_detections() -> Non
     assert prior.covariance[0, 0] == pytest.approx(expected)
 
     blob = (92.0, 40.0, 6.0, 40.0)  # a motion blob: a sliver of the target
-    pred.apply(ReidResult(t_ns=500_000_000, state=TrackState.TRACKING, accepted=True, box=blob,
-                          best_box=blob, source="motion").to_message())
+    pred.apply(measurement(500_000_000, TrackState.TRACKING, Candidate(blob, "motion"), accepted=True))
     assert pred.kf.size == (20.0, 40.0)
     assert pred.kf.x[0] < 100.0  # the centre was still measured
     pred.predict(533_000_000)
     det = (90.0, 40.0, 30.0, 40.0)
-    pred.apply(ReidResult(t_ns=533_000_000, state=TrackState.TRACKING, accepted=True, box=det,
-                          best_box=det, source="detection").to_message())
+    pred.apply(measurement(533_000_000, TrackState.TRACKING, Candidate(det, "detection"), accepted=True))
     a = params.size_smoothing
     assert pred.kf.size == pytest.approx(((1 - a) * 20.0 + a * 30.0, 40.0))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from followbus.msgs.box import box_tuple
 from followbus.msgs.tracking import Prior, TrackState
 from followbus.tracking.params import ReidParams
 from followbus.tracking.reacquisition import BystanderTracks, PersonTrack, ReacquisitionEvidence
@@ -93,7 +94,7 @@ def test_a_returning_target_far_from_the_prior_is_reacquired_on_evidence_and_a_b
                            (8 + k) * 33_000_000)
         if result.accepted:
             accepted_at = k
-            assert result.box == red  # the target, never the grey bystander
+            assert box_tuple(result.box) == red  # the target, never the grey bystander
             break
     assert accepted_at == params.reacquire_frames - 1
 

@@ -7,17 +7,19 @@ import math
 import numpy as np
 import pytest
 
+from followbus.msgs.box import box_tuple
 from followbus.msgs.tracking import Prior
 from followbus.tracking.appearance import hs_histogram
 from followbus.tracking.params import InvalidParam, KalmanParams, ReidParams
 from followbus.tracking.reid import (
+    Candidate,
     ReIdentifier,
-    ReidResult,
     TrackState,
     appearance_weight,
     complete_partial_view,
     fuse,
     geometric_score,
+    measurement,
     trim_merged_view,
 )
 
@@ -53,7 +55,7 @@ def started(params: ReidParams) -> tuple[ReIdentifier, np.ndarray]:
     reid = ReIdentifier(params)
     frame = draw((TARGET, RED))
     res = reid.step(frame, dets(TARGET), None, None, 0, init_box=TARGET)
-    assert res.state is TrackState.TRACKING and res.init_box == TARGET
+    assert res.state == TrackState.TRACKING and box_tuple(res.init_box) == TARGET
     return reid, hs_histogram(frame, TARGET, params.bins_h, params.bins_s)
 
 
@@ -91,18 +93,18 @@ def test_accepts_target_and_rejects_distractor() -> None:
     distractor = (140.0, 100.0, 30.0, 60.0)  # 40 px right of the prediction: inside the gate
     frame = draw((TARGET, RED), (distractor, BLUE))
     res = reid.step(frame, dets(distractor, TARGET), prior_at(TARGET, 33 * MS), template, 33 * MS)
-    assert res.accepted and res.state is TrackState.TRACKING
-    assert res.box == TARGET
+    assert res.accepted and res.state == TrackState.TRACKING
+    assert box_tuple(res.box) == TARGET
     assert res.secure
-    assert len(res.candidates) == 2
-    by_box = {c.box: c for c in res.candidates}
+    assert len(reid.candidates) == 2
+    by_box = {c.box: c for c in reid.candidates}
     assert by_box[TARGET].s_color == pytest.approx(1.0, abs=1e-6)
     assert by_box[distractor].s_color < 0.1
     assert by_box[distractor].m_fuse < params.reid_threshold < by_box[TARGET].m_fuse
     assert res.c_t == pytest.approx(1.0, abs=1e-6)  # C_t = best S_color
     assert res.omega == pytest.approx(appearance_weight(1.0, 0.6, 10.0), abs=1e-6)
-    arr = res.candidates_array()
-    assert arr.shape == (2, 5) and arr.dtype == np.float32
+    assert res.candidates.shape == (2, 5) and res.candidate_sources == ["detection", "detection"]
+    assert {tuple(row[:4]): row[4] for row in res.candidates} == {c.box: c.m_fuse for c in reid.candidates}
     assert res.candidate_hist is not None and res.candidate_hist.shape == (16, 8)
 
 
@@ -115,7 +117,7 @@ def test_distractor_alone_is_rejected_and_state_goes_occluded_then_lost_then_rea
         frame = draw((distractor, BLUE))
         res = reid.step(frame, dets(distractor), prior_at(TARGET, t * MS), template, t * MS)
         assert not res.accepted and res.box is None and not res.secure
-        assert res.best_box == distractor and res.m_fuse < params.reid_threshold
+        assert box_tuple(res.best_box) == distractor and res.m_fuse < params.reid_threshold
         states.append(res.state)
     # Occluded for 33..99 ms since the last accepted frame (t = 0); > 100 ms → LOST.
     assert states == [TrackState.OCCLUDED] * 3 + [TrackState.LOST] * 2
@@ -125,7 +127,7 @@ def test_distractor_alone_is_rejected_and_state_goes_occluded_then_lost_then_rea
         frame = draw((TARGET, RED), (distractor, BLUE))
         results.append(reid.step(frame, dets(TARGET, distractor), prior_at(TARGET, t * MS), template, t * MS))
     assert [r.state for r in results] == [TrackState.REACQUIRED, TrackState.REACQUIRED, TrackState.TRACKING]
-    assert all(r.accepted and r.box == TARGET for r in results)
+    assert all(r.accepted and box_tuple(r.box) == TARGET for r in results)
     assert [r.secure for r in results] == [False, False, True]  # template frozen until re-lock confirmed
 
 
@@ -133,8 +135,9 @@ def test_empty_frame_suspends() -> None:
     params = ReidParams()
     reid, template = started(params)
     res = reid.step(draw(), dets(), prior_at(TARGET, 33 * MS), template, 33 * MS)
-    assert res.state is TrackState.OCCLUDED
-    assert not res.accepted and res.candidates == [] and res.c_t == 0.0 and res.best_box is None
+    assert res.state == TrackState.OCCLUDED
+    assert not res.accepted and reid.candidates == [] and len(res.candidates) == 0 and res.c_t == 0.0
+    assert res.best_box is None
 
 
 def test_geometry_decides_when_appearance_is_unreliable() -> None:
@@ -165,7 +168,7 @@ def test_motion_blob_candidates_when_no_detection_in_gate() -> None:
     f1 = draw((moved, RED), bg=black)
     far = (5.0, 5.0, 30.0, 60.0)  # a detection outside the gate does not count
     res = reid.step(f1, dets(far), prior_at(moved, 33 * MS), template, 33 * MS)
-    assert res.candidates and all(c.source == "motion" for c in res.candidates)
+    assert reid.candidates and all(c.source == "motion" for c in reid.candidates)
     assert res.accepted and res.source == "motion"
     assert not res.secure  # a motion blob is never a secure template source
     x, y, w, h = res.box
@@ -189,9 +192,9 @@ def test_no_motion_blob_candidates_while_the_camera_pans(max_changed: float) -> 
     f1[100:160, 100:130] = RED
     res = reid.step(f1, dets(), prior_at(TARGET, 33 * MS), template, 33 * MS)
     if max_changed < 1.0:
-        assert res.candidates == [] and not res.accepted and res.state is TrackState.OCCLUDED
+        assert reid.candidates == [] and not res.accepted and res.state == TrackState.OCCLUDED
     else:
-        assert res.candidates and all(c.source == "motion" for c in res.candidates)
+        assert reid.candidates and all(c.source == "motion" for c in reid.candidates)
 
 
 def test_gate_excludes_far_detection_unless_disabled() -> None:
@@ -199,12 +202,12 @@ def test_gate_excludes_far_detection_unless_disabled() -> None:
     frame = draw((far, RED))
     reid, template = started(ReidParams())
     res = reid.step(frame, dets(far), prior_at(TARGET, 33 * MS), template, 33 * MS)
-    assert res.candidates == [] or all(c.source == "motion" for c in res.candidates)
+    assert all(c.source == "motion" for c in reid.candidates)
     assert not res.accepted
     reid, template = started(ReidParams(use_gate=False))
     res = reid.step(frame, dets(far), prior_at(TARGET, 33 * MS), template, 33 * MS)
-    assert res.accepted and res.box == far
-    assert res.candidates[0].maha_sq > 9.488
+    assert res.accepted and box_tuple(res.box) == far
+    assert reid.candidates[0].maha_sq > 9.488
 
 
 def test_two_equal_matches_are_ambiguous() -> None:
@@ -223,13 +226,13 @@ def test_initialisation_without_init_box() -> None:
     low = (150.0, 170.0, 30.0, 60.0)  # bottom-centre nearest the image bottom-centre
     high = (145.0, 10.0, 30.0, 60.0)
     res = reid.step(draw((low, RED), (high, BLUE)), dets(high, low), None, None, 0)
-    assert res.state is TrackState.TRACKING and res.init_box == low
+    assert res.state == TrackState.TRACKING and box_tuple(res.init_box) == low
     # No detection: the frame-difference ROI of §2.1 (needs a previous frame and enough contrast).
     reid = ReIdentifier(params)
     black = (0, 0, 0)
-    assert reid.step(draw(bg=black), dets(), None, None, 0).state is TrackState.UNINITIALISED
+    assert reid.step(draw(bg=black), dets(), None, None, 0).state == TrackState.UNINITIALISED
     res = reid.step(draw((TARGET, RED), bg=black), dets(), None, None, 33 * MS)
-    assert res.state is TrackState.TRACKING and res.init_box == TARGET
+    assert res.state == TrackState.TRACKING and box_tuple(res.init_box) == TARGET
 
 
 def test_restored_template_relocks_onto_matching_detection() -> None:
@@ -240,10 +243,10 @@ def test_restored_template_relocks_onto_matching_detection() -> None:
     near = (145.0, 175.0, 30.0, 60.0)
     reid = ReIdentifier(params)
     res = reid.step(draw((TARGET, RED), (near, BLUE)), dets(near, TARGET), None, template, 0)
-    assert res.init_box == TARGET and res.source == "template"
+    assert box_tuple(res.init_box) == TARGET and res.source == "template"
     # Nobody matches the template: fall back to the §2.1 rule (nearest bottom-centre).
     res = ReIdentifier(params).step(draw((near, BLUE)), dets(near), None, template, 0)
-    assert res.init_box == near and res.source == "init"
+    assert box_tuple(res.init_box) == near and res.source == "init"
 
 
 @pytest.mark.parametrize("global_search", [True, False])
@@ -252,13 +255,13 @@ def test_lost_target_is_re_detected_outside_the_gate_only_with_global_search(glo
     reid, template = started(params)
     for t in (33, 66, 99, 132):  # nothing visible: OCCLUDED, then LOST after 100 ms
         res = reid.step(draw(), dets(), prior_at(TARGET, t * MS), template, t * MS)
-    assert res.state is TrackState.LOST
+    assert res.state == TrackState.LOST
     far = (250.0, 20.0, 30.0, 60.0)  # reappears ~170 px away (a panning camera), gate radius ~62 px
     res = reid.step(draw((far, RED)), dets(far), prior_at(TARGET, 165 * MS), template, 165 * MS)
     if global_search:
-        assert res.accepted and res.box == far and res.state is TrackState.REACQUIRED
+        assert res.accepted and box_tuple(res.box) == far and res.state == TrackState.REACQUIRED
     else:
-        assert not res.accepted and res.state is TrackState.LOST
+        assert not res.accepted and res.state == TrackState.LOST
 
 
 def test_a_restarted_reid_initialises_on_the_detection_the_prior_expects() -> None:
@@ -268,12 +271,11 @@ def test_a_restarted_reid_initialises_on_the_detection_the_prior_expects() -> No
 
     pred = Predictor(KalmanParams())
     left, centre = (40.0, 60.0, 40.0, 100.0), (140.0, 60.0, 40.0, 100.0)
-    pred.apply(ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=left, source="init",
-                          init_box=left).to_message())
+    pred.apply(measurement(0, TrackState.TRACKING, Candidate(left, "init"), accepted=True, init_box=left))
     prior = pred.predict(33_000_000)
     frame = np.zeros((240, 320, 3), np.uint8)
     res = ReIdentifier(ReidParams()).step(frame, dets(left, centre), prior, None, 33_000_000)
-    assert res.init_box == left and res.source == "prior"
+    assert box_tuple(res.init_box) == left and res.source == "prior"
 
 
 def test_after_a_prediction_restart_reid_reinitialises_where_its_target_just_was() -> None:
@@ -287,25 +289,25 @@ def test_after_a_prediction_restart_reid_reinitialises_where_its_target_just_was
     assert reid.step(frame, dets(target), None, None, 0, init_box=target).accepted
     moved = (44.0, 61.0, 40.0, 100.0)
     res = reid.step(frame, dets(moved, passer), None, None, 100 * MS)
-    assert res.accepted and res.box == moved and res.source == "last"
+    assert res.accepted and box_tuple(res.box) == moved and res.source == "last"
     # Frames shown without the target for longer than lost_after_ms: too old to trust.
     later = ReIdentifier(ReidParams(lost_after_ms=500.0))
     later.step(frame, dets(target), None, None, 0, init_box=target)
     for t_ms in range(33, 600, 33):
         later.step(frame, dets(), None, None, t_ms * MS)
-    assert later.step(frame, dets(moved, passer), None, None, 627 * MS).box == passer
+    assert box_tuple(later.step(frame, dets(moved, passer), None, None, 627 * MS).box) == passer
     # But no frame at all for 900 ms (prediction restarting: no prior, so re-ID is given no input set) is no
     # evidence against the box: re-ID re-locks where its target just was.
     starved = ReIdentifier(ReidParams(lost_after_ms=500.0))
     starved.step(frame, dets(target), None, None, 0, init_box=target)
     res = starved.step(frame, dets(moved, passer), None, None, 900 * MS)
-    assert res.box == moved and res.source == "last"
+    assert box_tuple(res.box) == moved and res.source == "last"
     # Nor when the first frame after the gap shows no one: the gap still does not count, the shown frame does.
     gap = ReIdentifier(ReidParams(lost_after_ms=500.0))
     gap.step(frame, dets(target), None, None, 0, init_box=target)
     gap.step(frame, dets(), None, None, 900 * MS)
     res = gap.step(frame, dets(moved, passer), None, None, 933 * MS)
-    assert res.box == moved and res.source == "last"
+    assert box_tuple(res.box) == moved and res.source == "last"
 
 
 def test_adaptive_gate_grows_for_fast_or_weakly_detected_targets() -> None:
@@ -347,10 +349,10 @@ def test_low_score_detections_are_a_second_stage_never_a_training_sample() -> No
     # a detection that matches wins; the low-score box is not even a candidate then
     result = reid.step(frame, dets(TARGET), prior_at(TARGET, 66_000_000), template, 66_000_000,
                        low_detections=np.array([(TARGET[0] + 5, TARGET[1], TARGET[2], TARGET[3], 0.2)], np.float32))
-    assert result.accepted and result.source == "detection" and len(result.candidates) == 1
+    assert result.accepted and result.source == "detection" and len(reid.candidates) == 1
     off, template_off = started(ReidParams(low_score_stage=False))
     result = off.step(frame, dets(), prior_at(TARGET, 33_000_000), template_off, 33_000_000, low_detections=low)
-    assert not any(c.source == "low-score" for c in result.candidates)
+    assert "low-score" not in result.candidate_sources
 
 
 def test_low_score_stage_keeps_bytetracks_caution() -> None:
@@ -363,11 +365,11 @@ def test_low_score_stage_keeps_bytetracks_caution() -> None:
     beside = (TARGET[0] + 18.0, TARGET[1], TARGET[2], TARGET[3])  # in the gate, IoU 0.25 with the prediction
     weak = np.array([(*beside, 0.2)], np.float32)
     result = reid.step(draw((beside, RED)), dets(), prior_at(TARGET, 33 * MS), template, 33 * MS, low_detections=weak)
-    assert not result.accepted and result.state is TrackState.OCCLUDED
+    assert not result.accepted and result.state == TrackState.OCCLUDED
     # now occluded: not even a weak box right on the prediction is taken (the target was not matched last frame)
     on = np.array([(*TARGET, 0.2)], np.float32)
     result = reid.step(frame, dets(), prior_at(TARGET, 66 * MS), template, 66 * MS, low_detections=on)
-    assert not result.accepted and result.state is TrackState.OCCLUDED
+    assert not result.accepted and result.state == TrackState.OCCLUDED
     # a confident detection brings it back; then the weak box on the prediction is taken again
     assert reid.step(frame, dets(TARGET), prior_at(TARGET, 99 * MS), template, 99 * MS).accepted
     result = reid.step(frame, dets(), prior_at(TARGET, 132 * MS), template, 132 * MS, low_detections=on)
@@ -407,7 +409,7 @@ def test_a_partial_view_is_measured_and_output_whole_and_never_learnt_from() -> 
     res = reid.step(frame, dets(upper), prior_at(TARGET, 33 * MS), template, 33 * MS)
     assert res.accepted and res.box == pytest.approx(TARGET)
     assert not res.secure
-    assert res.candidates[0].box == upper and res.candidates[0].whole == pytest.approx(TARGET)
+    assert reid.candidates[0].box == upper and reid.candidates[0].whole == pytest.approx(TARGET)
     off, template_off = started(ReidParams(partial_view_completion=False))
     res = off.step(frame, dets(upper), prior_at(TARGET, 33 * MS), template_off, 33 * MS)
     assert res.box is None or res.box == pytest.approx(upper)

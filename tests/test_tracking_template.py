@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from followbus.msgs.tracking import Measurement
 from followbus.tracking.appearance import hs_histogram
 from followbus.tracking.params import TemplateParams
-from followbus.tracking.reid import ReidResult, TrackState
+from followbus.tracking.reid import Candidate, TrackState, measurement
 from followbus.tracking.template import TemplateUpdater
 
 BOX = (10.0, 10.0, 20.0, 20.0)
@@ -24,16 +25,16 @@ def frame_with(colour: tuple[int, int, int], specular_rows: int = 0) -> np.ndarr
     return img
 
 
-def result(frame: np.ndarray, state: TrackState, accepted: bool, secure: bool) -> ReidResult:
-    return ReidResult(t_ns=0, state=state, accepted=accepted, secure=secure, box=BOX if accepted else None,
-                      best_box=BOX, source="detection", candidate_hist=hs_histogram(frame, BOX)).to_message()
+def result(frame: np.ndarray, state: TrackState, accepted: bool, secure: bool) -> Measurement:
+    return measurement(0, state, Candidate(BOX, "detection", hist=hs_histogram(frame, BOX)), accepted=accepted,
+                       secure=secure)
 
 
 def initialised(params: TemplateParams) -> tuple[TemplateUpdater, np.ndarray]:
     tu = TemplateUpdater(params)
     red = frame_with((0, 0, 255))
-    hist, eta, _ = tu.step(red, ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX,
-                                           source="init", init_box=BOX).to_message())
+    hist, eta, _ = tu.step(red, measurement(0, TrackState.TRACKING, Candidate(BOX, "init"), accepted=True,
+                                            init_box=BOX))
     assert hist is not None and eta == 0.0
     return tu, hist
 
@@ -113,11 +114,9 @@ def test_step_before_initialisation_is_inert() -> None:
 def test_relock_with_existing_template_keeps_it() -> None:
     tu, m0 = initialised(TemplateParams())
     blue = frame_with((255, 0, 0))
-    relock = ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX, source="template",
-                        init_box=BOX).to_message()
+    relock = measurement(0, TrackState.TRACKING, Candidate(BOX, "template"), accepted=True, init_box=BOX)
     m1, eta, _ = tu.step(blue, relock)
     np.testing.assert_array_equal(m1, m0)
-    fresh = ReidResult(t_ns=0, state=TrackState.TRACKING, accepted=True, box=BOX, source="init",
-                       init_box=BOX).to_message()
+    fresh = measurement(0, TrackState.TRACKING, Candidate(BOX, "init"), accepted=True, init_box=BOX)
     m2, _, _ = tu.step(blue, fresh)
     assert m2[10, 7] == pytest.approx(1.0)  # a new target restarts the model

@@ -9,11 +9,10 @@ import pytest
 from followbus.evaluation.graph_follower import GraphFollower
 from followbus.msgs.tracking import Measurement, Prior
 from followbus.tracking.init import frame_difference_roi, motion_blobs, nearest_to_centre_bottom, to_grey
-from followbus.tracking.kalman import Predictor
+from followbus.tracking.kalman import Predictor, output_box
 from followbus.tracking.params import InvalidParam, KalmanParams, ReidParams, TemplateParams
 from followbus.tracking.reid import ReIdentifier
 from followbus.tracking.template import TemplateUpdater
-from followbus.tracking.tracker import output_box
 
 W, H = 480, 270
 BAR_X = (200, 280)  # grey occluder, full height; the target passes behind it
@@ -104,7 +103,7 @@ def test_the_graph_is_deterministic_and_is_the_seeds_order_of_the_pure_modules()
     for k in range(N_FRAMES):
         img, dets, _, _ = scene(k)
         prior = predictor.predict(k * FRAME_NS, (0.5, 0.0))
-        r = reid.step(img, dets, prior, hist, k * FRAME_NS).to_message()  # what the re-ID node publishes
+        r = reid.step(img, dets, prior, hist, k * FRAME_NS)  # what the re-ID node publishes
         predictor.apply(r, (0.5, 0.0))
         hist, eta, _ = template.step(img, r)
         ta, tb = a[k][3], b[k][3]

@@ -22,7 +22,7 @@ from followbus.msgs.group import GroundPoints, GroupState
 from followbus.tools.live.monitor import _group_line, graph_info
 from followbus.tools.live.webview import health_rows, is_loopback_bind, screen_state, web_token
 from followbus.tracking.groundplane import floor_to_image, to_odometry_frame
-from followbus.viewing.views import group_view
+from followbus.viewing.snapshot import group_view
 
 from .chromium import docs_picture, element_text, have_chromium, page_layout, render_dom, require_chromium, screenshot
 from .conftest import REPO, followbus_argv, free_port, wait_until

@@ -1,4 +1,7 @@
-"""The followbus command line."""
+"""The followbus command line.
+
+"Seed NNN" names a method paper (glossary: tracking/__init__.py).
+"""
 
 from importlib.metadata import version as _version
 

@@ -20,7 +20,7 @@ from typing import Any
 
 from . import __version__
 from .bench.commands import COMMANDS as BENCH_COMMANDS
-from .command import Command, Lazy, add_commands, describe, graph_arg, identity_args, load_graph, settings
+from .command import Command, Lazy, add_commands, describe, domain_args, graph_arg, load_graph, settings
 from .live.commands import COMMANDS as LIVE_COMMANDS
 from .recording.commands import COMMANDS as RECORDING_COMMANDS
 from .runs.commands import COMMANDS as RUNS_COMMANDS
@@ -78,7 +78,7 @@ def _launch_args(p: argparse.ArgumentParser) -> None:
                    help="seconds between SIGTERM and SIGKILL at shutdown (default 5)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter (YAML value), e.g. --set capture.source=camera:0; repeatable")
-    identity_args(p, auto=True)
+    domain_args(p, auto=True)
     p.add_argument("--log-dir", metavar="DIR", help="also write each node's output to DIR/NODE.log (`followbus up`)")
 
 
@@ -98,7 +98,7 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
                    help="where this run's node logs go (default: a new state/demo-YYYYmmdd-HHMMSS.log per run)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter, e.g. --set detection.backend=hog; repeatable")
-    identity_args(p, auto=True)
+    domain_args(p, auto=True)
 
 
 def _node_args(p: argparse.ArgumentParser) -> None:
@@ -424,7 +424,7 @@ def _exit_interrupted() -> None:
     """End the process with status 130 at once. Called while the KeyboardInterrupt is still being handled: its
     traceback keeps the interrupted command's frames, and with them any Zenoh session or subscriber they held, alive.
     Leaving the handler would free them, and dropping a Zenoh session can block for a long time on a loaded machine
-    (seen: echo still running 60 s after Ctrl-C, beside two burners and two test workers)."""
+    (a minute, beside two burners and two test workers)."""
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(130)
@@ -446,8 +446,7 @@ def _note_interrupts() -> None:
 def run() -> None:
     """The `followbus` command: main(), then exit. After Ctrl-C (status 130) the command has already cleaned up
     what it owns (a recorder finalises its file before it returns); the process then ends at once, without the
-    interpreter's shutdown, which can wait for ever on a Zenoh session the interrupt left open (seen: echo on a
-    loaded machine still running 20 s after Ctrl-C)."""
+    interpreter's shutdown, which can wait for ever on a Zenoh session the interrupt left open."""
     global _EXIT_AT_INTERRUPT
     _EXIT_AT_INTERRUPT = True
     # `kill -USR1 <pid>` prints every thread's Python stack on stderr: what a command that seems stuck is doing.

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .identity import load_graph  # noqa: F401  (the commands load graphs from here: identity applied)
+from .domains import load_graph  # noqa: F401  (the commands load graphs from here: domain applied)
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -115,13 +115,13 @@ def namespace(args: argparse.Namespace) -> str:
         return args.namespace
     if Path(getattr(args, "graph", "graph.yaml")).exists():
         return load_graph(args.graph).namespace
-    from .identity import DefaultGraph, apply_identity
+    from .domains import DefaultGraph, apply_domain
 
-    return apply_identity(DefaultGraph()).namespace
+    return apply_domain(DefaultGraph()).namespace
 
 
-def identity_args(p: argparse.ArgumentParser, auto: bool = False) -> None:
-    """A launched graph's identity on the bus (tools/identity.py): refused when that namespace already runs there."""
+def domain_args(p: argparse.ArgumentParser, auto: bool = False) -> None:
+    """A launched graph's domain on the bus (tools/domains.py): refused when that namespace already runs there."""
     p.add_argument("--domain", metavar="N" + ("|auto" if auto else ""),
                    help="run in domain N: the graph's port + N and namespace <namespace>-dN, apart from every other "
                         "domain (default: $FOLLOWBUS_DOMAIN, else 0: the graph as written)"

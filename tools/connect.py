@@ -238,13 +238,13 @@ def client_settings(graph_path: str | None, connect: list[str] | None = None, us
     identity from --user/--password ($FOLLOWBUS_ZENOH_USER / $FOLLOWBUS_ZENOH_PASSWORD; a terminal asks),
     else, without --connect, the graph's own; ``ca`` for a tls/ endpoint. ``viewer`` (monitor, foxglove):
     no shared memory and a short connect timeout, since they reconnect by themselves."""
+    from .domains import DefaultGraph, apply_domain, load_graph  # with this process's domain
     from .errors import UsageError
-    from .identity import DefaultGraph, apply_identity, load_graph  # with this process's identity
 
     if graph_path and Path(graph_path).exists():
         base = load_graph(graph_path).zenoh
     else:
-        base = apply_identity(DefaultGraph()).zenoh
+        base = apply_domain(DefaultGraph()).zenoh
     user = user or os.environ.get(USER_ENV) or None
     if password is not None and not user:
         raise UsageError("--password needs --user (the zenoh user name it belongs to)")

@@ -11,7 +11,7 @@ median translation: it also covers rotation and zoom, and the consensus set repl
 outlier rejection. The transform maps frame k-1 pixels to frame k pixels; the prediction warps the
 Kalman prior by it before gating (:meth:`followbus.tracking.kalman.KalmanCV.warp`).
 
-Knowing what it does not know (issue 22). Screen-fixed content (a burned-in clock, the robot's own body or
+Knowing what it does not know. Screen-fixed content (a burned-in clock, the robot's own body or
 mount in view, dirt on the lens) is a second consensus set that does not move: RANSAC may take it for the
 scene. So each frame fits up to two hypotheses (the largest consensus set, then the largest among the rest)
 and picks the one covering more of the image (distinct grid cells), the previous frame's motion breaking a
@@ -74,7 +74,7 @@ class EgoMotionParams:
     # most; a larger one is a fit to something else (a person filling the background, a cut).
     max_scale_change: float = 0.15
     model: str = "similarity"  # similarity (4 dof: translation, rotation, scale) | affine (6 dof)
-    # Static-content map (issue 22): a grid over the work image; a corner that moves less than static_still_px
+    # Static-content map: a grid over the work image; a corner that moves less than static_still_px
     # (work px) while the chosen motion moves the image centre by static_min_motion_px or more adds one to its
     # cell, one that follows the motion takes one off; all evidence decays by static_decay per frame. Cells
     # at static_evidence_min or above are left out of the fit (their corners are still followed, so the

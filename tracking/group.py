@@ -239,15 +239,14 @@ def _sub_target_matrix(l: int, L: int) -> np.ndarray:
 
     c is the centre of the formation, the mean of the sub-targets' slots (Alg. 1 line 43), so the slot
     offsets sum to zero: η_1 = −(η_2 + … + η_L). With sub-target 1 as the reference instead (η_1 ≡ 0), the
-    velocity in the state was that of the 2-3 people of one ellipse; referenced to the mean, each
+    velocity in the state would be that of the 2-3 people of one ellipse; referenced to the mean, each
     sub-target's own motion is averaged over all L of them.
 
     w_l is where the sub-target's people are relative to their slot right now: people in a squad sway and
     weave around their place (the S-curves of seed 004 §4.3) and come back to it. Without it, Eq. 13's slow
     random-walk offsets cannot follow a weave, so when occlusion leaves only a few people visible their
-    weave went into the group's shared velocity (the heading swung ±15° with a 3-4 s period, traced in the
-    10° occlusion run), while faster offsets let a passing non-member drag its sub-target off (tried: 0.3 m/s
-    doubled OE in `disturbance`). A mean-reverting w_l follows the weave and cannot wander."""
+    weave goes into the group's shared velocity (the heading swings with the weave), while faster offsets let a
+    passing non-member drag its sub-target off. A mean-reverting w_l follows the weave and cannot wander."""
     H = np.zeros((D, _state_size(L)))
     H[:, 0:2] = np.eye(D)
     if l > 0:
@@ -276,15 +275,15 @@ class GroupParams:
     nu_min: float = 8.0                # IW degrees of freedom kept above d+1 so E[X] stays finite
     extent_floor_m2: float = 0.09      # a sub-target is never thinner than a person (0.3 m std) …
     extent_ceiling_m2: float = 2.25    # … nor wider than 1.5 m std: an unbounded extent widens its own gate,
-                                       # takes in a passing disturber, widens again (seen in the simulator)
+                                       # takes in a passing disturber, widens again
     weight_threshold_early: float = 0.01  # §4.6: 1 % in the initial stage …
     weight_threshold_late: float = 0.10   # … then 10 %
     early_frames: int = 10
     d_th_m: float = 4.0                # Eq. 6 boundary around the predicted group centre (as CGT-UGV's)
     gate_chi2: float = 7.38            # data selection: squared Mahalanobis distance to a predicted
                                        # sub-target (χ²₂ 97.5 %). At 9.21 (99 %) a passer-by 1.4 m beside a
-                                       # one-person sub-target got in on one noisy range, stretched it and
-                                       # stayed, when the detector delivered every 2nd-3rd frame (EVALUATION.md)
+                                       # one-person sub-target gets in on one noisy range, stretches it and
+                                       # stays, when the detector delivers every 2nd-3rd frame (EVALUATION.md)
     selection_passes: int = 2          # predict → select → refine → reselect (§2.2.2)
     vb_iterations: int = 6             # Eq. 17-21 fixed-point iterations per pass
     max_lost_frames: int = 30          # frames without a selected point before re-initialising

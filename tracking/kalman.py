@@ -18,7 +18,7 @@ import numpy as np
 
 from ..msgs.box import Box, box_array, box_centre, centre_size_to_box
 from ..msgs.perception import CameraMotion
-from ..msgs.tracking import DETECTOR_SOURCES, Measurement, Prior, Track, mahalanobis_sq_from_cov
+from ..msgs.tracking import DETECTOR_SOURCES, Measurement, Prior, Track, TrackState, mahalanobis_sq_from_cov
 from .params import KalmanParams
 
 logger = logging.getLogger(__name__)
@@ -165,7 +165,7 @@ class KalmanCV:
 
     def widen(self, cov_px2: np.ndarray) -> None:
         """Add a 2x2 position covariance (px²): an uncertain camera motion moves the target by an unknown amount
-        (issue 22), so the prior, and with it the gate (Eq. 8's S = H P Hᵀ + R), grows."""
+        (tracking/egomotion.py's std_px), so the prior, and with it the gate (Eq. 8's S = H P Hᵀ + R), grows."""
         self.P[:2, :2] += np.asarray(cov_px2, dtype=np.float64)
         self.P = 0.5 * (self.P + self.P.T)
 
@@ -187,9 +187,6 @@ class KalmanCV:
 
     def mahalanobis_sq(self, z: Sequence[float], R: np.ndarray | None = None) -> float:
         return mahalanobis_sq_from_cov(z, self.x[:2], self.innovation_cov(R))
-
-    def in_gate(self, z: Sequence[float], R: np.ndarray | None = None) -> bool:
-        return self.mahalanobis_sq(z, R) <= self.gate_chi2  # Eq. 8
 
     def gate_ellipse(self, R: np.ndarray | None = None) -> tuple[float, float, float, float, float]:
         return gate_ellipse_from_cov(self.x[:2], self.innovation_cov(R), self.gate_chi2)
@@ -365,11 +362,11 @@ class Predictor:
         return prior
 
     def _compensate(self, kf: KalmanCV, motion: CameraMotion | None, from_t_ns: int | None, t_ns: int) -> None:
-        """Seed 002 §3.3's warp with issue 22's doubt, on the "scene" model. A motion that starts where the applied
-        chain ends (the filter's last stamp, or an earlier frame whose fit failed: egomotion then spans both steps)
-        warps the prior and widens it by its std²; a doubtful one (std above camera_motion_doubt_px) leaves a
-        coasting prior in place, widened by the displacement it would have applied. No motion: the prior as
-        predicted."""
+        """Seed 002 §3.3's warp with the motion's doubt (its std_px), on the "scene" model. A motion that starts where
+        the applied chain ends (the filter's last stamp, or an earlier frame whose fit failed: egomotion then spans
+        both steps) warps the prior and widens it by its std²; a doubtful one (std above camera_motion_doubt_px)
+        leaves a coasting prior in place, widened by the displacement it would have applied. No motion: the prior
+        as predicted."""
         p = self.params
         chained = (motion is not None and motion.header.stamp_ns == t_ns
                    and motion.from_stamp_ns in (from_t_ns, self._motion_t_ns))
@@ -399,7 +396,7 @@ class Predictor:
     def apply(self, reid: Measurement, v_ego_mps: Sequence[float] = (0.0, 0.0)) -> Track | None:
         """Fold frame k's re-ID measurement into the filters (Alg. 1 lines 11/13 and 16/17) and reweigh the models
         by how well each predicted it; the posterior as a track (its output ``box`` is the caller's:
-        tracking/tracker.py ``output_box``), None before initialisation."""
+        :func:`output_box`), None before initialisation."""
         t_ns = reid.header.stamp_ns
         self._coasting = not reid.accepted and reid.init_box is None
         if reid.init_box is not None:
@@ -438,3 +435,16 @@ class Predictor:
                       velocity=np.array([float(combined.x[2]), float(combined.x[3])]), measured=measured)
         track.header.stamp_ns = int(reid.header.stamp_ns)
         return track
+
+
+def output_box(reid: Measurement, prior: Prior | None) -> np.ndarray | None:
+    """The tracker's output for a frame: the accepted box; while OCCLUDED the predicted box (§2.3:
+    keep following the hidden trajectory: the likeliest motion model's) as long as it still locates the person
+    (Prior.locates_person: it more likely overlaps them than not, KalmanParams.occluded_output_min_overlap_probability);
+    None when LOST, before initialisation or when the prediction no longer locates the person. The prediction node
+    publishes exactly this as its Track message's ``box``."""
+    if reid.accepted:
+        return reid.box
+    if reid.state != TrackState.OCCLUDED or prior is None or not prior.initialised or not prior.locates_person:
+        return None
+    return prior.box if prior.likeliest_box is None else prior.likeliest_box

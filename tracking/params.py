@@ -160,8 +160,7 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # ones (the detection node's low_boxes, score in [low_score_threshold, score_threshold)) are tried, never
     # as training samples, and with ByteTrack's caution: only for a target matched on the previous frame (not
     # OCCLUDED or LOST) and only a box overlapping the predicted box by low_score_min_iou (its second stage's
-    # IoU 0.5). Without that caution a stranger's weak box in the gate of an occluded target was taken
-    # (mot17-mini-13 100 -> 40 % TSR@20px).
+    # IoU 0.5): without that caution a stranger's weak box in the gate of an occluded target is taken for it.
     low_score_stage: bool = True
     low_score_min_iou: float = 0.5
     # Partial views (reid.complete_partial_view): a detector box under partial_max_extent_ratio of the predicted
@@ -176,7 +175,7 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # as the predicted height from that edge, never as a training sample.
     merged_view_trimming: bool = True
     merged_min_extent_ratio: float = 1.5
-    # Learned appearance (seed 001, tracking/identity.py): an OSNet descriptor and an online ridge-regression
+    # Learned appearance (seed 001, tracking/learned_appearance.py): an OSNet descriptor and an online ridge-regression
     # classifier of the target against the other people decide when colour + geometry cannot: between
     # candidates within identity_margin of the best M_fuse, and on a re-lock after an occlusion.
     learned_appearance: bool = True

@@ -4,7 +4,7 @@ prediction, where that region is, and how its boxes join the frame's.
 The full-frame detector sees a 1280x720 frame at its input size (416: a third of the pixels across), so a 60 px
 person is 20 px to it: it misses the person, or boxes them together with a neighbour. Seed 002 runs the detector
 again on a region of interest around the Kalman prediction when the target is missed; here the region is inferred
-at the frame's own resolution, so what was 20 px is 60 px again. Every decision below is a pure function; the
+at the frame's own resolution, where the 20 px person is 60 px again. Every decision below is a pure function; the
 redetection node (nodes/redetection.py) runs the detector, re-ID (tracking/reid.py) associates its boxes.
 
 * Search scale k (seed 002 §3.2): 1 for a slow target last seen on a confident detection, up to ``scale_max`` for

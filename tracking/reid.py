@@ -29,11 +29,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..msgs.box import Box, box_array, box_centre, box_iou
+from ..msgs.box import Box, box_array, box_centre, box_iou, box_tuple
 from ..msgs.tracking import DETECTOR_SOURCES, Measurement, Prior, TrackState
 from .appearance import bhattacharyya, hs_histogram
-from .identity import CROP_H_PX, CROP_W_PX, IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
+from .learned_appearance import CROP_H_PX, CROP_W_PX, IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .params import ReidParams
 from .reacquisition import BystanderTracks, ReacquisitionEvidence
 from .redetection import RegionBoxes, merge_region_boxes, search_scale
@@ -112,8 +112,8 @@ def complete_partial_view(box: Sequence[float], predicted_box: Sequence[float], 
     person. Taken as it is, a cut box drags the Kalman centre towards the visible part and gives it a velocity
     the occlusion then carries on (the prior drifts away while the person is hidden), and its height makes the
     person look farther away than they are. Only the height: a walking person's width changes with every
-    stride and swing of the arms, so a narrow box is no evidence of an occluder (completing widths anchored the
-    wrong side of a person walking behind a pillar), while the height of a standing or walking person holds."""
+    stride and swing of the arms, so a narrow box is no evidence of an occluder (completing widths would anchor
+    the wrong side of a person walking behind a pillar), while the height of a standing or walking person holds."""
     w, pw, ph = float(box[2]), float(predicted_box[2]), float(predicted_box[3])
     if w <= 0.0 or pw <= 0.0 or float(box[3]) / w >= max_ratio * ph / pw:
         return tuple(float(v) for v in box)  # type: ignore[return-value]  # a whole person's shape
@@ -160,11 +160,14 @@ def fuse(s_color: float, s_geo: float, omega: float) -> float:
 
 @dataclass
 class Candidate:
+    """A box re-ID weighs for the target, with its scores once scored; the box an initialisation chose is one too
+    (source "init", "template", "prior" or "last", no scores)."""
+
     box: Box
     source: str  # "detection", "redetection" (seed 002 §3.2's region), "low-score" or "motion"
-    maha_sq: float
-    s_color: float
-    s_geo: float
+    maha_sq: float = 0.0
+    s_color: float = 0.0
+    s_geo: float = 0.0
     m_fuse: float = 0.0
     hist: np.ndarray | None = field(default=None, repr=False)
     # The target's own whole box when the detector box is a partial view (complete_partial_view) or a merged one
@@ -178,49 +181,24 @@ class Candidate:
         return self.whole if self.whole is not None else self.box
 
 
-@dataclass
-class ReidResult:
-    """Outcome of Algorithm 1 for one frame, with the scored candidates themselves; what the other nodes read of it
-    is its :class:`Measurement` (:meth:`to_message`, the one mapping)."""
-
-    t_ns: int
-    state: TrackState
-    accepted: bool = False
-    secure: bool = False
-    box: Box | None = None  # the accepted box (Alg. 1 line 11), else None
-    best_box: Box | None = None  # argmax M_fuse even when rejected (ablation without suspension)
-    # Origin of the chosen box: "detection", "motion", or on an initialisation frame "init" (new
-    # target: the template restarts from it) or "template" (re-lock with an existing template).
-    source: str = ""
-    m_fuse: float = 0.0
-    s_color: float = 0.0
-    s_geo: float = 0.0
-    omega: float = 0.0
-    c_t: float = 0.0
-    candidates: list[Candidate] = field(default_factory=list)
-    candidate_hist: np.ndarray | None = None  # H-S histogram C* of the chosen candidate
-    init_box: Box | None = None  # set on the frame the target was (re)initialised
-    detector_score: float | None = None  # the score of the box the target was last accepted on (search_scale)
-
-    def to_message(self) -> Measurement:
-        """The result as prediction and template update consume it, stamped with the frame (candidates as
-        x, y, w, h, M_fuse rows in float64, so a value is the same in-process and across the bus)."""
-        msg = Measurement(
-            state=self.state.value, accepted=bool(self.accepted), secure=bool(self.secure), box=box_array(self.box),
-            best_box=box_array(self.best_box), source=self.source, m_fuse=float(self.m_fuse),
-            s_color=float(self.s_color), s_geo=float(self.s_geo), omega=float(self.omega), c_t=float(self.c_t),
-            candidates=np.array([(*c.box, c.m_fuse) for c in self.candidates], dtype=np.float64).reshape(-1, 5),
-            candidate_sources=[c.source for c in self.candidates],
-            candidate_hist=None if self.candidate_hist is None else np.asarray(self.candidate_hist),
-            init_box=box_array(self.init_box),
-            detector_score=-1.0 if self.detector_score is None else float(self.detector_score))
-        msg.header.stamp_ns = int(self.t_ns)
-        return msg
-
-    def candidates_array(self) -> np.ndarray:
-        """(N, 5) float32 rows x, y, w, h, M_fuse (the bus ``Measurement.candidates`` layout)."""
-        rows = [(*c.box, c.m_fuse) for c in self.candidates]
-        return np.array(rows, dtype=np.float32).reshape(-1, 5)
+def measurement(t_ns: int, state: TrackState, chosen: Candidate | None = None, *, accepted: bool = False,
+                secure: bool = False, c_t: float = 0.0, omega: float = 0.0, candidates: Sequence[Candidate] = (),
+                init_box: Box | None = None, detector_score: float | None = None) -> Measurement:
+    """Algorithm 1's outcome for one frame as prediction and template update consume it, stamped with the frame:
+    the ``chosen`` candidate's place, origin and scores (its box as the measurement when ``accepted``), and the
+    scored candidates as x, y, w, h, M_fuse rows in float64, so a value is the same in-process and across the bus."""
+    msg = Measurement(
+        state=state.value, accepted=bool(accepted), secure=bool(secure),
+        box=box_array(chosen.located) if accepted and chosen is not None else None,
+        best_box=None if chosen is None else box_array(chosen.located), source="" if chosen is None else chosen.source,
+        m_fuse=float(chosen.m_fuse) if chosen else 0.0, s_color=float(chosen.s_color) if chosen else 0.0,
+        s_geo=float(chosen.s_geo) if chosen else 0.0, omega=float(omega), c_t=float(c_t),
+        candidates=np.array([(*c.box, c.m_fuse) for c in candidates], dtype=np.float64).reshape(-1, 5),
+        candidate_sources=[c.source for c in candidates],
+        candidate_hist=None if chosen is None or chosen.hist is None else np.asarray(chosen.hist),
+        init_box=box_array(init_box), detector_score=-1.0 if detector_score is None else float(detector_score))
+    msg.header.stamp_ns = int(t_ns)
+    return msg
 
 
 def _valid_boxes(detections: np.ndarray | None) -> list[Box]:
@@ -336,14 +314,17 @@ class ReIdentifier:
         self._bystanders = BystanderTracks(p.reacquire_window_frames, p.reacquire_max_step_heights)
         self._frame_boxes: list[Box] = []  # this frame's detections and which of them are bystanders
         self._frame_bystanders: list[bool] = []
+        self.candidates: list[Candidate] = []  # the last frame's scored candidates (step)
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
              template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None,
              defer_learning: bool = False, low_detections: np.ndarray | None = None,
-             region: RegionBoxes | None = None) -> ReidResult:
-        """Run one frame (see :meth:`_step`); remembers the accepted box. The learned appearance's training
-        sample of the frame (descriptors: a few ms) is taken at the end, or with ``defer_learning`` when the
-        caller calls :meth:`learn_pending` (the node: after publishing the measurement, off the motor's path).
+             region: RegionBoxes | None = None) -> Measurement:
+        """Run one frame (see :meth:`_step`); remembers the accepted box, and in :attr:`candidates` the frame's
+        scored candidates (the measurement carries their boxes and M_fuse; tests and ``eval --trace`` read the
+        rest). The learned appearance's training sample of the frame (descriptors: a few ms) is taken at the end,
+        or with ``defer_learning`` when the caller calls :meth:`learn_pending` (the node: after publishing the
+        measurement, off the motor's path).
         ``region``: what the re-detection of the region around the prediction found (seed 002 §3.2), merged with
         the frame's detections (tracking/redetection.py)."""
         self._pending = None
@@ -354,7 +335,7 @@ class ReIdentifier:
         boxes = _frame_boxes(detections, low_detections, region, (frame_bgr.shape[1], frame_bgr.shape[0]))
         result = self._step(frame_bgr, boxes, prior, template_hist, t_ns, init_box)
         if result.accepted and result.box is not None:
-            self._last_box = tuple(float(v) for v in result.box)
+            self._last_box = box_tuple(result.box)
             self._bystanders.adopt(self._frame_boxes, self._frame_bystanders, self._last_box, self._frame)
         if not defer_learning:
             self.learn_pending()
@@ -374,7 +355,7 @@ class ReIdentifier:
         template_hist: np.ndarray | None,
         t_ns: int,
         init_box: Sequence[float] | None = None,
-    ) -> ReidResult:
+    ) -> Measurement:
         """Run one frame. The low-score rows (under the detector's threshold) are a second stage when no
         detection in the gate matched (seed 002's ByteTrack association).
         Without a prior or a template (or with an explicit ``init_box``) this initialises the target
@@ -389,6 +370,7 @@ class ReIdentifier:
         prev_grey, self._prev_grey = self._prev_grey, grey
         boxes = dets.all
         self._frame_boxes, self._frame_bystanders = boxes, self._bystanders.link(boxes, self._frame)
+        self.candidates = []
         if init_box is not None or prior is None or template_hist is None:
             return self._initialise(frame_bgr, boxes, prev_grey, grey, t_ns, init_box, template_hist, prior)
 
@@ -403,15 +385,15 @@ class ReIdentifier:
             match = self._motion_stage(frame_bgr, prev_grey, grey, prior, template_hist)
         match = self._reacquire_on_evidence(frame_bgr, match)
         self._advance_state(match.accepted, t_ns)
-        result = self._result(t_ns, match)
         if match.accepted and match.best is not None:
             scored = {"detection": dets.rows, "redetection": dets.rows, "low-score": dets.low_rows}.get(
                 match.best.source)
             self._last_score = (_detection_score(scored, match.best.box) if scored is not None
                                 else self.params.gate_low_score)  # a motion blob: as weak as a detection can be
-        result.detector_score = self._last_score
-        if result.secure and result.box is not None:
-            self._pending = (frame_bgr, result.box, boxes)
+        self.candidates = match.candidates
+        result = self._result(t_ns, match)
+        if result.secure and match.best is not None:
+            self._pending = (frame_bgr, match.best.located, boxes)
         logger.debug(
             "reid t=%d state=%s n=%d C_t=%.3f ω=%.3f M=%.3f", t_ns, self.state.value, len(match.candidates),
             match.c_t, match.omega, result.m_fuse,
@@ -531,27 +513,24 @@ class ReIdentifier:
         candidates = self._gate_candidates([b for b, _ in blobs], prior, "motion")
         return self._match(frame_bgr, candidates, prior, template_hist)
 
-    def _result(self, t_ns: int, match: _Match) -> ReidResult:
-        """The frame's result once the state has advanced: the best candidate's scores, and its box if accepted
+    def _result(self, t_ns: int, match: _Match) -> Measurement:
+        """The frame's measurement once the state has advanced: the best candidate's scores, and its box if accepted
         (secure: TRACKING on an unambiguous detection)."""
-        result = ReidResult(t_ns=t_ns, state=self.state, accepted=match.accepted, omega=match.omega, c_t=match.c_t,
-                            candidates=match.candidates)
+        return measurement(t_ns, self.state, match.best, accepted=match.accepted, secure=self._secure(match),
+                           c_t=match.c_t, omega=match.omega, candidates=match.candidates,
+                           detector_score=self._last_score)
+
+    def _secure(self, match: _Match) -> bool:
+        """Eq. 10's "tracked securely": accepted while TRACKING, on a detector box no other candidate comes within
+        ambiguity_margin of, and not a partial view (its whole box covers the occluder: no training sample)."""
         best = match.best
-        if best is None:
-            return result
+        if best is None or not match.accepted:
+            return False
         ambiguous = any(
             c is not best and c.m_fuse >= best.m_fuse - self.params.ambiguity_margin for c in match.candidates
         )
-        result.best_box = best.located
-        result.source = best.source
-        result.m_fuse, result.s_color, result.s_geo = best.m_fuse, best.s_color, best.s_geo
-        result.candidate_hist = best.hist
-        if match.accepted:
-            result.box = best.located
-            # A partial view is no training sample: its whole box covers the occluder.
-            result.secure = (self.state is TrackState.TRACKING and not ambiguous and best.source in DETECTOR_SOURCES
-                             and best.whole is None)
-        return result
+        return (self.state is TrackState.TRACKING and not ambiguous and best.source in DETECTOR_SOURCES
+                and best.whole is None)
 
     def _score(self, frame_bgr: np.ndarray, candidates: list[Candidate], prior: Prior,
                template_hist: np.ndarray) -> tuple[Candidate | None, float, float]:
@@ -594,7 +573,7 @@ class ReIdentifier:
         k = self.gate_scale(prior)
         return prior if k == 1.0 else dataclasses.replace(prior, gate_chi2=prior.gate_chi2 * k * k)
 
-    # --- learned appearance (seed 001, tracking/identity.py) ------------------------------------------------
+    # --- learned appearance (seed 001, tracking/learned_appearance.py) ------------------------------------------------
 
     def prepare(self) -> bool:
         """Load the descriptor model now rather than at the first decision that needs it (a live node: the
@@ -615,7 +594,7 @@ class ReIdentifier:
         """Colour + geometry chose ``best``; the classifier decides when that choice is not clear (seed 001
         §III-D): among the contenders within ``identity_margin`` of it, the one it scores highest, if that
         one clears δ_switch; on a re-lock after an occlusion, a lone contender scoring below δ_switch is taken
-        for someone else and rejected (the target stays occluded), and a contender far from the prior (issue 22)
+        for someone else and rejected (the target stays occluded), and a contender far from the prior
         must score δ_id on ``n_id_frames`` consecutive frames (seed 001's Re-ID state). Returns (chosen, accepted)."""
         p = self.params
         relock = self.state in (TrackState.OCCLUDED, TrackState.LOST)
@@ -724,7 +703,7 @@ class ReIdentifier:
         init_box: Sequence[float] | None,
         template_hist: np.ndarray | None,
         prior: Prior | None = None,
-    ) -> ReidResult:
+    ) -> Measurement:
         p = self.params
         height, width = grey.shape[:2]
         box: Box | None = None
@@ -746,7 +725,7 @@ class ReIdentifier:
             box = blobs[0][0] if blobs else None
         if box is None:
             self.state = TrackState.UNINITIALISED
-            return ReidResult(t_ns=t_ns, state=self.state)
+            return measurement(t_ns, self.state)
         self._last_score = None
         if source == "init":  # a new target: what the classifier learnt was someone else
             self.identity.reset()
@@ -756,22 +735,14 @@ class ReIdentifier:
         self._t_last_accept_ns, self._unseen_since_accept_ns = t_ns, 0
         self._reacquired_count = 0
         logger.info("target initialised at %s (%s)", tuple(round(v, 1) for v in box), source)
-        return ReidResult(
-            t_ns=t_ns,
-            state=self.state,
-            accepted=True,
-            box=box,
-            best_box=box,
-            source=source,
-            candidate_hist=hs_histogram(frame_bgr, box, p.bins_h, p.bins_s),
-            init_box=box,
-        )
+        chosen = Candidate(box, source, hist=hs_histogram(frame_bgr, box, p.bins_h, p.bins_s))
+        return measurement(t_ns, self.state, chosen, accepted=True, init_box=box)
 
     def _recent_last_box(self, t_ns: int) -> Box | None:
         """The last accepted box, if accepted within lost_after_ms of the frames this re-ID was shown: a gap in
         which it was given no frame at all (prediction restarting: no prior, so no input set) is not time the
-        target was looked for and not seen. A prediction that took 3.3 s to restart made the box look 3 s
-        stale, and re-ID re-initialised on the person nearest the image bottom instead."""
+        target was looked for and not seen (a slow restart of prediction would make the box look stale, and re-ID
+        re-initialise on the person nearest the image bottom instead)."""
         seen_ns = t_ns - self._t_last_accept_ns - self._unseen_since_accept_ns
         if self._last_box is None or seen_ns > self.params.lost_after_ms * 1e6:
             return None
@@ -796,7 +767,7 @@ class ReIdentifier:
             gated = p.use_gate and not (p.global_search_when_lost and self.state is TrackState.LOST)
             if gated and not d2 <= prior.gate_chi2:  # Eq. 8 (also drops NaN)
                 continue
-            out.append(Candidate(box=box, source=source, maha_sq=d2, s_color=0.0, s_geo=0.0, whole=whole))
+            out.append(Candidate(box=box, source=source, maha_sq=d2, whole=whole))
         return out
 
     def _whole(self, box: Box, prior: Prior, source: str) -> Box | None:

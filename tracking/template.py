@@ -40,27 +40,27 @@ class TemplateUpdater:
         logger.info("template initialised from box %s", tuple(round(float(v), 1) for v in box[:4]))
         return self.hist.copy()
 
-    def step(self, frame_bgr: np.ndarray, reid_result: Measurement) -> tuple[np.ndarray | None, float, float]:
+    def step(self, frame_bgr: np.ndarray, measurement: Measurement) -> tuple[np.ndarray | None, float, float]:
         """Apply frame k's re-ID measurement; returns (M_k, η_k, P_specular)."""
         p = self.params
-        if reid_result.init_box is not None:
-            p_specular = specular_penalty(frame_bgr, reid_result.init_box, p.tau_v, p.tau_s)
-            if reid_result.source == "template" and self.hist is not None:
+        if measurement.init_box is not None:
+            p_specular = specular_penalty(frame_bgr, measurement.init_box, p.tau_v, p.tau_s)
+            if measurement.source == "template" and self.hist is not None:
                 return self.hist.copy(), 0.0, p_specular  # re-locked with this very template: keep it
-            return self.initialise(frame_bgr, reid_result.init_box), 0.0, p_specular
+            return self.initialise(frame_bgr, measurement.init_box), 0.0, p_specular
         if self.hist is None:
             return None, 0.0, 0.0
-        if reid_result.accepted and reid_result.box is not None:
-            box, secure = reid_result.box, reid_result.secure
-        elif not p.suspend_updates and reid_result.best_box is not None:
-            box, secure = reid_result.best_box, True  # ablation: no occlusion-triggered freeze
+        if measurement.accepted and measurement.box is not None:
+            box, secure = measurement.box, measurement.secure
+        elif not p.suspend_updates and measurement.best_box is not None:
+            box, secure = measurement.best_box, True  # ablation: no occlusion-triggered freeze
         else:
             return self.hist.copy(), 0.0, 0.0  # Eq. 10 second branch: occlusion persists, η = 0
         p_specular = specular_penalty(frame_bgr, box, p.tau_v, p.tau_s)  # Eq. 9
         # Eq. 10; the ablation without adaptive η uses η_base on every update.
         eta = learning_rate(p_specular, secure, p.eta_base, p.lambda_specular) if p.adaptive_eta else p.eta_base
         if eta > 0.0:
-            c_star = reid_result.candidate_hist
+            c_star = measurement.candidate_hist
             if c_star is None:
                 c_star = hs_histogram(frame_bgr, box, p.bins_h, p.bins_s)
             self.hist = self.blend(self.hist, c_star, eta)

@@ -36,7 +36,7 @@ from ..msgs.perception import GroundTruth
 from ..msgs.robot import MotorCommand
 from ..msgs.tracking import Measurement, Prior, Template, Track
 from ..tracking.groundplane import CameraGeometry
-from .views import STATUS_FRESH_NS, _centre, message_views, node_row
+from .snapshot import STATUS_FRESH_NS, _centre, latest_views, node_row
 
 log = logging.getLogger("followbus.monitor")
 
@@ -399,7 +399,7 @@ class BusMonitor:
         return to_svg(graph) if graph.nodes else ""
 
     def snapshot(self) -> dict[str, Any]:
-        """A JSON-friendly picture of everything the monitor knows (the views: viewing/views.py)."""
+        """A JSON-friendly picture of everything the monitor knows (its parts: viewing/snapshot.py)."""
         self._merge_status()
         now_ns = time.time_ns()
         with self.lock:
@@ -423,7 +423,7 @@ class BusMonitor:
             statuses = {name: node.status for name, node in self.nodes.items()
                         if node.status is not None and now_ns - node.status_ns < STATUS_FRESH_NS}
             out["links"] = [link.describe() for link in links_of_statuses(statuses) if short_of_sent(link)]
-            out.update(message_views(self.latest, self._poses, self.info.camera))
+            out.update(latest_views(self.latest, self._poses, self.info.camera))
             err = self.history["centre_error_px"]
             out["centre_error_px"] = err[-1][1] if err else None
             if preview is not None:

@@ -224,7 +224,7 @@ def _ort_session(model_path: Path, threads: int | None) -> Any:
         opts.intra_op_num_threads = int(threads)
         opts.inter_op_num_threads = 1
     # Idle inference threads spin by default, burning a core the other nodes of the graph need: on two
-    # cores that alone doubled the end-to-end p50 (BENCHMARKS.md, pipeline, 2026-11-23).
+    # cores that alone doubles the end-to-end p50 (BENCHMARKS.md, pipeline).
     opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     try:
         return ort.InferenceSession(str(model_path), sess_options=opts, providers=["CPUExecutionProvider"])

@@ -32,7 +32,7 @@ MODEL_ROLES = {
     "yolox_nano_dynamic.onnx": "YOLOX-nano person detector taking any input height and width (input_shape: fit, "
                                "graph.yaml's; the weights of yolox_nano_640.onnx)",
     "yolox_nano_640_int8.onnx": "YOLOX-nano@640 statically quantized to INT8 (--detector yolox640-int8; recipe: "
-                                "vision/quantize.py; measured, not for use: ceiling 38.8 %, BENCHMARKS.md)",
+                                "vision/quantize.py; not for use: its detector ceiling is 38.8 %, BENCHMARKS.md)",
     "osnet_x0_25_msmt17.onnx": "OSNet-x0.25 person re-ID embedding (MSMT17)",
 }
 

@@ -243,8 +243,8 @@ def _dora_sender(plan: dict[str, Any]) -> dict[str, Any]:
     from dora import Node
 
     node = Node()
-    # The receiver says when it listens (as the zenoh paths' ready file): a fixed sleep lost the first messages
-    # of a loaded machine, where the receiver's imports alone can take seconds.
+    # The receiver says when it listens (as the zenoh paths' ready file): a fixed sleep would lose the first
+    # messages on a loaded machine, where the receiver's imports alone can take seconds.
     for event in node:
         if event["type"] == "INPUT" and event["id"] == "ready":
             break

@@ -189,8 +189,8 @@ def _link_args(p: argparse.ArgumentParser) -> None:
                    help="detection backend of the robot graph (default simulated)")
     p.add_argument("--port", type=int, default=21650, help="the robot's port, inside its namespace (default 21650)")
     p.add_argument("--unprotected", action="store_true",
-                   help="the robot's links to the laptop keep BLOCK congestion control (as before bus/netif.py): "
-                        "shows what a laptop recording raw frames did to the robot")
+                   help="the robot's links to the laptop keep BLOCK congestion control (bus/netif.py off): "
+                        "shows what a laptop recording raw frames does to an unprotected robot")
     p.add_argument("--log", default="state/link.log", help="the robot graph's log (default state/link.log)")
     p.add_argument("--drop-wait-us", type=int, metavar="US",
                    help="the robot's zenoh wait_before_drop and max_wait_before_drop_fragments (default "

@@ -51,13 +51,13 @@ CASES = ("none", "monitor", "record-all", "record", "watch", "frames")
 LAPTOP_KEYS = {"watch": ("motor/command", "prediction/track", "capture/preview"),
                "frames": ("motor/command", "prediction/track", "capture/preview", "capture/frame")}
 LARGE_RULES = ("block_first", "drop")  # what the robot's router does with large messages to the laptop
-IDENTITY_ENV = ("FOLLOWBUS_DOMAIN", "FOLLOWBUS_NAMESPACE", "FOLLOWBUS_PORT")  # each namespace is a machine of its own
+DOMAIN_ENVS = ("FOLLOWBUS_DOMAIN", "FOLLOWBUS_NAMESPACE", "FOLLOWBUS_PORT")  # each namespace is a machine of its own
 USERS_FILE = REPO / "docs" / "zenoh-users.example.txt"  # robot, monitor, operator with their example passwords
 MONITOR_PASSWORD = "change-me-monitor"
 SETTLE_S = 3.0  # the laptop joins and its subscriptions reach the robot before a window opens
 LAPTOP_START_S = 30.0  # at most this long for the laptop's first line (it has started) before the settle time
 # The laptop's processes share this machine's cores with the robot; a real laptop's CPU is its own. At nice 19
-# they take only what the robot leaves, which is the nearest one machine comes to that (0: as before 2026-11-26).
+# they take only what the robot leaves, which is the nearest one machine comes to that (0: the laptop competes).
 LAPTOP_NICE = 19
 LINK_FILL_S = 5.0  # watch and frames: the link's queues fill for this long before a window opens
 MIN_RECORDED_S = 5.0  # a check's laptop (run_case until_answered) records at least this long
@@ -264,9 +264,9 @@ class LinkBench:
                                        drop_wait_us=drop_wait_us,
                                        old_large_rule_on=pair.links[0] if large_rule == "drop" else "")
         self.endpoint = f"tcp/{pair.addresses[0]}:{port}"
-        # The namespaces are machines of their own: this shell's graph identity (domain, namespace, port) is not
+        # The namespaces are machines of their own: this shell's domain settings (domain, namespace, port) is not
         # theirs, and the probes read the graph file as written.
-        env = {k: v for k, v in os.environ.items() if k not in IDENTITY_ENV}
+        env = {k: v for k, v in os.environ.items() if k not in DOMAIN_ENVS}
         self.env = dict(env, FOLLOWBUS_ZENOH_PASSWORD=MONITOR_PASSWORD, PYTHONUNBUFFERED="1")
         self.robot = subprocess.Popen(pair.argv(0, [sys.executable, "-m", "followbus.tools.cli", "launch",
                                                     str(self.graph), "--startup-timeout", "90"]),
@@ -312,8 +312,8 @@ class LinkBench:
             laptop = subprocess.Popen(self.pair.argv(1, niced), cwd=self.tmp, env=self.env, stdin=subprocess.DEVNULL,
                                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
             output = _LineReader(laptop)
-            # The window opens once the laptop has said it is there: on a loaded machine a niced laptop took longer
-            # than the settle time just to start, and was stopped before it had recorded anything.
+            # The window opens once the laptop has said it is there: on a loaded machine a niced laptop can take
+            # longer than the settle time just to start, and would be stopped before it had recorded anything.
             output.first_line(LAPTOP_START_S)
             time.sleep(SETTLE_S)
         robot = self._until_answered(seconds) if until_answered else self.window(seconds)

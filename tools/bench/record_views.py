@@ -1,9 +1,9 @@
-"""``followbus bench record-views FILE``: what the recorder's views cost per frame, now and as they were.
+"""``followbus bench record-views FILE``: what the recorder's views cost per frame, against the former views.
 
 Replays the bus messages of a recording through the recorder's two threads' work, in one process, rounds
 alternated: *convert* (decode + the views) and *write* (bus bytes + views into an MCAP file on /dev/shm when it
-exists, else the temporary directory), per frame of the recording's frame key. ``before`` is the recorder up to
-this change (frames as foxglove.CompressedImage, JPEG in base64 JSON; annotations of Detections, Prior, Track);
+exists, else the temporary directory), per frame of the recording's frame key. ``before`` is the former recorder's
+views (frames as foxglove.CompressedImage, JPEG in base64 JSON; annotations of Detections, Prior, Track);
 ``now`` is tools/recording/views.py (ROS 2 CDR for frames, command, odometry, detections; JSON of every message;
 the same annotations) plus the ROS 2 companion file. The recorder keeps up while convert and write each stay
 under a frame period (33 ms at 30 Hz): they run on threads of their own. Times are the thread's CPU time

@@ -32,7 +32,7 @@ from ...msgs.robot import MotorCommand
 from ...msgs.tracking import Measurement, Prior, Track
 from ...viewing.drawing import ELLIPSE_POINTS, ellipse_outline, gate_polygon
 from ...viewing.monitor import GraphInfo
-from ...viewing.views import group_view
+from ...viewing.snapshot import group_view
 from .introspect import wait_for
 
 log = logging.getLogger("followbus.foxglove")

@@ -31,15 +31,15 @@ def monitor_settings(graph_path: str | None, connect: list[str] | None, user: st
 
 
 def graph_info(graph_path: str | None, namespace: str | None = None) -> GraphInfo:
-    """What the viewers take from ``graph_path`` (when it exists; with this process's identity applied, as
+    """What the viewers take from ``graph_path`` (when it exists; with this process's domain applied, as
     every command loads a graph), ``namespace`` winning over the graph's; without a graph file the namespace
-    every other command would use ($FOLLOWBUS_NAMESPACE, $FOLLOWBUS_DOMAIN: tools/identity.py)."""
+    every other command would use ($FOLLOWBUS_NAMESPACE, $FOLLOWBUS_DOMAIN: tools/domains.py)."""
     from ..command import load_graph
-    from ..identity import DefaultGraph, apply_identity
+    from ..domains import DefaultGraph, apply_domain
 
     graph = load_graph(graph_path) if graph_path and Path(graph_path).exists() else None
     if graph is None and not namespace:
-        namespace = apply_identity(DefaultGraph()).namespace
+        namespace = apply_domain(DefaultGraph()).namespace
     return GraphInfo.from_graph(graph, namespace)
 
 

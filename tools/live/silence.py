@@ -16,7 +16,7 @@ SILENCE_S = 1.0
 
 
 def graph_keys(graph_path: str | None) -> dict[str, str]:
-    """Every key a node of the graph file (with this process's identity) publishes -> that node: its outputs, and
+    """Every key a node of the graph file (with this process's domain) publishes -> that node: its outputs, and
     the parameter_events every node publishes (bus/live_params.py)."""
     if not graph_path or not Path(graph_path).exists():
         return {}

@@ -23,21 +23,11 @@ Every chunk is closed and flushed at least every ``--chunk-seconds`` (and whenev
 ``--chunk-mb``), so a recorder killed with SIGKILL loses at most that much: ``followbus recover``
 rewrites the complete chunks into a valid file. SIGINT/SIGTERM finalise the file (summary, index).
 
-Compression: lz4. Measured on this 2-core VM with a capture node looping ../shared/data/sot/uav-person11
-(1280x720 bgr8) at 30 Hz plus its JPEG preview and ground truth, 20 s per run (600 frames; every frame
-also JPEG-encoded for Foxglove), ``followbus launch cap.yaml`` then
-``followbus record --graph cap.yaml --compression X --duration 20``:
-
-    chunks  write thread  convert thread  queue max  to disk    ratio  recorder CPU      dropped
-    lz4     46% busy      14% busy        8.3 MB     86 MB/s    1.03   0.55 core         0
-    zstd    97% busy      18% busy        130 MB     64 MB/s    1.39   1.0 core          0 (queue growing)
-
-zstd (level 3, the mcap writer's) saturates its thread and its queue grows without bound at this rate.
-lz4 shrinks raw frames by 1-3 % (179.0 MB compressed of 181.4 MB on a 6 s recording of the tracking graph) and
-costs its CPU twice: on the robot while recording, and at every read, since a chunk is decompressed whole even
-to read one of its small messages (reading that file: 0.40 s with lz4, 0.12 s uncompressed, the same messages).
-So chunks are uncompressed by default (2026-11-24); ``--compression zstd`` suits lower rates or recordings
-without raw frames (``--exclude``), ``lz4`` a slow disk.
+Compression (figures: BENCHMARKS.md, the recorder): zstd (level 3, the mcap writer's) saturates its thread on
+two cores at 30 Hz 1280x720 bgr8, and its queue grows without bound. lz4 keeps up but shrinks raw frames by only
+1-3 % and costs its CPU twice: on the robot while recording, and at every read, since a chunk is decompressed
+whole even to read one of its small messages. So chunks are uncompressed by default; ``--compression zstd``
+suits lower rates or recordings without raw frames (``--exclude``), ``lz4`` a slow disk.
 """
 
 from __future__ import annotations

@@ -23,8 +23,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..domains import AUTO, MAX_DOMAIN, endpoint, parse_domain, well_known_port
 from ..errors import UsageError
-from ..identity import AUTO, MAX_DOMAIN, endpoint, parse_domain, well_known_port
 
 RUNS_ENV = "FOLLOWBUS_RUNS"
 CLAIM_RETRY_S = 0.5  # a `ps` holds a shared lock for a moment: a launch retries this long before it concludes
@@ -278,7 +278,7 @@ def claim(graph: Any, command: str, log_dir: str = "", domain: int = 0, only: li
 
 def _load_at(path: str, domain: int) -> Any:
     from ..command import load_graph
-    from ..identity import DOMAIN_ENV
+    from ..domains import DOMAIN_ENV
 
     saved = os.environ.get(DOMAIN_ENV)
     os.environ[DOMAIN_ENV] = str(domain)
@@ -317,12 +317,12 @@ def _moved(path: str, first: int, domain: int) -> str:
 def claim_for_launch(path: str, domain_text: str | None, command: str, log_dir: str = "",
                      only: list[str] | None = None) -> Claim:
     """Choose the graph's domain (``auto``: the first free one, said in one line), make it this process's
-    identity (its nodes inherit it) and claim it; UsageError when a graph of the same namespace runs there."""
-    from ..identity import set_identity
+    domain (its nodes inherit it) and claim it; UsageError when a graph of the same namespace runs there."""
+    from ..domains import set_domain
 
     if domain_text != AUTO:
         domain = parse_domain(domain_text)
-        set_identity(domain=domain)
+        set_domain(domain=domain)
         return claim(_load_at(path, domain if domain is not None else _first_domain()), command, log_dir,
                      domain or 0, only)
     first = _first_domain()
@@ -331,7 +331,7 @@ def claim_for_launch(path: str, domain_text: str | None, command: str, log_dir: 
             held = claim(_load_at(path, domain), command, log_dir, domain, only)
         except UsageError:
             continue
-        set_identity(domain=domain)
+        set_domain(domain=domain)
         note = _moved(path, first, domain)
         if note:
             print(note, flush=True)
@@ -340,10 +340,10 @@ def claim_for_launch(path: str, domain_text: str | None, command: str, log_dir: 
 
 
 def claim_from_args(args: Any, command: str, log_dir: str = "") -> Claim:
-    """launch/demo/up: the identity options (--domain, --namespace, --port) made this process's, then claimed."""
-    from ..identity import parse_port, set_identity
+    """launch/demo/up: the domain options (--domain, --namespace, --port) made this process's, then claimed."""
+    from ..domains import parse_port, set_domain
 
-    set_identity(namespace=getattr(args, "namespace", None), port=parse_port(getattr(args, "port", None)))
+    set_domain(namespace=getattr(args, "namespace", None), port=parse_port(getattr(args, "port", None)))
     only_text = getattr(args, "only", None)
     only = [n.strip() for n in only_text.split(",")] if only_text else None
     return claim_for_launch(args.graph, getattr(args, "domain", None), command, log_dir, only)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..command import Command, Lazy, connect_args, describe, identity_args
+from ..command import Command, Lazy, connect_args, describe, domain_args
 
 
 def _up_args(p: argparse.ArgumentParser) -> None:
@@ -20,7 +20,7 @@ def _up_args(p: argparse.ArgumentParser) -> None:
                    help="seconds to wait for every node to be up (default 30)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter (YAML value); repeatable")
-    identity_args(p, auto=True)
+    domain_args(p, auto=True)
 
 
 def _ps_args(p: argparse.ArgumentParser) -> None:

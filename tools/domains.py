@@ -1,11 +1,11 @@
-"""A graph's identity on the bus: its namespace and its well-known port, chosen at launch.
+"""A graph's domain on the bus: its namespace and its well-known port, chosen at launch.
 
 ``--domain N`` (or ``$FOLLOWBUS_DOMAIN``) selects both, as ``ROS_DOMAIN_ID`` does: domain 0 is the graph as
 written; domain N moves the well-known port N above the graph's own (7447 -> 7447+N) and the namespace to
 ``<namespace>-dN``, so two graphs of different domains share neither a bus nor a key. ``--namespace`` and
 ``--port`` (``$FOLLOWBUS_NAMESPACE``, ``$FOLLOWBUS_PORT``) set one of them outright. The launcher passes its
 environment to its nodes, so every process of a graph (and every tool run with the same variables) loads the
-same identity (tools/command.py load_graph applies it).
+same domain (tools/command.py load_graph applies it).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ _PORT_RE = re.compile(r"^(?P<head>(?:tcp|udp|tls|quic|ws)/[^#?]*:)(?P<port>\d+)(
 
 
 def parse_domain(text: str | None, what: str = "--domain") -> int | None:
-    """A domain number (None: not given); ``auto`` is resolved by the caller (tools/claims.py)."""
+    """A domain number (None: not given); ``auto`` is resolved by the caller (tools/runs/claims.py)."""
     if text is None or text == "":
         return None
     try:
@@ -68,7 +68,7 @@ def _move_port(endpoints: list[str], old: int, new: int) -> list[str]:
     return out
 
 
-def apply_identity(graph: Any, environ: dict[str, str] | None = None) -> Any:
+def apply_domain(graph: Any, environ: dict[str, str] | None = None) -> Any:
     """Apply $FOLLOWBUS_NAMESPACE / $FOLLOWBUS_PORT (replacing the graph's) and then $FOLLOWBUS_DOMAIN (moving
     both) to a loaded graph, in place; returned."""
     env = os.environ if environ is None else environ
@@ -90,7 +90,7 @@ def apply_identity(graph: Any, environ: dict[str, str] | None = None) -> Any:
     return graph
 
 
-def set_identity(domain: int | None = None, namespace: str | None = None, port: int | None = None) -> None:
+def set_domain(domain: int | None = None, namespace: str | None = None, port: int | None = None) -> None:
     """Make the launch options the environment of this process and of every process it starts."""
     for name, value in ((DOMAIN_ENV, domain), (NAMESPACE_ENV, namespace), (PORT_ENV, port)):
         if value is not None:
@@ -103,14 +103,14 @@ def endpoint(graph: Any) -> str:
 
 
 def load_graph(path: str) -> Any:
-    """The graph file with this process's identity applied ($FOLLOWBUS_DOMAIN, ...)."""
+    """The graph file with this process's domain applied ($FOLLOWBUS_DOMAIN, ...)."""
     from ..bus.graph import load_graph as load
 
-    return apply_identity(load(path))
+    return apply_domain(load(path))
 
 
 class DefaultGraph:
-    """What a tool assumes with no graph file: namespace fb on the default endpoint (then the identity)."""
+    """What a tool assumes with no graph file: namespace fb on the default endpoint (then the domain)."""
 
     def __init__(self) -> None:
         from ..bus.session import ZenohSettings

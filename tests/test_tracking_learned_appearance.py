@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from followbus.evaluation.datasets import find_data_root, load_sequence
-from followbus.tracking.identity import IdentityParams, TargetClassifier, load_embedder
+from followbus.tracking.learned_appearance import IdentityParams, TargetClassifier, load_embedder
 
 
 def _data(rel: str) -> Path:
@@ -98,7 +98,7 @@ def test_without_the_model_reid_says_so_and_falls_back_to_colour(monkeypatch, ca
     import followbus.vision.models as models
 
     monkeypatch.setattr(models, "find_model", lambda filename, explicit_dir=None: None)
-    with caplog.at_level(logging.WARNING, logger="followbus.tracking.identity"):
+    with caplog.at_level(logging.WARNING, logger="followbus.tracking.learned_appearance"):
         assert load_embedder() is None
     assert any("learned appearance is off" in r.getMessage() and "osnet_x0_25_msmt17.onnx" in r.getMessage()
                for r in caplog.records), caplog.text
@@ -108,7 +108,7 @@ def test_crops_are_the_imagenet_normalised_rgb_of_each_box() -> None:
     """The table lookup gives exactly the float32 arithmetic it replaced: (v / 255 - mean) / std, RGB, CHW."""
     import cv2
 
-    from followbus.tracking.identity import CROP_H_PX, CROP_W_PX, IMAGENET_MEAN, IMAGENET_STD, PersonEmbedder
+    from followbus.tracking.learned_appearance import CROP_H_PX, CROP_W_PX, IMAGENET_MEAN, IMAGENET_STD, PersonEmbedder
 
     frame = np.random.default_rng(3).integers(0, 256, (240, 320, 3), dtype=np.uint8)
     boxes = [(10, 20, 40, 100), (200.5, 50.2, 33, 90), (300, 100, 60, 160), (-5, -5, 8, 8)]

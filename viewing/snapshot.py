@@ -1,6 +1,6 @@
-"""What the monitor shows of each message, as JSON-friendly views (the terminal dashboard, the web view and the
-Foxglove bridge read these): the target, the prior with its gate ellipse, re-ID's measurement, the motor command,
-the followed group in the robot frame, and the nodes' health."""
+"""The parts of the monitor's snapshot: what it shows of each message, as JSON-friendly views (the terminal
+dashboard, the web view and the Foxglove bridge read these): the target, the prior with its gate ellipse, re-ID's
+measurement, the motor command, the followed group in the robot frame, and the nodes' health."""
 
 from __future__ import annotations
 
@@ -114,7 +114,7 @@ def command_view(command: MotorCommand) -> dict[str, Any]:
                            if command.header.stamp_ns > 0 else None)}
 
 
-def message_views(latest: dict[str, Any], poses: dict[int, tuple[float, float, float]],
+def latest_views(latest: dict[str, Any], poses: dict[int, tuple[float, float, float]],
                   camera: CameraGeometry | None) -> dict[str, Any]:
     """The views of the latest messages (by watched name: track, prior, measurement, template, command, group)."""
     out: dict[str, Any] = {}
