@@ -33,7 +33,7 @@ SENDING_HZ = 1.0  # a publisher at this rate or more is sending: a link that del
 LOSSY_FRACTION = 0.9  # a link delivering less than this fraction of what is sent is lossy
 PEER_HINT = ("in peer mode, Zenoh peers do not forward each other's messages, so a node on one host hears only the "
              "sessions it connected to: run the robot's bus as a router (graph.robot.yaml) and join the other host "
-             "as a client (README, \"Two computers, one graph\")")
+             "as a client (docs/laptop-and-two-hosts.md)")
 LINK_HINT = "check the network between the hosts and that both join the same bus"
 MAX_PUBLISHED_KEYS = 1024  # keys a PublishedKeys keeps (statuses naming more are not followed further)
 

@@ -224,7 +224,7 @@ def exposure(settings: ZenohSettings) -> str | None:
         return None
     return (f"listening on {', '.join(reachable)} without authentication: anyone who can reach it can publish "
             "on the bus (actuator commands included) and fake node health; add transport/auth/usrpwd to the zenoh "
-            "config (README, Security)")
+            "config (docs/security.md)")
 
 
 def open_session(settings: ZenohSettings | None = None) -> zenoh.Session:

@@ -146,7 +146,8 @@ def watchdog_report(tracks: Sequence[TrackObs], commands: Sequence[CommandObs], 
     the publishers' ``pub_ns`` (prediction's, the motor's; same machine clock), so the harness's own
     scheduling does not enter the figure; the window [t0, t1] is on receive times. ``motor_down``: the motor
     process's own death (kill to back up, pub_ns clock): a pause that starts then, or within the bound before,
-    cannot be answered by a stop on the bus; the MCU's own stop covers it (each command's hold_ms, README).
+    cannot be answered by a stop on the bus; the MCU's own stop covers it (each command's hold_ms,
+    docs/motor-protocol.md).
     """
     report = WatchdogReport()
     zeros = sorted(c.pub_ns for c in commands if c.is_zero and c.recv_ns > t0_ns)

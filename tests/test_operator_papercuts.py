@@ -274,6 +274,19 @@ def test_every_key_is_drawn_right_of_its_publisher(name):
     assert all(src.startswith("k:") for src, _ in backward)  # from a key to a node reading it, never the reverse
 
 
+def test_a_running_graph_is_drawn_by_name_from_the_checkout(monkeypatch, tmp_path):
+    """`followbus graph followbus` run in the checkout took its `followbus/` folder for the graph file."""
+    from followbus.tools.errors import UsageError
+    from followbus.tools.runs.drawing_cmd import graph_file
+
+    monkeypatch.chdir(REPO)
+    monkeypatch.setenv("FOLLOWBUS_RUNS", str(tmp_path))
+    assert (REPO / "followbus").is_dir()
+    with pytest.raises(UsageError, match="no graph is running"):
+        graph_file("followbus")
+    assert graph_file("graph.yaml") == "graph.yaml"
+
+
 def test_the_readme_shows_what_runs():
     """On d899b0d the README's demo said 6 nodes and yolox_nano_416, its graph followbus-demo."""
     readme = (REPO / "README.md").read_text()

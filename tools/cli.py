@@ -432,7 +432,8 @@ def _exit_interrupted() -> None:
 
 def _note_interrupts() -> None:
     """Ctrl-C raises KeyboardInterrupt as ever, and is remembered: a command that catches it to stop cleanly
-    still exits 130 (the shell's convention, README). A SIGINT ignored by the caller (a background job) stays so."""
+    still exits 130 (the shell's convention, docs/running.md). A SIGINT ignored by the caller (a background job)
+    stays so."""
     from .errors import INTERRUPTED
 
     def on_sigint(_signum, _frame) -> None:

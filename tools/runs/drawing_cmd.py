@@ -8,8 +8,9 @@ from ..errors import UsageError, write_text_output
 
 
 def graph_file(which: str) -> str:
-    """A graph file, or the file of the running graph of that name (`followbus ps`)."""
-    if Path(which).exists() or which.endswith((".yaml", ".yml")):
+    """A graph file, or the file of the running graph of that name (`followbus ps`). A folder of that name (the
+    checkout's own `followbus/`) is no graph file: the name is looked up."""
+    if Path(which).is_file() or which.endswith((".yaml", ".yml")):
         return which
     from .claims import live_runs
     from .detached import find_run
