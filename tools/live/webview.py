@@ -379,9 +379,9 @@ h1{font-size:16px;margin:0} #link.bad{color:#e55}
 #state{font:13px monospace;white-space:pre;margin:0 0 8px}
 #state .stale{color:#777;text-decoration:line-through} #state .stalelabel{color:#fc6;font-weight:bold}
 #state .age{color:#777} #graphbox img{max-width:100%;background:#eee}
-.plot{display:block;width:100%;height:84px;margin-bottom:4px}
-table{border-collapse:collapse;font-size:12px;width:100%}
-td,th{border-bottom:1px solid #333;padding:2px 6px;text-align:right;vertical-align:top}
+.plot{display:block;width:100%;height:64px;margin-bottom:4px}
+table{border-collapse:collapse;font-size:11px;line-height:1.2;width:100%}
+td,th{border-bottom:1px solid #333;padding:1px 5px;text-align:right;vertical-align:top}
 th{color:#aaa;font-weight:normal} td.l,th.l{text-align:left} tr.first td{border-top:1px solid #555}
 td.topic{white-space:nowrap}
 #ground{display:block;width:100%;height:320px;background:#1a1a1a;border:1px solid #333}
