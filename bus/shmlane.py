@@ -15,15 +15,21 @@ array bytes outside Zenoh instead, where a receiver on the same machine maps the
   one (its pages are still cached), else creates one (up to :data:`MAX_SEGMENTS`; one too small for a
   message is replaced), and with all held by readers answers None (the message goes inline). Every write
   bumps the segment's generation.
-* Wire form (:data:`LANE_MAGIC`): ``b"FBL" | u32 N | msgpack [pid, fd, inode, generation, length] (N bytes) |
-  the message's frame head`` (bus/codec.py); the head's out-of-band array references point into the
-  segment's data instead of a blob area after the head.
-* Reader (:func:`open_blob_area`): the descriptor is untrusted (no more than the Zenoh message carrying it).
-  It opens ``/proc/<pid>/fd/<fd>`` read-only (the kernel allows that to processes that may ptrace-read the
-  publisher: same user, dumpable; a publisher that made itself non-dumpable with ``PR_SET_DUMPABLE`` 0 could
-  not be read, so followbus never does that) and accepts only a memfd of this user named ``followbus-lane``,
-  of the inode named, large enough, whose seals are exactly :data:`SEALS`; then ``flock(LOCK_SH | LOCK_NB)``,
-  a read-only mapping (kept between messages), magic, generation and length. Decoded arrays are read-only
+* Wire form (:data:`LANE_MAGIC`): ``b"FBL" | u32 N | msgpack [pid, fd, inode, generation, length, host id]
+  (N bytes) | the message's frame head`` (bus/codec.py); the head's out-of-band array references point into
+  the segment's data instead of a blob area after the head.
+* Reader (:func:`open_blob_area`): the descriptor is untrusted (no more than the Zenoh message carrying it, which
+  anyone who can reach the bus may publish, and whose sender Zenoh does not authenticate to a subscriber), and
+  opening a file is not harmless (a FIFO, a serial port whose open resets the MCU). So nothing is opened until
+  the descriptor has passed every check that needs no open: its host id is ours (a descriptor from another
+  machine names pids of that machine); ``/proc/<pid>`` is a process of this user (who published it, as the
+  kernel sees it); ``/proc/<pid>/fd/<fd>`` reads ``/memfd:followbus-lane (deleted)``. The fd is then pinned
+  with ``O_PATH`` (which runs no driver's open) and that very file checked (a regular file of this user, the
+  inode named, still our memfd's name), and only then reopened read-only through ``/proc/self/fd`` (the kernel
+  allows ``/proc/<pid>/fd`` to processes that may ptrace-read the publisher: same user, dumpable; a publisher
+  that made itself non-dumpable with ``PR_SET_DUMPABLE`` 0 could not be read, so followbus never does that).
+  The open file must carry exactly :data:`SEALS` and be large enough; then ``flock(LOCK_SH | LOCK_NB)``, a
+  read-only mapping (kept between messages), magic, generation and length. Decoded arrays are read-only
   numpy views of that mapping; the shared lock is held until the last array of the message is gone, so a
   received array stays valid and unchanged after the handler returns, as for an inline message. A segment
   rewritten since the descriptor was sent, or whose process is gone, raises :class:`LaneStale` (a drop);
@@ -235,7 +241,7 @@ class LaneWriter:
                     end += n
                 seg.generation += 1
                 _SEG_HEADER.pack_into(seg.mm, 0, SEGMENT_MAGIC, seg.generation, nbytes)  # type: ignore[arg-type]
-                return msgpack.packb([os.getpid(), seg.fd, seg.ino, seg.generation, nbytes])
+                return msgpack.packb([os.getpid(), seg.fd, seg.ino, seg.generation, nbytes, HOST_ID])
             finally:
                 fcntl.flock(seg.fd, fcntl.LOCK_UN)
 
@@ -370,27 +376,59 @@ CACHE_IDLE_S = 2.0  # a segment no message has named this long is unmapped (its 
 
 
 def _open_segment(pid: int, fd: int, ino: int, size: int) -> _Mapped:
-    """Open another process's segment through /proc and check it is one of ours, sealed, as the descriptor says."""
-    path = f"/proc/{pid}/fd/{fd}"
+    """Open another process's segment through /proc, each check that needs no open made before it (see the
+    module doc): the process is this user's, its fd names our memfd; then the file itself, pinned by O_PATH."""
+    name, path = f"{pid}/{fd}", f"/proc/{pid}/fd/{fd}"
     try:
+        owner = os.stat(f"/proc/{pid}").st_uid
         link = os.readlink(path)
-        rfd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
-        raise LaneStale(f"lane segment {pid}/{fd} is gone") from None
+        raise LaneStale(f"lane segment {name} is gone") from None
     except OSError as exc:
-        raise DecodeError(f"lane segment {pid}/{fd}: {os.strerror(exc.errno or errno.EIO)}") from None
+        raise DecodeError(f"lane segment {name}: {os.strerror(exc.errno or errno.EIO)}") from None
+    if owner != os.getuid():
+        raise DecodeError(f"lane segment {name}: process {pid} is not this user's")
+    if link != _MEMFD_LINK:
+        raise DecodeError(f"lane segment {name}: not a followbus memfd")
+    pinned = _pin(path, name)
     try:
-        _check_segment(rfd, link, f"{pid}/{fd}", ino, size)
-        return _Mapped(f"{pid}/{fd}", rfd, ino, os.fstat(rfd).st_size)
+        _check_pinned(pinned, name, ino)
+        rfd = os.open(f"/proc/self/fd/{pinned}", os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    finally:
+        os.close(pinned)
+    try:
+        _check_segment(rfd, name, ino, size)
+        return _Mapped(name, rfd, ino, os.fstat(rfd).st_size)
     except BaseException:
         os.close(rfd)
         raise
 
 
-def _check_segment(fd: int, link: str, name: str, ino: int, size: int) -> None:
-    st = os.fstat(fd)
-    if link != _MEMFD_LINK or not stat.S_ISREG(st.st_mode) or st.st_uid != os.getuid():
+def _pin(path: str, name: str) -> int:
+    """An O_PATH descriptor of the file ``path`` names: it refers to the file without opening it (no driver's
+    open runs), so what is checked on it is what a reopen through /proc/self/fd gets."""
+    try:
+        return os.open(path, os.O_PATH | os.O_CLOEXEC)
+    except FileNotFoundError:
+        raise LaneStale(f"lane segment {name} is gone") from None
+    except OSError as exc:
+        raise DecodeError(f"lane segment {name}: {os.strerror(exc.errno or errno.EIO)}") from None
+
+
+def _check_pinned(pinned: int, name: str, ino: int) -> None:
+    """The pinned file is still our memfd (the fd number may have been reused since the readlink), of this user,
+    of the inode the descriptor names."""
+    st = os.fstat(pinned)
+    if os.readlink(f"/proc/self/fd/{pinned}") != _MEMFD_LINK or not stat.S_ISREG(st.st_mode) \
+            or st.st_uid != os.getuid():
         raise DecodeError(f"lane segment {name}: not a followbus memfd of this user")
+    if st.st_ino != ino:
+        raise LaneStale(f"lane segment {name} was replaced")
+
+
+def _check_segment(fd: int, name: str, ino: int, size: int) -> None:
+    """The opened segment: the inode pinned, sealed exactly with SEALS, large enough."""
+    st = os.fstat(fd)
     if st.st_ino != ino:
         raise LaneStale(f"lane segment {name} was replaced")
     try:
@@ -423,13 +461,14 @@ def sweep_idle() -> None:
 
 
 class _Descriptor(NamedTuple):
-    """A lane descriptor that passed :func:`_parse_descriptor` (each field a non-negative int)."""
+    """A lane descriptor that passed :func:`_parse_descriptor` (each number a non-negative int, the host ours)."""
 
     pid: int
     fd: int
     ino: int
     generation: int
     length: int
+    host: str
 
     @property
     def name(self) -> str:
@@ -465,12 +504,15 @@ def open_blob_area(desc: Any) -> memoryview:
 
 
 def _parse_descriptor(desc: Any) -> _Descriptor:
-    """The untrusted descriptor checked for shape and range before anything is opened (DecodeError)."""
-    if not (isinstance(desc, list) and len(desc) == 5):
-        raise DecodeError("lane descriptor: expected [pid, fd, inode, generation, length]")
+    """The untrusted descriptor checked for shape, range and host before anything is looked at (DecodeError)."""
+    if not (isinstance(desc, list) and len(desc) == 6):
+        raise DecodeError("lane descriptor: expected [pid, fd, inode, generation, length, host id]")
     lane = _Descriptor(*desc)
-    if not all(type(v) is int and v >= 0 for v in desc) or lane.length > MAX_LANE_BYTES or lane.pid == 0:
+    numbers = desc[:5]
+    if not all(type(v) is int and v >= 0 for v in numbers) or lane.length > MAX_LANE_BYTES or lane.pid == 0:
         raise DecodeError("lane descriptor: bad pid, fd, inode, generation or length")
+    if lane.host != HOST_ID:
+        raise DecodeError(f"lane descriptor from host {lane.host!r}, not this one: its pid names none of ours")
     return lane
 
 

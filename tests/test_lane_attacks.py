@@ -5,8 +5,11 @@ forged descriptors; and a plain Zenoh subscriber that declares no token must get
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import mmap
 import os
+import stat
+import struct
 import subprocess
 import sys
 import time
@@ -30,7 +33,7 @@ N = 300_000
 
 def _segment_path(desc: list) -> str:
     """Where an attacker of the same user reaches the segment a descriptor names."""
-    if len(desc) == 5:  # [pid, fd, inode, generation, length]: a memfd, through /proc
+    if len(desc) == 6:  # [pid, fd, inode, generation, length, host id]: a memfd, through /proc
         return f"/proc/{desc[0]}/fd/{desc[1]}"
     return os.path.join("/dev/shm", desc[0])  # the old named segment files
 
@@ -119,28 +122,140 @@ def test_forged_descriptors_are_refused(writer, tmp_path):
     """A descriptor is untrusted input: a segment without the seals (someone could still write or shrink it),
     a file that is not a followbus memfd, wrong inode, generation or length, gone, garbage."""
     real = msgpack.unpackb(writer.write([np.zeros(N, np.uint8)], N))
-    pid, fd, ino, gen, length = real
+    pid, fd, ino, gen, length, _ = real
     header = shmlane._SEG_HEADER.pack(shmlane.SEGMENT_MAGIC, 5, 100).ljust(shmlane.DATA_OFFSET + 100, b"\0")
     unsealed = _memfd(None, header)
     half = _memfd(shmlane.SEALS & ~shmlane.F_SEAL_FUTURE_WRITE, header)
     plain = os.open(tmp_path / "plain", os.O_RDWR | os.O_CREAT)
     os.write(plain, header)
-    me = os.getpid()
+    me, host = os.getpid(), shmlane.HOST_ID
     try:
-        for desc in ([me, unsealed, os.fstat(unsealed).st_ino, 5, 100], [me, half, os.fstat(half).st_ino, 5, 100],
-                     [me, plain, os.fstat(plain).st_ino, 5, 100], [pid, fd, ino, gen, length * 4],
-                     [pid, fd, ino, gen, 1 << 40], [pid, fd, ino, -1, length], [pid, fd, ino, gen],
-                     [0, fd, ino, gen, 1], [pid, fd, "1", gen, length], "not a list"):
+        for desc in ([me, unsealed, os.fstat(unsealed).st_ino, 5, 100, host],
+                     [me, half, os.fstat(half).st_ino, 5, 100, host], [me, plain, os.fstat(plain).st_ino, 5, 100, host],
+                     [pid, fd, ino, gen, length * 4, host], [pid, fd, ino, gen, 1 << 40, host],
+                     [pid, fd, ino, -1, length, host], [pid, fd, ino, gen, host], [0, fd, ino, gen, 1, host],
+                     [pid, fd, "1", gen, length, host], [pid, fd, ino, gen, length, "0123456789abcdef"],
+                     [pid, fd, ino, gen, length, None], [pid, fd, ino, gen, length], "not a list"):
             with pytest.raises(shmlane.DecodeError) as exc:
                 shmlane.open_blob_area(desc)
             assert not isinstance(exc.value, shmlane.LaneStale), desc
-        for desc in ([pid, fd, ino + 1, gen, length], [pid, fd, ino, gen + 1, length], [pid, 99_999, 1, 1, 1]):
+        for desc in ([pid, fd, ino + 1, gen, length, host], [pid, fd, ino, gen + 1, length, host],
+                     [pid, 99_999, 1, 1, 1, host]):
             with pytest.raises(shmlane.LaneStale):
                 shmlane.open_blob_area(desc)
         assert np.frombuffer(shmlane.open_blob_area(real), np.uint8).size == N  # the real one still reads
     finally:
         for f in (unsealed, half, plain):
             os.close(f)
+
+
+class _OpenWatch:
+    """inotify's IN_OPEN on some files: whether anyone opened them (through /proc/<pid>/fd/<n> too), which is
+    what a descriptor must never make a reader do to a file that is not a lane segment."""
+
+    IN_OPEN = 0x20
+    _EVENT = struct.Struct("iIII")  # wd, mask, cookie, length of the name that follows
+
+    def __init__(self, paths: list[str]):
+        self._libc = ctypes.CDLL(None, use_errno=True)
+        self.fd = self._libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
+        assert self.fd >= 0, os.strerror(ctypes.get_errno())
+        for path in paths:
+            assert self._libc.inotify_add_watch(self.fd, os.fsencode(path), self.IN_OPEN) >= 0, path
+
+    def opens(self) -> int:
+        try:
+            data = os.read(self.fd, 65536)
+        except BlockingIOError:
+            return 0
+        count, at = 0, 0
+        while at < len(data):
+            _, mask, _, length = self._EVENT.unpack_from(data, at)
+            count += bool(mask & self.IN_OPEN)
+            at += self._EVENT.size + length
+        return count
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+
+def _naming(real: list, pid: int, fd: int) -> list:
+    """A real descriptor made to name another process's fd (the attacker's edit: pid, fd and its inode)."""
+    forged = list(real)
+    forged[0], forged[1], forged[2] = pid, fd, os.stat(f"/proc/{pid}/fd/{fd}").st_ino
+    return forged
+
+
+def test_a_descriptor_naming_a_fifo_or_a_device_is_refused_before_any_open(writer, tmp_path):
+    """Anyone who can reach the bus can publish a descriptor, and it names any process's fd: readers opened
+    /proc/<pid>/fd/<n> first and checked what it was afterwards, so a descriptor naming the motor's serial port
+    made them open it (an open that can reset the MCU), one naming a FIFO opened the FIFO. Now the descriptor and
+    what /proc says of the fd are checked before any open: a FIFO, a terminal device (as a serial port is) and a
+    device node are refused, and none of them sees an open."""
+    real = msgpack.unpackb(writer.write([np.zeros(N, np.uint8)], N))
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    held = {"fifo": os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)}
+    paths = {"fifo": str(fifo)}
+    try:
+        primary, held["tty"] = os.openpty()
+        held["pty primary"] = primary
+        paths["tty"] = os.ttyname(held["tty"])
+    except OSError:  # no /dev/pts here: the FIFO and the device node still run
+        pass
+    with contextlib.suppress(OSError):  # a device node of our own needs CAP_MKNOD (root)
+        os.mknod(tmp_path / "ttyFAKE0", stat.S_IFCHR | 0o600, os.makedev(1, 3))
+        held["device node"] = os.open(tmp_path / "ttyFAKE0", os.O_RDONLY)
+        paths["device node"] = str(tmp_path / "ttyFAKE0")
+    watch = _OpenWatch(list(paths.values()))
+    try:
+        for name in paths:
+            with pytest.raises(shmlane.DecodeError, match="not a followbus memfd") as exc:
+                shmlane.open_blob_area(_naming(real, os.getpid(), held[name]))
+            assert not isinstance(exc.value, shmlane.LaneStale), name
+        assert watch.opens() == 0, f"a reader opened one of {sorted(paths)}"
+        assert np.frombuffer(shmlane.open_blob_area(real), np.uint8).size == N  # the real one still reads
+    finally:
+        watch.close()
+        for fd in held.values():
+            os.close(fd)
+
+
+OTHER_USERS_SEGMENT = """
+import ctypes, fcntl, os, struct, sys, time
+os.setgroups([]); os.setgid(65534); os.setuid(65534)  # nobody, and ptrace-readable as any process it starts would be
+ctypes.CDLL(None).prctl(4, 1, 0, 0, 0)  # PR_SET_DUMPABLE: a changed uid clears it
+fd = os.memfd_create("followbus-lane", os.MFD_ALLOW_SEALING)
+os.write(fd, struct.pack("<8sQQ", b"FBLANE01", 5, 100).ljust(64 + 100, b"\\0"))
+fcntl.fcntl(fd, 1033, int(sys.argv[1]))
+print(fd, flush=True)
+time.sleep(60)
+"""
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="running a process as another user needs root")
+def test_a_segment_of_another_users_process_is_refused_before_any_open(writer):
+    """A descriptor published by another user (here `nobody`) naming a followbus-lane memfd of its own, sealed
+    as ours are: a reader running as root opened it (root may open any /proc/<pid>/fd) before seeing whose it
+    was. Now the named process must be this user's before anything is opened."""
+    real = msgpack.unpackb(writer.write([np.zeros(N, np.uint8)], N))
+    other = subprocess.Popen([sys.executable, "-c", OTHER_USERS_SEGMENT, str(shmlane.SEALS)], stdout=subprocess.PIPE,
+                             text=True)
+    try:
+        fd = int(other.stdout.readline())
+        forged = _naming(real, other.pid, fd)
+        forged[3], forged[4] = 5, 100
+        watch = _OpenWatch([f"/proc/{other.pid}/fd/{fd}"])
+        try:
+            with pytest.raises(shmlane.DecodeError) as exc:
+                shmlane.open_blob_area(forged)
+            assert watch.opens() == 0, "the reader opened another user's file"
+            assert "process" in str(exc.value) and "not this user's" in str(exc.value)
+        finally:
+            watch.close()
+    finally:
+        other.kill()
+        other.wait()
 
 
 def test_a_flood_of_lane_tokens_is_bounded_and_sends_inline():
