@@ -287,8 +287,8 @@ def test_source_lines_keep_their_file_through_copies():
 # --- graph.robot.yaml --------------------------------------------------------------------------------------
 
 # What graph.robot.yaml adds to graph.yaml, frozen (an intended change to the robot's bus updates this too).
-_ROBOT_KEYS = ["**", "**/@health/**", "**/@status/**", "**/@launcher/**", "**/@replay/**", "**/@lane/**",
-               "@followbus/**", "@/**"]
+_ROBOT_KEYS = ["**", "**/@health/**", "**/@status/**", "**/@launcher/**", "**/@param/**", "**/@replay/**",
+               "**/@lane/**", "@followbus/**", "@/**"]
 # An allow-list (issue 25): robot and operator may do everything, monitor only subscribe, ask liveliness and receive.
 ROBOT_CONFIG = {
     "transport/auth/usrpwd": {"user": "robot", "password": "change-me-robot",
