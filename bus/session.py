@@ -12,12 +12,15 @@ listening on any other address without authentication is logged loudly (:func:`e
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import ipaddress
 import json
 import logging
 import math
 import re
+import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -96,15 +99,18 @@ class ZenohSettings:
         )
 
     def as_launched_node(self) -> ZenohSettings:
-        """A node the launcher started, on a router graph with access control (graph.robot.yaml): it listens
-        nowhere and connects to the launcher's session, the hub, which holds every listen endpoint and enforces
-        the access control for every link from outside. The node's own copy of the rules goes: user/password
-        authentication is one-way (the connecting side presents its password), so on the node's side the
-        hub's link carries no user name and an allow-list would refuse the hub itself."""
+        """A node the launcher started, on a router graph with access control (graph.robot.yaml): a client of the
+        launcher's session, the hub, which holds every listen endpoint and enforces the access control for every
+        link from outside. A client, not a router: a router holds every subscription declared anywhere on the bus
+        (a read-only laptop declaring thousands would grow every node and keep its routing busy), a client only
+        those matching what it publishes. Its messages go through the hub either way (the nodes listen nowhere).
+        The node's own copy of the rules goes (a client leaves it out anyway, build_config): user/password
+        authentication is one-way, so on the node's side the hub's link carries no user name."""
         if self.mode != "router" or "access_control" not in self.config:
             return self
         config = {k: v for k, v in self.config.items() if k != "access_control"}
-        return dataclasses.replace(self, listen=[], connect=list(self.connect or self.listen), config=config)
+        return dataclasses.replace(self, mode="client", listen=[], connect=list(self.connect or self.listen),
+                                   config=config)
 
 
 _IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
@@ -244,3 +250,53 @@ def open_session(settings: ZenohSettings | None = None) -> zenoh.Session:
             raise
         log.warning("zenoh: shared memory unavailable (%s); opening the session without it", exc)
         return zenoh.open(build_config(dataclasses.replace(settings, shm=False)))
+
+
+# --- memory a departed session leaves behind -----------------------------------------------------------------
+
+TRIM_DELAY_S = 1.0  # after the last session left: one trim for a burst of departures
+
+
+class MemoryTrim:
+    """Hands the heap freed by departed sessions back to the system (glibc ``malloc_trim``).
+
+    A session that declared thousands of subscribers costs a router about 1.5 KB of routing state each; Zenoh frees
+    it when the session leaves, but glibc keeps freed memory in its per-thread arenas, so the router's RSS would
+    stay up for good. A trim on a timer thread, TRIM_DELAY_S after the last departure, returns it (RELIABILITY.md,
+    "A read-only laptop's subscriber flood"). Nothing happens where the C library has no ``malloc_trim`` (musl)."""
+
+    def __init__(self, session: zenoh.Session):
+        self._trim = getattr(ctypes.CDLL(None), "malloc_trim", None)
+        self._lock = threading.Lock()
+        self._timer: threading.Timer | None = None
+        self.trims = 0
+        self._listener = (session.info.declare_transport_events_listener(self._on_event, history=False)
+                          if self._trim is not None else None)
+
+    def _on_event(self, event: Any) -> None:
+        if event.kind != zenoh.SampleKind.DELETE:
+            return
+        with self._lock:
+            if self._timer is not None:
+                self._timer.cancel()
+            self._timer = threading.Timer(TRIM_DELAY_S, self.trim)
+            self._timer.daemon = True
+            self._timer.start()
+
+    def trim(self) -> None:
+        if self._trim is None:
+            return
+        start = time.perf_counter()
+        self._trim(0)
+        self.trims += 1
+        log.debug("malloc_trim after a session left: %.1f ms", (time.perf_counter() - start) * 1e3)
+
+    def close(self) -> None:
+        with self._lock:
+            if self._timer is not None:
+                self._timer.cancel()
+        if self._listener is not None:
+            try:
+                self._listener.undeclare()
+            except Exception as exc:  # a session already closed
+                log.debug("transport events listener: %r", exc)

@@ -33,7 +33,7 @@ from ..bus.links import LinkWatch, edges_of_graph
 from ..bus.liveness import STOPPED_WORKING_EXIT
 from ..bus.node import LAUNCH_ID_ENV, LAUNCHED_NODES_ENV, LEFT_OUT_NODES_ENV
 from ..bus.pubsub import Publisher, direct_callback
-from ..bus.session import open_session
+from ..bus.session import MemoryTrim, open_session
 from .runs.claims import health_path, write_health
 
 log = logging.getLogger("followbus.launch")
@@ -113,6 +113,7 @@ class Launcher:
         # A graph spread over hosts: this launcher watches the links between its nodes and the other hosts'.
         self.links = _link_watch(graph, host)
         self._links_due = 0.0
+        self.memory_trim: MemoryTrim | None = None
         # The process table (which node runs as which pid, which exited) lets monitors tell a live node
         # from a token someone else declared under its name (bus/health.py).
         self.launcher_id = launcher_id(socket.gethostname(), os.getpid())
@@ -316,6 +317,7 @@ class Launcher:
     def _open_bus(self) -> None:
         """Open the session, the liveliness watch, the process table and (with watch_outputs) the output watch."""
         self.session = open_session(self.graph.zenoh)
+        self.memory_trim = MemoryTrim(self.session)  # the hub: what a departed laptop's declarations held
         # Statuses too: `followbus ps` shows a stalled source from the health file (_write_health), and a graph
         # spread over hosts judges its links from them.
         self.health = HealthWatcher(self.session, self.graph.namespace, watch_status=True, cross_check=False)
@@ -413,6 +415,8 @@ class Launcher:
         self._unwatch(every=True)
         if self.health is not None:
             self.health.close()
+        if self.memory_trim is not None:
+            self.memory_trim.close()
         if self.session is not None:
             self.session.close()
         if self.log_file is not None:

@@ -202,6 +202,22 @@ def _link_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", metavar="FILE", help="also write every run's figures as JSON")
 
 
+def _flood_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "The robot graph (graph.robot.yaml) on loopback and a flooder joined as the read-only `monitor`\n"
+             "identity (at nice 19) that declares --subscribers subscribers on distinct keys, holds them and\n"
+             "leaves. Per phase (before, declaring, held, left): the robot's capture->command p99, frames answered,\n"
+             "the motor's watchdog stops, and the RSS of the launcher (the hub) and of each node against before.",
+             "example: followbus bench flood --subscribers 10000 --seconds 10", raw=True)
+    p.add_argument("--subscribers", type=int, default=10_000, metavar="N", help="subscribers declared (default 10000)")
+    p.add_argument("--seconds", type=float, default=10.0, metavar="S", help="seconds per measured window (default 10)")
+    p.add_argument("--detector", default="simulated", choices=("simulated", "hog", "yolox"),
+                   help="detection backend of the robot graph (default simulated)")
+    p.add_argument("--port", type=int, default=21680, help="the robot's port on loopback (default 21680)")
+    p.add_argument("--log", default="state/flood.log", help="the robot graph's log (default state/flood.log)")
+    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
+
 def _eval_args(p: argparse.ArgumentParser) -> None:
     describe(p,
              "Run followbus, the Kalman baseline, ablations and peer trackers in-process "
@@ -273,6 +289,8 @@ COMMANDS = (
                 Lazy("bench.detector", "run_bench_detector")),
         Command("link", "a laptop on a slow link: the robot's latency, and what the laptop's recording lost",
                 _link_args, Lazy("bench.link", "cmd_bench_link")),
+        Command("flood", "a read-only laptop declaring thousands of subscribers: the robot's p99 and memory",
+                _flood_args, Lazy("bench.flood", "cmd_bench_flood")),
         Command("chaos", "fault injection: does the live loop always recover? (RELIABILITY.md)", _chaos_args,
                 Lazy("bench.chaos", "run_bench_chaos")),
         Command("record-views", "what the recorder's views cost per frame (convert and write), before and now",
