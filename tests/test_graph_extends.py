@@ -306,13 +306,14 @@ ROBOT_CONFIG = {
              "key_exprs": _ROBOT_KEYS},
             {"id": "read-only-receive", "permission": "allow", "flows": ["egress"],
              "messages": ["put", "delete", "reply", "liveliness_token"], "key_exprs": _ROBOT_KEYS},
-            {"id": "read-only-ask", "permission": "allow", "flows": ["ingress"],
-             "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+            {"id": "read-only-ask", "permission": "allow", "flows": ["ingress"], "messages": ["declare_subscriber"],
              "key_exprs": ["**", "**/@health/**", "**/@status/**", "**/@launcher/**"]},
+            {"id": "read-only-health", "permission": "allow", "flows": ["ingress"],
+             "messages": ["declare_liveliness_subscriber", "liveliness_query"], "key_exprs": ["**/@health/**"]},
         ],
         "subjects": [{"id": "robot", "usernames": ["robot", "operator"]}, {"id": "monitor", "usernames": ["monitor"]}],
         "policies": [{"rules": ["full"], "subjects": ["robot"]},
-                     {"rules": ["read-only-receive", "read-only-ask"], "subjects": ["monitor"]}],
+                     {"rules": ["read-only-receive", "read-only-ask", "read-only-health"], "subjects": ["monitor"]}],
     },
 }
 # The last commit with graph.robot.yaml as a hand-synced copy of graph.yaml.

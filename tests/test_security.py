@@ -66,7 +66,11 @@ def test_monitor_identity_cannot_spoof_health_or_write_on_robot_graph(tmp_path, 
         # then the real motor dies. Its token must go away: health down, no token left a moment later.
         spoofs = [monitor.liveliness().declare_token(key) for key in ("t/@health/motor", "t/@health/ghost")]
         probe = operator.liveliness().declare_token("t/@health/probe")  # not read-only: must get through
+        other = operator.liveliness().declare_token("t/other/token")
         assert wait_until(lambda: _tokens(robot, "t/@health/*") >= {"t/@health/probe", "t/@health/motor"}, 10)
+        # The monitor asks liveliness of the health tokens only: its queries of any other key are dropped.
+        assert wait_until(lambda: _tokens(robot, "t/other/*") == {"t/other/token"}, 10)
+        assert "t/@health/motor" in _tokens(monitor, "t/@health/*") and not _tokens(monitor, "t/other/*")
         time.sleep(0.3)  # the monitor's declarations went out with the operator's
         os.kill(_motor_pid(watcher), signal.SIGKILL)
         assert wait_until(lambda: not watcher.snapshot()["motor"].alive, 5), watcher.snapshot()["motor"]
@@ -102,7 +106,7 @@ def test_monitor_identity_cannot_spoof_health_or_write_on_robot_graph(tmp_path, 
         assert not [r for r in monitor.get("@/*/router", timeout=1.0) if r.ok is not None]
         time.sleep(0.3)
         assert not [k for k, p in received if p == b"spoof"], received
-        for token in (*spoofs, probe):
+        for token in (*spoofs, probe, other):
             token.undeclare()
         for q in queryables:
             q.undeclare()
