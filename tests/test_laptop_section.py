@@ -1,5 +1,5 @@
-"""The README's laptop section, as written: graph.robot.yaml (its own bus: router hub, user/password, access control,
-the example user dictionary) runs in one network namespace, listening on its veth address as the README says to
+"""The laptop section of docs/laptop-and-two-hosts.md, as written: graph.robot.yaml (its own bus: router hub, user/password, access control,
+the example user dictionary) runs in one network namespace, listening on its veth address as the page says to
 let a laptop in; every command of the section's command block runs in a second namespace with its own /dev/shm
 (a laptop), from a directory without any graph file, with the identity the block exports at that point. Each
 command must do what the block says: `monitor` sees the nodes, `echo` the commands, `record` a file that `play`
@@ -28,7 +28,7 @@ from .conftest import REPO, followbus_argv, wait_until
 pytestmark = pytest.mark.slow
 
 REASON = netns_unavailable()
-PORT = 7447  # the README's: inside its own namespace the robot has the port to itself
+PORT = 7447  # the page's: inside its own namespace the robot has the port to itself
 USERS = dict(line.split(":", 1) for line in (REPO / "docs" / "zenoh-users.example.txt").read_text().split())
 IDENTITY_ENV = ("FOLLOWBUS_DOMAIN", "FOLLOWBUS_NAMESPACE", "FOLLOWBUS_PORT", "FOLLOWBUS_ZENOH_USER",
                 "FOLLOWBUS_ZENOH_PASSWORD")
@@ -37,7 +37,7 @@ LONG_RUNNING_S = 8.0  # `record` runs this long before its Ctrl-C; the other lon
 
 @dataclass
 class Step:
-    """One command of the README block with the environment the block gives it."""
+    """One command of the page's block with the environment the block gives it."""
 
     line: str
     argv: list[str]
@@ -56,9 +56,9 @@ class Step:
 def readme_commands(endpoint: str) -> list[Step]:
     """The laptop section's command block: its `export`s and `R=` applied in order, `$R` replaced, `...` (a
     password) given the example dictionary's password of the user exported with it, comments dropped."""
-    text = (REPO / "README.md").read_text()
-    section = text[text.index("\n### Laptop\n"):]
-    block = section[section.index("```sh\n") + 6:]
+    text = (REPO / "docs" / "laptop-and-two-hosts.md").read_text()
+    section = text[text.index("\n## The laptop\n"):]
+    block = section[section.index("```\nexport ") + 4:]
     block = block[:block.index("```")]
     env: dict[str, str] = {}
     steps: list[Step] = []
@@ -80,7 +80,7 @@ def readme_commands(endpoint: str) -> list[Step]:
 
 
 class Robot:
-    """graph.robot.yaml in namespace a: the README's bus, plus the veth address to listen on; a looping synthetic
+    """graph.robot.yaml in namespace a: the page's bus, plus the veth address to listen on; a looping synthetic
     scene and the simulated detector, so that it follows a target without a camera or a model."""
 
     def __init__(self, pair: NetnsPair, tmp: Path, address: str):
@@ -134,7 +134,7 @@ def _web_state(pair: NetnsPair, port: str) -> str:
 
 
 def _shown(pair: NetnsPair, step: Step) -> bool:
-    """Whether a command that runs until Ctrl-C has shown what the README says it does."""
+    """Whether a command that runs until Ctrl-C has shown what the page says it does."""
     out, words = step.output(), step.argv
     if words[0] == "monitor" and "--web" in words:
         return '"capture"' in _web_state(pair, words[words.index("--web") + 1])
