@@ -38,6 +38,7 @@ def _resolves(target: Path, names: list[str]) -> bool:
         tree = ast.parse(init.read_text(encoding="utf-8"))
         defined = {t.id for n in tree.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)}
         defined |= {n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
+        defined |= {a.asname or a.name for n in tree.body if isinstance(n, ast.ImportFrom) for a in n.names}
         return all((target / f"{n}.py").is_file() or n in defined for n in names)
     return False
 
