@@ -8,9 +8,9 @@ Nothing here restates what bus.graph decides: the allowed keys come from its key
 description here, or a description for a key the validator does not accept, is an error at generation time),
 the defaults from its dataclasses (InputSpec, NodeSpec, RestartPolicy, ZenohSettings), the choices from its
 tuples (POLICIES, SYNC_MODES, RESTART_POLICIES, MODES). The ``params`` of each node module come from the
-dataclasses its node class names (``Node.params_classes``), with the field comments as descriptions; a
-``run`` module the schema does not know gets a free-form ``params`` mapping. A file with ``extends`` is checked as
-an override: no required keys, and nodes (``node_override``) and inputs (``input_override``) may be partial or
+dataclasses its node class names (``Node.Params``), with the field comments as descriptions; a ``run`` module the
+schema does not know gets a free-form ``params`` mapping. A file with ``extends`` is checked as an override: no
+required keys, and nodes (``node_override``) and inputs (``input_override``) may be partial or
 null, since the schema cannot see the base. The validator stays the authority (it also checks the merged graph,
 wiring, message types and per-node rules a schema cannot express).
 """
@@ -80,7 +80,7 @@ def _jsonable(value: Any) -> Any:
 
 
 def _type_schema(hint: Any) -> dict[str, Any]:
-    """The JSON type of a dataclass field, as bus.node.params_from_dict accepts it."""
+    """The JSON type of a dataclass field, as bus.node_params.params_from_dict accepts it."""
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (typing.Union, types.UnionType):
         options = [_type_schema(a) for a in args if a is not type(None)]
@@ -154,7 +154,7 @@ def inherited_field_comments(cls: type) -> dict[str, str]:
 
 def params_schema(classes: Iterable[type]) -> dict[str, Any]:
     """The ``params`` mapping of a node whose parameters are these dataclasses' fields (the first one wins
-    a name, as bus.node.split_params does)."""
+    a name, as bus.node_params.split_params does)."""
     properties: dict[str, Any] = {}
     for cls in classes:
         hints = typing.get_type_hints(cls)
@@ -366,6 +366,7 @@ def graph_schema(runs: dict[str, tuple[type, ...]]) -> dict[str, Any]:
 def node_runs(package: str) -> dict[str, tuple[type, ...]]:
     """Every module of ``package`` that exports a NODE class, with that class's params dataclasses."""
     from .node import Node
+    from .node_params import params_classes
 
     pkg = importlib.import_module(package)
     runs: dict[str, tuple[type, ...]] = {}
@@ -374,7 +375,7 @@ def node_runs(package: str) -> dict[str, tuple[type, ...]]:
         module = importlib.import_module(name)
         cls = getattr(module, "NODE", None)
         if isinstance(cls, type) and issubclass(cls, Node):
-            runs[name] = tuple(cls.params_classes())
+            runs[name] = params_classes(cls.Params)
     return runs
 
 
