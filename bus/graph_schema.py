@@ -32,7 +32,7 @@ import typing
 from collections.abc import Iterable
 from typing import Any
 
-from .graph import (
+from .graph.spec import (
     DEFAULT_MAX_LAG_MS,
     INPUT_KEYS,
     NAME_RE,

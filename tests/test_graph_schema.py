@@ -13,7 +13,8 @@ import pytest
 import yaml
 
 from followbus.bus import graph_schema
-from followbus.bus.graph import (
+from followbus.bus.graph import GraphError, InputSpec, RestartPolicy, load_graph
+from followbus.bus.graph.spec import (
     INPUT_KEYS,
     NODE_KEYS,
     POLICIES,
@@ -21,10 +22,6 @@ from followbus.bus.graph import (
     RESTART_POLICIES,
     SYNC_MODES,
     TOP_KEYS,
-    GraphError,
-    InputSpec,
-    RestartPolicy,
-    load_graph,
 )
 from followbus.bus.node_checks import load_node_class, validate_node
 from followbus.bus.node_params import params_classes, parse_params

@@ -141,13 +141,8 @@ def test_wiring_whose_messages_would_reach_no_hook_is_refused():
         """))
     with pytest.raises(GraphError, match="<test>:7: .*'odometry' is sampled by stamp: wire it with sync: none"):
         validate_node(sampled, sampled.nodes["groundplane"])
-    joined = load_graph("<test>", text=textwrap.dedent("""\
-        name: t
-        nodes:
-          prediction: {run: followbus.nodes.prediction, outputs: [track]}
-          motor:
-            run: followbus.nodes.motor
-            inputs: {track: prediction/track}
-        """))
-    with pytest.raises(GraphError, match="<test>:6: .*reads 'track' in on_message.*sync: none"):
+    joined = load_graph("<test>", text="name: t\nnodes:\n"
+                                       "  prediction: {run: followbus.nodes.prediction, outputs: [track]}\n"
+                                       "  motor: {run: followbus.nodes.motor, inputs: {track: prediction/track}}\n")
+    with pytest.raises(GraphError, match="<test>:4: .*reads 'track' in on_message.*sync: none"):
         validate_node(joined, joined.nodes["motor"])

@@ -29,26 +29,8 @@ from __future__ import annotations
 
 from .load import load_graph
 from .model import Graph
-from .spec import (
-    DEFAULT_MAX_LAG_MS,
-    INPUT_KEYS,
-    NAME_RE,
-    NAMESPACE_RE,
-    NODE_KEYS,
-    POLICIES,
-    RESTART_KEYS,
-    RESTART_POLICIES,
-    SYNC_MODES,
-    TOP_KEYS,
-    Boundary,
-    GraphError,
-    InputSpec,
-    NodeSpec,
-    RestartPolicy,
-    SourceLine,
-)
+from .spec import NAMESPACE_RE, Boundary, GraphError, InputSpec, NodeSpec, RestartPolicy, SourceLine
 from .variants import apply_overrides, parse_assignments, parse_value
 
-__all__ = ["DEFAULT_MAX_LAG_MS", "INPUT_KEYS", "NAME_RE", "NAMESPACE_RE", "NODE_KEYS", "POLICIES", "RESTART_KEYS",
-           "RESTART_POLICIES", "SYNC_MODES", "TOP_KEYS", "Boundary", "Graph", "GraphError", "InputSpec", "NodeSpec",
-           "RestartPolicy", "SourceLine", "apply_overrides", "load_graph", "parse_assignments", "parse_value"]
+__all__ = ["NAMESPACE_RE", "Boundary", "Graph", "GraphError", "InputSpec", "NodeSpec", "RestartPolicy", "SourceLine",
+           "apply_overrides", "load_graph", "parse_assignments", "parse_value"]

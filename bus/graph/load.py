@@ -10,26 +10,11 @@ from typing import Any
 import yaml
 
 from ..session import ZenohSettings
+from . import spec as rules
 from .checks import check_hosts, check_wiring
 from .extends import compose_graph, line_of, mapping_items, plain, read_text
 from .model import Graph
-from .spec import (
-    DEFAULT_MAX_LAG_MS,
-    INPUT_KEYS,
-    NAME_RE,
-    NAMESPACE_RE,
-    NODE_KEYS,
-    POLICIES,
-    RESTART_KEYS,
-    RESTART_POLICIES,
-    RUN_RE,
-    SYNC_MODES,
-    TOP_KEYS,
-    GraphError,
-    InputSpec,
-    NodeSpec,
-    RestartPolicy,
-)
+from .spec import GraphError, InputSpec, NodeSpec, RestartPolicy
 
 
 def load_graph(path: str | Path, text: str | None = None) -> Graph:
@@ -45,8 +30,9 @@ def load_graph(path: str | Path, text: str | None = None) -> Graph:
     for key, key_node, value_node in mapping_items(root, path, "graph"):
         if key in seen:
             raise GraphError(path, line_of(key_node), f"duplicate key {key!r}")
-        if key not in TOP_KEYS:
-            raise GraphError(path, line_of(key_node), f"unknown key {key!r} (allowed: {', '.join(sorted(TOP_KEYS))})")
+        if key not in rules.TOP_KEYS:
+            raise GraphError(path, line_of(key_node),
+                             f"unknown key {key!r} (allowed: {', '.join(sorted(rules.TOP_KEYS))})")
         seen[key] = value_node
     for required in ("name", "nodes"):
         if required not in seen:
@@ -56,7 +42,7 @@ def load_graph(path: str | Path, text: str | None = None) -> Graph:
     namespace = "fb"
     if "namespace" in seen:
         namespace = _expect(plain(seen["namespace"], path), str, path, line_of(seen["namespace"]), "namespace")
-        if not NAMESPACE_RE.match(namespace):
+        if not rules.NAMESPACE_RE.match(namespace):
             raise GraphError(path, line_of(seen["namespace"]), f"namespace {namespace!r} is not a valid key prefix")
     zenoh_settings = ZenohSettings()
     if "zenoh" in seen:
@@ -70,13 +56,13 @@ def load_graph(path: str | Path, text: str | None = None) -> Graph:
     for node_name, key_node, value_node in mapping_items(seen["nodes"], path, "nodes"):
         if node_name in nodes:
             raise GraphError(path, line_of(key_node), f"duplicate node name {node_name!r}")
-        if not NAME_RE.match(node_name) or node_name.startswith("@"):
+        if not rules.NAME_RE.match(node_name) or node_name.startswith("@"):
             raise GraphError(path, line_of(key_node), f"node name {node_name!r} is not a valid name")
         nodes[node_name] = _parse_node(node_name, key_node, value_node, path)
     if not nodes:
         raise GraphError(path, line_of(seen["nodes"]), "no nodes declared")
 
-    max_lag_ms = DEFAULT_MAX_LAG_MS
+    max_lag_ms = rules.DEFAULT_MAX_LAG_MS
     if "max_lag_ms" in seen:
         max_lag_ms = _non_negative_ms(seen["max_lag_ms"], path, "max_lag_ms")
     default_host = None
@@ -110,16 +96,16 @@ def _type_names(types: type | tuple[type, ...]) -> str:
 def _parse_node(name: str, key_node: yaml.Node, node: yaml.Node, path: str) -> NodeSpec:
     fields: dict[str, tuple[yaml.Node, yaml.Node]] = {}
     for key, k_node, v_node in mapping_items(node, path, f"node {name!r}"):
-        if key not in NODE_KEYS:
+        if key not in rules.NODE_KEYS:
             raise GraphError(path, line_of(k_node),
-                             f"node {name!r}: unknown key {key!r} (allowed: {', '.join(sorted(NODE_KEYS))})")
+                             f"node {name!r}: unknown key {key!r} (allowed: {', '.join(sorted(rules.NODE_KEYS))})")
         if key in fields:
             raise GraphError(path, line_of(k_node), f"node {name!r}: duplicate key {key!r}")
         fields[key] = (k_node, v_node)
     if "run" not in fields:
         raise GraphError(path, line_of(key_node), f"node {name!r}: missing required key 'run'")
     run = _expect(plain(fields["run"][1], path), str, path, line_of(fields["run"][1]), f"node {name!r}: run")
-    if not RUN_RE.match(run):
+    if not rules.RUN_RE.match(run):
         raise GraphError(path, line_of(fields["run"][1]), f"node {name!r}: run must name a Python module "
                                                         f"(e.g. followbus.nodes.detection), not {run!r}")
     spec = NodeSpec(name=name, run=run, line=line_of(key_node))
@@ -129,7 +115,7 @@ def _parse_node(name: str, key_node: yaml.Node, node: yaml.Node, path: str) -> N
                           f"node {name!r}: outputs")
         for item_node, out in zip(fields["outputs"][1].value, outputs, strict=True):
             _expect(out, str, path, line_of(item_node), f"node {name!r}: output name")
-            if not NAME_RE.match(out):
+            if not rules.NAME_RE.match(out):
                 raise GraphError(path, line_of(item_node), f"node {name!r}: output name {out!r} is not valid")
             if out in spec.outputs:
                 raise GraphError(path, line_of(item_node), f"node {name!r}: duplicate output {out!r}")
@@ -195,7 +181,7 @@ def _non_negative_ms(node: yaml.Node, path: str, what: str) -> float:
 def _parse_input(node: str, name: str, key_node: yaml.Node, value_node: yaml.Node, path: str) -> InputSpec:
     where = f"node {node!r}: input {name!r}"
     line = line_of(key_node)
-    if not NAME_RE.match(name):
+    if not rules.NAME_RE.match(name):
         raise GraphError(path, line, f"{where}: not a valid input name")
     value = plain(value_node, path)
     options: dict[str, Any] = {}
@@ -205,9 +191,9 @@ def _parse_input(node: str, name: str, key_node: yaml.Node, value_node: yaml.Nod
     elif isinstance(value, dict):
         for opt_name, opt_key, opt_value in mapping_items(value_node, path, where):
             lines[opt_name] = line_of(opt_value)
-            if opt_name not in INPUT_KEYS:
+            if opt_name not in rules.INPUT_KEYS:
                 raise GraphError(path, line_of(opt_key),
-                                 f"{where}: unknown key {opt_name!r} (allowed: {', '.join(sorted(INPUT_KEYS))})")
+                                 f"{where}: unknown key {opt_name!r} (allowed: {', '.join(sorted(rules.INPUT_KEYS))})")
         if "from" not in value:
             raise GraphError(path, line, f"{where}: missing required key 'from'")
         source = value["from"]
@@ -224,12 +210,12 @@ def _parse_input(node: str, name: str, key_node: yaml.Node, value_node: yaml.Nod
             raise GraphError(path, lines["queue"], f"{where}: queue must be >= 1")
     if "policy" in options:
         spec.policy = _expect(options["policy"], str, path, lines["policy"], f"{where}: policy")
-        if spec.policy not in POLICIES:
-            raise GraphError(path, lines["policy"], f"{where}: policy must be one of {', '.join(POLICIES)}")
+        if spec.policy not in rules.POLICIES:
+            raise GraphError(path, lines["policy"], f"{where}: policy must be one of {', '.join(rules.POLICIES)}")
     if "sync" in options:
         spec.sync = _expect(options["sync"], str, path, lines["sync"], f"{where}: sync")
-        if spec.sync not in SYNC_MODES:
-            raise GraphError(path, lines["sync"], f"{where}: sync must be one of {', '.join(SYNC_MODES)}")
+        if spec.sync not in rules.SYNC_MODES:
+            raise GraphError(path, lines["sync"], f"{where}: sync must be one of {', '.join(rules.SYNC_MODES)}")
     if "offset" in options:
         spec.offset = _expect(options["offset"], int, path, lines["offset"], f"{where}: offset")
         if spec.offset not in (0, -1):
@@ -251,14 +237,15 @@ def _parse_restart(node: str, value_node: yaml.Node, path: str) -> RestartPolicy
         _expect(value, dict, path, line, where)
         lines.update({key: line_of(v_node) for key, _, v_node in mapping_items(value_node, path, where)})
     for key in value:
-        if key not in RESTART_KEYS:
+        if key not in rules.RESTART_KEYS:
             raise GraphError(path, lines[key],
-                             f"{where}: unknown key {key!r} (allowed: {', '.join(sorted(RESTART_KEYS))})")
+                             f"{where}: unknown key {key!r} (allowed: {', '.join(sorted(rules.RESTART_KEYS))})")
     policy = RestartPolicy()
     if "policy" in value:
         policy.policy = _expect(value["policy"], str, path, lines["policy"], f"{where}: policy")
-        if policy.policy not in RESTART_POLICIES:
-            raise GraphError(path, lines["policy"], f"{where}: policy must be one of {', '.join(RESTART_POLICIES)}")
+        if policy.policy not in rules.RESTART_POLICIES:
+            raise GraphError(path, lines["policy"],
+                             f"{where}: policy must be one of {', '.join(rules.RESTART_POLICIES)}")
     for key in ("max_restarts", "backoff_ms", "max_backoff_ms", "window_s"):
         if key in value:
             setattr(policy, key, _expect(value[key], int, path, lines[key], f"{where}: {key}"))
