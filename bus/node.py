@@ -164,6 +164,6 @@ class Node:
 
     # --- the one helper -----------------------------------------------------------------------------
     def publish(self, output: str, msg: Message, like: Message | None = None) -> None:
-        """Publish ``msg`` on ``output``. Its header is that of the frame or message being handled (``like``: that
-        of another message); outside a handler an unstamped message gets the node clock's time."""
+        """Publish ``msg`` on ``output``. In a handler its header is that of the frame or message being handled
+        (``like``: that of another message); outside one, a message without a stamp gets the node clock's time."""
         self.runtime.publish(output, msg, like)

@@ -147,14 +147,16 @@ class NodeHost:
 
     # --- what a node uses (bus.node.Runtime) ------------------------------------------------------
     def publish(self, output: str, msg: Message, like: Message | None = None) -> None:
-        """Publish on an output. The header comes from ``like``, else from what is being handled (the frame set's,
-        or the message's); outside a handler an unstamped message gets the node clock's time. Inside a handler
-        the output also carries the set's provenance (the feedback it joined) and the samples' notes."""
-        source = like if like is not None else self._handling.like if self._handling is not None else None
-        if source is not None:
-            msg.header.stamp_ns = source.header.stamp_ns
-            msg.header.frame_seq = source.header.frame_seq
-            msg.header.epoch_ns = source.header.epoch_ns
+        """Publish on an output. The stamp, frame_seq and epoch come from ``like``, else from what is being handled
+        (the frame set, or the message); outside a handler a message without a stamp gets the node clock's time.
+        Inside a handler the output also carries the set's provenance (the feedback it joined) and the samples'
+        notes."""
+        if like is None and self._handling is not None:
+            like = self._handling.like
+        if like is not None:
+            msg.header.stamp_ns = like.header.stamp_ns
+            msg.header.frame_seq = like.header.frame_seq
+            msg.header.epoch_ns = like.header.epoch_ns
         elif not msg.header.stamp_ns:
             msg.header.stamp_ns = self.clock.now_ns()
         if self.provenance is not None:
