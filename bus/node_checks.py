@@ -13,11 +13,16 @@ from .node_params import ParamError, marked, param_names, parse_params
 
 
 def load_node_class(run: str) -> type[Node]:
-    """The ``NODE`` class of the module graph.yaml's ``run:`` names (ImportError saying what is wrong)."""
+    """The ``NODE`` class of the module graph.yaml's ``run:`` names (ImportError saying what is wrong: a user's
+    module that fails to import, a port declared the old way, is one line, not a traceback)."""
+    if not run or run.startswith("."):
+        raise ImportError(f"{run!r} is not a module name (an absolute, dotted name: followbus.nodes.capture)")
     try:
         module = importlib.import_module(run)
-    except (ValueError, TypeError) as exc:  # "" or a relative name ("..capture"): not a module name
-        raise ImportError(f"{run!r} is not a module name ({exc})") from exc
+    except ImportError:
+        raise
+    except Exception as exc:
+        raise ImportError(f"module {run!r} failed to import: {type(exc).__name__}: {exc}") from exc
     cls = getattr(module, "NODE", None)
     if not (isinstance(cls, type) and issubclass(cls, Node)):
         raise ImportError(f"module {run!r} has no NODE class deriving from followbus.bus.node.Node")

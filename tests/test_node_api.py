@@ -90,6 +90,15 @@ def test_ports_are_declared_with_in_and_out():
         In(int)
 
 
+def test_a_port_declared_the_old_way_is_one_line_at_the_run_line(tmp_path, monkeypatch):
+    (tmp_path / "old_style.py").write_text(PROBE.replace('In(Tick, required=True)', 'Tick'))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    graph = load_graph("<test>", text="name: t\nnodes:\n  old: {run: old_style}\n")
+    with pytest.raises(GraphError, match=r"<test>:3: node 'old': run: module 'old_style' failed to import: "
+                                         r"TypeError: Probe.INPUTS: tick must be declared as In\(...\)"):
+        validate_node(graph, graph.nodes["old"])
+
+
 def test_each_input_message_reaches_one_hook(probe):
     """A frame-joined input goes to on_frame only (not to on_message first); one read on arrival goes to on_message
     as it comes as well, and one wired sync: none to on_message only."""
