@@ -48,6 +48,13 @@ def test_the_page_shows_the_example_files_as_they_are():
         assert text == (REPO / "docs" / "examples" / name).read_text(), f"docs/examples/{name} and the page differ"
 
 
+def test_the_readme_shows_the_template_node_as_it_is():
+    readme = (REPO / "README.md").read_text()
+    block = readme[readme.index("<!-- node example:"):]
+    block = block[block.index("```python\n") + len("```python\n"):]
+    assert block[:block.index("```")] == (REPO / "docs" / "examples" / "people_count.py").read_text()
+
+
 def test_a_node_with_one_input_and_one_output_is_at_most_twelve_lines():
     code = [line for line in _files()["people_count.py"].splitlines() if line.strip()]
     assert len(code) <= 12, code
