@@ -1,7 +1,7 @@
 """Which machine runs which node of a graph spread over several (``host:`` and ``default_host:``).
 
 Every node runs on exactly one host: its ``host:``, else the graph's ``default_host``. A graph that names
-hosts for some nodes and not others must say ``default_host`` (bus/graph.py refuses it otherwise), so
+hosts for some nodes and not others must say ``default_host`` (bus/graph/checks.py refuses it otherwise), so
 ``followbus launch --host H`` on each machine starts disjoint sets of nodes and no node runs twice (a node
 without a host of its own would otherwise be started by *every* ``launch --host``). A graph that names no
 host at all is a one-machine graph: ``launch`` without ``--host`` starts every node.

@@ -18,7 +18,7 @@ start, then again after the delay it returns), a timer tick (``on_timer`` every 
 a frame-set deadline (``sync_timeout_ms``). Same inputs, same outputs, bit for bit, run after run.
 
 **Clocks.** ``clock="sim"`` (default): one simulated clock stands for wall and monotonic time
-(``Node.wall_ns``/``monotonic_ns``/``now_ns``, the synchroniser's deadlines, ``header.pub_ns``); nodes
+(the node's ``runtime.clock``, the synchroniser's deadlines, ``header.pub_ns``); nodes
 behave as live ones (``Clock.live``), on that time. ``clock="stamps"``: each node's clock follows the stamps
 of its inputs, as ``followbus node --clock stamps`` in a lockstep replay (timers tick after deliveries,
 frame sets time out on stamps, the lag bound is off); :meth:`InProcessGraph.hint` gives it the replay
@@ -43,9 +43,12 @@ from typing import Any
 
 import numpy as np
 
+from .clock import Clock
 from .codec import DecodeError, Header, peek
 from .graph import Graph
-from .node import Clock, Node, NodeHost, validate_node
+from .node import Node
+from .node_checks import validate_node
+from .node_host import NodeHost
 from .pubsub import MAX_PAYLOAD_BYTES, RateLimitedLog
 from .schemas import Frame, Message, ReplayHint, decode, encode, validate, wire_copy
 from .stats import TopicStats
@@ -152,7 +155,7 @@ class _Host(NodeHost):
         publication made of it, by expected type; each subscriber gets its own copy of the message and header
         (the arrays, read-only, are shared), as if it had decoded the bytes itself."""
         queue = self.queues[input_name]
-        schema = self.cls.INPUTS[input_name]
+        schema = self.cls.INPUTS[input_name].type
         shared = checked.get(schema)
         if shared is None:
             try:
@@ -193,7 +196,7 @@ class _Host(NodeHost):
         """The node's counters (what its NodeStatus would carry in ``extra`` and ``topics``)."""
         extra = self.sync_counters()
         try:
-            extra.update(self.node.status_extra())
+            extra.update(self.node.status())
         except Exception as exc:  # as live: status never takes the node down
             extra["status_error"] = repr(exc)
         topics = {p.stats.key: p.stats.snapshot(self.owner.now_ns) for p in self.publishers.values()}
@@ -275,7 +278,7 @@ class InProcessGraph:
             return
         for host in self.hosts.values():
             if not host.stopped:
-                host._guarded("teardown", host.node.teardown)
+                host.close_node()
 
     def __enter__(self) -> InProcessGraph:
         return self
@@ -500,7 +503,7 @@ class InProcessGraph:
     def _frame_topic(self) -> str:
         for host in self.hosts.values():
             for out in host.spec.outputs:
-                if host.cls.OUTPUTS.get(out) is Frame:
+                if host.cls.OUTPUTS[out].type is Frame:
                     return f"{host.spec.name}/{out}"
         raise ValueError("no node run here publishes frames: name the topic to count")
 
@@ -519,4 +522,4 @@ class InProcessGraph:
             host.next_poll_ns = host.next_timer_ns = None
             for q in host.queues.values():
                 q.items.clear()
-            host._guarded("teardown", host.node.teardown)
+            host.close_node()

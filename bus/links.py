@@ -83,7 +83,7 @@ class LinkFigures:
 
 
 def edges_of_graph(graph: Any) -> list[Edge]:
-    """Every input of every node of a graph (bus/graph.py Graph), as an edge."""
+    """Every input of every node of a graph (bus/graph/ Graph), as an edge."""
     return [Edge(graph.key(inp.source_node, inp.source_output), inp.source_node, name)
             for name, spec in graph.nodes.items() for inp in spec.inputs.values()]
 

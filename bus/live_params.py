@@ -1,9 +1,9 @@
 """A running node's parameters, read and changed over the bus (``followbus param get|set``, as ``ros2 param``).
 
 Every node answers queries on ``<ns>/@param/<node>/<param>``: without a payload with the value it runs with;
-with a JSON payload by setting it, when the node class lists the parameter in ``LIVE_PARAMS`` (only parameters
-its code reads afresh on every message are listed: a threshold, an age bound). A new value is validated as at
-launch (the class's ``parse_params`` on the node's params with the value in), then written into the params
+with a JSON payload by setting it, when its params field is marked ``live`` (bus/node_params.py: only parameters
+the node's code reads afresh on every message: a threshold, an age bound). A new value is validated as at
+launch (``parse_params`` on the node's params with the value in), then written into the params
 object the node runs with. Each change is published on ``<ns>/<node>/parameter_events`` (a NodeStatus whose
 extra says which parameter, the value before and after), which ``followbus record`` records with the rest of
 the namespace, and the node's status carries every value changed so far (``extra["params_set"]``).
@@ -19,6 +19,7 @@ import threading
 import time
 from typing import Any
 
+from .node_params import marked, param_names, parse_params
 from .schemas import NodeStatus
 
 log = logging.getLogger(__name__)
@@ -63,32 +64,32 @@ class LiveParams:
         query.reply(query.key_expr, json.dumps(answer, default=str).encode())
 
     def live(self) -> list[str]:
-        return sorted(self.runtime.cls.LIVE_PARAMS)
+        return sorted(marked(self.runtime.cls.Params, "live"))
 
     def get(self, param: str) -> dict[str, Any]:
         try:
             value = current_value(self.runtime.params, param)
         except KeyError:
-            close = difflib.get_close_matches(param, sorted(self.runtime.cls.param_names()), n=1)
+            close = difflib.get_close_matches(param, sorted(param_names(self.runtime.cls.Params)), n=1)
             hint = f" (did you mean {self.runtime.spec.name}.{close[0]}?)" if close else ""
             return {"ok": False, "error": f"node {self.runtime.spec.name!r} has no parameter {param!r}{hint}"}
-        return {"ok": True, "value": value, "live": param in self.runtime.cls.LIVE_PARAMS}
+        return {"ok": True, "value": value, "live": param in self.live()}
 
     def set(self, param: str, value: Any) -> dict[str, Any]:
         node = self.runtime.spec.name
-        names = self.runtime.cls.param_names()
+        names = param_names(self.runtime.cls.Params)
         if param not in names:
             close = difflib.get_close_matches(param, sorted(names), n=1)
             hint = f"did you mean {node}.{close[0]}? " if close else ""
             return {"ok": False, "error": f"node {node!r} has no parameter {param!r} ({hint}live-tunable: "
                                           f"{', '.join(self.live()) or 'none'})"}
-        if param not in self.runtime.cls.LIVE_PARAMS:
+        if param not in self.live():
             live = ", ".join(self.live()) or "none"
             return {"ok": False, "error": f"{node}.{param} is not live-tunable (live: {live}); set it at launch "
                                           f"with --set {node}.{param}=VALUE"}
         raw = dict(self.runtime.spec.params, **{param: value})
         try:
-            fresh = self.runtime.cls.parse_params(raw)
+            fresh = parse_params(self.runtime.cls.Params, raw)
         except Exception as exc:  # ParamError, or the dataclass's own check: as at launch
             return {"ok": False, "error": f"{node}.{param}: {exc}"}
         new = current_value(fresh, param)

@@ -2,7 +2,7 @@
 
 A node's process can be up, its liveliness token declared, and still do nothing useful: a source whose
 ``poll`` raises and is never polled again publishes nothing for good after one failed camera read, while every
-table says "up". The runtime (bus/node.py) uses these two pieces so that a failing hook is retried
+table says "up". The runtime (bus/node_host.py) uses these two pieces so that a failing hook is retried
 with backoff, a node that keeps failing exits with :data:`STOPPED_WORKING_EXIT` (the launcher restarts it
 and reports it), and a source that has published nothing for many of its own periods does the same.
 """

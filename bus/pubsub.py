@@ -439,8 +439,8 @@ class InputQueue:
 
     ``drop_oldest`` keeps the newest messages (live video); ``block`` makes the producer wait for
     room (control and recording paths), up to ``block_timeout_s`` so shutdown never deadlocks.
-    ``wakes``: a message notifies the consumer at once; False (a node's LAZY_INPUTS): only once the queue is half
-    full, else it waits for the consumer's next wake-up (the consumer bounds its waits).
+    ``wakes``: a message notifies the consumer at once; False (a node's input read by stamp): only once the queue is
+    half full, else it waits for the consumer's next wake-up (the consumer bounds its waits).
     """
 
     def __init__(self, name: str, maxlen: int, policy: str, stats: TopicStats, wakeup: threading.Condition,

@@ -1,5 +1,5 @@
 """One type checker for values that come from outside: decoded message fields (bus.schemas) and node
-parameters from graph.yaml or ``--set`` (bus.node). Both meet the same annotations (float, int, bool, str,
+parameters from graph.yaml or ``--set`` (bus.node_params). Both meet the same annotations (float, int, bool, str,
 arrays, lists, maps, optionals), so they are checked by the same rules: a bool is never a number, an int
 becomes a float where a float is wanted, a list stands for a list or a tuple."""
 

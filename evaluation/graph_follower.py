@@ -23,7 +23,8 @@ import numpy as np
 
 from ..bus.graph import Graph, load_graph
 from ..bus.inproc import InProcessGraph
-from ..bus.node import load_node_class, validate_node
+from ..bus.node_checks import load_node_class, validate_node
+from ..bus.node_params import param_names
 from ..bus.schemas import Frame
 from ..msgs.perception import CameraMotion, Detections
 from ..msgs.robot import Odometry
@@ -66,7 +67,7 @@ def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH, d
     unread = set(settings)
     changes: dict[str, dict[str, Any]] = {}
     for name in topics.nodes:
-        reads = load_node_class(graph.nodes[name].run).param_names()
+        reads = param_names(load_node_class(graph.nodes[name].run).Params)
         changes[name] = {key: value for key, value in settings.items() if key in reads}
         unread -= reads
     if unread:
@@ -79,7 +80,8 @@ def tracking_graph(settings: Mapping[str, Any], graph_path: Path = GRAPH_PATH, d
 
 def detection_node(graph: Graph) -> str:
     """The name of the graph's node that publishes Detections."""
-    return next(name for name, spec in graph.nodes.items() if Detections in load_node_class(spec.run).OUTPUTS.values())
+    return next(name for name, spec in graph.nodes.items()
+                if Detections in _types(load_node_class(spec.run).OUTPUTS).values())
 
 
 def detector_params(graph_path: Path = GRAPH_PATH) -> dict[str, Any]:
@@ -92,7 +94,7 @@ class GraphTopics:
     """The graph's tracking nodes and topics, found by message type (see the module docstring)."""
 
     def __init__(self, graph: Graph) -> None:
-        outputs = {name: load_node_class(spec.run).OUTPUTS for name, spec in graph.nodes.items()}
+        outputs = {name: _types(load_node_class(spec.run).OUTPUTS) for name, spec in graph.nodes.items()}
         fed_by = {name for name, out in outputs.items() if any(t in FED_TYPES for t in out.values())}
         self.nodes = [name for name in graph.nodes if name not in fed_by]
         by_type = {t: f"{name}/{output}" for name in self.nodes for output, t in outputs[name].items()}
@@ -100,13 +102,18 @@ class GraphTopics:
         self.prior, self.measurement = by_type[Prior], by_type[Measurement]
         self.camera_motion = by_type.get(CameraMotion)
         boundary = graph.boundary(self.nodes)
-        inputs = {name: load_node_class(graph.nodes[name].run).INPUTS for name in self.nodes}
+        inputs = {name: _types(load_node_class(graph.nodes[name].run).INPUTS) for name in self.nodes}
         fed = {inputs[node][inp.name]: inp.topic for node, inp in boundary.inputs}
         self.frame, self.detections, self.odometry = (fed[t] for t in FED_TYPES)
 
     @staticmethod
     def node(topic: str) -> str:
         return topic.split("/", 1)[0]
+
+
+def _types(ports: dict[str, Any]) -> dict[str, type]:
+    """A node class's ports (bus.node In/Out) as their message types."""
+    return {name: port.type for name, port in ports.items()}
 
 
 def node_params(graph: Graph, node: str, cls: type) -> Any:

@@ -324,13 +324,14 @@ def detector_key(name: str) -> str:
 def make_eval_detector(name: str, seed: int = 0, score_threshold: float = SCORE_THRESHOLD):
     """The detector ``name`` as the detection node builds it from its params (model, input size, runtime,
     threads), down to ``score_threshold``."""
-    from ..nodes.detection import Detection, detector_from_params
+    from ..nodes.detection import detection_params as parse_detection_params
+    from ..nodes.detection import detector_from_params
 
     if name not in DETECTORS:
         raise ValueError(f"unknown detector {name!r}; choose one of {', '.join(DETECTORS)}")
     params = detection_params(name)
     params.update(score_threshold=SCORE_THRESHOLD, low_score_threshold=score_threshold, seed=seed)
-    return detector_from_params(Detection.parse_params(params))
+    return detector_from_params(parse_detection_params(params))
 
 
 # --------------------------------------------------------------------------- running

@@ -13,7 +13,7 @@ the ``ack`` input (wire it to the last node of the chain, e.g. prediction/track)
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +21,8 @@ import cv2
 import numpy as np
 
 from ..bus.codec import DecodeError
-from ..bus.node import DownstreamBarrier, Node, ParamError
+from ..bus.node import In, Node, Out
+from ..bus.node_params import ParamError
 from ..bus.schemas import Frame, Message, decode
 from ..msgs.perception import GroundTruth
 from ..msgs.tracking import Track
@@ -33,7 +34,8 @@ _END = object()  # the source has no more frames (None is a live source's "no ne
 
 @dataclass
 class CaptureParams:
-    source: str = "scene:corridor-occlusion"
+    # camera:<index or device> | video file | image folder | *.mcap | scene:<name> | ros2:<topic> (demo --scene)
+    source: str = field(default="scene:corridor-occlusion", metadata={"demo": "source"})
     seed: int = 0  # synthetic scenes
     fps: float = 0.0  # 0: the source's own rate (30 for folders without one)
     width_px: int = 640  # synthetic scenes
@@ -50,62 +52,56 @@ class CaptureParams:
     preview_width_px: int = 320
     jpeg_quality: int = 70
 
-
-class Capture(Node):
-    INPUTS = {"ack": Track}
-    OUTPUTS = {"frame": Frame, "preview": Frame, "ground_truth": GroundTruth}
-    CONGESTION = {"frame": "drop", "preview": "drop", "ground_truth": "block"}
-
-    Params = CaptureParams
-    SOURCE_PARAM = "source"
-
-    @classmethod
-    def parse_params(cls, raw: dict[str, Any]) -> CaptureParams:
-        params = super().parse_params(raw)
-        if params.pace not in ("realtime", "fast"):
-            raise ParamError("pace", f"pace must be 'realtime' or 'fast', not {params.pace!r}")
+    def __post_init__(self) -> None:
+        if self.pace not in ("realtime", "fast"):
+            raise ParamError("pace", f"pace must be 'realtime' or 'fast', not {self.pace!r}")
         for key, low in (("width_px", 16), ("height_px", 16), ("preview_width_px", 16), ("max_in_flight", 1),
                          ("jpeg_quality", 1), ("fps", 0), ("max_frames", 0), ("wait_for_consumers_s", 0),
                          ("start_delay_s", 0)):
-            if getattr(params, key) < low:
-                raise ParamError(key, f"{key} must be >= {low}, not {getattr(params, key)!r}")
+            if getattr(self, key) < low:
+                raise ParamError(key, f"{key} must be >= {low}, not {getattr(self, key)!r}")
         for key in ("width_px", "height_px", "preview_width_px"):
-            if getattr(params, key) > MAX_SIDE_PX:
+            if getattr(self, key) > MAX_SIDE_PX:
                 raise ParamError(key, f"{key} must be at most {MAX_SIDE_PX} (an 8K frame's side), "
-                                      f"not {getattr(params, key)!r}")
-        if params.jpeg_quality > 100:
-            raise ParamError("jpeg_quality", f"jpeg_quality must be in 1..100, not {params.jpeg_quality!r}")
-        return params
+                                      f"not {getattr(self, key)!r}")
+        if self.jpeg_quality > 100:
+            raise ParamError("jpeg_quality", f"jpeg_quality must be in 1..100, not {self.jpeg_quality!r}")
 
-    @classmethod
-    def check_params(cls, params: CaptureParams) -> None:
+    def check(self) -> None:
         """Can the source be opened? Run by `followbus check`, `launch` and `demo` before anything starts, so a
         missing file or an unknown scene is one line instead of a node crash-looping (SourceError)."""
         try:
-            if _is_mcap(params.source):
-                mcap_frame_channel(params.source, params.mcap_frame_key)
-            elif _is_ros2(params.source):
+            if _is_mcap(self.source):
+                mcap_frame_channel(self.source, self.mcap_frame_key)
+            elif _is_ros2(self.source):
                 from .ros2 import ros2_image_topic  # here: other sources never load the ROS 2 types
 
-                ros2_image_topic(params.source)
+                ros2_image_topic(self.source)
             else:
-                check_source(params.source, groundtruth=params.groundtruth)
+                check_source(self.source, groundtruth=self.groundtruth)
         except SourceError as exc:
             raise ParamError("source", str(exc)) from exc
 
-    @classmethod
-    def first_truth_box(cls, params: CaptureParams) -> tuple[float, ...] | None:
-        """The ground-truth box of frame 0 when the source is an annotated image folder."""
-        source = params.source
+    def first_truth_box(self) -> tuple[float, ...] | None:
+        """The ground-truth box of frame 0 when the source is an annotated image folder (followbus demo gives it to
+        the node that takes the box to follow)."""
+        source = self.source
         if not source or source.startswith(("scene:", "camera:")) or not Path(source).is_dir():
             return None
         from ..vision.sources import ImageFolderSource
 
-        folder = ImageFolderSource(Path(source), params.groundtruth or None)
+        folder = ImageFolderSource(Path(source), self.groundtruth or None)
         if not folder.has_ground_truth:
             return None
         box, _ = folder.ground_truth(0)
         return None if box is None else tuple(float(v) for v in box)
+
+
+class Capture(Node):
+    INPUTS = {"ack": In(Track)}  # pace: fast
+    OUTPUTS = {"frame": Out(Frame, congestion="drop"), "preview": Out(Frame, congestion="drop"),
+               "ground_truth": Out(GroundTruth)}
+    Params = CaptureParams
 
     def setup(self) -> None:
         p = self.params
@@ -116,14 +112,14 @@ class Capture(Node):
         self.published = 0
         # Names this session's frame numbering: a restarted capture counts from 0 again under a new epoch,
         # which every node follows instead of taking the new frames for stale ones (bus.sync).
-        self.epoch_ns = self.wall_ns()
+        self.epoch_ns = self.runtime.clock.wall_ns()
         self.acked = -1
         self.t0_wall_ns: int | None = None
         self.first_source_ns = 0
         self.done = False
         # Frame 0 must not be published before the nodes that consume it are listening (a lost first
         # frame means no target initialisation, and a lockstep run that never starts).
-        self.barrier = DownstreamBarrier(self.runtime, p.wait_for_consumers_s, p.start_delay_s)
+        self.barrier = self.runtime.wait_for_consumers(p.wait_for_consumers_s, p.start_delay_s)
         # Published every frame either way (available=False without), so joins never wait for it.
         self.has_truth = p.source.startswith("scene:") or bool(getattr(self.source, "has_ground_truth", False))
         if p.pace == "fast" and "ack" not in self.runtime.spec.inputs:
@@ -172,7 +168,7 @@ class Capture(Node):
         if item is _END:
             return self._source_ended()
         if self.t0_wall_ns is None:
-            self.t0_wall_ns = self.wall_ns()
+            self.t0_wall_ns = self.runtime.clock.wall_ns()
             self.first_source_ns = item.t_ns
         self.last_source_ns = item.t_ns
         # Stamps keep the source's exact frame spacing (Kalman Δt is deterministic) anchored to
@@ -184,7 +180,7 @@ class Capture(Node):
             return None
         if p.pace == "fast":
             return 0.0
-        return max(0.0, (stamp + int(1e9 / self.fps) - self.wall_ns()) / 1e9)
+        return max(0.0, (stamp + int(1e9 / self.fps) - self.runtime.clock.wall_ns()) / 1e9)
 
     def _next_item(self) -> Any:
         """The source's next frame, None (none yet) or _END. A source that raises is never taken for exhausted: its
@@ -246,7 +242,7 @@ class Capture(Node):
         # Ground truth first: a detector joining it with the frame never waits.
         self.publish("ground_truth", gt)
         self.publish("frame", frame)
-        if self.has_listeners("preview"):  # a resize and a JPEG encode each frame: not for nobody
+        if self.runtime.listened("preview"):  # a resize and a JPEG encode each frame: not for nobody
             self.publish("preview", self._preview(bgr, stamp_ns, seq))
         self.published += 1
 
@@ -261,14 +257,10 @@ class Capture(Node):
         msg.header.stamp_ns, msg.header.frame_seq, msg.header.epoch_ns = stamp_ns, seq, self.epoch_ns
         return msg
 
-    def holding(self) -> bool:
-        return self.t0_wall_ns is None and not self.barrier.opened
-
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         return {"published": self.published, "acked": self.acked, "done": self.done}
 
     def teardown(self) -> None:
-        self.barrier.close()
         self.source.close()
 
 

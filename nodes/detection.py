@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
 
-from ..bus.node import Node, ParamError
+from ..bus.node import In, Node, Out
+from ..bus.node_params import ParamError, parse_params
 from ..bus.schemas import Frame, Message
 from ..msgs.perception import Detections, GroundTruth
 from ..vision.detectors import (
@@ -45,7 +46,7 @@ class DetectionParams:
     model_file: str = ""  # default: yolox_nano_<input_size_px>.onnx
     # The network input's side (the long side with input_shape: fit), or auto: the largest of 640, 512, 416, 320 this
     # machine infers a 640x480 frame at in auto_budget_ms or less, measured at start-up and logged (input_shape fit).
-    input_size_px: int | Literal["auto"] = 416
+    input_size_px: int | Literal["auto"] = field(default=416, metadata={"was": "input_size"})
     auto_budget_ms: float = 12.0  # a third of a 30 Hz frame period: the region's second look and the loop need the rest
     # square: the frame letterboxed into input_size_px x input_size_px (a model per size); fit: the frame's own
     # aspect, long side input_size_px, padded to a multiple of 32 (yolox_nano_dynamic.onnx; 4:3 at 416: 416x320)
@@ -65,6 +66,28 @@ class DetectionParams:
     # loop against a slow detector (`followbus bench chaos`, detector-delay-80ms).
     sim_delay_ms: float = 0.0
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ParamError("backend", f"backend must be one of {', '.join(BACKENDS)}, not {self.backend!r}")
+        _check_input_size(self)
+        if self.input_shape not in INPUT_SHAPES or (self.input_shape == "fit" and self.backend == "yolov8"):
+            raise ParamError("input_shape", f"input_shape must be one of {', '.join(INPUT_SHAPES)} (fit: YOLOX "
+                                            f"only), not {self.input_shape!r}")
+        if self.runtime not in RUNTIMES:
+            raise ParamError("runtime", f"runtime must be one of {', '.join(RUNTIMES)}, not {self.runtime!r}")
+        if not self.sim_delay_ms >= 0:
+            raise ParamError("sim_delay_ms", f"sim_delay_ms must be >= 0, not {self.sim_delay_ms!r}")
+        if not 0.0 <= self.low_score_threshold <= self.score_threshold:
+            raise ParamError("low_score_threshold", "low_score_threshold must be in [0, score_threshold] "
+                             f"(= score_threshold: no low-score boxes), not {self.low_score_threshold!r}")
+        if self.sim_delay_ms and self.backend != "simulated":
+            raise ParamError("sim_delay_ms", "sim_delay_ms only applies to backend 'simulated'")
+
+
+def detection_params(raw: dict[str, Any]) -> DetectionParams:
+    """A detection node's params from its graph.yaml mapping (ParamError naming a wrong key)."""
+    return parse_params(DetectionParams, raw)
 
 
 def _check_input_size(p: DetectionParams) -> None:
@@ -116,7 +139,7 @@ def resolve_input_size(params: dict[str, Any]) -> dict[str, Any]:
     redetection node all see one size."""
     if params.get("input_size_px") != AUTO:
         return params
-    p = Detection.parse_params(params)
+    p = detection_params(params)
     key = (p.backend, p.model_dir, p.runtime, p.threads, p.auto_budget_ms)
     if key not in _RESOLVED:
         _RESOLVED[key] = int(detector_from_params(p).input_size)
@@ -129,36 +152,11 @@ def split_detections(p: DetectionParams, rows: np.ndarray) -> tuple[np.ndarray, 
 
 
 class Detection(Node):
-    INPUTS = {"frame": Frame, "ground_truth": GroundTruth}
-    REQUIRED_INPUTS = frozenset({"frame"})
-    OUTPUTS = {"detections": Detections}
+    # Only the simulated backend reads ground truth (a real one looks at the image): capture then need not send it.
+    INPUTS = {"frame": In(Frame, required=True),
+              "ground_truth": In(GroundTruth, read_if=lambda p: p.backend == "simulated")}
+    OUTPUTS = {"detections": Out(Detections)}
     Params = DetectionParams
-    RENAMED_PARAMS = {"input_size": "input_size_px"}  # issue 24: units in the names
-
-    @classmethod
-    def parse_params(cls, raw: dict[str, Any]) -> DetectionParams:
-        params = super().parse_params(raw)
-        if params.backend not in BACKENDS:
-            raise ParamError("backend", f"backend must be one of {', '.join(BACKENDS)}, not {params.backend!r}")
-        _check_input_size(params)
-        if params.input_shape not in INPUT_SHAPES or (params.input_shape == "fit" and params.backend == "yolov8"):
-            raise ParamError("input_shape", f"input_shape must be one of {', '.join(INPUT_SHAPES)} (fit: YOLOX "
-                                            f"only), not {params.input_shape!r}")
-        if params.runtime not in RUNTIMES:
-            raise ParamError("runtime", f"runtime must be one of {', '.join(RUNTIMES)}, not {params.runtime!r}")
-        if not params.sim_delay_ms >= 0:
-            raise ParamError("sim_delay_ms", f"sim_delay_ms must be >= 0, not {params.sim_delay_ms!r}")
-        if not 0.0 <= params.low_score_threshold <= params.score_threshold:
-            raise ParamError("low_score_threshold", "low_score_threshold must be in [0, score_threshold] "
-                             f"(= score_threshold: no low-score boxes), not {params.low_score_threshold!r}")
-        if params.sim_delay_ms and params.backend != "simulated":
-            raise ParamError("sim_delay_ms", "sim_delay_ms only applies to backend 'simulated'")
-        return params
-
-    @classmethod
-    def unread_inputs(cls, params: DetectionParams) -> frozenset[str]:
-        # Only the simulated backend reads ground truth (a real one looks at the image): capture then need not send it.
-        return frozenset() if params.backend == "simulated" else frozenset({"ground_truth"})
 
     def setup(self) -> None:
         try:
@@ -203,9 +201,9 @@ class Detection(Node):
         self.infer_ms_total += infer_ms
         high, low = split_detections(self.params, boxes)
         self.publish("detections", Detections(boxes=high, low_boxes=low, backend=self.detector.name,
-                                              infer_ms=infer_ms, input_px=self.input_px), like=frame)
+                                              infer_ms=infer_ms, input_px=self.input_px))
 
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         mean = self.infer_ms_total / self.frames if self.frames else 0.0
         return {"backend": self.detector.name, "frames": self.frames, "infer_ms_mean": round(mean, 2),
                 "input_size_px": self.input_px}

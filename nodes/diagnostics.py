@@ -9,18 +9,18 @@ ticks, ``relay`` forwards them (optionally joining two inputs by frame), ``sink`
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from ..bus.node import DownstreamBarrier, Node
+from ..bus.node import In, Node, Out
 from ..bus.schemas import Message, Tick
 
 
 @dataclass
 class TickerParams:
-    rate_hz: float = 30.0
+    rate_hz: float = field(default=30.0, metadata={"live": True})  # ticks per second; live (followbus param set)
     payload_bytes: int = 0
     count: int = 0  # 0 = forever
     fail_after_s: float = 0.0  # fault injection: exit with status 3 after this long (checks restart policies)
@@ -33,14 +33,13 @@ class TickerParams:
 
 
 class Ticker(Node):
-    OUTPUTS = {"tick": Tick}
+    OUTPUTS = {"tick": Out(Tick)}
     Params = TickerParams
-    LIVE_PARAMS = frozenset({"rate_hz"})  # read on every tick (followbus param set)
 
     def setup(self) -> None:
         self.value = 0
         self.started = time.monotonic()
-        self.barrier = DownstreamBarrier(self.runtime, self.params.wait_for_consumers_s, 0.2)
+        self.barrier = self.runtime.wait_for_consumers(self.params.wait_for_consumers_s, 0.2)
         self.payload = np.zeros(self.params.payload_bytes, np.uint8) if self.params.payload_bytes else None
 
     def poll(self, now_ns: int) -> float | None:
@@ -70,9 +69,6 @@ class Ticker(Node):
         if 0 <= p.raise_from <= self.value:
             raise OSError(f"fault injection: poll fails from tick {p.raise_from}")
 
-    def teardown(self) -> None:
-        self.barrier.close()
-
 
 NODE = Ticker
 
@@ -86,9 +82,8 @@ class Relay(Node):
     """Forwards ``tick``; with a second input ``other`` connected, forwards only frame-joined pairs
     (value = tick + other), which exercises the synchroniser."""
 
-    INPUTS = {"tick": Tick, "other": Tick}
-    REQUIRED_INPUTS = frozenset({"tick"})
-    OUTPUTS = {"tick": Tick}
+    INPUTS = {"tick": In(Tick, required=True), "other": In(Tick)}
+    OUTPUTS = {"tick": Out(Tick)}
     Params = RelayParams
 
     def setup(self) -> None:
@@ -98,24 +93,28 @@ class Relay(Node):
         tick = inputs["tick"]
         other = inputs.get("other")
         value = tick.value + self.params.add + (other.value if isinstance(other, Tick) else 0)
-        self.publish("tick", Tick(value=value), like=tick)
+        self.publish("tick", Tick(value=value))
         self.forwarded += 1
 
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         return {"forwarded": self.forwarded}
 
 
 class Sink(Node):
-    INPUTS = {"tick": Tick}
-    REQUIRED_INPUTS = frozenset({"tick"})
+    """Counts the ticks it receives, wired either way: joined by frame (the default), or one by one (sync: none)."""
+
+    INPUTS = {"tick": In(Tick, required=True)}
 
     def setup(self) -> None:
         self.received = 0
         self.last_value = -1
 
+    def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
+        self.on_message("tick", inputs["tick"])  # type: ignore[arg-type]
+
     def on_message(self, name: str, msg: Message) -> None:
         self.received += 1
         self.last_value = msg.value  # type: ignore[attr-defined]
 
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         return {"received": self.received, "last_value": self.last_value}

@@ -15,16 +15,16 @@ from typing import Any
 
 import numpy as np
 
-from ..bus.node import Node
+from ..bus.node import In, Node, Out
 from ..bus.schemas import Frame, Message
 from ..msgs.perception import CameraMotion, Detections
 from ..tracking.egomotion import EgoMotionEstimator, EgoMotionParams
 
 
 class EgoMotion(Node):
-    INPUTS = {"frame": Frame, "detections": Detections}
-    REQUIRED_INPUTS = frozenset({"frame", "detections"})
-    OUTPUTS = {"transform": CameraMotion}
+    # A frame comes a detector's inference before its boxes: on_message follows the corners into it at once.
+    INPUTS = {"frame": In(Frame, required=True, on_arrival=True), "detections": In(Detections, required=True)}
+    OUTPUTS = {"transform": Out(CameraMotion)}
     Params = EgoMotionParams
 
     def setup(self) -> None:
@@ -37,8 +37,7 @@ class EgoMotion(Node):
         self.steps = 0
 
     def on_message(self, name: str, msg: Message) -> None:
-        # A frame comes a detector's inference before its boxes: follow the corners into it now, so the
-        # transform is out soon after the boxes (EgoMotionEstimator.prepare; the motion is the same).
+        # The transform is then out soon after the boxes (EgoMotionEstimator.prepare; the motion is the same).
         if name == "frame" and isinstance(msg, Frame) and msg.encoding == "bgr8" \
                 and msg.header.epoch_ns == self.epoch_ns:
             t0 = time.perf_counter()
@@ -51,7 +50,7 @@ class EgoMotion(Node):
         assert isinstance(frame, Frame) and isinstance(dets, Detections)
         if frame.encoding != "bgr8":
             self.log.warning("frame %d is %s, not bgr8: no camera motion", frame_seq, frame.encoding)
-            self.publish("transform", CameraMotion(valid=False, reason="not_bgr8"), like=frame)
+            self.publish("transform", CameraMotion(valid=False, reason="not_bgr8"))
             return
         if frame.header.epoch_ns != self.epoch_ns:
             self.epoch_ns = frame.header.epoch_ns  # a restarted capture: its first frame has no predecessor
@@ -60,14 +59,13 @@ class EgoMotion(Node):
         motion = self.estimator.measure(frame.data, np.asarray(dets.boxes), frame.header.stamp_ns)
         self.measure_ms_total += (time.perf_counter() - t0) * 1e3
         try:  # prediction waits for this; the next frame's corners do not need to hold it up
-            self.publish("transform", motion or CameraMotion(valid=False, reason=self.estimator.last_reason),
-                         like=frame)
+            self.publish("transform", motion or CameraMotion(valid=False, reason=self.estimator.last_reason))
         finally:
             self.estimator.advance()
         self.step_ms_total += (time.perf_counter() - t0) * 1e3
         self.steps += 1
 
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         return {"counts": dict(self.estimator.counts),
                 "step_ms_mean": round(self.step_ms_total / self.steps, 3) if self.steps else None,
                 "measure_ms_mean": round(self.measure_ms_total / self.steps, 3) if self.steps else None,

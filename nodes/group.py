@@ -15,7 +15,8 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from ..bus.node import Node, ParamError
+from ..bus.node import In, Node, Out
+from ..bus.node_params import ParamError
 from ..bus.schemas import Message
 from ..msgs.group import GroundPoints, GroupState
 from ..tracking.group import GroupEstimate, GroupParams, MultiEllipseGroupTracker, SingleEllipseGroupTracker
@@ -25,22 +26,15 @@ from ..tracking.group import GroupEstimate, GroupParams, MultiEllipseGroupTracke
 class GroupNodeParams:
     shape: str = "multi"  # multi: ME-CGT-UGV | single: one ellipse (RM-CGT-UGV), the ablation
 
+    def __post_init__(self) -> None:
+        if self.shape not in ("multi", "single"):
+            raise ParamError("shape", f"shape must be 'multi' or 'single', not {self.shape!r}")
+
 
 class Group(Node):
-    INPUTS = {"points": GroundPoints}
-    REQUIRED_INPUTS = frozenset({"points"})
-    OUTPUTS = {"group": GroupState}
-
-    Params = (GroupNodeParams, GroupParams)
-
-    @classmethod
-    def parse_params(cls, raw: dict[str, Any]) -> tuple[GroupNodeParams, GroupParams]:
-        node, group = super().parse_params(raw)
-        if node.shape not in ("multi", "single"):
-            raise ParamError("shape", f"shape must be 'multi' or 'single', not {node.shape!r}")
-        if group.n_ellipses < 1 or group.dbscan_min_samples < 1:
-            raise ParamError("n_ellipses", "n_ellipses and dbscan_min_samples must be >= 1")
-        return node, group
+    INPUTS = {"points": In(GroundPoints, required=True)}
+    OUTPUTS = {"group": Out(GroupState)}
+    Params = (GroupNodeParams, GroupParams)  # GroupParams checks n_ellipses and dbscan_min_samples >= 1
 
     def setup(self) -> None:
         node, group = self.params
@@ -72,9 +66,9 @@ class Group(Node):
             self.valid_frames += 1
         out = est.to_message(msg.points_m, (msg.robot_x_m, msg.robot_y_m, msg.robot_theta_rad))
         out.step_ms = step_ms
-        self.publish("group", out, like=msg)
+        self.publish("group", out)
 
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         mean = self.step_ms_total / self.frames if self.frames else 0.0
         return {"frames": self.frames, "valid_frames": self.valid_frames, "rejected": self.rejected,
                 "step_ms_mean": round(mean, 3), "step_ms_max": round(self.step_ms_max, 3),

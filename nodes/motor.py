@@ -18,12 +18,13 @@ frame capture to motor command is ``command.pub_ns - command.stamp_ns``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from ..bus.node import Node, ParamError
+from ..bus.node import In, Node, Out
+from ..bus.node_params import ParamError
 from ..bus.schemas import Message
 from ..control.drivers import SerialDriver, SimDriver
 from ..control.follow import FollowCommand, FollowController, FollowParams
@@ -37,42 +38,37 @@ class MotorParams:
     driver: str = "sim"  # sim | serial
     port: str = ""  # serial device, e.g. /dev/ttyUSB0
     baud: int = 115200
-    max_track_age_ms: float = 500.0  # live: older tracks (capture -> here) are not acted on; 0: no limit
+    # live: older tracks (capture -> here) are not acted on; 0: no limit. Read on every track: followbus param set
+    # changes it at once.
+    max_track_age_ms: float = field(default=500.0, metadata={"live": True})
     # serial: the MCU stops by itself this long after the track a command answers was received (each command's
     # hold_ms, control/drivers.py): the stop that holds when this process is not scheduled. At most 200 ms
     # minus the serial line's time (a 40-byte line at 115200 baud: 3.5 ms).
     mcu_stop_ms: float = 190.0
 
+    def __post_init__(self) -> None:
+        if self.driver not in ("sim", "serial"):
+            raise ParamError("driver", f"driver must be 'sim' or 'serial', not {self.driver!r}")
+        if self.driver == "serial" and not self.port:
+            raise ParamError("driver", "driver 'serial' needs a port")
+        if not 0 < self.mcu_stop_ms <= 200:
+            raise ParamError("mcu_stop_ms", f"mcu_stop_ms must be in (0, 200] (the stop promise), "
+                                            f"not {self.mcu_stop_ms!r}")
+
 
 class Motor(Node):
-    INPUTS = {"track": Track}
-    LIVE_PARAMS = frozenset({"max_track_age_ms"})  # read on every track (followbus param set)
-    REQUIRED_INPUTS = frozenset({"track"})
-    OUTPUTS = {"command": MotorCommand, "odometry": Odometry}
-    EXPRESS = frozenset({"command"})
+    INPUTS = {"track": In(Track, required=True)}
     # A command or odometry sample that cannot go out now is worthless later: never let a congested link
     # block the control loop (the driver has already been told; the bus only reports it). Commands travel
-    # in Zenoh's real-time lane, ahead of any backlog of frames or bad payloads on the same link.
-    CONGESTION = {"command": "drop", "odometry": "drop"}
-    PRIORITY = {"command": "real_time"}
+    # in Zenoh's real-time lane, without batching, ahead of any backlog of frames or bad payloads on the same link.
+    OUTPUTS = {"command": Out(MotorCommand, congestion="drop", express=True, priority="real_time"),
+               "odometry": Out(Odometry, congestion="drop")}
     TIMER_PERIOD_MS = 10.0  # watchdog and odometry tick (100 Hz)
     # A standing stop is re-published at this period (not every tick): a stop dropped on a congested link
     # reaches the bus, a monitor that joins late sees it, and the bus carries 10 stops/s, not 100.
     STOP_REPEAT_MS = 100.0
 
     Params = (MotorParams, FollowParams)
-
-    @classmethod
-    def parse_params(cls, raw: dict[str, Any]) -> tuple[MotorParams, FollowParams]:
-        motor, follow = super().parse_params(raw)
-        if motor.driver not in ("sim", "serial"):
-            raise ParamError("driver", f"driver must be 'sim' or 'serial', not {motor.driver!r}")
-        if motor.driver == "serial" and not motor.port:
-            raise ParamError("driver", "driver 'serial' needs a port")
-        if not 0 < motor.mcu_stop_ms <= 200:
-            raise ParamError("mcu_stop_ms", f"mcu_stop_ms must be in (0, 200] (the stop promise), "
-                                            f"not {motor.mcu_stop_ms!r}")
-        return motor, follow
 
     def setup(self) -> None:
         self.motor_params, follow = self.params
@@ -89,7 +85,8 @@ class Motor(Node):
         self.last_odom_ns = 0
         self.last_command_ns = 0  # when the last command went out (node clock)
         self.too_old = 0  # tracks not acted on: captured longer than max_track_age_ms ago
-        self.live = self.runtime.clock.live  # wall time, or the in-process runtime's simulated time
+        self.clock = self.runtime.clock
+        self.live = self.clock.live  # wall time, or the in-process runtime's simulated time
 
     def on_message(self, name: str, msg: Message) -> None:
         if not isinstance(msg, Track):
@@ -98,7 +95,7 @@ class Motor(Node):
         if not fresh:
             return
         cmd = self.controller.on_track(msg.header.stamp_ns, msg.state, msg.box, received_ns=received_ns)
-        self._command(cmd, like=msg, received_ns=received_ns)
+        self._command(cmd, received_ns=received_ns)
 
     def _receive(self, msg: Message) -> tuple[bool, int | None]:
         """(act on it?, receive time). Controller time is the message stamp (replay-deterministic); the watchdog
@@ -106,17 +103,17 @@ class Motor(Node):
         if not self.live:
             return True, None
         max_age_ms = self.motor_params.max_track_age_ms
-        if max_age_ms and (self.wall_ns() - msg.header.stamp_ns) > max_age_ms * 1e6:
+        if max_age_ms and (self.clock.wall_ns() - msg.header.stamp_ns) > max_age_ms * 1e6:
             self.too_old += 1
             return False, None
-        return True, self.monotonic_ns()
+        return True, self.clock.monotonic_ns()
 
     def on_timer(self, now_ns: int) -> None:
-        cmd = self.controller.on_tick(now_ns, self.monotonic_ns() if self.live else None)
+        cmd = self.controller.on_tick(now_ns, self.clock.monotonic_ns() if self.live else None)
         repeated_stop = self.last_cmd is not None and self.last_cmd.is_zero and cmd is not None \
             and cmd.reason == self.last_cmd.reason and now_ns - self.last_command_ns < self.STOP_REPEAT_MS * 1e6
         if cmd is not None and not repeated_stop:
-            self._command(cmd, like=None)
+            self._command(cmd)
         if self.sim is not None:
             self._odometry(self.sim.apply(self.wheels, now_ns))
         elif self.serial is not None:
@@ -124,17 +121,17 @@ class Motor(Node):
             if sample is not None:
                 self._odometry(sample)
 
-    def _command(self, cmd: FollowCommand, like: Message | None, received_ns: int | None = None) -> None:
+    def _command(self, cmd: FollowCommand, received_ns: int | None = None) -> None:
+        """Drive the wheels and publish the command: inside on_message with the header of the track it answers,
+        from the timer stamped with the node clock (wall time live)."""
         self.wheels = np.asarray(cmd.wheel_radps, dtype=np.float64)  # the sim integrates them on its tick
         if self.serial is not None:
             self.serial.write_command(self.wheels, self._hold_ms(received_ns))
         out = MotorCommand(vx_mps=cmd.vx_mps, vy_mps=cmd.vy_mps, wz_radps=cmd.wz_radps, wheel_radps=self.wheels,
                            range_m=cmd.range_m, bearing_rad=cmd.bearing_rad, reason=cmd.reason)
-        if like is None:
-            out.header.stamp_ns = self.wall_ns() if self.live else self.now_ns()
-        self.publish("command", out, like=like)
+        self.publish("command", out)
         self.last_cmd = cmd
-        self.last_command_ns = self.now_ns()
+        self.last_command_ns = self.clock.now_ns()
         self.commands += 1
 
     def _hold_ms(self, received_ns: int | None) -> float:
@@ -143,7 +140,7 @@ class Motor(Node):
         bound = self.motor_params.mcu_stop_ms
         if received_ns is None:
             return bound
-        return bound - (self.monotonic_ns() - received_ns) / 1e6
+        return bound - (self.clock.monotonic_ns() - received_ns) / 1e6
 
     def _odometry(self, sample: Odometry) -> None:
         if sample.header.stamp_ns <= self.last_odom_ns:
@@ -155,7 +152,7 @@ class Motor(Node):
         if self.serial is not None:
             self.serial.close()  # sends the stop line
 
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         last = self.last_cmd
         return {"commands": self.commands, "too_old": self.too_old, "reason": last.reason if last else "",
                 "vx_mps": round(last.vx_mps, 3) if last else 0.0, "wz_radps": round(last.wz_radps, 3) if last else 0.0}
@@ -168,8 +165,7 @@ class GroupMotor(Motor):
     the prediction (no member seen this frame) → OCCLUDED (half speed, integrators frozen), no group → an
     immediate zero. The watchdog, the age limit and every stop are Motor's, unchanged."""
 
-    INPUTS = {"group": GroupState}
-    REQUIRED_INPUTS = frozenset({"group"})
+    INPUTS = {"group": In(GroupState, required=True)}
 
     def on_message(self, name: str, msg: Message) -> None:
         if not isinstance(msg, GroupState):
@@ -180,7 +176,7 @@ class GroupMotor(Motor):
         state = "LOST" if not msg.valid else "OCCLUDED" if msg.lost else "TRACKING"
         cmd = self.controller.on_position(msg.header.stamp_ns, state, msg.centre_robot_m if msg.valid else None,
                                           received_ns=received_ns)
-        self._command(cmd, like=msg, received_ns=received_ns)
+        self._command(cmd, received_ns=received_ns)
 
 
 NODE = Motor

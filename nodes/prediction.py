@@ -7,8 +7,8 @@ Each re-ID result is applied as soon as it arrives (measurement update, or suspe
 target is occluded) and the posterior track is published at once, so motor control is not held
 back a frame. An optional same-frame ``transform`` (the egomotion node's camera motion, seed 002 §3.3) warps
 the prior before it is published. Odometry feeds the ego-motion-aware measurement noise R_k = R0 + κ‖v_ego‖² I (Eq. 7):
-for frame k the newest odometry sample stamped at or before frame k's capture is used, never "whatever
-arrived last", so a live run and its lockstep replay compute the same R_k.
+for frame k the newest odometry sample stamped at or before frame k's capture (an input sampled by stamp), never
+"whatever arrived last", so a live run and its lockstep replay compute the same R_k.
 
 Self-healing: a frame stamp that goes back, or jumps further ahead than ``max_predict_gap_ms``, or a
 filter state that is no longer finite, resets the filter (counted in ``resets``). The prior is then
@@ -18,13 +18,12 @@ instead of extrapolating a poisoned state forever.
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from ..bus.node import Node
+from ..bus.node import In, Node, Out
 from ..bus.schemas import Message
 from ..msgs.perception import CameraMotion, Detections
 from ..msgs.robot import Odometry
@@ -40,12 +39,12 @@ class PredictionNodeParams:
 
 
 class Prediction(Node):
-    INPUTS = {"detections": Detections, "measurement": Measurement, "odometry": Odometry, "transform": CameraMotion}
-    REQUIRED_INPUTS = frozenset({"detections", "measurement"})
-    OUTPUTS = {"prior": Prior, "track": Track}
-    # Odometry (100 Hz) is only read by stamp when a frame or a measurement comes: no wake-up of its own.
-    LAZY_INPUTS = frozenset({"odometry"})
-    NOTED_STAMPS = {"odometry": "odometry", "odometry_update": "odometry"}  # _v_ego's choices
+    # Each measurement is applied as it arrives (on_message); as a feedback input it also holds prior k back until
+    # measurement k-1 was applied. Odometry (100 Hz) is read by stamp when a frame or a measurement comes.
+    INPUTS = {"detections": In(Detections, required=True),
+              "measurement": In(Measurement, required=True, on_arrival=True),
+              "odometry": In(Odometry, sample_by_stamp=True), "transform": In(CameraMotion)}
+    OUTPUTS = {"prior": Out(Prior), "track": Out(Track)}
     Params = (PredictionNodeParams, KalmanParams)
 
     def setup(self) -> None:
@@ -55,7 +54,6 @@ class Prediction(Node):
         self.applied_seq = -1
         self.applied_epoch = 0
         self.last_state = "UNINITIALISED"
-        self.odometry: deque[Odometry] = deque(maxlen=512)  # ~10 s at 50 Hz, in stamp order
         self.filter_resets = 0
 
     def _reset_filter(self, why: str) -> None:
@@ -68,30 +66,17 @@ class Prediction(Node):
         kf = self.predictor.kf
         return not kf.initialised or bool(np.isfinite(kf.x).all() and np.isfinite(kf.P).all())
 
-    def _v_ego(self, stamp_ns: int, frame_seq: int, use: str) -> tuple[float, float]:
-        """Ego velocity at a frame's capture stamp: the newest odometry sample not after it that has arrived.
-
-        Which sample that was depends on when odometry arrived, so the choice is noted (``use``: "odometry"
-        for the prior, "odometry_update" for the measurement update) and a replay repeats it."""
+    def _v_ego(self) -> tuple[float, float]:
+        """Ego velocity at the capture stamp of what is handled: the newest odometry sample not after it."""
         if not self.node_params.use_odometry:
             return (0.0, 0.0)
-        forced = self.replayed_choice(frame_seq, use)
-        chosen = None
-        for odom in reversed(self.odometry):
-            if (odom.header.stamp_ns == forced) if forced is not None else (odom.header.stamp_ns <= stamp_ns):
-                chosen = odom
-                break
-        self.note(use, -1 if chosen is None else chosen.header.stamp_ns)
-        if chosen is None:
+        odom = self.runtime.sample("odometry")
+        if not isinstance(odom, Odometry):
             return (0.0, 0.0)
         # Eq. 7 needs the ego speed; the filter is in image space, so only its magnitude matters.
-        return (chosen.vx_mps, chosen.vy_mps)
+        return (odom.vx_mps, odom.vy_mps)
 
     def on_message(self, name: str, msg: Message) -> None:
-        if name == "odometry" and isinstance(msg, Odometry):
-            if not self.odometry or msg.header.stamp_ns >= self.odometry[-1].header.stamp_ns:
-                self.odometry.append(msg)
-            return
         if name != "measurement" or not isinstance(msg, Measurement):
             return
         seq = msg.header.frame_seq
@@ -102,13 +87,13 @@ class Prediction(Node):
         if seq <= self.applied_seq:
             return
         prior = self.priors.pop(seq, None)
-        posterior = self.predictor.apply(msg, self._v_ego(msg.header.stamp_ns, seq, "odometry_update"))
+        posterior = self.predictor.apply(msg, self._v_ego())
         if not self._filter_ok():
             self._reset_filter("the measurement update left a non-finite state")
             posterior = None
         self.applied_seq = seq
         self.last_state = msg.state
-        self.publish("track", self._track(msg, prior, posterior), like=msg)
+        self.publish("track", self._track(msg, prior, posterior))
         for old in [s for s in self.priors if s < seq]:
             del self.priors[old]
 
@@ -130,15 +115,15 @@ class Prediction(Node):
         # motion (seed 002 §3.3); without it (no such node, late, no trustworthy fit) the prior is not warped.
         motion = inputs.get("transform")
         assert motion is None or isinstance(motion, CameraMotion)
-        prior = self.predictor.predict(stamp, self._v_ego(stamp, frame_seq, "odometry"), motion)
+        prior = self.predictor.predict(stamp, self._v_ego(), motion)
         if not self._filter_ok():
             self._reset_filter("the prediction left a non-finite state")
             prior = None
         prior = prior or Prior()  # uninitialised: re-ID initialises the target
         self.priors[frame_seq] = prior
-        self.publish("prior", prior, like=dets)
+        self.publish("prior", prior)
 
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         return {"state": self.last_state, "initialised": self.predictor.initialised,
                 "filter_resets": self.filter_resets, "priors_warped": self.predictor.warped,
                 "camera_motion_mismatched": self.predictor.motion_mismatched,

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bus.node import Node
+from ..bus.node import In, Node, Out
 from ..bus.schemas import Frame, Message
 from ..msgs.perception import Detections, RegionDetections
 from ..msgs.tracking import Measurement, Prior, TrackState
@@ -33,13 +33,13 @@ from ..tracking.redetection import (
     search_scale,
 )
 from ..vision.detectors import AUTO_SIZES_PX, DYNAMIC_YOLOX_FILE, DetectorUnavailable, SimulatedDetector
-from .detection import Detection, DetectionParams, detector_from_params, split_detections
+from .detection import DetectionParams, detection_params, detector_from_params, split_detections
 
 
 class Redetection(Node):
-    INPUTS = {"frame": Frame, "detections": Detections, "prior": Prior, "measurement": Measurement}
-    REQUIRED_INPUTS = frozenset({"frame", "detections", "prior"})
-    OUTPUTS = {"detections": RegionDetections}
+    INPUTS = {"frame": In(Frame, required=True), "detections": In(Detections, required=True),
+              "prior": In(Prior, required=True), "measurement": In(Measurement)}
+    OUTPUTS = {"detections": Out(RegionDetections)}
     Params = RedetectionParams
 
     def setup(self) -> None:
@@ -56,7 +56,7 @@ class Redetection(Node):
     def _graph_detection_params(self) -> DetectionParams:
         """The params of the node whose detections this one takes: the detector the graph runs."""
         source = self.runtime.spec.inputs["detections"].source_node
-        return Detection.parse_params(dict(self.runtime.graph.nodes[source].params))
+        return detection_params(dict(self.runtime.graph.nodes[source].params))
 
     def _region_detector(self, detection: DetectionParams) -> Any:
         """The graph's detector for regions: YOLOX on its dynamic-size model; None for a simulated one."""
@@ -78,7 +78,7 @@ class Redetection(Node):
         out = RegionDetections()
         if self.detector is not None and frame.encoding == "bgr8" and prior.initialised:
             out = self._redetect(frame.data, dets, prior, measurement if isinstance(measurement, Measurement) else None)
-        self.publish("detections", out, like=frame)
+        self.publish("detections", out)
 
     def _redetect(self, bgr: np.ndarray, dets: Detections, prior: Prior, last: Measurement | None) -> RegionDetections:
         p = self.params
@@ -111,7 +111,7 @@ class Redetection(Node):
         return RegionDetections(reason=reason, region=np.array(rect, np.int64), boxes=high, low_boxes=low,
                                 input_px=side, infer_ms=infer_ms)
 
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         n = sum(self.redetected.values())
         return {"redetected": dict(self.redetected), "skipped_coarse": self.skipped_coarse,
                 "infer_ms_mean": round(self.infer_ms_total / n, 2) if n else None,

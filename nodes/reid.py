@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 
 from ..bus.background import BackgroundJob
-from ..bus.node import Node, ParamError
+from ..bus.node import In, Node, Out
+from ..bus.node_params import ParamError
 from ..bus.schemas import Frame, Message
 from ..msgs.perception import Detections, RegionDetections
 from ..msgs.tracking import Measurement, Prior, Template
@@ -38,29 +39,29 @@ INIT_BOX_MAX_FRAME = 10
 
 @dataclass
 class ReidNodeParams:
-    init_box: list[float] = field(default_factory=list)  # [x, y, w, h] of the target on the first frame
+    # [x, y, w, h] of the target on the first frame (followbus demo sets it from the source's first ground-truth box)
+    init_box: list[float] = field(default_factory=list, metadata={"demo": "init_box"})
+
+    def __post_init__(self) -> None:
+        if self.init_box and len(self.init_box) != 4:
+            raise ParamError("init_box", "init_box must be [x, y, w, h]")
 
 
 class Reid(Node):
-    INPUTS = {"frame": Frame, "detections": Detections, "prior": Prior, "template": Template,
-              "region": RegionDetections}
-    REQUIRED_INPUTS = frozenset({"frame", "detections", "prior"})
-    OUTPUTS = {"measurement": Measurement}
-    INIT_BOX_PARAM = "init_box"  # followbus demo sets it from the source's first ground-truth box
+    INPUTS = {"frame": In(Frame, required=True), "detections": In(Detections, required=True),
+              "prior": In(Prior, required=True), "template": In(Template), "region": In(RegionDetections)}
+    OUTPUTS = {"measurement": Out(Measurement)}
     Params = (ReidNodeParams, ReidParams)
-    RENAMED_PARAMS = {"n_id": "n_id_frames"}  # issue 24: units in the names
-    # Read from the ReidParams object on every decision (tracking/reid.py), so `followbus param set` takes effect
-    # on the next frame.
-    LIVE_PARAMS = frozenset({"reid_threshold"})
-
-    @classmethod
-    def parse_params(cls, raw: dict[str, Any]) -> tuple[ReidNodeParams, ReidParams]:
-        node_params, reid_params = super().parse_params(raw)
-        if node_params.init_box and len(node_params.init_box) != 4:
-            raise ParamError("init_box", "init_box must be [x, y, w, h]")
-        return node_params, reid_params
 
     def setup(self) -> None:
+        # The learned appearance's training sample (OSNet descriptors of several people: a 20-30 ms burst every
+        # identity_sample_every_frames frames) below the loop's priority: at the loop's, on two cores, the
+        # detector skips a frame at each burst (bus/background.py). One worker thread per process: setup runs
+        # again when the runtime rebuilds the node's state, and the old identifier's last sample is dropped then.
+        if hasattr(self, "learner"):
+            self._drop_last_sample()
+        else:
+            self.learner = BackgroundJob("reid-learning")
         self.node_params, reid_params = self.params
         self.reid = ReIdentifier(reid_params)
         self.learned_appearance = self.reid.prepare()  # the model loads here, not on a frame
@@ -69,18 +70,12 @@ class Reid(Node):
         self.epoch_ns: int | None = None  # the capture session of the frames handled so far
         self.last: Measurement | None = None
         self.initialised_at: tuple[int, int] | None = None  # (epoch_ns, frame_seq) of this node's last initialisation
-        # The learned appearance's training sample (OSNet descriptors of several people: a 20-30 ms burst every
-        # identity_sample_every_frames frames) below the loop's priority: at the loop's, on two cores, the
-        # detector skips a frame at each burst (bus/background.py).
-        if not hasattr(self, "learner"):  # setup runs again on a reset (below): one worker thread per process
-            self.learner = BackgroundJob("reid-learning")
 
-    def reset(self) -> None:
+    def _drop_last_sample(self) -> None:
         try:
-            self.learner.wait()  # the old identifier's last sample: dropped with it
-        except Exception as exc:  # noqa: BLE001 - a reset is already the recovery from a failure
+            self.learner.wait()
+        except Exception as exc:  # noqa: BLE001 - a rebuild is already the recovery from a failure
             self.log.warning("reset: the last learning sample failed: %s", exc)
-        super().reset()
 
     def on_frame(self, frame_seq: int, inputs: dict[str, Message | None]) -> None:
         frame, dets, prior = inputs["frame"], inputs["detections"], inputs["prior"]
@@ -107,7 +102,7 @@ class Reid(Node):
             self.template_hist = np.array(result.candidate_hist)
             self.initialised_at = (frame.header.epoch_ns, frame_seq)
         self.last = result
-        self.publish("measurement", result, like=frame)
+        self.publish("measurement", result)
         # The learned appearance's sample (OSNet descriptors) after the measurement is out: off the motor's path.
         self.learner.submit(self.reid.learn_pending)
 
@@ -122,7 +117,7 @@ class Reid(Node):
     def teardown(self) -> None:
         self.learner.wait()
 
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         if self.last is None:
             return {"frames": 0}
         return {"frames": self.frames, "state": self.last.state, "m_fuse": round(self.last.m_fuse, 3),

@@ -30,7 +30,8 @@ import numpy as np
 import zenoh
 
 from ..bus import ros2
-from ..bus.node import Node, ParamError
+from ..bus.node import In, Node
+from ..bus.node_params import ParamError
 from ..bus.rmw_zenoh import SENSOR_QOS, Qos, Ros2Node
 from ..bus.schemas import Message
 from ..msgs import ros2 as msgs_ros2
@@ -49,6 +50,14 @@ class Ros2Params:
     target_topic: str = "/followbus/target"  # "" : not published
     stale_after_ms: float = 200.0  # no command for this long: a zero Twist (the motor's own stop bound)
     connect: str = ""  # a Zenoh endpoint of the ROS 2 side (its rmw_zenohd router); "": the graph's session
+
+    def check(self) -> None:
+        """The topic names and the domain (`followbus check`, `launch`, and the node's setup)."""
+        check_topic(self.cmd_vel_topic, "cmd_vel_topic")
+        if self.target_topic:
+            check_topic(self.target_topic, "target_topic")
+        if self.domain_id < 0 or self.domain_id > 232:
+            raise ParamError("domain_id", f"domain_id must be 0..232 (ROS_DOMAIN_ID), not {self.domain_id}")
 
 
 def check_topic(topic: str, what: str, example: str = "/cmd_vel") -> None:
@@ -69,21 +78,12 @@ def ros_session(graph_session: zenoh.Session | None, connect: str) -> tuple[zeno
 
 
 class Ros2Out(Node):
-    INPUTS = {"command": MotorCommand}
-    REQUIRED_INPUTS = frozenset({"command"})
+    INPUTS = {"command": In(MotorCommand, required=True)}  # wired sync: none, each command as it comes
     Params = Ros2Params
-
-    @classmethod
-    def check_params(cls, params: Ros2Params) -> None:
-        check_topic(params.cmd_vel_topic, "cmd_vel_topic")
-        if params.target_topic:
-            check_topic(params.target_topic, "target_topic")
-        if params.domain_id < 0 or params.domain_id > 232:
-            raise ParamError("domain_id", f"domain_id must be 0..232 (ROS_DOMAIN_ID), not {params.domain_id}")
 
     def setup(self) -> None:
         p = self.params
-        self.check_params(p)
+        p.check()
         self.session, self.own_session = ros_session(self.runtime.session, p.connect)
         self.ros = Ros2Node(self.session, p.node_name, p.namespace, p.domain_id)
         self.cmd_vel = self.ros.publisher(p.cmd_vel_topic, ros2.TWIST, Qos(depth=10))
@@ -96,7 +96,7 @@ class Ros2Out(Node):
     def on_message(self, name: str, msg: Message) -> None:
         if not isinstance(msg, MotorCommand):
             return
-        self.last_command_ns = self.monotonic_ns()  # a watchdog: no stamp may steer it
+        self.last_command_ns = self.runtime.clock.monotonic_ns()  # a watchdog: no stamp may steer it
         self._send(msgs_ros2.command_twist(msg), moving=bool(msg.vx_mps or msg.vy_mps or msg.wz_radps))
         point = msgs_ros2.target_point(msg)
         if self.target is not None and point is not None:
@@ -109,13 +109,14 @@ class Ros2Out(Node):
 
     def poll(self, now_ns: int) -> float | None:
         stale_ns = self.params.stale_after_ms * 1e6
-        if self.moving and self.last_command_ns is not None and self.monotonic_ns() - self.last_command_ns > stale_ns:
+        now_ns = self.runtime.clock.monotonic_ns()
+        if self.moving and self.last_command_ns is not None and now_ns - self.last_command_ns > stale_ns:
             self.log.warning("no motor command for %.0f ms: zero Twist on %s", self.params.stale_after_ms,
                              self.params.cmd_vel_topic)
             self._send(ros2.twist(0.0, 0.0, 0.0), moving=False)
         return self.params.stale_after_ms / 4e3
 
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         return {"cmd_vel_sent": self.sent, "moving": self.moving}
 
     def teardown(self) -> None:

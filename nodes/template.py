@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..bus.node import LAUNCH_ID_ENV, Node
+from ..bus.node import In, Node, Out
+from ..bus.node_runtime import LAUNCH_ID_ENV
 from ..bus.schemas import Frame, Message
 from ..msgs.tracking import Measurement, Template
 from ..tracking.params import TemplateParams
@@ -30,7 +31,8 @@ from ..tracking.template import TemplateUpdater
 
 @dataclass
 class TemplateNodeParams:
-    state_file: str = ""  # e.g. state/{namespace}/template.npz ({namespace}: the graph's); empty: do not persist
+    # e.g. state/{namespace}/template.npz ({namespace}: the graph's); empty: do not persist
+    state_file: str = field(default="", metadata={"state_file": True})
     save_every_s: float = 5.0
     # A template saved by another launch (not this launch's earlier process) is restored only if at most this
     # old; 0: never (a new launch learns its target afresh).
@@ -43,10 +45,8 @@ def state_path(state_file: str, namespace: str) -> Path | None:
 
 
 class TemplateNode(Node):
-    INPUTS = {"frame": Frame, "measurement": Measurement}
-    REQUIRED_INPUTS = frozenset({"frame", "measurement"})
-    OUTPUTS = {"template": Template}
-    STATE_FILE_PARAM = "state_file"
+    INPUTS = {"frame": In(Frame, required=True), "measurement": In(Measurement, required=True)}
+    OUTPUTS = {"template": Out(Template)}
     Params = (TemplateNodeParams, TemplateParams)
 
     def setup(self) -> None:
@@ -84,7 +84,7 @@ class TemplateNode(Node):
         hist, self.eta, self.p_specular = self.updater.step(frame.data, meas)
         msg = Template(initialised=hist is not None, hist=None if hist is None else np.asarray(hist),
                        eta=float(self.eta), p_specular=float(self.p_specular))
-        self.publish("template", msg, like=frame)
+        self.publish("template", msg)
         if time.monotonic() - self.last_save >= self.node_params.save_every_s:
             self._save()
 
@@ -101,7 +101,7 @@ class TemplateNode(Node):
     def teardown(self) -> None:
         self._save()
 
-    def status_extra(self) -> dict[str, Any]:
+    def status(self) -> dict[str, Any]:
         return {"eta": round(self.eta, 5), "p_specular": round(self.p_specular, 4),
                 "initialised": self.updater.initialised}
 

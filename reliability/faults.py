@@ -17,7 +17,7 @@ import zenoh
 
 from ..bus.codec import pack
 from ..bus.graph import Graph
-from ..bus.node import validate_node
+from ..bus.node_checks import unread_inputs, validate_node
 from ..bus.schemas import Frame, Message, Tick, encode
 from ..msgs.perception import Detections
 from ..msgs.tracking import Measurement, Track
@@ -150,7 +150,7 @@ def _malformed_consumers(graph: Graph) -> dict[str, list[str]]:
     consumers: dict[str, list[str]] = {}
     for spec in graph.nodes.values():
         cls, params = validate_node(graph, spec)
-        unread = cls.unread_inputs(params)
+        unread = unread_inputs(cls, params)
         for inp in spec.inputs.values():
             if inp.name not in unread:
                 consumers.setdefault(graph.key(inp.source_node, inp.source_output), []).append(spec.name)
@@ -224,9 +224,9 @@ def _malformed(run: ChaosRunner) -> Injection:
 
 
 def graph_output_schema(graph: Graph, node: str, output: str) -> type[Message]:
-    from ..bus.node import load_node_class
+    from ..bus.node_checks import load_node_class
 
-    return load_node_class(graph.nodes[node].run).OUTPUTS[output]
+    return load_node_class(graph.nodes[node].run).OUTPUTS[output].type
 
 
 def _flood(run: ChaosRunner) -> Injection:
@@ -266,7 +266,7 @@ def _delivered_ns(run: ChaosRunner, sent_ns: int, quiet_s: float = 0.5, bound_s:
 
 
 def _kill_recorder(run: ChaosRunner) -> Injection:
-    from ..bus.node import RECORDER_NAME
+    from ..bus.barrier import RECORDER_NAME
 
     pid = run.require_pid(RECORDER_NAME)
     start = time.time_ns()

@@ -92,10 +92,11 @@ class Limits:
 
     @classmethod
     def from_graph(cls, graph: Graph) -> Limits:
+        from ..bus.node_params import parse_params
         from ..control.kinematics import mecanum_wheel_speeds
         from ..nodes.motor import Motor
 
-        _, p = Motor.parse_params(dict(graph.nodes["motor"].params))
+        _, p = parse_params(Motor.Params, dict(graph.nodes["motor"].params))
         corners = [mecanum_wheel_speeds(vx, vy, wz, p.half_length_m, p.half_width_m, p.wheel_radius_m)
                    for vx in (p.max_speed_mps, -p.max_reverse_mps) for vy in (p.max_strafe_mps, -p.max_strafe_mps)
                    for wz in (p.max_yaw_radps, -p.max_yaw_radps)]

@@ -148,7 +148,7 @@ class Replayer:
 
     def _incomplete(self, feed: Feed, sent: dict[int, set[str]]) -> set[int]:
         """Frames the node cannot reproduce from this recording: a required input of the frame is not in it, the
-        feedback the frame joined live is not, nor the unsynchronised sample it chose (NOTED_STAMPS: the odometry
+        feedback the frame joined live is not, nor the message of a sampled input it chose (the odometry
         sample prediction took, dropped by the recorder), or an input's stream ends before the frame (the
         recorder stopped first: prediction's track k comes from re-ID's measurement k, say)."""
         required = self.plan.required_inputs

@@ -161,11 +161,11 @@ class Feed:
         self._warned = False
         # frame -> (recorded input key, frame it joined) of the outside feedback each handled frame joined live
         self.joined: dict[int, set[tuple[str, int]]] = defaultdict(set)
-        # frame -> (recorded key, stamp) of each unsynchronised message a handled frame chose live (NOTED_STAMPS),
-        # and the stamps of those keys' messages the recording holds
+        # frame -> (recorded key, stamp) of each message of a sampled input a handled frame chose live, and the
+        # stamps of those keys' messages the recording holds
         self.noted: dict[int, set[tuple[str, int]]] = defaultdict(set)
         self.stamps_recorded: dict[str, set[int]] = defaultdict(set)
-        self._noted_keys = set(plan.noted_stamp_keys.values())
+        self._noted_keys = set(plan.sampled_keys.values())
 
     # outputs -> expected and hints
     def _read(self, messages: Iterable[BusMessage]) -> Iterator[Input]:
@@ -192,7 +192,7 @@ class Feed:
 
     def _output_seen(self, node: str, frame_seq: int, head: Any) -> None:
         """A recorded output of ``node``: it opens the frame's hint, or adds its notes to the open one."""
-        if frame_seq < 0 or node not in self.plan.feedback_inputs:
+        if frame_seq < 0 or node not in self.plan.hinted:
             return
         used = dict(head.header.feedback) if head.provenance else None
         open_ = self._open.get(node)
@@ -227,7 +227,7 @@ class Feed:
         self.hints.append((node, hint))
         previous = self._previous.get(node)
         fallback = used is not None and previous is not None and any(
-            used.get(name, previous) != previous for name in self.plan.feedback_inputs[node])
+            used.get(name, previous) != previous for name in self.plan.feedback_inputs.get(node, ()))
         self.hints_reproduced += skip or fallback
         if not skip:
             self._previous[node] = frame_seq
@@ -235,13 +235,13 @@ class Feed:
                 key = self.plan.feedback_keys.get((node, name))
                 if key is not None and joined >= 0:
                     self.joined[frame_seq].add((key, joined))
-                noted_key = self.plan.noted_stamp_keys.get((node, name))
+                noted_key = self.plan.noted_key(node, name)
                 if noted_key is not None and joined >= 0:
                     self.noted[frame_seq].add((noted_key, joined))
 
     def _known(self, frame_seq: int) -> bool:
         """Does the reader know what each node did up to the next frame after ``frame_seq`` it handled?"""
-        return self.eof or all(self._handled.get(node, -1) > frame_seq for node in self.plan.feedback_inputs)
+        return self.eof or all(self._handled.get(node, -1) > frame_seq for node in self.plan.hinted)
 
     # inputs -> frame groups
     def groups(self) -> Iterator[tuple[list[tuple[str, ReplayHint]], int, list[Input]]]:

@@ -10,7 +10,9 @@ from pathlib import Path
 from typing import Any
 
 from ..bus.graph import Graph, load_graph
-from ..bus.node import load_node_class
+from ..bus.node_checks import load_node_class
+from ..bus.node_host import sampled_input
+from ..bus.node_params import marked
 from ..bus.recording import (
     RecordingError,
     bus_channels,
@@ -88,12 +90,13 @@ def _forget_state_file(name: str, spec: Any, params: dict[str, Any], given: dict
     """A replayed node keeps no state file (unless --param names one): the live graph's state/template.npz is
     neither read at its start nor overwritten by a replay."""
     try:
-        key = load_node_class(spec.run).STATE_FILE_PARAM
+        keys = marked(load_node_class(spec.run).Params, "state_file")
     except ImportError:
         return
-    if key and params.get(key) and key not in given:
-        log.info("%s: %s=%s not used by the replay (the live graph's state)", name, key, params[key])
-        params[key] = ""
+    for key in keys:
+        if params.get(key) and key not in given:
+            log.info("%s: %s=%s not used by the replay (the live graph's state)", name, key, params[key])
+            params[key] = ""
 
 
 class ReplayPlan:
@@ -129,14 +132,14 @@ class ReplayPlan:
         self._check_inputs(path, recorded)
         # Before the node sees anything: a corrupt chunk would make --verify blame the node for the damage.
         self.skip_chunks = chunks_to_skip(path, set(self.inputs) | set(self.outputs), options.on_corrupt)
-        # Nodes whose live decisions are replayed: those with feedback inputs (bus.sync).
-        feedback = {name: [i.name for i in self.graph.nodes[name].inputs.values() if i.sync == "frame" and i.offset]
-                    for name in self.nodes}
-        self.feedback_inputs = {n: names for n, names in feedback.items() if names}
+        # node -> its feedback inputs (bus.sync), for the nodes that have any; and the nodes whose live decisions
+        # are replayed (hints): those that join feedback, or sample an input by stamp
+        self.feedback_inputs = self._feedback_inputs()
+        self.hinted = [n for n in self.nodes if n in self.feedback_inputs or self._sampled_inputs(n)]
         # (node, feedback input) -> recorded key, for feedback produced outside the replayed nodes
         self.feedback_keys = {where: self.key(t) for where, t in edge.feedback().items()}
-        # (node, note) -> recorded key of the outside input whose message stamp the note names (NOTED_STAMPS)
-        self.noted_stamp_keys = self._noted_stamp_keys()
+        # (node, sampled input) -> recorded key of that input, fed from outside: its notes name a message's stamp
+        self.sampled_keys = self._sampled_keys()
         # Outputs of no frame from a node with a timer (motor's odometry and watchdog stops) come from ticks of
         # the wall clock live and of the stamps in a replay: not comparable, counted apart.
         self.timer_topics = {topic for key, topic in self.outputs.items()
@@ -183,19 +186,32 @@ class ReplayPlan:
         """The recorded key of a graph topic (node/output)."""
         return f"{self.recorded_ns}/{topic}"
 
-    def _noted_stamp_keys(self) -> dict[tuple[str, str], str]:
+    def _feedback_inputs(self) -> dict[str, list[str]]:
+        feedback = {name: [i.name for i in self.graph.nodes[name].inputs.values() if i.sync == "frame" and i.offset]
+                    for name in self.nodes}
+        return {n: names for n, names in feedback.items() if names}
+
+    def _sampled_inputs(self, node: str) -> list[str]:
+        """The inputs ``node`` samples by stamp (bus.node In(..., sample_by_stamp=True))."""
+        try:
+            ports = load_node_class(self.graph.nodes[node].run).INPUTS
+        except ImportError:
+            return []  # said as a graph error (file:line) when the node is built
+        return [name for name, port in ports.items() if port.sample_by_stamp]
+
+    def _sampled_keys(self) -> dict[tuple[str, str], str]:
         found: dict[tuple[str, str], str] = {}
         for node in self.nodes:
             spec = self.graph.nodes[node]
-            try:
-                noted = load_node_class(spec.run).NOTED_STAMPS
-            except ImportError:
-                continue  # said as a graph error (file:line) when the node is built
-            for note, input_name in noted.items():
+            for input_name in self._sampled_inputs(node):
                 inp = spec.inputs.get(input_name)
                 if inp is not None and self.key(inp.topic) in self.inputs:
-                    found[(node, note)] = self.key(inp.topic)
+                    found[(node, input_name)] = self.key(inp.topic)
         return found
+
+    def noted_key(self, node: str, note: str) -> str | None:
+        """The recorded key of the message a note of ``node`` names by its stamp (None: the note is no sample's)."""
+        return self.sampled_keys.get((node, sampled_input(note)))
 
     def _has_timer(self, node: str) -> bool:
         try:

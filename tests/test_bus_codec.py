@@ -83,7 +83,7 @@ def test_decoding_and_parameters_share_one_type_checker(hint, value, ok):
     stand for a float, a tuple for a list."""
     from dataclasses import field, make_dataclass
 
-    from followbus.bus.node import ParamError, params_from_dict
+    from followbus.bus.node_params import ParamError, params_from_dict
     from followbus.bus.typecheck import TypeMismatch, conform
 
     params = make_dataclass("Params", [("value", hint, field(default=None))])

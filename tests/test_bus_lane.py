@@ -197,7 +197,7 @@ def test_while_recording_the_recorder_gets_the_real_frames_and_nodes_keep_the_la
 
 def test_the_kill_switch_turns_the_lane_off(graph_file):
     from followbus.bus.graph import load_graph
-    from followbus.bus.node import NodeRuntime
+    from followbus.bus.node_runtime import NodeRuntime
 
     assert ZenohSettings.from_dict({}).shm_lane is False  # opt-in
     assert ZenohSettings.from_dict({"shm_lane": False}).as_client().shm_lane is False

@@ -164,7 +164,7 @@ def test_a_node_publishing_frames_creates_its_shared_memory_pool_before_its_firs
     """Creating the pool takes ~50 ms; done on the first frame, it delayed frame 0 so that frame 1 followed
     right behind it and the detection node's one-frame queue dropped frame 0 (seen in recordings)."""
     from followbus.bus.graph import load_graph
-    from followbus.bus.node import NodeRuntime
+    from followbus.bus.node_runtime import NodeRuntime
 
     graph = load_graph(graph_file(
         "  capture:\n    run: followbus.nodes.capture\n    outputs: [frame, ground_truth]\n"
@@ -298,8 +298,8 @@ def test_a_publisher_sends_to_subscribers_that_come_and_go_without_asking_zenoh_
 
 
 def test_a_lazy_input_queue_does_not_wake_its_consumer_until_half_full():
-    """A node's LAZY_INPUTS (prediction's 100 Hz odometry) do not wake its loop on every message; the queue still
-    wakes it before it can overflow, and an ordinary queue wakes it on each message."""
+    """A node's inputs read by stamp (prediction's 100 Hz odometry) do not wake its loop on every message; the queue
+    still wakes it before it can overflow, and an ordinary queue wakes it on each message."""
     from followbus.bus.pubsub import InputQueue
     from followbus.bus.stats import TopicStats
 
@@ -328,7 +328,7 @@ def test_a_node_does_not_subscribe_to_an_input_its_params_never_read(graph_file)
     """Detection reads capture's ground truth only with the simulated backend: with a real detector its runtime
     does not subscribe to it, so capture sends nothing there (its publisher is not listened to)."""
     from followbus.bus.graph import load_graph
-    from followbus.bus.node import NodeRuntime
+    from followbus.bus.node_runtime import NodeRuntime
 
     nodes = ("  capture:\n    run: followbus.nodes.capture\n    outputs: [frame, ground_truth]\n"
              "    params: {source: 'scene:wall-occlusion'}\n"

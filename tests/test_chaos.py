@@ -13,7 +13,7 @@ import pytest
 
 from followbus.bus.codec import DecodeError
 from followbus.bus.graph import load_graph
-from followbus.bus.node import ParamError
+from followbus.bus.node_params import ParamError
 from followbus.bus.schemas import SCHEMAS, decode
 from followbus.reliability import faults as chaos
 from followbus.reliability.chaos import ChaosRunner
@@ -181,21 +181,21 @@ def test_the_headline_states_load_survival_and_the_bounds():
 
 
 def test_simulated_detector_delay_is_a_pure_delay():
-    from followbus.nodes.detection import Detection, detector_from_params
+    from followbus.nodes.detection import detection_params, detector_from_params
 
     truth = [((100.0, 50.0, 40.0, 120.0), 1.0), ((300.0, 60.0, 30.0, 90.0), 0.8)]
     image = np.zeros((240, 480, 3), np.uint8)
-    fast = detector_from_params(Detection.parse_params({"backend": "simulated"}))
-    slow = detector_from_params(Detection.parse_params({"backend": "simulated", "sim_delay_ms": 40}))
+    fast = detector_from_params(detection_params({"backend": "simulated"}))
+    slow = detector_from_params(detection_params({"backend": "simulated", "sim_delay_ms": 40}))
     t0 = time.perf_counter()
     boxes = [slow.detect(image, truth) for _ in range(3)]
     assert time.perf_counter() - t0 >= 3 * 0.040  # a sleep never returns early
     for got in boxes:
         assert np.array_equal(got, fast.detect(image, truth))
     with pytest.raises(ParamError, match="sim_delay_ms"):
-        Detection.parse_params({"backend": "simulated", "sim_delay_ms": -1})
+        detection_params({"backend": "simulated", "sim_delay_ms": -1})
     with pytest.raises(ParamError, match="only applies to backend 'simulated'"):
-        Detection.parse_params({"backend": "hog", "sim_delay_ms": 80})
+        detection_params({"backend": "hog", "sim_delay_ms": 80})
 
 
 # ----------------------------------------------------------------------------- the live graph under faults

@@ -23,9 +23,9 @@ import pytest
 import yaml
 import zenoh
 
-from followbus.bus.node import ParamError
+from followbus.bus.node_params import ParamError
 from followbus.bus.schemas import Tick
-from followbus.nodes.capture import Capture
+from followbus.nodes.capture import CaptureParams
 from followbus.tools.recording.mcap_io import RecordingWriter
 from followbus.vision.models import MODELS_ENV
 from followbus.vision.sources import SourceError, check_source, open_source
@@ -126,7 +126,7 @@ def test_source_errors_in_process(tmp_path):
     with pytest.raises(SourceError, match="is an MCAP recording: the capture node reads it"):
         check_source(str(tmp_path / "junk.mcap"))  # vision/ knows no recordings: bus/recording.py reads them
     with pytest.raises(ParamError, match=r"MCAP source '.*junk.mcap': not an MCAP file$"):
-        Capture.check_params(Capture.parse_params({"source": str(tmp_path / "junk.mcap")}))
+        CaptureParams(source=str(tmp_path / "junk.mcap")).check()
     check_source("scene:lost-target")
 
 

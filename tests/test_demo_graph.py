@@ -1,5 +1,5 @@
-"""``followbus demo`` prepares the graph without knowing its node names: ``--scene`` goes to the nodes whose class
-names a SOURCE_PARAM, the source's first ground-truth box to those naming an INIT_BOX_PARAM (no process starts)."""
+"""``followbus demo`` prepares the graph without knowing its node names: ``--scene`` goes to the params marked
+``demo: source``, the source's first ground-truth box to those marked ``demo: init_box`` (no process starts)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""bus/graph.py's graph API: variants of a loaded graph (each a new graph), written back as a graph file, and the
-one parser of ``node.param=value``."""
+"""bus/graph/variants.py: variants of a loaded graph (each a new graph), written back as a graph file, and the one
+parser of ``node.param=value``."""
 
 from __future__ import annotations
 

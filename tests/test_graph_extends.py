@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from followbus.bus.graph import GraphError, SourceLine, load_graph
-from followbus.bus.node import validate_node
+from followbus.bus.node_checks import validate_node
 from followbus.bus.session import ZenohSettings
 from followbus.tools.cli import main
 

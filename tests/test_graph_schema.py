@@ -13,7 +13,8 @@ import pytest
 import yaml
 
 from followbus.bus import graph_schema
-from followbus.bus.graph import (
+from followbus.bus.graph import GraphError, InputSpec, RestartPolicy, load_graph
+from followbus.bus.graph.spec import (
     INPUT_KEYS,
     NODE_KEYS,
     POLICIES,
@@ -21,12 +22,9 @@ from followbus.bus.graph import (
     RESTART_POLICIES,
     SYNC_MODES,
     TOP_KEYS,
-    GraphError,
-    InputSpec,
-    RestartPolicy,
-    load_graph,
 )
-from followbus.bus.node import load_node_class, validate_node
+from followbus.bus.node_checks import load_node_class, validate_node
+from followbus.bus.node_params import params_classes, parse_params
 from followbus.bus.session import MODES, ZenohSettings
 from followbus.tools.cli import main
 
@@ -97,12 +95,12 @@ def test_params_of_every_shipped_node_module(schema):
     assert runs <= set(params), runs - set(params)
     for run, definition in params.items():
         cls = load_node_class(run)
-        names = [f.name for c in cls.params_classes() for f in dataclasses.fields(c)]
+        names = [f.name for c in params_classes(cls.Params) for f in dataclasses.fields(c)]
         assert set(definition["properties"]) == set(names), run
         # Every parameter the schema offers, at its default, is one the node accepts; anything else is not.
-        cls.parse_params({k: p["default"] for k, p in definition["properties"].items()})
+        parse_params(cls.Params, {k: p["default"] for k, p in definition["properties"].items()})
         with pytest.raises(ValueError, match="not_a_param"):
-            cls.parse_params({"not_a_param": 1})
+            parse_params(cls.Params, {"not_a_param": 1})
     gate = params["followbus.nodes.prediction"]["properties"]["gate_chi2"]
     assert gate["type"] == "number" and "Mahalanobis" in gate["description"]  # tracking/params.py's comment
     assert "gate_chi2" not in params["followbus.nodes.reid"]["properties"]  # re-ID gates with the prior's

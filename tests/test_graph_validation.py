@@ -276,7 +276,7 @@ def test_a_renamed_parameter_still_loads_under_its_old_name(tmp_path, capsys, ca
     """detection's input_size became input_size_px (units in the names): a graph, or a recording's graph, written
     before still loads, with a warning; a bad value is still reported at its line."""
     from followbus.bus.graph import load_graph
-    from followbus.bus.node import validate_node
+    from followbus.bus.node_checks import validate_node
 
     path = tmp_path / "graph.yaml"
     path.write_text(GRAPH_YAML.replace("      input_size_px: 416\n", "      input_size: 640\n", 1))

@@ -83,7 +83,7 @@ def test_launch_restart_and_clean_shutdown(graph_file, port):
 
 
 def _launch_id(pid: int) -> str:
-    from followbus.bus.node import LAUNCH_ID_ENV
+    from followbus.bus.node_runtime import LAUNCH_ID_ENV
 
     return _child_env(pid, LAUNCH_ID_ENV)
 

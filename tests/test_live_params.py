@@ -71,7 +71,7 @@ def test_reid_threshold_is_set_on_the_object_reid_reads():
 
     from followbus.bus.graph import load_graph
     from followbus.bus.live_params import LiveParams
-    from followbus.bus.node import validate_node
+    from followbus.bus.node_checks import validate_node
     from followbus.bus.session import ZenohSettings, open_session
     from followbus.tracking.params import ReidParams
     from followbus.tracking.reid import ReIdentifier

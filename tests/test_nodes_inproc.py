@@ -290,7 +290,7 @@ def test_template_freezes_under_occlusion():
     ("launch-B", 3600.0, True),  # ... unless the graph allows recent files from other launches
 ])
 def test_template_restores_only_its_own_launch_by_default(tmp_path, monkeypatch, saved_by, max_age_s, restored):
-    from followbus.bus.node import LAUNCH_ID_ENV
+    from followbus.bus.node_runtime import LAUNCH_ID_ENV
     from followbus.tracking.params import TemplateParams
     from followbus.tracking.template import TemplateUpdater
 
@@ -488,7 +488,7 @@ def test_stamps_clock_follows_replay_hints():
         priors = g.outputs("prediction", "prior")
         assert [p.header.frame_seq for p in priors] == [0, 2]
         assert priors[1].header.feedback["measurement"] == 0
-        assert g.node("prediction").now_ns() == t0 + 2 * DT_NS  # the node clock is the newest stamp
+        assert g.node("prediction").runtime.clock.now_ns() == t0 + 2 * DT_NS  # the node clock is the newest stamp
 
 
 def test_a_node_that_cannot_start_is_an_error_not_an_exit():
@@ -610,14 +610,15 @@ def test_two_graphs_launched_from_one_directory_keep_their_own_template_file(tmp
 
 
 def test_a_reset_reid_keeps_its_one_learning_thread():
-    """A node reset runs setup again; re-ID's background learner is one thread per process, not one per reset."""
+    """A node reset runs setup again (NodeHost, after on_frame keeps failing); re-ID's background learner is one
+    thread per process, not one per reset."""
     with InProcessGraph(tracking_graph(), nodes=["reid"]) as g:
         g.start()
         node = g.node("reid")
         learner = node.learner
         threads = threading.active_count()
         for _ in range(3):
-            node.reset()
+            node.setup()
         assert node.learner is learner and threading.active_count() == threads
 
 

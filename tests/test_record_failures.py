@@ -21,7 +21,7 @@ import zenoh
 from mcap.records import Footer, Message
 from mcap.stream_reader import StreamReader
 
-from followbus.bus.node import RECORDER_NAME
+from followbus.bus.barrier import RECORDER_NAME
 from followbus.bus.pubsub import MAX_PAYLOAD_BYTES, Publisher, direct_callback, payload_bytes
 from followbus.bus.recording import iter_bus_messages, read_metadata, read_summary
 from followbus.bus.schemas import Frame, Tick, decode

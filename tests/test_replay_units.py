@@ -142,3 +142,46 @@ def test_differences_after_a_gap_are_forgiven_until_the_output_matches_again():
     report = replayer.report
     assert report.unverifiable == 1 and report.after_gap == 1  # frame 10 itself, then frame 11
     assert report.mismatch_count == 2 and {m["frame_seq"] for m in report.mismatches} == differs - {11}
+
+
+def test_a_node_sampling_odometry_by_stamp_replays_the_sample_it_took_live(tmp_path):
+    """groundplane live (graph.group.yaml), in-process: the odometry sample stamped just before frame k arrives after
+    frame k's detections on odd frames, so those frames use the sample before it. The recording's odometry comes out
+    of a replay in stamp order, ahead of each frame: only the sample the runtime noted live makes the replay take
+    the same pose. The node keeps no buffer and writes no note of its own (In(..., sample_by_stamp=True))."""
+    from followbus.bus.graph import load_graph
+    from followbus.bus.inproc import InProcessGraph
+    from followbus.msgs.robot import Odometry
+    from followbus.replay.engine import Replayer
+
+    graph = load_graph(REPO / "graph.group.yaml")
+    frames = 8
+    inputs: list[tuple[str, int, bytes]] = []  # (key, log time, message)
+    with InProcessGraph(graph, nodes=["groundplane"], clock_start_ns=T0) as g:
+        for k in range(frames):
+            odom = Odometry(x_m=0.5 * k, y_m=0.1 * k, theta_rad=0.05 * k)
+            odom.header.stamp_ns = odom.header.pub_ns = T0 + k * DT - 20_000_000
+            dets = _stamped(Detections(boxes=np.array([[300, 200, 60, 180, 0.9]], np.float32)), k)
+            late = k % 2 == 1
+            for topic, msg in ([("detection/detections", dets), ("motor/odometry", odom)] if late else
+                               [("motor/odometry", odom), ("detection/detections", dets)]):
+                g.inject(topic, msg)
+                g.deliver()
+                inputs.append((f"fb/{topic}", msg.header.stamp_ns, msg.encode()))
+        points = g.payloads("groundplane", "points")
+    path = tmp_path / "g.mcap"
+    writer = RecordingWriter(path)
+    writer.metadata("graph", {"yaml": graph.text})
+    writer.metadata("followbus", {"namespace": "fb"})
+    channels = {key: writer.bus_channel(key, type_name) for key, type_name in (
+        ("fb/detection/detections", "Detections"), ("fb/motor/odometry", "Odometry"),
+        ("fb/groundplane/points", "GroundPoints"))}
+    for key, log_time, data in inputs:
+        writer.write(channels[key], log_time, data)
+    for k, data in enumerate(points):
+        writer.write(channels["fb/groundplane/points"], T0 + k * DT + 1, data)
+    writer.finish()
+
+    report = Replayer(path, ReplayOptions(nodes=["groundplane"], verify=True, progress=False)).run()
+    assert report.outputs_compared == frames and report.matched == frames, report.mismatches[:3]
+    assert report.ok(verify=True)

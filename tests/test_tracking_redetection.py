@@ -117,7 +117,7 @@ def test_the_graph_redetects_small_people_at_the_frames_resolution() -> None:
             high, low = split_by_score(detector.detect(item.bgr), 0.3, 0.1)
             follower.step(item.bgr, high, item.t_ns, (0.0, 0.0), item.gt_box if k == 0 else None, low_detections=low)
             sources.append(follower.last.measurement.source)
-        status = follower.node("redetection").status_extra()
+        status = follower.node("redetection").status()
     finally:
         follower.close()
     assert sum(status["redetected"].values()) >= 100 and status["redetected"].get("small", 0) > 0

@@ -322,10 +322,10 @@ def test_fit_needs_a_model_that_takes_any_shape() -> None:
 
 
 def test_detection_node_refuses_an_unknown_input_shape() -> None:
-    from followbus.bus.node import ParamError
-    from followbus.nodes.detection import Detection
+    from followbus.bus.node_params import ParamError
+    from followbus.nodes.detection import detection_params
 
-    assert Detection.parse_params({"input_shape": "fit"}).input_shape == "fit"
+    assert detection_params({"input_shape": "fit"}).input_shape == "fit"
     for raw in ({"input_shape": "round"}, {"backend": "yolov8", "input_shape": "fit"}):
         with pytest.raises(ParamError, match="input_shape must be one of square, fit"):
-            Detection.parse_params(raw)
+            detection_params(raw)

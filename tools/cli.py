@@ -173,7 +173,7 @@ def _host_nodes(graph, given: str | None) -> tuple[str | None, list[str]]:
 
 def cmd_node(args: argparse.Namespace) -> int:
     from ..bus.graph import apply_overrides
-    from ..bus.node import run_node
+    from ..bus.node_runtime import run_node
 
     graph = load_graph(args.graph)
     apply_overrides(graph, args.overrides)
@@ -203,47 +203,60 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def demo_graph(path: str, scene: str | None, given_overrides: list[str]) -> tuple[Any, list[str]]:
-    """The graph the demo runs and its overrides. It knows no node by name: ``scene`` goes to the nodes whose
-    class names a SOURCE_PARAM, a source's first ground-truth box to those naming an INIT_BOX_PARAM."""
+    """The graph the demo runs and its overrides. It knows no node by name: ``scene`` goes to the params marked
+    ``demo: source`` (field metadata), a source's first ground-truth box (its params' ``first_truth_box()``) to
+    those marked ``demo: init_box``."""
     from ..bus.graph import apply_overrides
-    from ..bus.node import load_node_class, validate_node
+    from ..bus.node_checks import load_node_class
+    from ..bus.node_params import marked
     from .errors import UsageError
 
     graph = load_graph(path)
-    classes = {}
+    roles: dict[str, dict[str, str]] = {}  # node -> {role: its param}
     for name, spec in graph.nodes.items():
         try:
-            classes[name] = load_node_class(spec.run)
+            cls = load_node_class(spec.run)
         except ImportError as exc:  # as `check` says it
             raise graph.error(spec.line, f"node {name!r}: run: {exc}") from exc
+        roles[name] = {role: param for param, role in marked(cls.Params, "demo").items()}
     overrides = list(given_overrides)
     labels = None
     if scene:
-        sources = [f"{name}.{cls.SOURCE_PARAM}" for name, cls in classes.items() if cls.SOURCE_PARAM]
+        sources = [f"{name}.{role['source']}" for name, role in roles.items() if "source" in role]
         if not sources:
             raise UsageError(f"--scene: no node of {path} takes a source")
         overrides[:0] = [f"{key}=scene:{scene}" for key in sources]
         labels = dict.fromkeys(sources, f"--scene {scene}")
     apply_overrides(graph, overrides)
     _validate(graph, overrides, labels=labels)
-    init = next((box for name, spec in graph.nodes.items()
-                 if (box := classes[name].first_truth_box(validate_node(graph, spec, classes[name])[1])) is not None),
-                None)
-    takers = [name for name, cls in classes.items()
-              if cls.INIT_BOX_PARAM and cls.INIT_BOX_PARAM not in graph.nodes[name].params]
+    init = next((box for spec in graph.nodes.values() if (box := _first_truth_box(graph, spec)) is not None), None)
+    takers = {name: role["init_box"] for name, role in roles.items()
+              if "init_box" in role and role["init_box"] not in graph.nodes[name].params}
     if init is not None and takers:
         # A follower is told whom to follow: on recorded sequences that is the first annotated box.
         box = f"[{', '.join(f'{v:.2f}' for v in init)}]"
-        given = [f"{name}.{classes[name].INIT_BOX_PARAM}={box}" for name in takers]
+        given = [f"{name}.{param}={box}" for name, param in takers.items()]
         overrides += given
         apply_overrides(graph, given)
         print(f"target: the first ground-truth box {tuple(round(v, 1) for v in init)}")
     return graph, overrides
 
 
+def _first_truth_box(graph: Any, spec: Any) -> tuple[float, ...] | None:
+    """The first ground-truth box of a node's source, when its params can tell one (``first_truth_box()``)."""
+    from ..bus.node_checks import validate_node
+
+    params = validate_node(graph, spec)[1]
+    for part in params if isinstance(params, tuple) else (params,):
+        first = getattr(part, "first_truth_box", None)
+        if first is not None and (box := first()) is not None:
+            return box
+    return None
+
+
 def cmd_launch(args) -> int:
+    from ..bus.barrier import RECORDER_NAME
     from ..bus.graph import apply_overrides
-    from ..bus.node import RECORDER_NAME
     from .launch import Launcher, install_stop_signals
     from .runs.claims import claim_from_args
 
@@ -291,7 +304,7 @@ def cmd_launch(args) -> int:
 
 def _warn_unfed(graph, started: list[str], partial: bool, left_out: set[str]) -> None:
     """launch --only/--host: say at once which inputs of the started nodes nothing started here produces, and which
-    consumers on other hosts a source waits for before its first message (bus/node.py DownstreamBarrier; nodes
+    consumers on other hosts a source waits for before its first message (bus/barrier.py DownstreamBarrier; nodes
     that --only left out are not waited for)."""
     if not partial:
         return
@@ -312,10 +325,11 @@ def _warn_unfed(graph, started: list[str], partial: bool, left_out: set[str]) ->
 def _validate(graph, overrides: list[str] | None = None, *, opened: set[str] | None = None,
               labels: dict[str, str] | None = None, nodes: list[str] | None = None) -> None:
     """Validate every node (or ``nodes``) against its class, and check what the nodes in ``opened`` (default:
-    all) would open (the capture source: Capture.check_params), before anything starts. A problem with a value given on
+    all) would open (the capture source: CaptureParams.check), before anything starts. A problem with a value given on
     the command line names the option (``labels``: node.param -> how it was given, else its --set); one from
     the file names its line (GraphError)."""
-    from ..bus.node import ParamError, validate_node
+    from ..bus.node_checks import validate_node
+    from ..bus.node_params import ParamError
     from .errors import UsageError
 
     given = {item.partition("=")[0].strip(): f"--set {item}" for item in overrides or []}
@@ -323,10 +337,11 @@ def _validate(graph, overrides: list[str] | None = None, *, opened: set[str] | N
     for name in nodes if nodes is not None else list(graph.nodes):
         spec = graph.nodes[name]
         try:
-            cls, params = validate_node(graph, spec)
-            check = getattr(cls, "check_params", None)
-            if check is not None and (opened is None or name in opened):
-                check(params)
+            _, params = validate_node(graph, spec)
+            if opened is None or name in opened:
+                for part in params if isinstance(params, tuple) else (params,):
+                    if hasattr(part, "check"):
+                        part.check()
         except Exception as exc:
             param = exc if isinstance(exc, ParamError) else exc.__cause__
             key = f"{name}.{param.key}" if isinstance(param, ParamError) else ""
@@ -374,8 +389,17 @@ def _setup_logging(verbose: int) -> None:
                         datefmt="%H:%M:%S", stream=sys.stderr)
 
 
+def _find_nodes_here() -> None:
+    """A node module in the working directory (graph.yaml ``run: my_node``) is found, as the node processes find it
+    (``python -m`` puts the working directory first); last on the path, so it shadows nothing installed."""
+    here = os.getcwd()
+    if "" not in sys.path and here not in sys.path:
+        sys.path.append(here)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    _find_nodes_here()
     parser = build_parser(argv)
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)

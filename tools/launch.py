@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..bus.barrier import LAUNCHED_NODES_ENV, LEFT_OUT_NODES_ENV
 from ..bus.children import die_with_parent
 from ..bus.graph import Graph, NodeSpec
 from ..bus.health import (
@@ -31,7 +32,7 @@ from ..bus.health import (
 from ..bus.hosts import host_plan, nodes_on
 from ..bus.links import LinkWatch, edges_of_graph
 from ..bus.liveness import STOPPED_WORKING_EXIT
-from ..bus.node import LAUNCH_ID_ENV, LAUNCHED_NODES_ENV, LEFT_OUT_NODES_ENV
+from ..bus.node_runtime import LAUNCH_ID_ENV
 from ..bus.pubsub import Publisher, direct_callback
 from ..bus.session import MemoryTrim, open_session
 from .runs.claims import health_path, write_health

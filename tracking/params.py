@@ -141,7 +141,9 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
 
     diff_threshold: int = 25  # Table 1 Thresh_diff: frame-difference grey-level threshold (§2.1)
     morph_kernel_px: int = 5  # Table 1 K_morph: 5x5 morphology kernel for motion ROIs (§2.1)
-    reid_threshold: float = 0.75  # Table 1 Thresh_reid on M_fuse (Alg. 1 line 9)
+    # Table 1 Thresh_reid on M_fuse (Alg. 1 line 9). Read on every decision (tracking/reid.py): followbus param set
+    # changes it on the next frame.
+    reid_threshold: float = dataclasses.field(default=0.75, metadata={"live": True})
     tau_occ: float = 0.60  # Table 1 τ_occ: sigmoid centre of the appearance weight (Eq. 3)
     # Eq. 3 gain. Bhattacharyya scores of the same person typically lie in 0.8-0.95 and of other
     # people in 0.2-0.5; γ=10 maps C_t=0.9 to ω≈0.95 and C_t=0.3 to ω≈0.05, i.e. the sigmoid
@@ -192,7 +194,7 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # δ_switch.
     far_relock_needs_identity: bool = True
     relock_far_height_fraction: float = 0.5
-    n_id_frames: int = 2
+    n_id_frames: int = dataclasses.field(default=2, metadata={"was": "n_id"})
     # Re-acquisition on accumulated evidence (tracking/reacquisition.py): while OCCLUDED or LOST, a detection that
     # is, on reacquire_frames frames (seed 001's N_id = 5) within reacquire_window_frames, re-ID's best candidate
     # among those that are none of the people seen beside the target, ahead of the others by identity_margin in

@@ -102,13 +102,13 @@ class GraphInfo:
 
 
 def _outputs(graph: Graph, node: str) -> dict[str, type[Message]]:
-    from ..bus.node import load_node_class
+    from ..bus.node_checks import load_node_class
 
     try:
         declared = load_node_class(graph.nodes[node].run).OUTPUTS
     except ImportError:  # a node this machine cannot import: its outputs carry nothing the monitor knows
         return {}
-    return {out: kind for out, kind in declared.items() if out in graph.nodes[node].outputs}
+    return {out: port.type for out, port in declared.items() if out in graph.nodes[node].outputs}
 
 
 def _watched_topics(graph: Graph) -> tuple[dict[str, str], str]:

@@ -36,7 +36,7 @@ class ChaosGraph:
     """One launch of the graph by an in-process :class:`~followbus.tools.launch.Launcher`."""
 
     def __init__(self, path: Path, variant: str, log_file: Path, record_path: Path | None):
-        from ...bus.node import RECORDER_NAME
+        from ...bus.barrier import RECORDER_NAME
         from ..launch import Launcher
 
         self.path = path

@@ -265,10 +265,10 @@ def _same_box(a: Any, b: Any) -> bool:
 def _graph_detector(graph: Any, detector: str) -> Any:
     """item -> (high, low) detections as the graph's detection node makes them (its thresholds, threads, model),
     switched to ``detector``; simulated: the node's defaults (noise 4 px, miss 0.05, fp 0.02, seed 0)."""
-    from ...nodes.detection import Detection, detector_from_params, split_detections
+    from ...nodes.detection import detection_params, detector_from_params, split_detections
     from ...vision.detectors import SimulatedDetector
 
-    node_params = Detection.parse_params(apply_detector_preset(dict(graph.nodes["detection"].params), detector))
+    node_params = detection_params(apply_detector_preset(dict(graph.nodes["detection"].params), detector))
     if detector == "simulated":
         sim = SimulatedDetector(seed=0)
         return lambda item: split_detections(node_params, sim.detect(item.bgr, item.truth))

@@ -50,9 +50,9 @@ from typing import Any
 import zenoh
 
 from ...bus import ros2
+from ...bus.barrier import RECORDER_NAME
 from ...bus.codec import DecodeError, Header, peek
 from ...bus.links import PublishedKeys
-from ...bus.node import RECORDER_NAME
 from ...bus.pubsub import RateLimitedLog, declare_subscriber, frame_bytes
 from ...bus.schemas import decode
 from ...bus.stats import SequenceGaps

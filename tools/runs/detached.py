@@ -94,7 +94,7 @@ def plays_once(graph, overrides: list[str]) -> list[str]:
     """The nodes that play a finite source once (a scene, a video, a folder, a recording; not a camera or a topic)
     with ``loop`` off: a graph in the background then runs on with nothing to follow, which `up` says."""
     from ...bus.graph import apply_overrides
-    from ...bus.node import validate_node
+    from ...bus.node_checks import validate_node
 
     graph = copy.deepcopy(graph)
     apply_overrides(graph, overrides)
