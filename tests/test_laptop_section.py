@@ -1,10 +1,10 @@
 """The laptop section of docs/laptop-and-two-hosts.md, as written: graph.robot.yaml (its own bus: router hub,
-user/password, access control, the example user dictionary) runs in one network namespace, listening on its veth address as the page says to
-let a laptop in; every command of the section's command block runs in a second namespace with its own /dev/shm
-(a laptop), from a directory without any graph file, with the identity the block exports at that point. Each
-command must do what the block says: `monitor` sees the nodes, `echo` the commands, `record` a file that `play`
-publishes as `operator`; `param` is refused in one line for `monitor` and changes the parameter for `operator`.
-Skipped, with the reason, where ip netns is not permitted."""
+user/password, access control, the example user dictionary) runs in one network namespace, listening on its veth
+address as the page says to let a laptop in; every command of the section's command block runs in a second namespace
+with its own /dev/shm (a laptop), from a directory without any graph file, with the identity the block exports at
+that point. Each command must do what the block says: `monitor` sees the nodes, `echo` the commands, `record` a file
+that `play` publishes as `operator`; `param` is refused in one line for `monitor` and changes the parameter for
+`operator`. Skipped, with the reason, where ip netns is not permitted."""
 
 from __future__ import annotations
 
