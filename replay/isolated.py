@@ -105,7 +105,7 @@ class IsolatedTarget:
                 [sys.executable, "-m", "followbus.tools.cli", "node", self.name, "--graph", str(graph_path),
                  "--clock", "stamps"],
                 stdout=node_log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=die_with_parent)
+                env=_node_env(), preexec_fn=die_with_parent)
         t0 = time.perf_counter()
         missing = self._watcher.wait_for({self.name}, self.opts.startup_timeout_s)
         self.report.startup_s = time.perf_counter() - t0
@@ -194,3 +194,10 @@ class IsolatedTarget:
             with contextlib.suppress(Exception):
                 self._session.close()
         self.reference.close()
+
+
+def _node_env() -> dict[str, str]:
+    """The replayer's environment without its domain: the private graph already names the node's port and
+    namespace, and a domain exported in the shell would move the node onto the domain's instead."""
+    env = {k: v for k, v in os.environ.items() if k != "FOLLOWBUS_DOMAIN"}  # tools/domains.py's variable
+    return env | {"PYTHONUNBUFFERED": "1"}

@@ -220,8 +220,10 @@ def test_replay_verify_reproduces_the_relay(recorded: Recorded, tmp_path):
     assert "verify: OK" in result.stdout
 
 
-def test_replay_isolated_runs_the_deployed_node(recorded: Recorded, tmp_path):
-    """--isolated: the relay as its own process over Zenoh on a private loopback port, same verdict."""
+def test_replay_isolated_runs_the_deployed_node(recorded: Recorded, tmp_path, monkeypatch):
+    """--isolated: the relay as its own process over Zenoh on a private loopback port, same verdict; also from a
+    shell that exports a domain (the node keeps the private graph's port and namespace, not the domain's)."""
+    monkeypatch.setenv("FOLLOWBUS_DOMAIN", "7")
     report_path = tmp_path / "replay.json"
     result = run_followbus("replay", str(recorded.path), "--node", "relay", "--isolated", "--verify", "--report",
                            str(report_path), timeout=120)

@@ -6,6 +6,7 @@ publisher built the same way while the ros2 node answers on /cmd_vel."""
 
 from __future__ import annotations
 
+import logging
 import struct
 import subprocess
 import time
@@ -269,7 +270,7 @@ def test_the_ros2_node_sends_a_zero_twist_when_commands_stop_or_it_stops():
     session, listener_session = _session(port, listen=True), _session(port, listen=False)
     clock = _Clock()
     runtime = SimpleNamespace(spec=SimpleNamespace(name="ros2"), latest={}, session=session, clock=clock,
-                              provenance=None, publishers={})
+                              provenance=None, publishers={}, log=logging.getLogger("ros2"))
     node = Ros2Out(Ros2Params(cmd_vel_topic="/n1/cmd_vel", target_topic="/n1/target"), runtime)
     twists, targets = [], []
     listener = Ros2Node(listener_session, "listener")
