@@ -172,3 +172,16 @@ def test_a_wrong_command_is_caught():
     assert parse_error(["replay", "r.mcap", "--node", "reid", "--verfy"]) is not None
     assert followbus_commands("```\n$ followbus check g.yaml\nfollowbus: g.yaml:3: bad\n```\n") == [["check", "g.yaml"]]
     assert followbus_commands("```\nfollowbus topics ; followbus nodes  # both\n```\n") == [["topics"], ["nodes"]]
+
+
+def test_the_readme_demo_sample_names_what_the_demo_runs():
+    """The sample is pasted from a real run: its node count is graph.yaml's and its model ships in models/."""
+    from followbus.bus.graph import load_graph
+
+    readme = README.read_text()
+    sample = readme[readme.index("<!-- demo sample"):]
+    sample = sample[:sample.index("\n```\n", sample.index("```") + 3)]
+    launched = int(re.search(r"launching (\d+) nodes", sample).group(1))
+    assert launched == len(load_graph(REPO / "graph.yaml").nodes), "the README's demo sample is from another graph"
+    model = re.search(r"model \S*/models/(\S+)", sample).group(1)
+    assert (REPO / "models" / model).is_file(), f"the README's demo sample names models/{model}"

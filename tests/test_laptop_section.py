@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+from followbus.bus.children import interrupt_all
 from followbus.tools.bench.netns import NetnsPair, netns_unavailable
 
 from .conftest import REPO, followbus_argv, wait_until
@@ -106,13 +107,7 @@ class Robot:
 
 
 def _interrupt(proc: subprocess.Popen, timeout: float = 20) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    interrupt_all([proc], timeout)
 
 
 def _start(pair: NetnsPair, step: Step, cwd: Path) -> None:

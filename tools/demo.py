@@ -168,8 +168,10 @@ def last_error_lines(log_path: Path, count: int = ERROR_LINES_SHOWN) -> list[str
 def print_summary(summary: dict) -> None:
     """The demo's closing lines: frames, TSR@20px against the scene's truth, re-ID events, latency, detector time."""
     in_flight = f" (and {summary['in_flight']} still in the pipeline at the stop)" if summary["in_flight"] else ""
+    skipped = summary["frames"] - summary["processed_frames"] - summary["in_flight"]
+    why = f" ({skipped} skipped by a detector that could not keep up)" if skipped > 0 else ""
     print(f"summary: {summary['frames']} frames captured{in_flight}, {summary['processed_frames']} processed end to "
-          f"end (the rest skipped by a detector that could not keep up), {summary['tracked_frames']} with a target box")
+          f"end{why}, {summary['tracked_frames']} with a target box")
     if "tsr" in summary:
         print(f"  TSR@20px {summary['tsr'] * 100:.1f} % (a skipped frame counts as a failure)   "
               f"CLE {summary['cle']:.1f} px   precision {summary['precision'] * 100:.1f} %")

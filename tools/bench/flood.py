@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -31,7 +30,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .link import MONITOR_PASSWORD, write_robot_graph
+from ...bus.children import interrupt_all
+from .link import MONITOR_PASSWORD, wait_for_launch, write_robot_graph
 
 PHASES = ("before", "declaring", "held", "left")
 FLOODER_NICE = 19
@@ -144,10 +144,7 @@ class FloodBench:
 
     def start(self, timeout_s: float = 120.0) -> None:
         deadline = time.monotonic() + timeout_s
-        while not any("ready:" in line for line in self.robot_lines):
-            if time.monotonic() > deadline or self.robot.poll() is not None:
-                raise RuntimeError("the robot graph did not come up: " + "".join(self.robot_lines[-10:]))
-            time.sleep(0.2)
+        wait_for_launch(self.robot, self.robot_lines, timeout_s)
         self.probe = subprocess.Popen([sys.executable, "-m", "followbus.tools.bench.link", "probe", str(self.graph)],
                                       cwd=self.tmp, env=bench_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                       text=True)
@@ -222,14 +219,7 @@ class FloodBench:
             self.probe.stdin.close()
             with contextlib.suppress(subprocess.TimeoutExpired):
                 self.probe.wait(10)
-        for proc in (self.flooder, self.probe, self.robot):
-            if proc is not None and proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(30)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+        interrupt_all((self.flooder, self.probe, self.robot))
 
 
 def _worst(windows: list[Phase]) -> Phase:

@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from ...bus.children import interrupt_all
 from .netns import NetnsPair, netns_unavailable
 
 REPO = Path(__file__).resolve().parents[2]
@@ -278,10 +279,7 @@ class LinkBench:
 
     def start(self, timeout_s: float = 120.0) -> None:
         deadline = time.monotonic() + timeout_s
-        while not any("ready:" in line for line in self.robot_lines):
-            if time.monotonic() > deadline or self.robot.poll() is not None:
-                raise RuntimeError("the robot graph did not come up: " + "".join(self.robot_lines[-10:]))
-            time.sleep(0.2)
+        wait_for_launch(self.robot, self.robot_lines, timeout_s)
         self.probe = subprocess.Popen(self.pair.argv(0, [sys.executable, "-m", "followbus.tools.bench.link",
                                                          "probe", str(self.graph)]),
                                       cwd=self.tmp, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
@@ -373,14 +371,16 @@ class LinkBench:
             self.probe.stdin.close()  # its loop ends
             with contextlib.suppress(subprocess.TimeoutExpired):
                 self.probe.wait(10)
-        for proc in (self.probe, self.robot):
-            if proc is not None and proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(30)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+        interrupt_all((self.probe, self.robot))
+
+
+def wait_for_launch(robot: subprocess.Popen, lines: list[str], timeout_s: float) -> None:
+    """Until the launcher has said ``ready:`` (every node up); its last lines if it ended or took too long."""
+    deadline = time.monotonic() + timeout_s
+    while not any("ready:" in line for line in lines):
+        if time.monotonic() > deadline or robot.poll() is not None:
+            raise RuntimeError("the robot graph did not come up: " + "".join(lines[-10:]))
+        time.sleep(0.2)
 
 
 def _children_cpu_s() -> float:
