@@ -169,6 +169,11 @@ class Ros2Publisher:
             congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP)
         self._token = node.session.liveliness().declare_token(self.token_key)
 
+    @property
+    def matched(self) -> bool:
+        """Whether a subscriber on this topic's key is known to the session now."""
+        return bool(self._pub.matching_status.matching)
+
     def publish(self, msg: Any) -> None:
         payload = ros2.serialize(msg, self.type_name)
         with self._lock:

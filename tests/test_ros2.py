@@ -278,7 +278,9 @@ def test_the_ros2_node_sends_a_zero_twist_when_commands_stop_or_it_stops():
     listener.subscription("/n1/target", ros2.POINT_STAMPED, lambda m, _s: targets.append((m.point.x, m.point.y)))
     try:
         node.setup()
-        time.sleep(0.5)
+        # Both subscriptions known to the node's session before the first command (each declaration crosses the
+        # link on its own: under load the second came after the first command, which then reached only one).
+        assert wait_until(lambda: node.cmd_vel.matched and node.target.matched, 10)
         node.on_message("command", MotorCommand(vx_mps=0.5, wz_radps=0.2, range_m=2.0, bearing_rad=0.0))
         clock.t_ns += 150_000_000
         node.poll(clock.t_ns)  # 150 ms: still fresh
