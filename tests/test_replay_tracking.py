@@ -146,10 +146,8 @@ def test_two_nodes_replay_with_detections_late_in_the_recording(recording, tmp_p
     import followbus.msgs.perception  # noqa: F401  (Detections decodes)
     from followbus.bus.codec import frame_to_record, record_to_frame
     from followbus.bus.schemas import decode, encode
-    from followbus.replay.feed import frame_and_stamp as _header
 
-    measured = sorted(_header(m.data)[0] for m in _bus(recording, "rt/reid/measurement"))
-    late = set(measured[len(measured) // 2:][:10])
+    late = set(_steady_frames(recording, 10))
 
     def rewrite(channel, data: bytes) -> bytes:
         if channel.topic != "rt/detection/detections":
@@ -232,6 +230,27 @@ def _verify_prediction_without(recording, tmp_path, keep, library: str) -> tuple
                            str(report_path), timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr[-2000:]
     return result, json.loads(report_path.read_text())
+
+
+def _steady_frames(path, count: int) -> list[int]:
+    """``count`` consecutive frames from the middle of the recording on which the live loop kept pace: each
+    prior joined the measurement of the frame before. On a loaded machine a live run also has stretches in which
+    priors joined an older measurement while re-ID fell behind (test_a_live_fallback_is_replayed_exactly). Here the
+    detections alone are late: delayed inside such a stretch they can reorder prediction's inputs against the live
+    run's, and its outputs then differ in the last digits (a known limitation: docs/recording-and-replay.md)."""
+    import followbus.msgs.tracking  # noqa: F401  (Prior decodes)
+    from followbus.bus.codec import record_to_frame
+    from followbus.bus.schemas import decode
+
+    steady = sorted(msg.header.frame_seq for msg in (decode(record_to_frame(m.data))
+                                                     for m in _bus(path, "rt/prediction/prior"))
+                    if msg.header.feedback.get("measurement") == msg.header.frame_seq - 1)
+    start = len(steady) // 2
+    for i in range(start, len(steady) - count - 2):
+        window = steady[i:i + count + 4]  # two steady frames on each side too
+        if window[-1] - window[0] == count + 3:
+            return window[2:2 + count]
+    pytest.skip("the live run never kept pace for 14 frames in a row: nothing to delay")
 
 
 def _bus(path, key: str):
