@@ -436,15 +436,20 @@ def _certificates(tmp: Path) -> dict[str, Path]:
     return {"ca": ca, "key": key, "cert": cert}
 
 
+def tls_graph(endpoint: str, certs: dict, nodes: str) -> str:
+    """A router graph listening and connecting on the TLS ``endpoint`` with ``certs`` (and ``nodes``, YAML)."""
+    return (f"name: test\nnamespace: t\nzenoh:\n  mode: router\n  listen: [{endpoint}]\n"
+            f"  connect: [{endpoint}]\n  config:\n    transport/link/tls:\n"
+            f"      listen_certificate: {certs['cert']}\n      listen_private_key: {certs['key']}\n"
+            f"      root_ca_certificate: {certs['ca']}\nnodes:\n{nodes}")
+
+
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="the openssl CLI makes the test certificates")
 def test_robot_graph_over_tls_needs_the_ca(tmp_path, port):
     certs = _certificates(tmp_path)
     endpoint = f"tls/127.0.0.1:{port}"
     graph = tmp_path / "graph.tls.yaml"
-    graph.write_text(f"name: test\nnamespace: t\nzenoh:\n  mode: router\n  listen: [{endpoint}]\n"
-                     f"  connect: [{endpoint}]\n  config:\n    transport/link/tls:\n"
-                     f"      listen_certificate: {certs['cert']}\n      listen_private_key: {certs['key']}\n"
-                     f"      root_ca_certificate: {certs['ca']}\nnodes:\n{NODES}")
+    graph.write_text(tls_graph(endpoint, certs, NODES))
     launch = Launch(graph)
     try:
         launch.wait_ready()

@@ -21,7 +21,7 @@ from followbus.bus.session import ZenohSettings
 from followbus.tools.connect import explain_connect_failure
 
 from .conftest import run_followbus
-from .test_security import _certificates
+from .test_security import _certificates, tls_graph
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="the openssl CLI makes the certificates")
 
@@ -138,11 +138,7 @@ def test_launch_with_an_expired_certificate_names_tls_at_once(tmp_path, port):
     certs = _expired(tmp_path)
     endpoint = f"tls/127.0.0.1:{port}"
     graph = tmp_path / "graph.yaml"
-    graph.write_text(f"name: test\nnamespace: t\nzenoh:\n  mode: router\n  listen: [{endpoint}]\n"
-                     f"  connect: [{endpoint}]\n  config:\n    transport/link/tls:\n"
-                     f"      listen_certificate: {certs['cert']}\n      listen_private_key: {certs['key']}\n"
-                     f"      root_ca_certificate: {certs['ca']}\n"
-                     "nodes:\n  ticker: {run: followbus.nodes.diagnostics, outputs: [tick]}\n")
+    graph.write_text(tls_graph(endpoint, certs, "  ticker: {run: followbus.nodes.diagnostics, outputs: [tick]}\n"))
     started = time.monotonic()
     result = run_followbus("launch", str(graph), "--duration", "3", "--startup-timeout", "60", timeout=120)
     assert result.returncode == 2, result.stdout + result.stderr
