@@ -31,7 +31,9 @@ from pathlib import Path
 from typing import Any
 
 from ...bus.children import interrupt_all
+from ...reliability.soak import sample_process
 from .link import MONITOR_PASSWORD, wait_for_launch, write_robot_graph
+from .pipeline import cpu_ticks
 
 PHASES = ("before", "declaring", "held", "left")
 FLOODER_NICE = 19
@@ -68,27 +70,6 @@ def flooder_main(endpoint: str, count: int, namespace: str) -> int:
 
 
 # --- the robot --------------------------------------------------------------------------------------------------
-
-def rss_mb(pid: int) -> float | None:
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return None
-
-
-def cpu_s(pid: int) -> float:
-    """User and system CPU seconds a process has used (0.0 when it is gone)."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
 
 def child_pids(pid: int) -> list[int]:
     children: list[int] = []
@@ -169,11 +150,13 @@ class FloodBench:
     def cpu(self) -> dict[str, float]:
         """CPU seconds used so far by the launcher, and by the nodes together."""
         pids = self.processes()
-        return {"launcher": cpu_s(pids.pop("launcher")), "nodes": sum(cpu_s(p) for p in pids.values())}
+        seconds = {name: (cpu_ticks(pid) or 0) / os.sysconf("SC_CLK_TCK") for name, pid in pids.items()}
+        return {"launcher": seconds.pop("launcher"), "nodes": sum(seconds.values())}
 
     def memory(self) -> dict[str, float]:
         """RSS in MB of the launcher and of each node."""
-        return {name: mb for name, pid in self.processes().items() if (mb := rss_mb(pid)) is not None}
+        return {name: sample.rss_mb for name, pid in self.processes().items()
+                if (sample := sample_process(pid)) is not None}
 
     def phase(self, name: str, seconds: float) -> Phase:
         cpu0, t0 = self.cpu(), time.monotonic()

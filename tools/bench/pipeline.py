@@ -31,7 +31,8 @@ STAGES = [("capture", "frame"), ("detection", "detections"), ("prediction", "pri
 EDGES = ["capture→detection", "detection→prior", "prior→measurement", "measurement→track", "track→command"]
 
 
-def _cpu_ticks(pid: int) -> int | None:
+def cpu_ticks(pid: int) -> int | None:
+    """Clock ticks of CPU (user and system) ``pid`` has used; None when it is gone."""
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
         return int(fields[11]) + int(fields[12])  # utime + stime (fields 14, 15 of stat)
@@ -161,14 +162,14 @@ class LaunchedPipeline:
         with self._lock:
             for seen in self._pub.values():
                 seen.clear()
-            cpu0 = {n: _cpu_ticks(p) for n, p in self.pids.items()}
+            cpu0 = {n: cpu_ticks(p) for n, p in self.pids.items()}
         t0 = time.monotonic()
         self._recording.set()
         time.sleep(seconds)
         self._recording.clear()
         wall = time.monotonic() - t0
         with self._lock:
-            cpu1 = {n: _cpu_ticks(p) for n, p in self.pids.items()}
+            cpu1 = {n: cpu_ticks(p) for n, p in self.pids.items()}
             pub = {st: dict(seen) for st, seen in self._pub.items()}
         result = _figures(pub, _cpu_percent(cpu0, cpu1, wall), wall)
         result.update(detector=self.detector, scene=self.scene, resolution="x".join(map(str, self.resolution)),
