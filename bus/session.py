@@ -262,8 +262,8 @@ class MemoryTrim:
 
     A session that declared thousands of subscribers costs a router about 1.5 KB of routing state each; Zenoh frees
     it when the session leaves, but glibc keeps freed memory in its per-thread arenas, so the router's RSS would
-    stay up for good. A trim on a timer thread, TRIM_DELAY_S after the last departure, returns it (RELIABILITY.md,
-    "A read-only laptop's subscriber flood"). Nothing happens where the C library has no ``malloc_trim`` (musl)."""
+    stay up for good. A trim on a timer thread, TRIM_DELAY_S after the last departure, returns it (docs/security.md,
+    "Subscribers"; `followbus bench flood`). Nothing happens where the C library has no ``malloc_trim`` (musl)."""
 
     def __init__(self, session: zenoh.Session):
         self._trim = getattr(ctypes.CDLL(None), "malloc_trim", None)
