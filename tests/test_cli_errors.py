@@ -493,3 +493,8 @@ def test_a_reader_that_stops_early_ends_the_command_quietly():
 def test_eval_jitter_that_is_no_jitter_is_one_line(tmp_path, value):
     line = one_error_line(run_followbus("eval", "scene:overlay", "--jitter-px", value, "--out", str(tmp_path)))
     assert line.startswith("followbus: --jitter-px must be a finite number >= 0"), line
+
+
+def test_bench_egomotion_refuses_a_scene_without_a_known_camera_shift():
+    line = one_error_line(run_followbus("bench", "egomotion", "--scenes", "shaky,lookalike"))
+    assert "lookalike" in line and "bumpy, shaky, overlay" in line

@@ -71,6 +71,18 @@ def _soak_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", metavar="FILE", help="also write every window as JSON")
 
 
+def _egomotion_args(p: argparse.ArgumentParser) -> None:
+    describe(p,
+             "How well the camera-motion estimate (the egomotion node's) measures the camera: on the scenes whose "
+             "camera shifts the whole image by a known amount (overlay pans, bumpy jolts, shaky re-aims with "
+             "smeared frames), the error of each frame's estimate at the image centre, how many smeared frames "
+             "it measured to 5 px, and its CPU ms a frame; as graph.yaml runs it and without its smeared-frame "
+             "refit (BENCHMARKS.md, \"Camera motion on smeared frames\").",
+             "example: followbus bench egomotion --scenes shaky,bumpy --json egomotion.json")
+    p.add_argument("--scenes", metavar="LIST", help="comma-separated, of bumpy,shaky,overlay (default: all)")
+    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
+
 def _detector_args(p: argparse.ArgumentParser) -> None:
     describe(p,
              "The cost of each detector side by side: CPU and wall ms per inference on frames of the built-in "
@@ -287,6 +299,8 @@ COMMANDS = (
                 Lazy("bench.soak", "run_bench_soak")),
         Command("detector", "CPU and wall ms per inference of each detector, side by side", _detector_args,
                 Lazy("bench.detector", "run_bench_detector")),
+        Command("egomotion", "the camera-motion estimate against scenes of known camera motion", _egomotion_args,
+                Lazy("bench.egomotion", "run_bench_egomotion")),
         Command("link", "a laptop on a slow link: the robot's latency, and what the laptop's recording lost",
                 _link_args, Lazy("bench.link", "cmd_bench_link")),
         Command("flood", "a read-only laptop declaring thousands of subscribers: the robot's p99 and memory",
