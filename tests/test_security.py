@@ -22,6 +22,7 @@ from followbus.bus.health import SPOOFED, VERIFIED, HealthWatcher, LaunchedProce
 from followbus.bus.pubsub import Publisher
 from followbus.bus.schemas import NodeStatus, decode
 from followbus.bus.session import ZenohSettings, exposure, open_session
+from followbus.reliability.soak import sample_process
 
 from .conftest import followbus_argv, wait_until
 from .test_monitor import USERS, Launch, client, robot_graph
@@ -120,10 +121,9 @@ def test_monitor_identity_cannot_spoof_health_or_write_on_robot_graph(tmp_path, 
 
 
 def _rss_kb(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    return 0
+    """The process's RSS in kB, by the soak's own /proc reader (a gone process reads 0)."""
+    sample = sample_process(pid)
+    return 0 if sample is None else round(sample.rss_mb * 1024.0)
 
 
 def test_a_token_flood_from_the_monitor_changes_nothing_on_the_robot(tmp_path, port):
