@@ -79,6 +79,8 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o taking an uncontested lone box": {"uncontested_lone_candidate": False},
     # Eq. 3's ω as the seed has it when colours tie (geometry does not decide between look-alikes)
     "followbus w/o geometry deciding colour ties": {"colour_ties_to_geometry": False},
+    # the coasting box output or withheld by the prediction's uncertainty alone, whatever its colours say
+    "followbus w/o the coasting box's colour check": {"coasting_colour_check": False},
     # a failed corner fit is not tried again with the smeared-frame window and tolerance (phase correlation next)
     "followbus w/o the smeared-frame refit": {"smeared_refit": False},
     # no phase correlation when the corner fit fails (a smeared frame has no camera motion)

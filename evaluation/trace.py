@@ -90,8 +90,12 @@ def reason_of(measurement: Any, track: Any) -> str:
     if measurement.accepted:
         return f"{measurement.state}: accepted {measurement.source or 'box'} (M_fuse {measurement.m_fuse:.2f})"
     n = len(measurement.candidates)
-    coast = ("; the coasting box withheld (too uncertain)"
-             if measurement.state == "OCCLUDED" and track is not None and track.box is None else "")
+    coast = ""
+    if measurement.state == "OCCLUDED" and track is not None:
+        if track.box is None:
+            coast = "; the coasting box withheld (too uncertain)"
+        elif measurement.coasting_colours_seen:
+            coast = "; the coasting box output (the target's colours are there)"
     if n:
         return f"{measurement.state}: best of {n} candidates rejected (M_fuse {measurement.m_fuse:.2f}){coast}"
     return f"{measurement.state}: no candidate in the gate{coast}"

@@ -86,6 +86,10 @@ class Prior(Message):
         """The centre's 1 σ along its most uncertain direction (P_k's position block), px."""
         return math.sqrt(max(float(np.linalg.eigvalsh(self.covariance[:2, :2]).max()), 0.0))
 
+    def coasting_box(self) -> np.ndarray | None:
+        """The box output while the target is OCCLUDED: the likeliest motion model's prediction."""
+        return self.box if self.likeliest_box is None else self.likeliest_box
+
     def overlap_probability(self) -> float:
         """The probability that the predicted box still overlaps the person's, under P_k's position block: that the
         centres are less than one box width and height apart, erf(w / (√2 σx)) · erf(h / (√2 σy)) (its marginals
@@ -112,7 +116,7 @@ class Measurement(Message):
     """Re-identification result for a frame (seed 000 Algorithm 1), stamped with the frame's capture."""
 
     TYPE: ClassVar[str] = "Measurement"
-    ADDED: ClassVar[frozenset[str]] = frozenset({"detector_score"})
+    ADDED: ClassVar[frozenset[str]] = frozenset({"detector_score", "coasting_colours_seen"})
     state: str = "LOST"  # a TrackState value
     accepted: bool = False
     secure: bool = False
@@ -134,6 +138,9 @@ class Measurement(Message):
     # The detector's score of the box the target was last accepted on (-1: none, or not a detector box): what seed
     # 002 §3.2's search scale doubts (tracking/redetection.py search_scale).
     detector_score: float = -1.0
+    # While OCCLUDED: re-ID saw the target's colours at the coasting box (Prior.coasting_box), and no one else's
+    # detector box on it (ReIdentifier._coasting_colours_seen): the target is there, unseen by the detector.
+    coasting_colours_seen: bool = False
 
     def check(self) -> None:
         require(self.state in TRACK_STATES, self, f"unknown state {self.state!r}")

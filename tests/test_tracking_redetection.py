@@ -14,7 +14,7 @@ from followbus.evaluation.metrics import evaluate_single_target, missed_reacquis
 from followbus.msgs.perception import CameraMotion
 from followbus.msgs.tracking import Measurement, Prior, TrackState
 from followbus.tracking.egomotion import EgoMotionEstimator, EgoMotionParams
-from followbus.tracking.kalman import IMAGE, SCENE, Predictor
+from followbus.tracking.kalman import IMAGE, SCENE, Predictor, output_box
 from followbus.tracking.params import KalmanParams, ReidParams, SearchScaleParams
 from followbus.tracking.redetection import (
     MIN_INPUT_PX,
@@ -193,6 +193,17 @@ def test_a_smeared_frame_the_refit_misses_still_gives_the_cameras_translation() 
     assert 10.0 < motion.matrix[0, 2] < 60.0 and abs(motion.matrix[1, 2]) < 5.0  # the smear's centre, rightwards
 
 
+def test_the_smeared_frame_refit_measures_the_jerks_the_sharp_fit_cannot() -> None:
+    """`followbus bench egomotion`'s engine on scene:shaky: five re-aims of three smeared frames each."""
+    from followbus.evaluation.camera_motion import score_scene
+
+    refit = score_scene("shaky", EgoMotionParams())
+    sharp = score_scene("shaky", EgoMotionParams(smeared_refit=False))
+    assert refit.smeared == sharp.smeared == 15
+    assert refit.smeared_measured >= 14 > sharp.smeared_measured, (refit.row(), sharp.row())
+    assert np.percentile(refit.errors_px, 95) < 4.0  # and the sharp frames stay as precise
+
+
 def test_a_jerk_loses_the_person_only_on_its_smeared_frames() -> None:
     """scene:shaky (hand-held re-aims by 200 px over 3 smeared frames, simulated detections: the person stays
     detectable): the graph takes the person again within two frames of each jerk's end."""
@@ -270,12 +281,40 @@ def test_missed_reacquisitions_count_frames_without_output_while_the_best_candid
         missed_reacquisition_frames(out, gt, best[:2])
 
 
-def test_the_smeared_frame_refit_measures_the_jerks_the_sharp_fit_cannot() -> None:
-    """`followbus bench egomotion`'s engine on scene:shaky: five re-aims of three smeared frames each."""
-    from followbus.evaluation.camera_motion import score_scene
 
-    refit = score_scene("shaky", EgoMotionParams())
-    sharp = score_scene("shaky", EgoMotionParams(smeared_refit=False))
-    assert refit.smeared == sharp.smeared == 15
-    assert refit.smeared_measured >= 14 > sharp.smeared_measured, (refit.row(), sharp.row())
-    assert np.percentile(refit.errors_px, 95) < 4.0  # and the sharp frames stay as precise
+# --------------------------------------------------------------------------- the coasting box's colours
+
+
+def _coast(frame: np.ndarray, prior_box: tuple[float, float, float, float], dets: np.ndarray | None = None,
+           check: bool = True) -> Measurement:
+    """Re-ID initialised on a red person at TARGET, then a frame where the detector sees nobody in the gate."""
+    reid = ReIdentifier(ReidParams(learned_appearance=False, coasting_colour_check=check))
+    template = reid.step(_frame((TARGET, (0, 0, 200))), np.array([[*TARGET, 0.9]], np.float32), None, None, 0,
+                         init_box=TARGET).candidate_hist
+    return reid.step(frame, dets, prior_at(prior_box), template, 33 * MS)
+
+
+TARGET = (300.0, 100.0, 40.0, 100.0)
+
+
+def test_the_coasting_box_is_held_where_the_targets_colours_are() -> None:
+    still = _frame((TARGET, (0, 0, 200)))  # the person stands where they were, unseen by the detector
+    res = _coast(still, TARGET)
+    assert res.state == "OCCLUDED" and not res.accepted and res.coasting_colours_seen
+    assert not _coast(still, (420.0, 100.0, 40.0, 100.0)).coasting_colours_seen  # the prediction left them
+    with_someone = _frame((TARGET, (0, 0, 200)), ((340.0, 100.0, 40.0, 100.0), (200, 0, 0)))
+    assert _coast(with_someone, TARGET).coasting_colours_seen
+    beside = np.array([[335.0, 100.0, 40.0, 100.0, 0.9]], np.float32)  # their box over its edge, out of the gate
+    assert not _coast(with_someone, TARGET, beside).coasting_colours_seen  # no one else's box may be on it
+    assert not _coast(still, TARGET, check=False).coasting_colours_seen
+    everywhere = np.full((480, 640, 3), (0, 0, 200), np.uint8)  # the target's colours all around: no evidence
+    assert not _coast(everywhere, TARGET).coasting_colours_seen
+
+
+def test_the_colours_seen_keep_the_coasting_box_however_uncertain_the_prior() -> None:
+    prior, reid = prior_at(TARGET), Measurement(state="OCCLUDED")
+    for seen, locates, shown in ((True, False, True), (False, True, True), (False, False, False)):
+        reid.coasting_colours_seen, prior.locates_person = seen, locates
+        assert (output_box(reid, prior) is not None) == shown, (seen, locates)
+    reid.state, reid.coasting_colours_seen = "LOST", True
+    assert output_box(reid, prior) is None

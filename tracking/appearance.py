@@ -50,6 +50,22 @@ def hs_histogram(bgr: np.ndarray, box: Sequence[float], bins_h: int = 16, bins_s
     return (hist / float(hist.sum())).astype(np.float32)
 
 
+def colour_contrast(bgr: np.ndarray, box: Sequence[float], template: np.ndarray, bins_h: int = 16,
+                    bins_s: int = 8) -> tuple[float, float | None]:
+    """(S_color of ``box``, the highest S_color of the boxes around it): Eq. 1 against ``template`` at the box and at
+    boxes of its size beside it (left and right by 1.5 widths, above and below by one height) whose centre is in the
+    frame; None when none is. The target's colours at a box and not around it locate the target; colours no more
+    the target's than its surroundings' do not."""
+    x, y, w, h = (float(v) for v in box[:4])
+    at_box = bhattacharyya(hs_histogram(bgr, box, bins_h, bins_s), template)
+    height, width = bgr.shape[:2]
+    around = [(x + dx, y + dy, w, h) for dx, dy in ((-1.5 * w, 0.0), (1.5 * w, 0.0), (0.0, -h), (0.0, h))]
+    inside = [b for b in around if 0.0 <= b[0] + w / 2.0 < width and 0.0 <= b[1] + h / 2.0 < height]
+    if not inside:
+        return at_box, None
+    return at_box, max(bhattacharyya(hs_histogram(bgr, b, bins_h, bins_s), template) for b in inside)
+
+
 def bhattacharyya(p: np.ndarray, q: np.ndarray) -> float:
     """Eq. 1: ρ(p, q) = Σ_u sqrt(p_u q_u); 1 for identical, 0 for disjoint distributions."""
     p64 = np.asarray(p, dtype=np.float64).ravel()

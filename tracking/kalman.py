@@ -439,12 +439,16 @@ class Predictor:
 
 def output_box(reid: Measurement, prior: Prior | None) -> np.ndarray | None:
     """The tracker's output for a frame: the accepted box; while OCCLUDED the predicted box (§2.3:
-    keep following the hidden trajectory: the likeliest motion model's) as long as it still locates the person
-    (Prior.locates_person: it more likely overlaps them than not, KalmanParams.occluded_output_min_overlap_probability);
-    None when LOST, before initialisation or when the prediction no longer locates the person. The prediction node
-    publishes exactly this as its Track message's ``box``."""
+    keep following the hidden trajectory: Prior.coasting_box) as long as it still locates the person: it more likely
+    overlaps them than not (Prior.locates_person, KalmanParams.occluded_output_min_overlap_probability), or re-ID
+    saw the target's colours there (Measurement.coasting_colours_seen: a person the detector does not see in an odd
+    pose is still where their colours are, however uncertain the prediction). None when LOST, before
+    initialisation or when the prediction no longer locates the person. The prediction node publishes exactly this
+    as its Track message's ``box``."""
     if reid.accepted:
         return reid.box
-    if reid.state != TrackState.OCCLUDED or prior is None or not prior.initialised or not prior.locates_person:
+    if reid.state != TrackState.OCCLUDED or prior is None or not prior.initialised:
         return None
-    return prior.box if prior.likeliest_box is None else prior.likeliest_box
+    if not (prior.locates_person or reid.coasting_colours_seen):
+        return None
+    return prior.coasting_box()

@@ -177,6 +177,13 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # as the predicted height from that edge, never as a training sample.
     merged_view_trimming: bool = True
     merged_min_extent_ratio: float = 1.5
+    # The coasting box's colours (ReIdentifier._coasting_colours_seen): while OCCLUDED, the output box is checked
+    # against the template and the boxes around it (appearance.colour_contrast). The target's colours there (S_color
+    # above reid_threshold and coasting_colour_margin above everything around it), with no other person's box on
+    # it: the target is still there, unseen by the detector (an odd pose), and the box is output however uncertain
+    # the prediction (Prior.locates_person). Colours missing there prove nothing: an occluder hides them too.
+    coasting_colour_check: bool = True
+    coasting_colour_margin: float = 0.1
     # Learned appearance (seed 001, tracking/learned_appearance.py): an OSNet descriptor and an online ridge-regression
     # classifier of the target against the other people decide when colour + geometry cannot: between
     # candidates within identity_margin of the best M_fuse, and on a re-lock after an occlusion.

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..msgs.box import Box, box_array, box_centre, box_iou, box_tuple
 from ..msgs.tracking import DETECTOR_SOURCES, Measurement, Prior, TrackState
-from .appearance import bhattacharyya, hs_histogram
+from .appearance import bhattacharyya, colour_contrast, hs_histogram
 from .init import changed_fraction, motion_blobs, nearest_to_centre_bottom, to_grey
 from .learned_appearance import CROP_H_PX, CROP_W_PX, IdentityParams, PersonEmbedder, TargetClassifier, load_embedder
 from .params import ReidParams
@@ -392,6 +392,8 @@ class ReIdentifier:
                                 else self.params.gate_low_score)  # a motion blob: as weak as a detection can be
         self.candidates = match.candidates
         result = self._result(t_ns, match)
+        if self.state is TrackState.OCCLUDED and not result.accepted and self.params.coasting_colour_check:
+            result.coasting_colours_seen = self._coasting_colours_seen(frame_bgr, prior, template_hist, boxes)
         if result.secure and match.best is not None:
             self._pending = (frame_bgr, match.best.located, boxes)
         logger.debug(
@@ -519,6 +521,17 @@ class ReIdentifier:
         return measurement(t_ns, self.state, match.best, accepted=match.accepted, secure=self._secure(match),
                            c_t=match.c_t, omega=match.omega, candidates=match.candidates,
                            detector_score=self._last_score)
+
+    def _coasting_colours_seen(self, frame_bgr: np.ndarray, prior: Prior, template_hist: np.ndarray,
+                               boxes: list[Box]) -> bool:
+        """The target's colours at the coasting box (ReidParams.coasting_colour_check): S_color above Thresh_reid
+        and by coasting_colour_margin above every box around it, with no one else's detector box on it."""
+        box = prior.coasting_box()
+        if box is None or any(box_iou(b, box) > 0.0 for b in boxes):
+            return False
+        p = self.params
+        at_box, around = colour_contrast(frame_bgr, box, template_hist, p.bins_h, p.bins_s)
+        return around is not None and at_box > p.reid_threshold and at_box - around >= p.coasting_colour_margin
 
     def _secure(self, match: _Match) -> bool:
         """Eq. 10's "tracked securely": accepted while TRACKING, on a detector box no other candidate comes within
