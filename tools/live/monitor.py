@@ -173,6 +173,33 @@ def _all_up(snap: dict[str, Any], expected: list[str]) -> bool:
                                and (by_name[n]["uptime_s"] or 0.0) >= RATE_SETTLE_S for n in names)
 
 
+def _show(args: Any, info: GraphInfo, monitor: BusMonitor) -> int | None:
+    """The dashboard until --seconds (for ever without); with --once one snapshot, and its exit status."""
+    console = Console()  # colours on a terminal; in a pipe plain text (no ANSI), wide enough that no row wraps
+    console = console if console.is_terminal else Console(width=PIPE_WIDTH)
+    if args.once:
+        # Wait for every node's token and a status message (topic rates), or the time limit.
+        deadline = time.monotonic() + (args.seconds or 5.0)
+        while time.monotonic() < deadline and not _all_up(monitor.snapshot(), info.nodes):
+            time.sleep(0.1)
+        snap = monitor.snapshot()
+        show(console, snap)
+        return 0 if snap["connected"] and _all_up(snap, info.nodes) else 1
+    deadline = None if args.seconds is None else time.monotonic() + args.seconds
+    if console.is_terminal:
+        # Cut to the terminal's height: taller than the screen, Live cannot redraw in place (lines pile up).
+        with Live(console=console, auto_refresh=False, vertical_overflow="crop") as live:
+            while deadline is None or time.monotonic() < deadline:
+                live.update(render(monitor.snapshot(), console.size.height, console.size.width), refresh=True)
+                time.sleep(0.5)
+    else:
+        while deadline is None or time.monotonic() < deadline:
+            console.file.write(SEPARATOR + "\n")
+            show(console, monitor.snapshot())
+            time.sleep(0.5)
+    return None
+
+
 def run_monitor(args: Any) -> int:
     """``followbus monitor``: terminal dashboard, one snapshot (--once), or the web view (--web)."""
     from ..connect import check_credentials
@@ -187,31 +214,19 @@ def run_monitor(args: Any) -> int:
 
         return serve(settings, info, args.bind, args.web, args.seconds, token=args.web_token)
     monitor = BusMonitor(settings, info).start()
-    console = Console()  # colours on a terminal; in a pipe plain text (no ANSI), wide enough that no row wraps
-    console = console if console.is_terminal else Console(width=PIPE_WIDTH)
     try:
-        if args.once:
-            # Wait for every node's token and a status message (topic rates), or the time limit.
-            deadline = time.monotonic() + (args.seconds or 5.0)
-            while time.monotonic() < deadline and not _all_up(monitor.snapshot(), info.nodes):
-                time.sleep(0.1)
-            snap = monitor.snapshot()
-            show(console, snap)
-            return 0 if snap["connected"] and _all_up(snap, info.nodes) else 1
-        deadline = None if args.seconds is None else time.monotonic() + args.seconds
-        if console.is_terminal:
-            # Cut to the terminal's height: taller than the screen, Live cannot redraw in place (lines pile up).
-            with Live(console=console, auto_refresh=False, vertical_overflow="crop") as live:
-                while deadline is None or time.monotonic() < deadline:
-                    live.update(render(monitor.snapshot(), console.size.height, console.size.width), refresh=True)
-                    time.sleep(0.5)
-        else:
-            while deadline is None or time.monotonic() < deadline:
-                console.file.write(SEPARATOR + "\n")
-                show(console, monitor.snapshot())
-                time.sleep(0.5)
-    finally:
+        code = _show(args, info, monitor)
+    except KeyboardInterrupt:
+        # Ctrl-C ends the process at once (tools/cli.py _exit_interrupted) with the session left open: closing it
+        # first waits on the link (the reader thread, each undeclare), past a user's patience and a test's 20 s on
+        # a slow or loaded one. The monitor owns nothing to finish; the robot sees the session end with the process.
+        raise
+    except BaseException:
         monitor.close()
+        raise
+    monitor.close()
+    if code is not None:
+        return code
     if not monitor.ever_connected:  # a timed run that never saw the graph: not a success
         from ..connect import explain_connect_failure
 

@@ -347,13 +347,13 @@ def serve(settings: ZenohSettings, info: GraphInfo, bind: str, port: int, second
           "Ctrl-C to stop)", flush=True)
     try:
         wait_for(seconds)
-    except KeyboardInterrupt:
-        pass
     finally:
         server.shutdown()
         server.server_close()
         thread.join(timeout=2)
-        monitor.close()
+    # Not on Ctrl-C (KeyboardInterrupt passes by): the process then ends at once (tools/cli.py) with the session
+    # left open, as the terminal monitor does; closing it first can wait on a slow link past anyone's patience.
+    monitor.close()
     return 0
 
 
