@@ -94,10 +94,6 @@ class EgoMotionParams:
     # A failed fit keeps the last fitted frame as the reference for this many frames: the next motion then
     # spans the failed frame too (a jerk's smeared frame), so prediction misses no step of the camera's motion.
     max_reference_age_frames: int = 3
-    # When the reference's corners are lost in a frame (smeared by a jerk), the translation is measured by phase
-    # correlation of the work frames instead (cv2.phaseCorrelate, people masked out), accepted when its peak
-    # response is at least phase_min_response; its 1-σ is phase_std_px or phase_std_fraction of the shift, whichever
-    # is larger (a translation of a blurred frame, no rotation, no scale). False: such a frame has no motion.
     # When the reference's corners are lost in a frame, the fit is tried again as on a smeared frame before any
     # fallback: a blurred corner is a streak that LK follows only with a wider window (smeared_lk_window_px), and
     # only to within a few px (smeared_ransac_reproj_px). On the jerks of scene:bumpy and scene:shaky it measures
@@ -106,6 +102,10 @@ class EgoMotionParams:
     smeared_refit: bool = True
     smeared_lk_window_px: int = 21
     smeared_ransac_reproj_px: float = 2.0
+    # When that fails too, the translation is measured by phase correlation of the work frames (cv2.phaseCorrelate,
+    # people masked out), accepted when its peak response is at least phase_min_response; its 1-σ is phase_std_px or
+    # phase_std_fraction of the shift, whichever is larger (a translation of a blurred frame, no rotation, no scale).
+    # False: such a frame has no motion.
     phase_fallback: bool = True
     phase_min_response: float = 0.05
     phase_std_px: float = 6.0
