@@ -130,7 +130,7 @@ def copy_recording(src: Path, dst: Path, *, keep: Callable[[object, object], boo
 # a two-core machine, while the other worker runs the rest.
 TIMING_SENSITIVE_MODULES = frozenset({
     "test_chaos", "test_graph_tracking", "test_graph_group", "test_bench_bus", "test_security", "test_ros2",
-    "test_record_replay", "test_link", "test_two_hosts",
+    "test_record_replay", "test_link", "test_two_hosts", "test_laptop_section",
 })
 
 
