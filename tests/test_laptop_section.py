@@ -8,6 +8,7 @@ that `play` publishes as `operator`; `param` is refused in one line for `monitor
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shlex
@@ -107,7 +108,16 @@ class Robot:
 
 
 def _interrupt(proc: subprocess.Popen, timeout: float = 20) -> None:
-    interrupt_all([proc], timeout)
+    """Ctrl-C, as interrupt_all; a command still running ``timeout`` later first prints every thread's stack into
+    its output (`kill -USR1`, tools/cli.py), so the failure that follows says where it waited."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout)
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+    interrupt_all([proc], 0.1)
 
 
 def _start(pair: NetnsPair, step: Step, cwd: Path) -> None:
