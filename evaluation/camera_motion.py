@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..tracking.egomotion import EgoMotionEstimator, EgoMotionParams
-from ..vision.scenes import make_scene
+from ..vision.scenes import SceneFrame, make_scene
 
 # Scenes whose camera motion is a pure image shift (no parallax): the truth is one vector a frame.
 SHIFT_SCENES = ("bumpy", "shaky", "overlay")
@@ -43,9 +43,10 @@ class CameraMotionScore:
                 "cpu_ms_p99": round(float(np.percentile(self.cpu_ms or [0.0], 99)), 2), "counts": dict(self.counts)}
 
 
-def _person_boxes(frame: Any) -> np.ndarray:
-    boxes = ([frame.target_box] if frame.target_box is not None else []) + list(frame.distractor_boxes or [])
-    return np.array([list(b[:4]) + [1.0] for b in boxes], dtype=np.float32).reshape(-1, 5)
+def _person_boxes(frame: SceneFrame) -> np.ndarray:
+    """Every person's true box as a detection row (x, y, w, h, score 1)."""
+    boxes = [box for box, _ in frame.people() if box is not None]
+    return np.array([[*box[:4], 1.0] for box in boxes], dtype=np.float32).reshape(-1, 5)
 
 
 def score_scene(name: str, params: EgoMotionParams) -> CameraMotionScore:
@@ -57,8 +58,7 @@ def score_scene(name: str, params: EgoMotionParams) -> CameraMotionScore:
     shift_at: dict[int, tuple[float, float]] = {}
     centre = np.array([scene.width / 2.0, scene.height / 2.0])
     for frame in scene.frames():
-        _, sx, sy, _ = scene._ego(frame.t_ns / 1e9)  # the image shift the scene applied (px)
-        shift_at[frame.t_ns] = (sx, sy)
+        shift_at[frame.t_ns] = frame.camera_offset_px
         c0 = time.process_time()
         motion = est.step(frame.bgr, _person_boxes(frame), frame.t_ns)
         score.cpu_ms.append((time.process_time() - c0) * 1e3)
