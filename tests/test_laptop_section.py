@@ -22,7 +22,6 @@ from pathlib import Path
 
 import pytest
 
-from followbus.bus.children import interrupt_all
 from followbus.tools.bench.netns import NetnsPair, netns_unavailable
 
 from .conftest import REPO, followbus_argv, wait_until
@@ -108,7 +107,7 @@ class Robot:
 
 
 def _interrupt(proc: subprocess.Popen, timeout: float = 20) -> None:
-    """Ctrl-C, as interrupt_all; a command still running ``timeout`` later first prints every thread's stack into
+    """Ctrl-C, as a user would; a command still running ``timeout`` later first prints every thread's stack into
     its output (`kill -USR1`, tools/cli.py), so the failure that follows says where it waited."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
@@ -117,7 +116,8 @@ def _interrupt(proc: subprocess.Popen, timeout: float = 20) -> None:
     if proc.poll() is None:
         proc.send_signal(signal.SIGUSR1)
         time.sleep(1.0)
-    interrupt_all([proc], 0.1)
+        proc.kill()
+        proc.wait()
 
 
 def _start(pair: NetnsPair, step: Step, cwd: Path) -> None:

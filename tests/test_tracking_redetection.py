@@ -281,8 +281,10 @@ def test_missed_reacquisitions_count_frames_without_output_while_the_best_candid
         missed_reacquisition_frames(out, gt, best[:2])
 
 
-
 # --------------------------------------------------------------------------- the coasting box's colours
+
+
+TARGET = (300.0, 100.0, 40.0, 100.0)
 
 
 def _coast(frame: np.ndarray, prior_box: tuple[float, float, float, float], dets: np.ndarray | None = None,
@@ -292,9 +294,6 @@ def _coast(frame: np.ndarray, prior_box: tuple[float, float, float, float], dets
     template = reid.step(_frame((TARGET, (0, 0, 200))), np.array([[*TARGET, 0.9]], np.float32), None, None, 0,
                          init_box=TARGET).candidate_hist
     return reid.step(frame, dets, prior_at(prior_box), template, 33 * MS)
-
-
-TARGET = (300.0, 100.0, 40.0, 100.0)
 
 
 def test_the_coasting_box_is_held_where_the_targets_colours_are() -> None:
