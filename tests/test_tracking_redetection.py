@@ -167,6 +167,18 @@ def test_the_coasting_output_is_the_likeliest_models_box() -> None:
     assert prior.box[0] > prior.likeliest_box[0]  # the mixture leans towards the warped scene model
 
 
+def test_before_any_measurement_the_coasting_output_stays_where_the_person_was_seen() -> None:
+    """The models tie until a measurement weighs them: the output is the image model's, not the warped one's."""
+    pred = Predictor(KalmanParams())
+    box = (300.0, 200.0, 40.0, 100.0)
+    pred.apply(Measurement(state="TRACKING", accepted=True, box=np.array(box), source="init", init_box=np.array(box)))
+    for k in range(1, 6):
+        prior = pred.predict(k * 33 * MS, camera_motion=_motion(-6.0, (k - 1) * 33 * MS, k * 33 * MS))
+    # The image model only takes in the 5 % a frame the models mix (model_switch_probability).
+    assert prior.likeliest_box is not None and prior.likeliest_box[0] == pytest.approx(300.0, abs=3.0)
+    assert pred.filters[SCENE].box[0] < 275.0  # the scene model was warped by the 30 px all along
+
+
 # --------------------------------------------------------------------------- a smeared frame: phase correlation
 
 

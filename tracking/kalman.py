@@ -355,8 +355,12 @@ class Predictor:
         R = first.measurement_noise(v_ego_mps)  # Eq. 7 with the current ego speed
         x, P = self._combined(self.mode)
         prior = Prior.of_filter(int(t_ns), x, self._combined_size(self.mode), P, H @ P @ H.T + R, first.gate_chi2)
-        if len(self.models) > 1:  # ties go to the first, "scene": seed 002's compensated prediction
-            prior.likeliest_box = box_array(self.filters[self.models[int(np.argmax(self.mode))]].box)
+        if len(self.models) > 1:
+            # Ties (no measurement since the start yet) go to the last model, "image": until one says otherwise,
+            # a camera that follows a person keeps them where they were seen, while the camera's motion estimate
+            # can be the background's alone (parallax: a near person, far stands).
+            likeliest = len(self.models) - 1 - int(np.argmax(self.mode[::-1]))
+            prior.likeliest_box = box_array(self.filters[self.models[likeliest]].box)
         limit = self.params.occluded_output_min_overlap_probability
         prior.locates_person = limit <= 0.0 or prior.overlap_probability() >= limit
         return prior
