@@ -5,6 +5,7 @@ from __future__ import annotations
 import atexit
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -24,6 +25,12 @@ SHARED = REPO.parent / "shared"
 if "FOLLOWBUS_RUNS" not in os.environ or os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ["FOLLOWBUS_RUNS"] = tempfile.mkdtemp(prefix="followbus-test-runs-")
     atexit.register(shutil.rmtree, os.environ["FOLLOWBUS_RUNS"], True)
+
+# The tests play a user at a terminal, whose Ctrl-C reaches the command. A suite started as a background job (`&`,
+# nohup) starts with SIGINT ignored, which every process it spawns would inherit (a command keeps an ignored SIGINT
+# ignored, as a background job's should: tools/cli.py): a handler here resets it to the default in the children.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def free_port() -> int:

@@ -80,11 +80,9 @@ def test_ctrl_c_exits_130(argv, graph_file, router):  # noqa: F811
     graph = graph_file("  ticker:\n    run: followbus.nodes.diagnostics\n    outputs: [tick]\n", namespace="o1int")
     # echo joins a bus with nothing on its key (a router): it waits for messages until Ctrl-C.
     full = [*argv, "--connect", router] if argv[0] == "echo" else [*argv, str(graph)]
-    # Ctrl-C at a terminal: SIGINT at its default. A suite run as a background job inherits SIGINT ignored, and a
-    # command keeps an ignored SIGINT ignored, as Unix tools do (nohup, `cmd &`): that made this test hang before.
+    # Ctrl-C at a terminal: SIGINT at its default, also when the suite runs as a background job (tests/conftest.py).
     proc = subprocess.Popen(followbus_argv(*full), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, stdin=subprocess.DEVNULL,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            text=True, stdin=subprocess.DEVNULL)
     lines: list[str] = []
     threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
     try:
