@@ -54,3 +54,14 @@ def test_topics_echo_hz_nodes(graph_file):
     finally:
         launcher.send_signal(signal.SIGINT)
         launcher.wait(30)
+
+
+def test_topics_names_an_announced_key_of_which_nothing_arrived(capsys):
+    """Over a slow link a key its node announces may deliver nothing in the window: said, not left out silently."""
+    from followbus.bus.links import PublishedKey
+    from followbus.tools.live.introspect import TopicCounts, _topics_notes
+
+    silent = {"fb/motor/command": PublishedKey("fb/motor/command", "motor", 30.0, 40.0)}
+    _topics_notes(TopicCounts(), {}, silent, 3.0)
+    assert capsys.readouterr().out.strip() == (
+        "nothing arrived: fb/motor/command (30.0 Hz by motor's status) in 3 s over this link")

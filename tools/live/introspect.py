@@ -137,7 +137,9 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
         time.sleep(0.05)
     for sub in subs.values():
         sub.undeclare()
-    left_out = {k: v for k, v in announced.announced().items() if is_raw_frame(k)} if announced is not None else {}
+    listed = announced.announced() if announced is not None else {}
+    left_out = {k: v for k, v in listed.items() if is_raw_frame(k)}
+    silent = {k: v for k, v in listed.items() if k not in left_out and k not in counts.keys}
     if announced is not None:
         announced.close()
     session.close()
@@ -145,12 +147,16 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
         print(f"no messages under {namespace}/** in {args.seconds:.1f} s")
         return 1
     print("\n".join(counts.table()))
-    _topics_notes(counts, left_out, args.seconds)
+    _topics_notes(counts, left_out, silent, args.seconds)
     return 0
 
 
-def _topics_notes(counts: TopicCounts, left_out: dict[str, Any], seconds: float) -> None:
-    """What the table's figures mean where it matters: keys not subscribed, rates not measured, losses."""
+def _topics_notes(counts: TopicCounts, left_out: dict[str, Any], silent: dict[str, Any], seconds: float) -> None:
+    """What the table's figures mean where it matters: keys announced but silent here, keys not subscribed, rates
+    not measured, losses."""
+    for key, info in sorted(silent.items()):
+        print(f"nothing arrived: {key} ({info.rate_hz:.1f} Hz by {info.node}'s status) in {seconds:g} s over this "
+              "link")
     for key, info in sorted(left_out.items()):
         size = f"{info.mean_bytes / 1e3:.1f} KB a message" if info.mean_bytes else "no message yet"
         print(f"not subscribed: {key} (raw frames, {size}, {info.rate_hz:.1f} Hz by {info.node}'s status; "
