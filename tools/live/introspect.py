@@ -18,6 +18,7 @@ import zenoh
 from ...bus.codec import DecodeError
 from ...bus.health import HealthWatcher, live_namespaces, namespaces_hint, node_state
 from ...bus.links import PublishedKeys, links_of_statuses, short_of_sent
+from ...bus.node_runtime import STATUS_PERIOD_S
 from ...bus.pubsub import declare_subscriber, frame_bytes, payload_bytes
 from ...bus.schemas import decode, to_plain
 from ...bus.session import ZenohSettings, open_session
@@ -128,13 +129,15 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
         print(f"no node status under {namespace}/@status in {STATUS_WAIT_S:g} s: no graph there to list "
               f"(--raw-frames subscribes to every key under {namespace}/**)")
         return 1
+    if announced is not None:
+        # Each node announces once a status period, so the window opens once every one of them could have: a key
+        # announced late in it (a loaded robot, a slow link) would show nothing.
+        _follow_announcements(announced, subs, session, counts, time.monotonic() + STATUS_PERIOD_S + 0.25)
     deadline = time.monotonic() + args.seconds
-    while time.monotonic() < deadline:
-        if announced is not None:  # a node that starts during the window announces its keys then
-            for key in announced.announced():
-                if key not in subs and not is_raw_frame(key):
-                    subs[key] = declare_subscriber(session, key, counts.on_sample)
-        time.sleep(0.05)
+    if announced is not None:  # a node that starts during the window announces its keys then
+        _follow_announcements(announced, subs, session, counts, deadline)
+    else:
+        time.sleep(args.seconds)
     for sub in subs.values():
         sub.undeclare()
     listed = announced.announced() if announced is not None else {}
@@ -149,6 +152,16 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
     print("\n".join(counts.table()))
     _topics_notes(counts, left_out, silent, args.seconds)
     return 0
+
+
+def _follow_announcements(announced: PublishedKeys, subs: dict[str, Any], session: zenoh.Session,
+                          counts: TopicCounts, until: float) -> None:
+    """Subscribe to each key as the nodes announce it (raw frames left out) until ``until`` (time.monotonic)."""
+    while time.monotonic() < until:
+        for key in announced.announced():
+            if key not in subs and not is_raw_frame(key):
+                subs[key] = declare_subscriber(session, key, counts.on_sample)
+        time.sleep(0.05)
 
 
 def _topics_notes(counts: TopicCounts, left_out: dict[str, Any], silent: dict[str, Any], seconds: float) -> None:
