@@ -60,6 +60,10 @@ def test_up_ps_logs_down_and_a_launch_into_a_live_graph_is_refused(graph_file, t
         assert refused.returncode == 2
         line = refused.stderr.strip()
         assert "\n" not in line and f"pid {pid}" in line and f"tcp/127.0.0.1:{port}" in line and "--domain" in line
+        # A mistake in the file or its overrides comes first: it needs fixing in whichever domain the graph runs.
+        mistake = run_followbus("launch", str(graph), "--set", "ticker.no_such_param=1", "--duration", "1")
+        assert mistake.returncode == 2 and "no_such_param" in mistake.stderr, mistake.stderr
+        assert "--domain" not in mistake.stderr and len(mistake.stderr.strip().splitlines()) == 1, mistake.stderr
         # Seen on the bus too, for a graph this machine has no record of (another runs directory, another host).
         alone = run_followbus_env({"FOLLOWBUS_RUNS": str(tmp_path / "elsewhere")}, "launch", str(graph))
         assert alone.returncode == 2 and "nodes sink, ticker" in alone.stderr, alone.stderr

@@ -190,14 +190,24 @@ def cmd_schema(args) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import default_graph_path, run_demo
+    from ..vision.detectors import DetectorUnavailable
+    from .demo import default_graph_path, demo_detector, run_demo
+    from .domains import apply_domain
     from .runs.claims import claim_from_args
 
     args.graph = default_graph_path(args.graph)
-    held = claim_from_args(args, "demo")
+    # The graph file and the model first, then the bus: a mistake in the file or a missing model is said before
+    # whether another graph holds this domain.
     graph, overrides = demo_graph(args.graph, args.scene, args.overrides)
     try:
-        return run_demo(graph, args.duration, Path(args.log) if args.log else None, overrides)
+        detector = demo_detector(graph)
+    except DetectorUnavailable as exc:
+        print(f"followbus demo: {exc}", file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
+    held = claim_from_args(args, "demo")
+    apply_domain(graph)
+    try:
+        return run_demo(graph, args.duration, Path(args.log) if args.log else None, overrides, detector)
     finally:
         held.close()
 
@@ -207,11 +217,12 @@ def demo_graph(path: str, scene: str | None, given_overrides: list[str]) -> tupl
     ``demo: source`` (field metadata), a source's first ground-truth box (its params' ``first_truth_box()``) to
     those marked ``demo: init_box``."""
     from ..bus.graph import apply_overrides
+    from ..bus.graph import load_graph as load_graph_file
     from ..bus.node_checks import load_node_class
     from ..bus.node_params import marked
     from .errors import UsageError
 
-    graph = load_graph(path)
+    graph = load_graph_file(path)  # its domain is the caller's to apply (tools/domains.py apply_domain)
     roles: dict[str, dict[str, str]] = {}  # node -> {role: its param}
     for name, spec in graph.nodes.items():
         try:
@@ -257,6 +268,8 @@ def _first_truth_box(graph: Any, spec: Any) -> tuple[float, ...] | None:
 def cmd_launch(args) -> int:
     from ..bus.barrier import RECORDER_NAME
     from ..bus.graph import apply_overrides
+    from ..bus.graph import load_graph as load_graph_file
+    from .domains import apply_domain
     from .launch import Launcher, install_stop_signals
     from .runs.claims import claim_from_args
 
@@ -264,13 +277,15 @@ def cmd_launch(args) -> int:
         from ..bus.hosts import HOST_ENV
 
         os.environ[HOST_ENV] = args.host
-    held = claim_from_args(args, "up" if args.log_dir else "launch", args.log_dir or "")
-    graph = load_graph(args.graph)
+    graph = load_graph_file(args.graph)
     apply_overrides(graph, args.overrides)
     only = [n.strip() for n in args.only.split(",")] if args.only else None
     host, on_host = _host_nodes(graph, args.host)
-    # Every node is validated; what a node would open (the capture source) only for the nodes started here.
+    # Every node is validated; what a node would open (the capture source) only for the nodes started here. The
+    # file first, then the bus: a mistake in it is said before whether another graph holds this domain.
     _validate(graph, args.overrides, opened={n for n in on_host if not only or n in only})
+    held = claim_from_args(args, "up" if args.log_dir else "launch", args.log_dir or "")
+    apply_domain(graph)
     extra = []
     if args.record:
         extra.append((RECORDER_NAME, [sys.executable, "-m", "followbus.tools.cli", "record", "--graph", args.graph,

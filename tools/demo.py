@@ -20,7 +20,7 @@ from ..evaluation.metrics import evaluate_single_target
 from ..msgs.perception import Detections, GroundTruth
 from ..msgs.robot import MotorCommand
 from ..msgs.tracking import Template, Track
-from ..vision.detectors import DetectorUnavailable, resolve_detector_model
+from ..vision.detectors import resolve_detector_model
 from .launch import Launcher, install_stop_signals
 
 log = logging.getLogger("followbus.demo")
@@ -187,23 +187,28 @@ def print_summary(summary: dict) -> None:
               f"for a {summary['frame_period_ms']:.1f} ms frame period")
 
 
-def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: list[str] | None = None) -> int:
+def demo_detector(graph: Graph) -> str | None:
+    """What the graph's detection node will run, said before anything is launched (it would refuse to start
+    anyway); raises DetectorUnavailable (a missing or corrupt model) with the one line to print."""
     detection = graph.nodes.get("detection")
     params = detection.params if detection else {}
     backend = str(params.get("backend", "auto"))
-    # Checked here, before anything is launched: the detection node would refuse to start anyway.
-    try:
-        model = resolve_detector_model(backend, model_dir=params.get("model_dir") or None,
-                                       model_file=params.get("model_file") or None,
-                                       input_size=_size(params.get("input_size_px", 416)),
-                                       input_shape=str(params.get("input_shape", "square")))
-    except DetectorUnavailable as exc:
-        print(f"followbus demo: {exc}", file=sys.stderr, flush=True)
-        return 2
+    model = resolve_detector_model(backend, model_dir=params.get("model_dir") or None,
+                                   model_file=params.get("model_file") or None,
+                                   input_size=_size(params.get("input_size_px", 416)),
+                                   input_shape=str(params.get("input_shape", "square")))
     if model is not None:
-        print(f"detector: backend {backend}, model {model}", flush=True)
-    elif backend == "hog":
-        print("detector: OpenCV HOG (chosen explicitly; far less accurate than YOLOX)", flush=True)
+        return f"detector: backend {backend}, model {model}"
+    if backend == "hog":
+        return "detector: OpenCV HOG (chosen explicitly; far less accurate than YOLOX)"
+    return None
+
+
+def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: list[str] | None = None,
+             detector: str | None = None) -> int:
+    """Launch ``graph`` for ``duration_s`` and score it; ``detector`` is demo_detector's line."""
+    if detector:
+        print(detector, flush=True)
     log_path = log_path or run_log_path()
     log_path.parent.mkdir(parents=True, exist_ok=True)
     log_path.write_text("")  # this run's lines only
