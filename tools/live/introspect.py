@@ -133,11 +133,8 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
         # Each node announces once a status period, so the window opens once every one of them could have: a key
         # announced late in it (a loaded robot, a slow link) would show nothing.
         _follow_announcements(announced, subs, session, counts, time.monotonic() + STATUS_PERIOD_S + 0.25)
-    deadline = time.monotonic() + args.seconds
-    if announced is not None:  # a node that starts during the window announces its keys then
-        _follow_announcements(announced, subs, session, counts, deadline)
-    else:
-        time.sleep(args.seconds)
+    # A node that starts during the window announces its keys then.
+    _follow_announcements(announced, subs, session, counts, time.monotonic() + args.seconds)
     for sub in subs.values():
         sub.undeclare()
     listed = announced.announced() if announced is not None else {}
@@ -154,11 +151,12 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
     return 0
 
 
-def _follow_announcements(announced: PublishedKeys, subs: dict[str, Any], session: zenoh.Session,
+def _follow_announcements(announced: PublishedKeys | None, subs: dict[str, Any], session: zenoh.Session,
                           counts: TopicCounts, until: float) -> None:
-    """Subscribe to each key as the nodes announce it (raw frames left out) until ``until`` (time.monotonic)."""
+    """Subscribe to each key as the nodes announce it (raw frames left out) until ``until`` (time.monotonic); with
+    nothing announced (the local bus, subscribed whole) only wait."""
     while time.monotonic() < until:
-        for key in announced.announced():
+        for key in announced.announced() if announced is not None else ():
             if key not in subs and not is_raw_frame(key):
                 subs[key] = declare_subscriber(session, key, counts.on_sample)
         time.sleep(0.05)
