@@ -30,7 +30,7 @@ from followbus.tools.recording.mcap_io import RecordingWriter
 from followbus.vision.models import MODELS_ENV
 from followbus.vision.sources import SourceError, check_source, open_source
 
-from .conftest import REPO, followbus_argv, free_port, run_followbus, wait_until
+from .conftest import REPO, followbus_argv, free_port, refusing_endpoint, run_followbus, wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -220,13 +220,14 @@ def test_demo_names_the_node_that_crashed_and_why(tmp_path):
 
 
 def test_introspection_without_a_graph_says_so(tmp_path):
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
     commands = [("topics",), ("echo", "t/x"), ("hz", "t/x"), ("nodes",)]
-    procs = [subprocess.Popen(followbus_argv(*cmd, "--connect", endpoint, "--connect-timeout", "1"), cwd=tmp_path,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL)
-             for cmd in commands]
-    for cmd, proc in zip(commands, procs, strict=True):
-        out, err = proc.communicate(timeout=60)
+    with refusing_endpoint() as endpoint:
+        procs = [subprocess.Popen(followbus_argv(*cmd, "--connect", endpoint, "--connect-timeout", "1"),
+                                  cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                  stdin=subprocess.DEVNULL)
+                 for cmd in commands]
+        ended = [(cmd, proc, *proc.communicate(timeout=60)) for cmd, proc in zip(commands, procs, strict=True)]
+    for cmd, proc, out, err in ended:
         line = one_error_line(subprocess.CompletedProcess(proc.args, proc.returncode, out, err))
         assert line == (f"followbus: no graph is running on {endpoint}: start one with `followbus launch` or "
                         "`followbus router` (or join another with --connect tcp/HOST:PORT)"), (cmd, line)
@@ -241,8 +242,8 @@ def test_play_without_a_graph_is_one_line(tmp_path):
         tick.header.stamp_ns, tick.header.seq = 1_700_000_000_000_000_000 + i * 10**8, i
         writer.write(channel, tick.header.stamp_ns, tick.encode())
     writer.finish()
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    line = one_error_line(run_followbus("play", str(path), "--connect", endpoint, "--connect-timeout", "1"))
+    with refusing_endpoint() as endpoint:
+        line = one_error_line(run_followbus("play", str(path), "--connect", endpoint, "--connect-timeout", "1"))
     # The one "no graph is running" form, not zenoh's raw error with a Rust source path (issue 23).
     assert line.startswith(f"followbus: no graph is running on {endpoint}: start one with") and ".rs" not in line
 

@@ -9,6 +9,7 @@ that `play` publishes as `operator`; `param` is refused in one line for `monitor
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import re
 import shlex
@@ -33,7 +34,7 @@ PORT = 7447  # the page's: inside its own namespace the robot has the port to it
 USERS = dict(line.split(":", 1) for line in (REPO / "docs" / "zenoh-users.example.txt").read_text().split())
 IDENTITY_ENV = ("FOLLOWBUS_DOMAIN", "FOLLOWBUS_NAMESPACE", "FOLLOWBUS_PORT", "FOLLOWBUS_ZENOH_USER",
                 "FOLLOWBUS_ZENOH_PASSWORD")
-LONG_RUNNING_S = 8.0  # `record` runs this long before its Ctrl-C; the other long-running ones until they show
+LONG_RUNNING_S = 8.0  # `record` records this long before its Ctrl-C; the other long-running ones until they show
 
 
 @dataclass
@@ -158,10 +159,12 @@ def _run_all(pair: NetnsPair, steps: list[Step], cwd: Path) -> None:
     for step in steps:
         _start(pair, step, cwd)
     deadline = time.monotonic() + 60
-    started = time.monotonic()
+    recording_since: dict[int, float] = {}  # from its "recording ..." line: joining takes long on a loaded machine
     while time.monotonic() < deadline and any(s.proc.poll() is None for s in steps):
-        for step in steps:
-            recorded = step.argv[0] == "record" and time.monotonic() - started > LONG_RUNNING_S
+        for i, step in enumerate(steps):
+            if step.argv[0] == "record" and i not in recording_since and "\nrecording " in "\n" + step.output():
+                recording_since[i] = time.monotonic()
+            recorded = time.monotonic() - recording_since.get(i, math.inf) > LONG_RUNNING_S
             if step.proc.poll() is None and (recorded or _shown(pair, step)):
                 _interrupt(step.proc)
         time.sleep(0.5)

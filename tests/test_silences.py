@@ -12,7 +12,7 @@ import pytest
 
 from followbus.tools.live.silence import explain_silence
 
-from .conftest import REPO, followbus_argv, run_followbus, wait_until
+from .conftest import REPO, followbus_argv, refusing_endpoint, run_followbus, wait_until
 from .test_cli_errors import one_error_line, router  # noqa: F401 (a fixture)
 
 KEYS = {"fb/prediction/track": "prediction", "fb/capture/frame": "capture"}
@@ -69,9 +69,10 @@ def test_launch_only_starts_a_source_without_waiting_for_the_consumers_it_left_o
     assert "not waiting for detection: left out of this launch by --only and not running" in said
 
 
-def test_monitor_that_never_reached_a_graph_fails_in_one_line(tmp_path, port):
-    result = run_followbus("monitor", "--connect", f"tcp/127.0.0.1:{port}", "--seconds", "1", timeout=30)
-    assert one_error_line(result).startswith(f"followbus: no graph is running on tcp/127.0.0.1:{port}")
+def test_monitor_that_never_reached_a_graph_fails_in_one_line():
+    with refusing_endpoint() as endpoint:
+        result = run_followbus("monitor", "--connect", endpoint, "--seconds", "1", timeout=30)
+    assert one_error_line(result).startswith(f"followbus: no graph is running on {endpoint}")
 
 
 @pytest.mark.slow
