@@ -15,8 +15,13 @@ queue is full the rest of its fragments are dropped after the drop wait, so no f
 fragments that did go out fill the link. With BLOCK_FIRST one large message per link and priority is in flight
 at a time, pushed on a thread of Zenoh's own (the router's thread does not wait for it); those that come while
 it is in flight are dropped, so the receiver gets whole frames as fast as its link carries them, each the newest
-there was when the link was free (`followbus bench link`, BENCHMARKS.md). ``data_low`` keeps them behind the
-small messages (commands, statuses, previews) in Zenoh's queues.
+there was when the link was free (`followbus bench link`, BENCHMARKS.md). ``background`` keeps them behind
+everything else in Zenoh's queues, and keeps that queue theirs alone: with previews beside them at ``data_low``,
+the robot answered 1 frame in 30 while a laptop pulled raw frames.
+
+Bulky messages (previews, from 4 KB) are DROP at ``data_low``: the small state messages (tracks, priors, statuses)
+go first, the views take what the link has left. At one priority a link too slow for the previews lost the track
+with them (1.2 of 30 a second at 2 Mbit/s while a laptop pulled raw frames; 29.5 now).
 
 Two settings keep the small messages flowing while a slow link is full. A remote listen endpoint gets a small
 kernel send buffer (``#so_sndbuf``): Zenoh writes one batch at a time into the socket, and with the kernel's
@@ -44,6 +49,7 @@ log = logging.getLogger(__name__)
 
 SIOCGIFADDR = 0x8915
 QOS_ID = "followbus-remote-links-drop"
+BULK_QOS_ID = "followbus-remote-links-bulk"
 LARGE_QOS_ID = "followbus-remote-links-large"
 # The kernel send buffer of a remote listen endpoint's links (Linux doubles it): about 0.5 s at 2 Mbit/s, and still
 # 1 Gbit/s at 1 ms round trip.
@@ -51,10 +57,13 @@ REMOTE_SNDBUF_BYTES = 64 * 1024
 # Batches of a link's real_time queue (Zenoh's default: 2): 0.5 s of 30 Hz express commands.
 REALTIME_QUEUE_BATCHES = 16
 REALTIME_QUEUE_KEY = "transport/link/tx/queue/size/real_time"
-# Messages from this size up are "large" on a remote link (BLOCK_FIRST, data_low): the size from which a
+# Messages from this size up are "large" on a remote link (BLOCK_FIRST, background): the size from which a
 # publisher uses shared memory (bus/pubsub.py SHM_THRESHOLD_BYTES), far above a preview JPEG (a few KB), far
 # below a raw 320x240 frame (230 KB).
 LARGE_MESSAGE_BYTES = 64 * 1024
+# Messages from this size up are "bulk" on a remote link (DROP at data_low): a preview JPEG (8.6 KB) waits behind
+# the small state messages (tracks, priors, statuses: under 2 KB).
+BULK_MESSAGE_BYTES = 4 * 1024
 ANY = {"0.0.0.0", "::", ""}
 
 
@@ -98,17 +107,21 @@ def remote_interfaces(listen: list[str]) -> list[str]:
 
 
 def drop_on_remote_links(listen: list[str]) -> list[dict[str, Any]]:
-    """The ``qos/network`` items that make every put and delete sent over a remote interface DROP, and puts of
-    :data:`LARGE_MESSAGE_BYTES` and more BLOCK_FIRST at ``data_low`` ([] when the session listens on loopback
-    only). Zenoh applies the items in order: the second overwrites the first for large puts."""
+    """The ``qos/network`` items that make every put and delete sent over a remote interface DROP, puts of
+    :data:`BULK_MESSAGE_BYTES` and more DROP at ``data_low``, and puts of :data:`LARGE_MESSAGE_BYTES` and more
+    BLOCK_FIRST at ``background`` ([] when the session listens on loopback only). Zenoh applies the items in order:
+    each overwrites the ones before it for the larger puts."""
     interfaces = remote_interfaces(listen)
     if not interfaces:
         return []
     return [{"id": QOS_ID, "interfaces": interfaces, "messages": ["put", "delete"], "flows": ["egress"],
              "overwrite": {"congestion_control": "drop"}},
+            {"id": BULK_QOS_ID, "interfaces": interfaces, "messages": ["put"], "flows": ["egress"],
+             "payload_size": f"{BULK_MESSAGE_BYTES}..", "overwrite": {"congestion_control": "drop",
+                                                                      "priority": "data_low"}},
             {"id": LARGE_QOS_ID, "interfaces": interfaces, "messages": ["put"], "flows": ["egress"],
              "payload_size": f"{LARGE_MESSAGE_BYTES}..",
-             "overwrite": {"congestion_control": "block_first", "priority": "data_low"}}]
+             "overwrite": {"congestion_control": "block_first", "priority": "background"}}]
 
 
 def small_send_buffers(listen: list[str]) -> list[str]:

@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 
 from followbus.bus.netif import (
+    BULK_MESSAGE_BYTES,
+    BULK_QOS_ID,
     LARGE_MESSAGE_BYTES,
     LARGE_QOS_ID,
     QOS_ID,
@@ -44,13 +46,16 @@ def test_remote_links_are_the_listen_interfaces_beyond_loopback():
     with_ip = [(name, ip) for name in others if (ip := _ipv4_of(name))]
     if with_ip:
         name, ip = with_ip[0]
-        item, large = drop_on_remote_links(["tcp/127.0.0.1:1", f"tcp/{ip}:7447"])
+        item, bulk, large = drop_on_remote_links(["tcp/127.0.0.1:1", f"tcp/{ip}:7447"])
         assert item["id"] == QOS_ID and item["interfaces"] == [name] and item["flows"] == ["egress"]
         assert item["overwrite"] == {"congestion_control": "drop"}
-        # Applied after it: large puts (raw frames) keep one in flight per link instead of losing every one.
+        # Applied after it: bulky puts (previews) behind the small ones, and large puts (raw frames) keep one in
+        # flight per link, in a queue of their own, instead of losing every one.
+        assert bulk["id"] == BULK_QOS_ID and bulk["payload_size"] == f"{BULK_MESSAGE_BYTES}.."
+        assert bulk["overwrite"] == {"congestion_control": "drop", "priority": "data_low"}
         assert large["id"] == LARGE_QOS_ID and large["interfaces"] == [name] and large["flows"] == ["egress"]
         assert large["payload_size"] == f"{LARGE_MESSAGE_BYTES}.." and large["messages"] == ["put"]
-        assert large["overwrite"] == {"congestion_control": "block_first", "priority": "data_low"}
+        assert large["overwrite"] == {"congestion_control": "block_first", "priority": "background"}
         assert remote_queue_config([f"tcp/{ip}:7447"]) == {REALTIME_QUEUE_KEY: 16}
 
 
@@ -120,12 +125,11 @@ def test_laptop_recording_over_2mbit_never_stops_the_robot(tmp_path):
     # over 0.25 MB/s; with BLOCK on the laptop's link it answered none for 20 s windows, and stayed stalled after the
     # laptop left (BENCHMARKS.md). On a machine this loaded the robot alone has silent seconds: hence "within 20 s".
     assert everything.robot["answered"] > 0, everything.robot
-    # What the link could not carry is counted per key (the small messages between the raw frames are counted by
-    # header.seq gaps).
+    # What the link could not carry is counted per key (the previews between the raw frames by header.seq gaps).
     assert "keys" in everything.laptop, everything.laptop  # the laptop wrote its recording (exit, first lines)
     keys = everything.laptop["keys"]
     assert everything.laptop["seq_gaps"] == sum(k["seq_gaps"] for k in keys.values()) > 0, keys
-    assert keys["link/capture/ground_truth"]["seq_gaps"] > 0, keys
+    assert keys["link/capture/preview"]["seq_gaps"] > 0, keys
     assert default.laptop["first_lines"][0].startswith("remote link (tcp/") and \
         "leaving out raw frames (link/capture/frame" in default.laptop["first_lines"][0], default.laptop
     assert "link/capture/frame" not in default.laptop["keys"] and "link/capture/preview" in default.laptop["keys"]
