@@ -19,9 +19,9 @@ there was when the link was free (`followbus bench link`, BENCHMARKS.md). ``back
 everything else in Zenoh's queues, and keeps that queue theirs alone: with previews beside them at ``data_low``,
 the robot answered 1 frame in 30 while a laptop pulled raw frames.
 
-Bulky messages (previews, from 4 KB) are DROP at ``data_low``: the small state messages (tracks, priors, statuses)
-go first, the views take what the link has left. At one priority a link too slow for the previews lost the track
-with them (1.2 of 30 a second at 2 Mbit/s while a laptop pulled raw frames; 29.5 now).
+Bulky messages (previews, from 4 KB) are DROP at ``data_low``: the small messages (states, statuses) go first, the
+views take what the link has left. At one priority a link too slow for the previews lost the small messages with
+them (1.2 of 30 a second at 2 Mbit/s while a laptop pulled raw frames; 30.1 now).
 
 Two settings keep the small messages flowing while a slow link is full. A remote listen endpoint gets a small
 kernel send buffer (``#so_sndbuf``): Zenoh writes one batch at a time into the socket, and with the kernel's
@@ -62,7 +62,7 @@ REALTIME_QUEUE_KEY = "transport/link/tx/queue/size/real_time"
 # below a raw 320x240 frame (230 KB).
 LARGE_MESSAGE_BYTES = 64 * 1024
 # Messages from this size up are "bulk" on a remote link (DROP at data_low): a preview JPEG (8.6 KB) waits behind
-# the small state messages (tracks, priors, statuses: under 2 KB).
+# the small messages (states, statuses: under 2 KB).
 BULK_MESSAGE_BYTES = 4 * 1024
 ANY = {"0.0.0.0", "::", ""}
 
