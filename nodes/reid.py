@@ -13,6 +13,12 @@ Inputs joined by frame: frame k, detections k, prior k, the region re-detected a
 node, seed 002 §3.2: optional) and the template learnt at frame k-1 (offset -1). If that template is missing (a
 dropped frame upstream), the last one received is used; after this node initialised the target, that is the
 histogram of the initial box (what the template node learns from it), until the template node's own comes back.
+
+A re-ID (re)started while the graph follows someone (prediction's prior is initialised) has no template: the last
+one went out before it subscribed. It publishes "no target" (UNINITIALISED: prediction coasts, the motor stops) for
+up to ``template_wait_ms`` while the template node answers those measurements with its template, then re-acquires
+the target by its appearance inside the gate. Without a template by then (no template node, or one that learnt
+nothing), it initialises on the gated detection nearest the prior and says so in a warning.
 """
 
 from __future__ import annotations
@@ -27,10 +33,10 @@ from ..bus.node import In, Node, Out
 from ..bus.node_params import ParamError
 from ..bus.schemas import Frame, Message
 from ..msgs.perception import Detections, RegionDetections
-from ..msgs.tracking import Measurement, Prior, Template
+from ..msgs.tracking import Measurement, Prior, Template, TrackState
 from ..tracking.params import ReidParams
 from ..tracking.redetection import RegionBoxes
-from ..tracking.reid import ReIdentifier
+from ..tracking.reid import ReIdentifier, measurement
 
 # init_box describes the target at the start of the source: a re-ID node (re)started later in the run, or
 # joining a capture that restarted long ago, re-acquires the target from its template instead.
@@ -41,10 +47,16 @@ INIT_BOX_MAX_FRAME = 10
 class ReidNodeParams:
     # [x, y, w, h] of the target on the first frame (followbus demo sets it from the source's first ground-truth box)
     init_box: list[float] = field(default_factory=list, metadata={"demo": "init_box"})
+    # How long a re-ID that joins a graph already following someone waits for the template node's template before
+    # it initialises on the detection nearest the prior alone (capture time; the template comes one frame after
+    # the first measurement, more under load). 0: do not wait.
+    template_wait_ms: float = 500.0
 
     def __post_init__(self) -> None:
         if self.init_box and len(self.init_box) != 4:
             raise ParamError("init_box", "init_box must be [x, y, w, h]")
+        if not self.template_wait_ms >= 0.0:
+            raise ParamError("template_wait_ms", "template_wait_ms must be >= 0")
 
 
 class Reid(Node):
@@ -70,6 +82,8 @@ class Reid(Node):
         self.epoch_ns: int | None = None  # the capture session of the frames handled so far
         self.last: Measurement | None = None
         self.initialised_at: tuple[int, int] | None = None  # (epoch_ns, frame_seq) of this node's last initialisation
+        self.template_seen = False  # any template message since setup: the template node answers this node
+        self.waiting_since_ns: int | None = None  # capture stamp of the first frame spent waiting for a template
 
     def _drop_last_sample(self) -> None:
         try:
@@ -83,6 +97,14 @@ class Reid(Node):
         template = inputs.get("template")
         if isinstance(template, Template) and not self._learnt_before_initialisation(template):
             self.template_hist = None if not template.initialised or template.hist is None else np.array(template.hist)
+            if not self.template_seen and self.waiting_since_ns is not None:
+                self.log.info("template %s after %.0f ms of waiting", "received" if self.template_hist is not None
+                              else "node knows no target", (frame.header.stamp_ns - self.waiting_since_ns) / 1e6)
+            self.template_seen = True
+        if self._waits_for_template(prior, frame.header.stamp_ns):
+            self.last = measurement(frame.header.stamp_ns, TrackState.UNINITIALISED)
+            self.publish("measurement", self.last)
+            return
         self.learner.wait()  # the previous frame's sample is learnt before this frame is decided: results as in order
         new_source = frame.header.epoch_ns != self.epoch_ns
         self.epoch_ns = frame.header.epoch_ns
@@ -105,6 +127,23 @@ class Reid(Node):
         self.publish("measurement", result)
         # The learned appearance's sample (OSNet descriptors) after the measurement is out: off the motor's path.
         self.learner.submit(self.reid.learn_pending)
+
+    def _waits_for_template(self, prior: Prior, stamp_ns: int) -> bool:
+        """This node joined a graph that follows someone (the prior is initialised) and has heard nothing from the
+        template node yet: initialising now would take the detection nearest a prior that coasted through the
+        restart, maybe a bystander, and the template node would then re-learn the target from that box."""
+        if self.template_seen or not prior.initialised or self.initialised_at is not None:
+            return False
+        if self.waiting_since_ns is None:
+            self.waiting_since_ns = stamp_ns
+            self.log.info("joined a graph that is following someone: waiting up to %.0f ms for the template before "
+                          "re-acquiring the target", self.node_params.template_wait_ms)
+        if (stamp_ns - self.waiting_since_ns) / 1e6 < self.node_params.template_wait_ms:
+            return True
+        self.template_seen = True  # waited long enough: do not wait again
+        self.log.warning("no template from the template node within %.0f ms: initialising on the detection "
+                         "nearest the prediction, whoever it is", self.node_params.template_wait_ms)
+        return False
 
     def _learnt_before_initialisation(self, template: Template) -> bool:
         """A template the template node learnt before this node's last initialisation (a fallback to an older

@@ -200,12 +200,12 @@ def _prior(k: int, stamp_ns: int, box: tuple[float, float, float, float]) -> Pri
 
 
 def test_reid_initialised_without_a_template_tracks_on_instead_of_initialising_every_frame():
-    # A re-ID restarted while prediction kept the track: no template node has answered it yet, and a backlog
-    # of sets arrives at once. It initialises once (on the prior) and then tracks with the initial box's
-    # histogram; before, every set without a template initialised again (six in a row, the last on a
-    # bystander: CI, 2026-11-26).
+    # A re-ID restarted while prediction kept the track, with no template node to answer it (template_wait_ms
+    # over at once), and a backlog of sets arriving at once. It initialises once (on the prior) and then tracks
+    # with the initial box's histogram; before, every set without a template initialised again (six in a row,
+    # the last on a bystander: CI, 2026-11-26).
     target, bystander = (150, 120, 24, 80), (30, 100, 40, 120)
-    with InProcessGraph(tracking_graph(), nodes=["reid"]) as g:
+    with InProcessGraph(tracking_graph("reid.template_wait_ms=0"), nodes=["reid"]) as g:
         t0 = g.now_ns
         for k in range(6):
             stamp = t0 + k * DT_NS
@@ -221,6 +221,54 @@ def test_reid_initialised_without_a_template_tracks_on_instead_of_initialising_e
     assert all(m.init_box is None for m in meas[1:])
     assert states(meas) == ["TRACKING"] * 6 and all(m.accepted for m in meas)
     assert [tuple(m.box) for m in meas] == [(target[0] + 2 * k, *target[1:]) for k in range(6)]
+
+
+def two_people_frame(target: tuple[int, int, int, int], bystander: tuple[int, int, int, int]) -> np.ndarray:
+    img = person_frame(target)  # red shirt
+    x, y, w, h = bystander
+    img[y:y + h // 2, x:x + w] = (200, 120, 30)  # blue shirt
+    img[y + h // 2:y + h, x:x + w] = (120, 60, 20)
+    return img
+
+
+@pytest.mark.parametrize("template_node_knows_the_target", [True, False])
+def test_a_restarted_reid_waits_for_the_template_before_it_re_acquires(template_node_knows_the_target: bool):
+    # re-ID joins a graph that follows someone (a restart): the prior coasted through the restart and now lies
+    # nearer a bystander than the target. It publishes "no target" until the template node, answering those
+    # measurements, sends the template; then the target is re-acquired by its colours, and the template node
+    # keeps the target it knew instead of re-learning from the bystander. A template node that knows no target
+    # answers at once with none, and re-ID initialises on the prior as before.
+    from followbus.tracking.appearance import hs_histogram
+
+    target, bystander = (150, 120, 24, 80), (104, 120, 24, 80)
+    frame = two_people_frame(target, bystander)
+    known = hs_histogram(frame, target, 16, 8)
+    with InProcessGraph(tracking_graph(), nodes=["reid", "template"]) as g:
+        g.start()
+        if template_node_knows_the_target:
+            g.node("template").updater.hist = known.copy()
+        t0 = g.now_ns
+        for k in range(6):
+            stamp = t0 + k * DT_NS
+            g.run_until(stamp)
+            g.inject("capture/frame", frame_msg(k, stamp, frame))
+            g.inject("detection/detections", dets_msg(k, stamp, target, bystander))
+            # Centred 12 px from the bystander and 34 px from the target; a gate wide enough for both.
+            prior = Prior.of_filter(stamp, np.array([128.0, 160.0, 0.0, 0.0]), (24.0, 80.0), np.eye(4) * 900.0,
+                                    np.eye(2) * 900.0, 9.488)
+            g.inject("prediction/prior", stamped(prior, k, stamp))
+            g.deliver()
+        g.run_until(g.now_ns + 400 * MS)
+        meas = g.outputs("reid", "measurement")
+        learnt = g.node("template").updater.hist
+    assert len(meas) == 6
+    assert meas[0].state == "UNINITIALISED" and not meas[0].accepted  # prediction coasts, the motor stops
+    if template_node_knows_the_target:
+        assert meas[1].init_box is None and meas[1].accepted and tuple(meas[1].box) == target
+        assert all(m.accepted and tuple(m.box) == target for m in meas[1:])
+        assert learnt is not None and float(np.minimum(learnt, known).sum()) > 0.9
+    else:
+        assert meas[1].source == "prior" and tuple(meas[1].init_box) == bystander
 
 
 def test_reid_ignores_a_template_learnt_before_it_initialised():
