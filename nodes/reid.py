@@ -13,6 +13,7 @@ Inputs joined by frame: frame k, detections k, prior k, the region re-detected a
 node, seed 002 §3.2: optional) and the template learnt at frame k-1 (offset -1). If that template is missing (a
 dropped frame upstream), the last one received is used; after this node initialised the target, that is the
 histogram of the initial box (what the template node learns from it), until the template node's own comes back.
+A template node that restarted knowing no target does not erase it: it re-learns the target from this node.
 
 A re-ID (re)started while the graph follows someone (prediction's prior is initialised) has no template: the last
 one went out before it subscribed. It publishes "no target" (UNINITIALISED: prediction coasts, the motor stops) for
@@ -83,6 +84,7 @@ class Reid(Node):
         self.last: Measurement | None = None
         self.initialised_at: tuple[int, int] | None = None  # (epoch_ns, frame_seq) of this node's last initialisation
         self.template_seen = False  # any template message since setup: the template node answers this node
+        self.template_forgotten = False  # the template node restarted knowing no target; this node keeps its M
         self.waiting_since_ns: int | None = None  # capture stamp of the first frame spent waiting for a template
 
     def _drop_last_sample(self) -> None:
@@ -96,11 +98,7 @@ class Reid(Node):
         assert isinstance(frame, Frame) and isinstance(dets, Detections) and isinstance(prior, Prior)
         template = inputs.get("template")
         if isinstance(template, Template) and not self._learnt_before_initialisation(template):
-            self.template_hist = None if not template.initialised or template.hist is None else np.array(template.hist)
-            if not self.template_seen and self.waiting_since_ns is not None:
-                self.log.info("template %s after %.0f ms of waiting", "received" if self.template_hist is not None
-                              else "node knows no target", (frame.header.stamp_ns - self.waiting_since_ns) / 1e6)
-            self.template_seen = True
+            self._take_template(template, frame.header.stamp_ns)
         if self._waits_for_template(prior, frame.header.stamp_ns):
             self.last = measurement(frame.header.stamp_ns, TrackState.UNINITIALISED)
             self.publish("measurement", self.last)
@@ -127,6 +125,21 @@ class Reid(Node):
         self.publish("measurement", result)
         # The learned appearance's sample (OSNet descriptors) after the measurement is out: off the motor's path.
         self.learner.submit(self.reid.learn_pending)
+
+    def _take_template(self, template: Template, stamp_ns: int) -> None:
+        """The template node's M. One that knows no target never erases the histogram this node matches against:
+        a template node restarted without its state would otherwise make this node re-initialise on whoever is
+        nearest the prior, and learn that person; it re-learns the target from this node's next secure lock."""
+        if template.initialised and template.hist is not None:
+            self.template_hist, self.template_forgotten = np.array(template.hist), False
+        elif self.template_hist is not None and not self.template_forgotten:
+            self.template_forgotten = True
+            self.log.warning("the template node knows no target (restarted without its state file?): matching "
+                             "against the last template, from which it re-learns the target")
+        if not self.template_seen and self.waiting_since_ns is not None:
+            self.log.info("template %s after %.0f ms of waiting", "received" if self.template_hist is not None
+                          else "node knows no target", (stamp_ns - self.waiting_since_ns) / 1e6)
+        self.template_seen = True
 
     def _waits_for_template(self, prior: Prior, stamp_ns: int) -> bool:
         """This node joined a graph that follows someone (the prior is initialised) and has heard nothing from the

@@ -6,9 +6,10 @@ tracked securely and 0 under occlusion (Eq. 9-10). Publishes M and η_k every fr
 within the same launch (a crash, the launcher's restart policy), so re-ID does not have to learn the target
 again. A file saved by another launch is not restored unless it is at most ``restore_other_launch_max_age_s``
 old (default 0: never): a new launch may follow another person, and a stale template would make re-ID refuse
-the target it was just told to follow, while the first secure frames re-learn M anyway. ``{namespace}`` in
-``state_file`` is the graph's namespace (graph.yaml: ``state/{namespace}/template.npz``): two graphs launched
-from one directory keep their own template.
+the target it was just told to follow, while the first secure frames re-learn M anyway. Without M (a restart
+without a state file), it learns M back from re-ID's next secure lock: re-ID follows on with the last M it was
+sent. ``{namespace}`` in ``state_file`` is the graph's namespace (graph.yaml: ``state/{namespace}/template.npz``):
+two graphs launched from one directory keep their own template.
 """
 
 from __future__ import annotations

@@ -271,6 +271,38 @@ def test_a_restarted_reid_waits_for_the_template_before_it_re_acquires(template_
         assert meas[1].source == "prior" and tuple(meas[1].init_box) == bystander
 
 
+def test_a_template_node_restarted_without_its_state_does_not_make_reid_forget_the_target():
+    # Following the target; from frame 4 the template node answers "no template" (restarted with no state file:
+    # it re-learns from re-ID's next secure lock, tests/test_tracking_template.py). re-ID keeps matching against
+    # the last template it had, so it stays on the target although a bystander now stands nearer the prior.
+    from followbus.msgs.tracking import Template
+    from followbus.tracking.appearance import hs_histogram
+
+    target, bystander = (150, 120, 24, 80), (104, 120, 24, 80)
+    frame = two_people_frame(target, bystander)
+    known = hs_histogram(frame, target, 16, 8)
+    with InProcessGraph(tracking_graph(), nodes=["reid"]) as g:
+        t0 = g.now_ns
+        for k in range(10):
+            stamp = t0 + k * DT_NS
+            g.run_until(stamp)
+            if k:  # the template node's answer to frame k-1
+                template = Template(initialised=k <= 4, hist=known.copy() if k <= 4 else None)
+                g.inject("template/template", stamped(template, k - 1, stamp))
+            g.inject("capture/frame", frame_msg(k, stamp, frame))
+            g.inject("detection/detections", dets_msg(k, stamp, target, bystander))
+            centre = (162.0, 160.0) if k < 5 else (128.0, 160.0)  # then 12 px from the bystander, 34 from the target
+            prior = Prior.of_filter(stamp, np.array([*centre, 0.0, 0.0]), (24.0, 80.0), np.eye(4) * 900.0,
+                                    np.eye(2) * 900.0, 9.488)
+            g.inject("prediction/prior", stamped(prior if k else Prior(), k, stamp))  # frame 0: a new launch
+            g.deliver()
+        g.run_until(g.now_ns + 400 * MS)
+        meas = g.outputs("reid", "measurement")
+    assert len(meas) == 10 and meas[0].init_box is not None
+    assert [m.header.feedback.get("template") for m in meas[5:]] == [4, 5, 6, 7, 8]  # "no template" was used
+    assert all(m.init_box is None and m.accepted and tuple(m.box) == target for m in meas[1:])
+
+
 def test_reid_ignores_a_template_learnt_before_it_initialised():
     # Frames 0-4 show nobody (no detection, no motion): re-ID is not initialised. Frame 5 initialises it on the
     # target. Then a template from frame 3 (someone else's look) arrives, the newest the template node sent:

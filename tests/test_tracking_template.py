@@ -105,10 +105,16 @@ def test_save_load_roundtrip(tmp_path: Path) -> None:
         TemplateUpdater(TemplateParams()).save(tmp_path / "x.npz")
 
 
-def test_step_before_initialisation_is_inert() -> None:
-    tu = TemplateUpdater(TemplateParams())
+def test_before_initialisation_only_a_secure_lock_teaches_the_target() -> None:
+    # A template node restarted without M, while re-ID follows on with the M it sent before: re-ID's secure lock
+    # is the target as that M recognised it. Anything less (occluded, accepted but not secure) teaches nothing.
     frame = frame_with((0, 0, 255))
-    assert tu.step(frame, result(frame, TrackState.TRACKING, True, True)) == (None, 0.0, 0.0)
+    for state, accepted, secure in [(TrackState.OCCLUDED, False, False), (TrackState.REACQUIRED, True, False)]:
+        assert TemplateUpdater(TemplateParams()).step(frame, result(frame, state, accepted, secure)) == (None, 0.0, 0.0)
+    tu = TemplateUpdater(TemplateParams())
+    hist, eta, _ = tu.step(frame, result(frame, TrackState.TRACKING, True, True))
+    assert hist is not None and eta == 0.0 and tu.initialised
+    np.testing.assert_allclose(hist, hs_histogram(frame, BOX))
 
 
 def test_relock_with_existing_template_keeps_it() -> None:

@@ -49,6 +49,10 @@ class TemplateUpdater:
                 return self.hist.copy(), 0.0, p_specular  # re-locked with this very template: keep it
             return self.initialise(frame_bgr, measurement.init_box), 0.0, p_specular
         if self.hist is None:
+            if measurement.accepted and measurement.secure and measurement.box is not None:
+                # Restarted without M while re-ID follows on with the M sent before: learn the target back from
+                # re-ID's secure lock (that is, the target as the old M recognised it), not from a new init.
+                return self.initialise(frame_bgr, measurement.box), 0.0, 0.0
             return None, 0.0, 0.0
         if measurement.accepted and measurement.box is not None:
             box, secure = measurement.box, measurement.secure
