@@ -19,6 +19,8 @@ with its receive time, and after each fault the harness checks:
   target (ground truth) is added to the bound;
 * **held**: over the next seconds the latest track is TRACKING/REACQUIRED most of the time (time
   samples where the scene hides the target are not counted);
+* **on target**: over those seconds, at least 90 % of the followed tracks (frames with the target in view) have
+  their box centre in the target's ground-truth box: a loop that recovers onto a bystander is not recovered;
 * fault-specific checks: the node really restarted, malformed messages were counted in
   ``decode_errors`` with no restart, p99 capture→command latency and the fraction of captured frames
   that produced a command under load.
@@ -124,7 +126,8 @@ class Observer:
         assert isinstance(msg, Track)
         h = msg.header
         with self.lock:
-            self.tracks.append(TrackObs(time.time_ns(), h.frame_seq, h.stamp_ns, msg.state, h.source, h.pub_ns))
+            self.tracks.append(TrackObs(time.time_ns(), h.frame_seq, h.stamp_ns, msg.state, h.source, h.pub_ns,
+                                        _box(msg.box)))
 
     def _on_command(self, msg: Message) -> None:
         assert isinstance(msg, MotorCommand)
@@ -142,7 +145,8 @@ class Observer:
         assert isinstance(msg, GroundTruth)
         visible = bool(msg.available and msg.box is not None and msg.visible_fraction >= 0.3)
         with self.lock:
-            self.truth.append(TruthObs(time.time_ns(), msg.header.frame_seq, msg.header.stamp_ns, visible))
+            self.truth.append(TruthObs(time.time_ns(), msg.header.frame_seq, msg.header.stamp_ns, visible,
+                                       _box(msg.box)))
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
         # One recent camera frame every half second is all the injectors need, not 27 MB/s; only while a flood is
@@ -534,7 +538,7 @@ class ChaosRunner:
         judge_watchdog(checks, wd, inj)
         hidden_s = hidden_ns(truth, inj.end_ns, t_r if t_r is not None else t_end) / NS
         recovery_s = (t_r - inj.end_ns) / NS if t_r is not None else None
-        held = judge_recovery(checks, opts, recovery_s, hidden_s, tracks, truth, t_r)
+        held, on_target = judge_recovery(checks, opts, recovery_s, hidden_s, tracks, truth, t_r)
         figures = judge_load(checks, opts, inj, commands, truth)
         up = self.graph.running and not self.graph.failed()
         if fault.name != "kill-recorder":
@@ -547,7 +551,7 @@ class ChaosRunner:
             checks={k: v[0] for k, v in checks.items()}, failures=failures, unsafe_commands=len(unsafe),
             commands=len(commands), watchdog_ms=wd.worst_ms, watchdog_bound_ms=self.watchdog_bound_ms,
             back_s=inj.back_s, recovery_s=recovery_s, recovery_bound_s=opts.recovery_bound_s, hidden_s=hidden_s,
-            held=held, latency_p50_ms=figures.get("p50_ms"), latency_p99_ms=figures.get("p99_ms"),
+            held=held, on_target=on_target, latency_p50_ms=figures.get("p50_ms"), latency_p99_ms=figures.get("p99_ms"),
             processed=figures.get("processed"), load1=os.getloadavg()[0], relaunched=relaunched,
             notes=inj.notes + [f"{name}: {detail}" for name, (passed, detail) in checks.items() if passed],
         )
@@ -572,3 +576,11 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+
+
+def _box(box: np.ndarray | None) -> tuple[float, float, float, float] | None:
+    """A message's [x, y, w, h] as the observer keeps it."""
+    if box is None:
+        return None
+    x, y, w, h = (float(v) for v in np.asarray(box).reshape(-1)[:4])
+    return x, y, w, h

@@ -44,6 +44,7 @@ class TrackObs:
     state: str
     source: str
     pub_ns: int = 0  # the publisher's clock (same machine): the watchdog is timed on it, not on our receipt
+    box: tuple[float, float, float, float] | None = None  # the output box the robot follows (x, y, w, h)
 
 
 @dataclass
@@ -76,6 +77,7 @@ class TruthObs:
     frame_seq: int
     stamp_ns: int
     visible: bool  # the simulated detector can see the target (box present, visible fraction >= 0.3)
+    box: tuple[float, float, float, float] | None = None  # the target's box (x, y, w, h), None when absent
 
 
 @dataclass
@@ -234,6 +236,24 @@ def tracking_coverage(tracks: Sequence[TrackObs], truth: Sequence[TruthObs], t0_
     return covered / counted if counted else None
 
 
+def on_target_fraction(tracks: Sequence[TrackObs], truth: Sequence[TruthObs], t0_ns: int,
+                       t1_ns: int) -> float | None:
+    """Of the tracks received in [t0, t1] that the robot follows (TRACKING/REACQUIRED with a box) on frames where
+    the target is in view, the fraction whose box centre lies in the target's ground-truth box: a robot that
+    recovers onto a bystander is tracking, but not following its person. None: nothing to judge."""
+    boxes = {g.stamp_ns: g.box for g in truth if g.visible and g.box is not None}
+    counted = on = 0
+    for t in tracks:
+        target = boxes.get(t.stamp_ns)
+        if t.source == INJECTOR or not t0_ns <= t.recv_ns <= t1_ns or t.state not in FOLLOW_STATES \
+                or t.box is None or target is None:
+            continue
+        counted += 1
+        cx, cy = t.box[0] + t.box[2] / 2.0, t.box[1] + t.box[3] / 2.0
+        on += target[0] <= cx <= target[0] + target[2] and target[1] <= cy <= target[1] + target[3]
+    return on / counted if counted else None
+
+
 def latency_figures(commands: Sequence[CommandObs], truth: Sequence[TruthObs], t0_ns: int,
                     t1_ns: int) -> dict[str, float | int | None]:
     """capture→command latency (command pub_ns - capture stamp) of the frames captured in [t0, t1], and
@@ -262,6 +282,7 @@ class ChaosOptions:
     recovery_bound_s: float = 2.0  # fault over (node back / injection done) -> following again
     hold_s: float = 3.0  # then: tracking most of this long
     hold_fraction: float = 0.5
+    on_target_fraction: float = 0.9  # of the followed frames in the hold window, on the target (not a bystander)
     watchdog_bound_ms: float = 200.0  # the product's promise: zero command <= this after the last track
     load_p99_ms: float = 250.0
     load_processed: float = 0.5
@@ -323,6 +344,7 @@ class FaultResult:
     recovery_bound_s: float
     hidden_s: float
     held: float | None
+    on_target: float | None = None  # of the followed frames in the hold window, the fraction on the target
     latency_p50_ms: float | None = None
     latency_p99_ms: float | None = None
     processed: float | None = None
@@ -360,19 +382,26 @@ def judge_watchdog(checks: dict[str, tuple[bool, str]], wd: WatchdogReport, inj:
 
 
 def judge_recovery(checks: dict[str, tuple[bool, str]], opts: ChaosOptions, recovery_s: float | None,
-                    hidden_s: float, tracks: list[TrackObs], truth: list[TruthObs], t_r: int | None) -> float | None:
-    """resumed (within the bound plus the hidden time) and held (tracking most of the next seconds)."""
+                   hidden_s: float, tracks: list[TrackObs], truth: list[TruthObs],
+                   t_r: int | None) -> tuple[float | None, float | None]:
+    """resumed (within the bound plus the hidden time), held (tracking most of the next seconds) and on target
+    (what it tracks then is the person it followed before the fault); returns (held, on target)."""
     ok = recovery_s is not None and recovery_s <= opts.recovery_bound_s + hidden_s
     check(checks, "resumed", ok,
            f"following again {recovery_s:.2f} s after the fault ended" if recovery_s is not None
            else f"not following {opts.recovery_bound_s + hidden_s:.1f} s after the fault ended")
     if t_r is None:
-        return None
-    held = tracking_coverage(tracks, truth, t_r, t_r + int(opts.hold_s * NS))
+        return None, None
+    t_end = t_r + int(opts.hold_s * NS)
+    held = tracking_coverage(tracks, truth, t_r, t_end)
     check(checks, "held", held is None or held >= opts.hold_fraction,
            f"tracking {100 * held:.0f} % of the next {opts.hold_s:.0f} s" if held is not None
            else "the scene hid the target all along")
-    return held
+    on_target = on_target_fraction(tracks, truth, t_r, t_end)
+    check(checks, "on target", on_target is None or on_target >= opts.on_target_fraction,
+           f"{100 * on_target:.0f} % of the followed frames on the target" if on_target is not None
+           else "no followed frame with the target in view")
+    return held, on_target
 
 
 def judge_load(checks: dict[str, tuple[bool, str]], opts: ChaosOptions, inj: Injection,
@@ -413,7 +442,8 @@ def summarise(results: Sequence[FaultResult]) -> list[dict[str, Any]]:
             "unsafe": sum(r.unsafe_commands for r in rs), "watchdog_worst_ms": _worst(rs, "watchdog_ms"),
             "back_max_s": _worst(rs, "back_s"), "recovery_median_s": _worst(rs, "recovery_s", statistics.median),
             "recovery_max_s": _worst(rs, "recovery_s"), "not_resumed": sum(r.recovery_s is None for r in rs),
-            "held_min": _worst(rs, "held", min), "p50_ms": _worst(rs, "latency_p50_ms"),
+            "held_min": _worst(rs, "held", min), "on_target_min": _worst(rs, "on_target", min),
+            "p50_ms": _worst(rs, "latency_p50_ms"),
             "p99_ms": _worst(rs, "latency_p99_ms"), "processed_min": _worst(rs, "processed", min),
             "load1_max": _worst(rs, "load1"),
             "failures": sorted({f.split(":", 1)[0] for r in rs for f in r.failures}),
@@ -421,11 +451,15 @@ def summarise(results: Sequence[FaultResult]) -> list[dict[str, Any]]:
     return rows
 
 
+def _percent(fraction: float | None) -> str:
+    return "—" if fraction is None else f"{100 * fraction:.0f} %"
+
+
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     lines = ["| fault | survived / tried | unsafe cmds | watchdog stop ms (worst) | node back s | "
-             "recovery s (median / max) | tracking held (min) | p50 / p99 ms | processed | load (max) | "
-             "failed checks |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "recovery s (median / max) | tracking held (min) | on target (min) | p50 / p99 ms | processed | "
+             "load (max) | failed checks |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         rec = (f"{fmt(r['recovery_median_s'], '.2f')} / {fmt(r['recovery_max_s'], '.2f')}"
                + (f" ({r['not_resumed']} never)" if r["not_resumed"] else ""))
@@ -433,7 +467,7 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
         lines.append(f"| {r['fault']} | {r['survived']} / {r['tried']} | {r['unsafe']} | "
                      f"{fmt(r['watchdog_worst_ms'], '.0f')} | {fmt(r['back_max_s'], '.1f')} | {rec} | "
                      f"{fmt(None if r['held_min'] is None else 100 * r['held_min'], '.0f')}"
-                     f"{'' if r['held_min'] is None else ' %'} | {lat} | "
+                     f"{'' if r['held_min'] is None else ' %'} | {_percent(r['on_target_min'])} | {lat} | "
                      f"{fmt(None if r['processed_min'] is None else 100 * r['processed_min'], '.0f')}"
                      f"{'' if r['processed_min'] is None else ' %'} | {fmt(r['load1_max'], '.1f')} | "
                      f"{', '.join(r['failures']) or '—'} |")

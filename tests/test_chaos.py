@@ -29,6 +29,7 @@ from followbus.reliability.judging import (
     first_follow_ns,
     format_headline,
     headline,
+    on_target_fraction,
     tracking_coverage,
     watchdog_report,
 )
@@ -121,6 +122,26 @@ def test_tracking_coverage_counts_stale_tracks_as_lost_and_skips_a_hidden_target
     # Injected tracks do not count as tracking.
     spoofed = [dataclasses.replace(t, source=INJECTOR) for t in tracks]
     assert tracking_coverage(spoofed, truth, T0, T0 + 1000 * MS) == 0.0
+
+
+def test_on_target_counts_followed_frames_whose_box_is_on_the_target():
+    """A loop that recovers onto a bystander is tracking but not following its person (a restarted re-ID that
+    initialised on the detection nearest a coasted prior: chaos kill-reid, 2026-11-28)."""
+    tracks, _ = _stream(1000)
+    target, bystander = (100.0, 50.0, 40.0, 120.0), (200.0, 50.0, 40.0, 120.0)
+    truth = [TruthObs(t.recv_ns, t.frame_seq, t.stamp_ns, True, target) for t in tracks]
+    on = [dataclasses.replace(t, box=(105.0, 60.0, 30.0, 100.0)) for t in tracks]
+    assert on_target_fraction(on, truth, T0, T0 + 1000 * MS) == 1.0
+    # The second half on the bystander.
+    half = on[: len(on) // 2] + [dataclasses.replace(t, box=bystander) for t in tracks[len(on) // 2:]]
+    assert on_target_fraction(half, truth, T0, T0 + 1000 * MS) == pytest.approx(0.5, abs=0.05)
+    # Only followed tracks with a box count, on frames with the target in view; injected tracks never.
+    occluded = [dataclasses.replace(t, state="OCCLUDED", box=bystander) for t in tracks]
+    assert on_target_fraction(occluded, truth, T0, T0 + 1000 * MS) is None
+    hidden = [dataclasses.replace(g, visible=False) for g in truth]
+    assert on_target_fraction(half, hidden, T0, T0 + 1000 * MS) is None
+    spoofed = [dataclasses.replace(t, source=INJECTOR, box=bystander) for t in tracks]
+    assert on_target_fraction(spoofed + on, truth, T0, T0 + 1000 * MS) == 1.0
 
 
 @pytest.mark.parametrize("schema", sorted(SCHEMAS.values(), key=lambda c: c.TYPE), ids=lambda c: c.TYPE)
