@@ -113,7 +113,9 @@ def test_laptop_recording_over_2mbit_never_stops_the_robot(tmp_path):
     assert "link/capture/ground_truth" in rows and "link/capture/frame" not in rows, topics
     assert "not subscribed: link/capture/frame (raw frames, " in topics, topics
     assert "link/motor/command" in rows and rows["link/motor/command"][2] != "-", topics
-    assert float(rows["link/motor/command"][2]) > 15.0, topics
+    # The robot's own rate, not the link's: relative to capture's (a second graph on the same two cores made the
+    # robot itself answer 9 of 22 frames a second; the receiving side's count would be a few a second).
+    assert float(rows["link/motor/command"][2]) > 0.3 * float(rows["link/capture/ground_truth"][2]), topics
     # record without the graph file: the keys the nodes announce, one by one: the raw frames never crossed the link
     # and the rest arrived (pulling raw frames too, it held 1 preview in 22 s).
     assert "subscribing key by key to what the nodes announce" in tools["record"][1], tools["record"][1]

@@ -277,7 +277,9 @@ def test_a_subscriber_flood_from_the_monitor_stays_at_the_hub_and_its_memory_goe
         assert all(kb < 3_000 for kb in grown.values()), figures  # routers: +6 MB each
         assert launcher_after < 3_000, figures  # without the trim: +7 MB kept; routers: +12 MB
         assert rate_flood >= 0.8 * rate_before, figures
-        assert p99_flood and max(p99_flood) <= max(p99_before) + 50.0, figures
+        # Relative to the p99 before, which the machine's load sets: beside a second graph on the two cores a flood
+        # that stayed at the hub reached 147 ms, over "before + 50 ms". Every node a router took 33 -> 193 ms.
+        assert p99_flood and max(p99_flood) <= 2.0 * max(p99_before) + 50.0, figures
         watcher.close()
     finally:
         if flooder is not None:
