@@ -175,6 +175,25 @@ def test_motion_blob_candidates_when_no_detection_in_gate() -> None:
     assert x >= 128.0 and x + w <= 141.0 and y == 100.0 and h == 60.0  # the newly covered strip
 
 
+@pytest.mark.parametrize("min_fraction", [0.25, 0.0])
+def test_a_moving_part_of_the_person_is_no_motion_candidate(min_fraction: float) -> None:
+    """Only a hand moves (a 12x12 px patch inside the 30x60 predicted box, 8 % of it): by default that fragment is no
+    candidate, its centre could be anywhere in the person's box (the target stays OCCLUDED on its prior); with no
+    minimum fraction it is one."""
+    reid = ReIdentifier(ReidParams(motion_min_area_fraction=min_fraction))
+    black = (0, 0, 0)
+    f0 = draw((TARGET, RED), bg=black)
+    reid.step(f0, dets(TARGET), None, None, 0, init_box=TARGET)
+    template = hs_histogram(f0, TARGET)
+    f1 = f0.copy()
+    f1[100:112, 100:112] = (255, 255, 255)  # the hand raised at the top-left corner of the box
+    reid.step(f1, dets(), prior_at(TARGET, 33 * MS), template, 33 * MS)
+    if min_fraction > 0.0:
+        assert reid.candidates == []
+    else:
+        assert reid.candidates and all(c.source == "motion" for c in reid.candidates)
+
+
 @pytest.mark.parametrize("max_changed", [0.2, 1.0])
 def test_no_motion_blob_candidates_while_the_camera_pans(max_changed: float) -> None:
     """Frame differencing on a panning camera marks the whole background as moving: with the default
@@ -393,6 +412,7 @@ def test_a_box_cut_at_the_legs_or_the_head_is_completed_to_the_predicted_height(
     ((98.0, 110.0, 35.0, 70.0), "both edges moved in: nothing to anchor on"),
     ((100.0, 130.0, 25.0, 40.0), "neither edge agrees"),
     ((104.0, 101.0, 20.0, 60.0), "a whole person's shape (aspect 3): the prediction's height was wrong"),
+    ((92.0, 145.0, 45.0, 45.0), "wider than predicted (crouching, tucked): a changed pose, no occluder"),
 ])
 def test_what_is_not_a_partial_view_is_kept(box: tuple[float, float, float, float], why: str) -> None:
     assert complete_partial_view(box, (100.0, 100.0, 30.0, 90.0)) == box, why

@@ -227,6 +227,12 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     identity_veto_after_crowd_frames: int = 30
     # Motion blobs smaller than this (after morphology) are ignored as noise.
     min_blob_area_px: int = 64
+    # A motion blob covering less than this fraction of the predicted box's area is a moving part of a person (a
+    # limb, the head, spray: a forearm or a head covers under a tenth of a standing person's box), not the person:
+    # its centre can be anywhere in their box, so it is no candidate (Alg. 1 line 2 takes the moving region for the
+    # target; taken, a fragment re-locks a coasting target 20-30 px off and gives it a velocity the next coast carries
+    # on: otb-diving frames 121-134, EVALUATION.md). 0: every blob over min_blob_area_px is one.
+    motion_min_area_fraction: float = 0.25
     # OCCLUDED turns into LOST after this long without an accepted match.
     lost_after_ms: float = 3000.0
     # Number of accepted frames reported as REACQUIRED before returning to TRACKING; the
@@ -256,7 +262,7 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
             non_negative=("diff_threshold", "geo_scale", "ambiguity_margin", "min_blob_area_px",
                           "reacquired_hold_frames", "identity_margin", "identity_veto_after_crowd_frames"),
             unit_interval=("reid_threshold", "tau_occ", "delta_iou", "delta_id", "delta_switch", "low_score_min_iou",
-                           "partial_max_extent_ratio", "partial_edge_tolerance"))
+                           "partial_max_extent_ratio", "partial_edge_tolerance", "motion_min_area_fraction"))
         if not self.merged_min_extent_ratio > 1.0:  # at 1 or under, every box taller than predicted would be cut
             raise InvalidParam("merged_min_extent_ratio", "ReidParams.merged_min_extent_ratio must be > 1, "
                                f"got {self.merged_min_extent_ratio!r}")

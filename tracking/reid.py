@@ -113,10 +113,15 @@ def complete_partial_view(box: Sequence[float], predicted_box: Sequence[float], 
     the occlusion then carries on (the prior drifts away while the person is hidden), and its height makes the
     person look farther away than they are. Only the height: a walking person's width changes with every
     stride and swing of the arms, so a narrow box is no evidence of an occluder (completing widths would anchor
-    the wrong side of a person walking behind a pillar), while the height of a standing or walking person holds."""
+    the wrong side of a person walking behind a pillar), while the height of a standing or walking person holds.
+    A box wider than the prediction by more than 1 / ``max_ratio`` is kept as it is: an occluder never makes a
+    person wider, a change of pose does (crouching, bending down, tucked), and the short, wide box is then the whole
+    person as they now are; completed, it would be measured up to half a height off their centre."""
     w, pw, ph = float(box[2]), float(predicted_box[2]), float(predicted_box[3])
     if w <= 0.0 or pw <= 0.0 or float(box[3]) / w >= max_ratio * ph / pw:
         return tuple(float(v) for v in box)  # type: ignore[return-value]  # a whole person's shape
+    if w * max_ratio > pw:  # wider than the prediction by more than 1 / max_ratio: a changed pose, kept whole
+        return tuple(float(v) for v in box)  # type: ignore[return-value]
     y, h = _complete_extent(float(box[1]), float(box[3]), float(predicted_box[1]), ph, max_ratio, edge_tolerance)
     return (float(box[0]), y, w, h)
 
@@ -512,7 +517,8 @@ class ReIdentifier:
         p = self.params
         roi = self._search_window(prior, grey.shape) if p.use_gate else None
         blobs = motion_blobs(prev_grey, grey, p.diff_threshold, p.morph_kernel_px, p.min_blob_area_px, roi)
-        candidates = self._gate_candidates([b for b, _ in blobs], prior, "motion")
+        min_area = p.motion_min_area_fraction * prior.size[0] * prior.size[1]
+        candidates = self._gate_candidates([b for b, _ in blobs if b[2] * b[3] >= min_area], prior, "motion")
         return self._match(frame_bgr, candidates, prior, template_hist)
 
     def _result(self, t_ns: int, match: _Match) -> Measurement:
