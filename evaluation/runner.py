@@ -59,6 +59,10 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o low-score stage": {"low_score_stage": False},
     # a partly hidden person's box taken as it is, not completed to the whole person from the prediction
     "followbus w/o partial-view completion": {"partial_view_completion": False},
+    # a short box wider than the prediction completed to the predicted height too, not kept whole as a changed pose
+    "followbus w/o keeping a wider pose whole": {"partial_view_keeps_wider_whole": False},
+    # every motion blob over min_blob_area_px a candidate, however small a part of the predicted box it covers
+    "followbus w/o the motion-blob size floor": {"motion_min_area_fraction": 0.0},
     # a box merging the target with someone in line with it taken whole, not trimmed to the target's height
     "followbus w/o merged-view trimming": {"merged_view_trimming": False},
     # what the camera-motion estimate knows it does not know, one part at a time (each switch goes to the node that

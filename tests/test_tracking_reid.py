@@ -418,6 +418,14 @@ def test_what_is_not_a_partial_view_is_kept(box: tuple[float, float, float, floa
     assert complete_partial_view(box, (100.0, 100.0, 30.0, 90.0)) == box, why
 
 
+def test_a_wider_pose_is_completed_only_when_told_to() -> None:
+    """The ablation's switch: without keep_wider_whole, a tucked 45x45 box with its bottom on the prediction's is
+    completed to the predicted 90 px from that edge."""
+    tucked = (92.0, 145.0, 45.0, 45.0)
+    completed = complete_partial_view(tucked, (100.0, 100.0, 30.0, 90.0), keep_wider_whole=False)
+    assert completed == (92.0, 100.0, 45.0, 90.0)
+
+
 def test_a_partial_view_is_measured_and_output_whole_and_never_learnt_from() -> None:
     """The target walks behind a car: its detection covers the upper half. Re-ID scores the colour on what is seen,
     the geometry on the whole person, accepts it as the whole person (the prediction node then measures that centre

@@ -170,6 +170,9 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # the other edge short of it, is the visible part of the target: it is scored, measured and output as the
     # whole person (the predicted height from the agreeing edge), never as a training sample.
     partial_view_completion: bool = True
+    # ... except in a box wider than the prediction by over 1 / partial_max_extent_ratio: a changed pose (crouching,
+    # bending, tucked), kept whole, for no occluder makes a person wider (otb-diving's tucked diver, EVALUATION.md).
+    partial_view_keeps_wider_whole: bool = True
     partial_max_extent_ratio: float = 0.8
     partial_edge_tolerance: float = 0.15
     # Merged views (reid.trim_merged_view): a detector box over merged_min_extent_ratio of the predicted height with

@@ -101,7 +101,7 @@ def _complete_extent(lo: float, extent: float, prior_lo: float, prior_extent: fl
 
 
 def complete_partial_view(box: Sequence[float], predicted_box: Sequence[float], max_ratio: float = 0.8,
-                          edge_tolerance: float = 0.15) -> Box:
+                          edge_tolerance: float = 0.15, keep_wider_whole: bool = True) -> Box:
     """The whole person behind a partial view: a detector box shorter than the prediction (under ``max_ratio`` of
     its height) whose top or bottom agrees with the prediction's (within ``edge_tolerance`` of the predicted
     height) while the other edge falls short is the visible part of a person cut by an occluder (a car or a table
@@ -114,13 +114,14 @@ def complete_partial_view(box: Sequence[float], predicted_box: Sequence[float], 
     person look farther away than they are. Only the height: a walking person's width changes with every
     stride and swing of the arms, so a narrow box is no evidence of an occluder (completing widths would anchor
     the wrong side of a person walking behind a pillar), while the height of a standing or walking person holds.
-    A box wider than the prediction by more than 1 / ``max_ratio`` is kept as it is: an occluder never makes a
-    person wider, a change of pose does (crouching, bending down, tucked), and the short, wide box is then the whole
-    person as they now are; completed, it would be measured up to half a height off their centre."""
+    With ``keep_wider_whole``, a box wider than the prediction by more than 1 / ``max_ratio`` is kept as it is: an
+    occluder never makes a person wider, a change of pose does (crouching, bending down, tucked), and the short,
+    wide box is then the whole person as they now are; completed, it would be measured up to half a height off
+    their centre."""
     w, pw, ph = float(box[2]), float(predicted_box[2]), float(predicted_box[3])
     if w <= 0.0 or pw <= 0.0 or float(box[3]) / w >= max_ratio * ph / pw:
         return tuple(float(v) for v in box)  # type: ignore[return-value]  # a whole person's shape
-    if w * max_ratio > pw:  # wider than the prediction by more than 1 / max_ratio: a changed pose, kept whole
+    if keep_wider_whole and w * max_ratio > pw:  # wider than predicted by over 1 / max_ratio: a changed pose
         return tuple(float(v) for v in box)  # type: ignore[return-value]
     y, h = _complete_extent(float(box[1]), float(box[3]), float(predicted_box[1]), ph, max_ratio, edge_tolerance)
     return (float(box[0]), y, w, h)
@@ -798,7 +799,8 @@ class ReIdentifier:
         as_is = tuple(float(v) for v in box)
         whole = as_is
         if p.partial_view_completion:
-            whole = complete_partial_view(box, prior.box, p.partial_max_extent_ratio, p.partial_edge_tolerance)
+            whole = complete_partial_view(box, prior.box, p.partial_max_extent_ratio, p.partial_edge_tolerance,
+                                          p.partial_view_keeps_wider_whole)
         if whole == as_is and p.merged_view_trimming:
             whole = trim_merged_view(box, prior.box, p.merged_min_extent_ratio, p.partial_edge_tolerance)
         return whole if whole != as_is else None
