@@ -576,8 +576,6 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-
-
 def _box(box: np.ndarray | None) -> tuple[float, float, float, float] | None:
     """A message's [x, y, w, h] as the observer keeps it."""
     if box is None:
