@@ -194,6 +194,26 @@ def test_demo_that_captured_nothing_fails_with_its_own_log(tmp_path):
     assert (tmp_path / "state" / "demo.log").read_text() == "an older run\n"
 
 
+def test_demo_verdict_puts_a_failed_node_before_what_it_caused():
+    """Beside a second graph the crashing motor's restarts outlasted the start-up wait: no frame came through and the
+    graph was not up, and the verdict began with those instead of with the motor that caused them."""
+    import threading
+    from types import SimpleNamespace
+
+    from followbus.tools.demo import _cause_first
+
+    failed = "motor failed for good (exited 3 times, last status 1): FileNotFoundError: ttyNOPE"
+    silent = "no output in 6 s from reid, motor"
+    launcher = SimpleNamespace(problems=lambda: [failed, silent], interrupted=False, ready_event=threading.Event(),
+                               ran_s=6.0)
+    assert _cause_first(launcher, frames=0) == [
+        failed, "0 frames captured", "the graph was not up after 6 s (start-up takes a few seconds)", silent]
+    launcher.ready_event.set()
+    assert _cause_first(launcher, frames=120) == [failed, silent]
+    launcher.problems = lambda: [silent]  # nothing failed: the missing frames lead
+    assert _cause_first(launcher, frames=0) == ["0 frames captured", silent]
+
+
 def test_demo_names_the_node_that_crashed_and_why(tmp_path):
     graph = private_graph_copy(tmp_path)
     # Two restarts rather than graph.yaml's ten with a doubling backoff (~25 s): the verdict is the same.

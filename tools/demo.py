@@ -244,11 +244,7 @@ def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: 
         print(f"followbus demo: {launcher.refusal}", file=sys.stderr, flush=True)
         return 2
     print_summary(summary)
-    problems = launcher.problems()
-    if summary["frames"] == 0 and not launcher.interrupted:
-        problems.insert(0, "0 frames captured")
-        if not launcher.ready_event.is_set():
-            problems.insert(1, f"the graph was not up after {launcher.ran_s:.0f} s (start-up takes a few seconds)")
+    problems = _cause_first(launcher, summary["frames"])
     if problems:
         # The reason is in the node log; say it here, where the user is looking.
         print(f"followbus demo: {'; '.join(problems)} (node logs: {log_path})", file=sys.stderr)
@@ -257,6 +253,19 @@ def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: 
         sys.stderr.flush()
         return status or 1
     return status
+
+
+def _cause_first(launcher: Launcher, frames: int) -> list[str]:
+    """The run's problems, the cause first: a node that failed is why no frame came through and why the graph was
+    not up (on a loaded machine both happen before the failing node's restarts run out), so it leads."""
+    problems = launcher.problems()
+    if frames or launcher.interrupted:
+        return problems
+    consequences = ["0 frames captured"]
+    if not launcher.ready_event.is_set():
+        consequences.append(f"the graph was not up after {launcher.ran_s:.0f} s (start-up takes a few seconds)")
+    silent = [p for p in problems if p.startswith("no output in ")]
+    return [p for p in problems if p not in silent] + consequences + silent
 
 
 def _size(value: object) -> int:
