@@ -204,13 +204,13 @@ def test_demo_verdict_puts_a_failed_node_before_what_it_caused():
 
     failed = "motor failed for good (exited 3 times, last status 1): FileNotFoundError: ttyNOPE"
     silent = "no output in 6 s from reid, motor"
-    launcher = SimpleNamespace(problems=lambda: [failed, silent], interrupted=False, ready_event=threading.Event(),
-                               ran_s=6.0)
+    launcher = SimpleNamespace(failures=lambda: [failed], silences=lambda: [silent], interrupted=False,
+                               problems=lambda: [failed, silent], ready_event=threading.Event(), ran_s=6.0)
     assert _cause_first(launcher, frames=0) == [
         failed, "0 frames captured", "the graph was not up after 6 s (start-up takes a few seconds)", silent]
     launcher.ready_event.set()
     assert _cause_first(launcher, frames=120) == [failed, silent]
-    launcher.problems = lambda: [silent]  # nothing failed: the missing frames lead
+    launcher.failures = lambda: []  # nothing failed: the missing frames lead
     assert _cause_first(launcher, frames=0) == ["0 frames captured", silent]
 
 

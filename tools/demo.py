@@ -258,14 +258,12 @@ def run_demo(graph: Graph, duration_s: float, log_path: Path | None, overrides: 
 def _cause_first(launcher: Launcher, frames: int) -> list[str]:
     """The run's problems, the cause first: a node that failed is why no frame came through and why the graph was
     not up (on a loaded machine both happen before the failing node's restarts run out), so it leads."""
-    problems = launcher.problems()
     if frames or launcher.interrupted:
-        return problems
+        return launcher.problems()
     consequences = ["0 frames captured"]
     if not launcher.ready_event.is_set():
         consequences.append(f"the graph was not up after {launcher.ran_s:.0f} s (start-up takes a few seconds)")
-    silent = [p for p in problems if p.startswith("no output in ")]
-    return [p for p in problems if p not in silent] + consequences + silent
+    return launcher.failures() + consequences + launcher.silences()
 
 
 def _size(value: object) -> int:

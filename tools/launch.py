@@ -266,12 +266,18 @@ class Launcher:
         """What went wrong in the run that just ended, one phrase per node: a node that failed for good or
         crash-looped (with the last error it printed), one that stopped working and was restarted, and, for a
         run that lasted its duration with ``watch_outputs``, a node that never published any of its outputs."""
-        out = [phrase for phrase in map(_failure, self.children) if phrase]
-        if self.watch_outputs and not self.interrupted:
-            silent = [c.name for c in self.children if c.spec.run != "<tool>" and c.spec.outputs and not c.published]
-            if silent:
-                out.append(f"no output in {self.ran_s:.0f} s from {', '.join(silent)}")
-        return out
+        return self.failures() + self.silences()
+
+    def failures(self) -> list[str]:
+        """The nodes that failed for good, crash-looped or stopped working, one phrase each."""
+        return [phrase for phrase in map(_failure, self.children) if phrase]
+
+    def silences(self) -> list[str]:
+        """With ``watch_outputs``, after a run that lasted its duration: the nodes that never published (one phrase)."""
+        if not self.watch_outputs or self.interrupted:
+            return []
+        silent = [c.name for c in self.children if c.spec.run != "<tool>" and c.spec.outputs and not c.published]
+        return [f"no output in {self.ran_s:.0f} s from {', '.join(silent)}"] if silent else []
 
     def run(self, duration_s: float | None = None, on_ready=None) -> int:
         """Run until duration elapses (counted from the moment every node is up, so start-up on a busy
