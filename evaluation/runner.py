@@ -65,6 +65,8 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o the motion-blob size floor": {"motion_min_area_fraction": 0.0},
     # a box merging the target with someone in line with it taken whole, not trimmed to the target's height
     "followbus w/o merged-view trimming": {"merged_view_trimming": False},
+    # a merged view trimmed for as long as it lasts, even alone in the gate for over 0.5 s (a turn, a changed pose)
+    "followbus w/o settling a lasting merged view": {"merged_view_own_extent": False},
     # what the camera-motion estimate knows it does not know, one part at a time (each switch goes to the node that
     # reads it: egomotion, prediction or reid): the per-cell static-content map; the rival hypothesis and the
     # temporal choice between the two; the reference kept across a failed fit; the prior widened by (and held

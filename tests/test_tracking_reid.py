@@ -468,3 +468,24 @@ def test_a_merged_view_is_measured_as_the_target_and_never_learnt_from() -> None
     assert res.accepted and res.box == pytest.approx(TARGET) and not res.secure
     with pytest.raises(InvalidParam, match="merged_min_extent_ratio"):
         ReidParams(merged_min_extent_ratio=1.0)
+
+
+@pytest.mark.parametrize("neighbour, own_extent", [(False, True), (True, True), (False, False)])
+def test_a_lone_merged_view_that_lasts_becomes_the_targets_own_extent(neighbour: bool, own_extent: bool) -> None:
+    """The target turns and is boxed 1.8x as wide from then on, its left edge where predicted. Trimmed, the box
+    measures the old width back for good; alone in the gate for merged_view_own_extent_after_ms it is measured
+    whole. With someone else in the gate each frame it stays a merged view."""
+    params = ReidParams(learned_appearance=False, merged_view_own_extent=own_extent)
+    reid, template = started(params)
+    wide = (TARGET[0], TARGET[1], TARGET[2] * 1.8, TARGET[3])
+    other = (TARGET[0] + 50.0, TARGET[1], TARGET[2], TARGET[3])  # in the gate, centred outside the wide box
+    frames = int(params.merged_view_own_extent_after_ms / params.dt_ms) + 3
+    widths = []
+    for k in range(1, frames):
+        boxes = (wide, other) if neighbour else (wide,)
+        frame = draw((wide, RED), *([(other, (200, 120, 0))] if neighbour else []))
+        res = reid.step(frame, dets(*boxes), prior_at(TARGET, k * 33 * MS), template, k * 33 * MS)
+        assert res.accepted, k
+        widths.append(float(res.box[2]))
+    assert widths[0] == pytest.approx(TARGET[2])
+    assert widths[-1] == pytest.approx(wide[2] if own_extent and not neighbour else TARGET[2])

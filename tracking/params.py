@@ -180,6 +180,12 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # as the predicted height from that edge, never as a training sample.
     merged_view_trimming: bool = True
     merged_min_extent_ratio: float = 1.5
+    # ... until such boxes, accepted on every frame with no one else in the gate, have gone on for
+    # merged_view_own_extent_after_ms: then the extent is the target's own (a turn, a changed pose) and the box is
+    # measured whole, for a trimmed box measures the old extent back and would keep it for good (otb-diving's
+    # tucked diver). Its geometry is still scored as trimmed: the extent it outgrew is no evidence against it.
+    merged_view_own_extent: bool = True
+    merged_view_own_extent_after_ms: float = 500.0
     # The coasting box's colours (ReIdentifier._coasting_colours_seen): while OCCLUDED, the output box is checked
     # against the template and the boxes around it (appearance.colour_contrast). The target's colours there (S_color
     # above reid_threshold and coasting_colour_margin above everything around it), with no other person's box on
@@ -261,7 +267,8 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
             positive=("morph_kernel_px", "bins_h", "bins_s", "dt_ms", "gamma", "lost_after_ms",
                       "motion_max_changed_fraction", "identity_sample_every_frames", "identity_max_crops",
                       "ridge_lambda", "gate_scale_max", "gate_fast_height_fraction", "relock_far_height_fraction",
-                      "n_id_frames", "reacquire_frames", "reacquire_window_frames", "reacquire_max_step_heights"),
+                      "n_id_frames", "reacquire_frames", "reacquire_window_frames", "reacquire_max_step_heights",
+                      "merged_view_own_extent_after_ms"),
             non_negative=("diff_threshold", "geo_scale", "ambiguity_margin", "min_blob_area_px",
                           "reacquired_hold_frames", "identity_margin", "identity_veto_after_crowd_frames"),
             unit_interval=("reid_threshold", "tau_occ", "delta_iou", "delta_id", "delta_switch", "low_score_min_iou",

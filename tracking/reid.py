@@ -180,6 +180,9 @@ class Candidate:
     # (trim_merged_view): what is measured and output; the ``box`` is what the appearance is scored on. None: the
     # box is the target's.
     whole: Box | None = None
+    # Where S_geo is scored, when not where the candidate is ``located``: a merged view taken as the target's own
+    # extent (ReidParams.merged_view_own_extent_after_ms) is measured whole but scored as trimmed.
+    scored_at: Box | None = None
 
     @property
     def located(self) -> Box:
@@ -321,6 +324,7 @@ class ReIdentifier:
         self._frame_boxes: list[Box] = []  # this frame's detections and which of them are bystanders
         self._frame_bystanders: list[bool] = []
         self.candidates: list[Candidate] = []  # the last frame's scored candidates (step)
+        self._lone_merged_frames = 0  # accepted frames on end whose box was a merged view with no one else gated
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
              template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None,
@@ -384,13 +388,15 @@ class ReIdentifier:
         # Stage 1: the detections (score >= the detector's threshold) in the gate, the frame's and the region's.
         candidates = (self._gate_candidates(dets.frame, prior, "detection")
                       + self._gate_candidates(dets.region, prior, "redetection"))
-        self._note_crowd(_people_among([c.box for c in candidates]))
+        gated_people = _people_among([c.box for c in candidates])
+        self._note_crowd(gated_people)
         match = self._match(frame_bgr, candidates, prior, template_hist)
         match = self._second_stage(frame_bgr, dets.low_rows, prior, template_hist, match)
         if not match.candidates and self._background_still(prev_grey, grey):
             match = self._motion_stage(frame_bgr, prev_grey, grey, prior, template_hist)
         match = self._reacquire_on_evidence(frame_bgr, match)
         self._advance_state(match.accepted, t_ns)
+        self._note_lone_merged_view(match, prior, gated_people)
         if match.accepted and match.best is not None:
             scored = {"detection": dets.rows, "redetection": dets.rows, "low-score": dets.low_rows}.get(
                 match.best.source)
@@ -560,7 +566,7 @@ class ReIdentifier:
         for c in candidates:
             c.hist = hs_histogram(frame_bgr, c.box, p.bins_h, p.bins_s)
             c.s_color = bhattacharyya(c.hist, template_hist)  # Eq. 1, Alg. 1 line 4
-            c.s_geo = (geometric_score(c.located, prior.box, c.maha_sq, prior.gate_chi2, p.geo_scale)
+            c.s_geo = (geometric_score(c.scored_at or c.located, prior.box, c.maha_sq, prior.gate_chi2, p.geo_scale)
                        if p.use_geometry else 0.0)  # Alg. 1 line 5
         c_t = max((c.s_color for c in candidates), default=0.0)
         omega = appearance_weight(c_t, p.tau_occ, p.gamma) if p.use_geometry else 1.0  # Eq. 3
@@ -782,28 +788,50 @@ class ReIdentifier:
         p = self.params
         out = []
         for box in boxes:
-            whole = self._whole(box, prior, source)
-            d2 = prior.mahalanobis_sq(box_centre(whole or box))
+            whole, scored_at = self._whole(box, prior, source)
+            d2 = prior.mahalanobis_sq(box_centre(scored_at or whole or box))
             gated = p.use_gate and not (p.global_search_when_lost and self.state is TrackState.LOST)
             if gated and not d2 <= prior.gate_chi2:  # Eq. 8 (also drops NaN)
                 continue
-            out.append(Candidate(box=box, source=source, maha_sq=d2, whole=whole))
+            out.append(Candidate(box=box, source=source, maha_sq=d2, whole=whole, scored_at=scored_at))
         return out
 
-    def _whole(self, box: Box, prior: Prior, source: str) -> Box | None:
-        """A detector box's whole person when it is a partial view (complete_partial_view), else None. A motion
-        blob is partial by nature (the moving limbs) and says nothing of where the edges are: never completed."""
+    def _whole(self, box: Box, prior: Prior, source: str) -> tuple[Box | None, Box | None]:
+        """(whole, scored_at) of a box: the whole person when it is a partial or a merged view
+        (complete_partial_view, trim_merged_view), else None; and, for a merged view whose extent has become the
+        target's own (_own_extent_settled), the trimmed box its geometry is scored on while it is measured whole. A
+        motion blob is partial by nature (the moving limbs) and says nothing of where the edges are: never reshaped."""
         p = self.params
         if source == "motion":
-            return None
+            return None, None
         as_is = tuple(float(v) for v in box)
         whole = as_is
         if p.partial_view_completion:
             whole = complete_partial_view(box, prior.box, p.partial_max_extent_ratio, p.partial_edge_tolerance,
                                           p.partial_view_keeps_wider_whole)
         if whole == as_is and p.merged_view_trimming:
-            whole = trim_merged_view(box, prior.box, p.merged_min_extent_ratio, p.partial_edge_tolerance)
-        return whole if whole != as_is else None
+            whole = self._trimmed(box, prior)
+            if whole != as_is and self._own_extent_settled():
+                return None, whole
+        return (whole if whole != as_is else None), None
+
+    def _trimmed(self, box: Box, prior: Prior) -> Box:
+        p = self.params
+        return trim_merged_view(box, prior.box, p.merged_min_extent_ratio, p.partial_edge_tolerance)
+
+    def _note_lone_merged_view(self, match: _Match, prior: Prior, gated_people: int) -> None:
+        """Count the accepted frames on end whose box is a merged view (trimmed or, once settled, not) while no one
+        else shares the gate; any other accepted box ends the count, a frame without one leaves it."""
+        best = match.best
+        if not match.accepted or best is None or best.source == "motion":
+            return
+        merged = self._trimmed(best.box, prior) != tuple(float(v) for v in best.box)
+        self._lone_merged_frames = self._lone_merged_frames + 1 if merged and gated_people <= 1 else 0
+
+    def _own_extent_settled(self) -> bool:
+        """A merged view alone in the gate for merged_view_own_extent_after_ms: the extent is the target's own."""
+        p = self.params
+        return p.merged_view_own_extent and self._lone_merged_frames * p.dt_ms >= p.merged_view_own_extent_after_ms
 
     @staticmethod
     def _search_window(prior: Prior, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
