@@ -135,9 +135,11 @@ class NodeRuntime(NodeHost):
                                                schema=ReplayHint, logger=self.log))
         self._token: Any = None  # declared once the node is set up (start)
         # Status is periodic: under congestion the next one will do. Blocking here could stall the node on a
-        # slow subscriber (a busy monitor): zenoh's put holds the caller until the link drains.
+        # slow subscriber (a busy monitor): zenoh's put holds the caller until the link drains. Above the data it
+        # describes: on a link too slow for the data (a laptop's tools over Wi-Fi) a monitor still learns every
+        # node's health and keys, once a second, a few hundred bytes each.
         self._status_pub = Publisher(self.session, graph.status_key(self.spec.name), self.spec.name,
-                                     congestion="drop")
+                                     congestion="drop", priority="interactive_high")
         self._status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
         self._event_pubs: dict[str, Publisher] = {}
         self.live_params = LiveParams(self, self._publish_event)
