@@ -23,6 +23,7 @@ from typing import Any
 
 import zenoh
 
+from .barrier import RECORDER_NAME
 from .codec import DecodeError
 from .pubsub import direct_callback, payload_bytes
 from .schemas import NodeStatus, decode
@@ -154,13 +155,31 @@ class PublishedKeys:
     """The keys a namespace's nodes publish, as their statuses announce them (``<ns>/@status/*``, once a second per
     node, a few hundred bytes each): what a tool without the graph file can subscribe to key by key, so that a key
     it leaves out never crosses the link (a subscription on ``<ns>/**`` would carry every key, raw frames too).
-    Keeps listening until :meth:`close`: nodes that start later are announced later."""
+    Keeps listening until :meth:`close`: nodes that start later are announced later. Also follows the nodes'
+    liveliness tokens (``<ns>/@health/*``, declarations that no full link drops), so a tool can name the nodes that
+    are up but whose status has not come (:meth:`unannounced`): their keys are missing from what it lists."""
 
     def __init__(self, session: zenoh.Session, namespace: str):
         self._lock = threading.Lock()
         self._keys: dict[str, PublishedKey] = {}
         self._statuses = 0
+        self._announcing: set[str] = set()  # nodes whose status came
+        self._alive: set[str] = set()  # nodes whose liveliness token is up
+        self._health_prefix = f"{namespace}/@health/"
         self._sub = session.declare_subscriber(f"{namespace}/@status/*", direct_callback(self._on_status))
+        self._live_sub = session.liveliness().declare_subscriber(
+            f"{self._health_prefix}*", direct_callback(self._on_liveliness), history=True)
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr)[len(self._health_prefix):]
+        if name == RECORDER_NAME:  # a recorder's token, not a node's: it has no status
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                if len(self._alive) < MAX_PUBLISHED_KEYS:
+                    self._alive.add(name)
+            else:
+                self._alive.discard(name)
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         try:
@@ -169,6 +188,8 @@ class PublishedKeys:
             return
         with self._lock:
             self._statuses += 1
+            if len(self._announcing) < MAX_PUBLISHED_KEYS:
+                self._announcing.add(status.node)
             for key, topic in status.topics.items():
                 if not isinstance(topic, dict) or topic.get("direction") != "out":
                     continue
@@ -195,9 +216,16 @@ class PublishedKeys:
         with self._lock:
             return dict(self._keys)
 
+    def unannounced(self) -> list[str]:
+        """The nodes up by their liveliness token whose status has not come: a link too full for it, or a node
+        that has not reported yet. Their keys are not in :meth:`announced`."""
+        with self._lock:
+            return sorted(self._alive - self._announcing)
+
     def close(self) -> None:
-        with contextlib.suppress(Exception):
-            self._sub.undeclare()
+        for sub in (self._sub, self._live_sub):
+            with contextlib.suppress(Exception):
+                sub.undeclare()
 
 
 def _blind(edge: Edge, statuses: Mapping[str, NodeStatus], health: Mapping[str, Any]) -> bool:

@@ -61,7 +61,23 @@ def test_topics_names_an_announced_key_of_which_nothing_arrived(capsys):
     from followbus.bus.links import PublishedKey
     from followbus.tools.live.introspect import TopicCounts, _topics_notes
 
-    silent = {"fb/motor/command": PublishedKey("fb/motor/command", "motor", 30.0, 40.0)}
-    _topics_notes(TopicCounts(), {}, silent, 3.0)
-    assert capsys.readouterr().out.strip() == (
-        "nothing arrived: fb/motor/command (30.0 Hz by motor's status) in 3 s over this link")
+    silent = {"fb/motor/command": PublishedKey("fb/motor/command", "motor", 30.0, 40.0),
+              "fb/reid/measurement": PublishedKey("fb/reid/measurement", "reid", 30.0, 900.0)}
+    _topics_notes(TopicCounts(), {}, silent, 3.0, {"fb/motor/command": 3.0, "fb/reid/measurement": 0.42})
+    assert capsys.readouterr().out.strip().splitlines() == [
+        "nothing arrived: fb/motor/command (30.0 Hz by motor's status) in 3 s over this link",
+        # announced late in the window (its status came late over a full link): how long it was listened to
+        "nothing arrived: fb/reid/measurement (30.0 Hz by reid's status) in the 0.4 s since reid's status "
+        "announced it over this link"]
+
+
+def test_topics_names_the_nodes_up_whose_status_never_came(capsys):
+    """A node whose status never crossed the link is missing from the table: named, with what its token says."""
+    from followbus.tools.live.introspect import _unannounced_note
+
+    _unannounced_note([], 4.3)
+    assert capsys.readouterr().out == ""
+    _unannounced_note(["detection", "motor"], 4.31)
+    assert capsys.readouterr().out.startswith(
+        "no status from detection, motor in 4.3 s over this link, though their liveliness tokens say they are up: "
+        "their keys are not listed")

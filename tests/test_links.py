@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from followbus.bus.barrier import RECORDER_NAME
 from followbus.bus.links import (
     PEER_HINT,
     Edge,
@@ -193,6 +194,31 @@ def test_published_keys_are_read_from_the_nodes_statuses(port):
     finally:
         keys.close()
         pub.undeclare()
+        time.sleep(0.1)
+        receiver.close()
+        sender.close()
+
+
+def test_published_keys_name_the_nodes_up_whose_status_has_not_come(port):
+    """A node's liveliness token without its status (a link too full for it): named, so a tool listing the keys it
+    knows can say whose keys it is missing; a recorder's token is not a node's."""
+    sender = open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    receiver = open_session(ZenohSettings(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    tokens = [sender.liveliness().declare_token(f"t/@health/{name}") for name in ("capture", "motor", RECORDER_NAME)]
+    keys = PublishedKeys(receiver, "t")
+    pub = Publisher(sender, "t/@status/capture", "capture", congestion="drop")
+    try:
+        assert wait_until(lambda: keys.unannounced() == ["capture", "motor"], 5), keys.unannounced()
+        assert wait_until(lambda: pub.listened, 5)
+        pub.put(_status("capture", topics={"t/capture/preview": _out(30.0, 10, 8_000)}))
+        assert wait_until(lambda: keys.unannounced() == ["motor"], 5), keys.unannounced()
+        tokens.pop(1).undeclare()  # the motor went down: no longer missing
+        assert wait_until(lambda: keys.unannounced() == [], 5), keys.unannounced()
+    finally:
+        keys.close()
+        pub.undeclare()
+        for token in tokens:
+            token.undeclare()
         time.sleep(0.1)
         receiver.close()
         sender.close()

@@ -118,26 +118,18 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
     messages does not lower it), what arrived here, what was lost on the way. Over a network, the keys the nodes'
     statuses announce, raw frames left out unless --raw-frames (bus/links.py PublishedKeys)."""
     counts = TopicCounts()
+    started = time.monotonic()
     session = open_client_session(settings)
     announced = PublishedKeys(session, namespace) if is_remote(settings) and not args.raw_frames else None
-    subs: dict[str, Any] = {}
-    if announced is None:
-        subs[f"{namespace}/**"] = declare_subscriber(session, f"{namespace}/**", counts.on_sample)
-    elif not announced.wait(STATUS_WAIT_S):
+    if announced is not None and not announced.wait(STATUS_WAIT_S):
         announced.close()
         session.close()
         print(f"no node status under {namespace}/@status in {STATUS_WAIT_S:g} s: no graph there to list "
               f"(--raw-frames subscribes to every key under {namespace}/**)")
         return 1
-    if announced is not None:
-        # Each node announces once a status period, so the window opens once every one of them could have: a key
-        # announced late in it (a loaded robot, a slow link) would show nothing.
-        _follow_announcements(announced, subs, session, counts, time.monotonic() + STATUS_PERIOD_S + 0.25)
-    # A node that starts during the window announces its keys then.
-    _follow_announcements(announced, subs, session, counts, time.monotonic() + args.seconds)
-    for sub in subs.values():
-        sub.undeclare()
+    listened_s = _listen(announced, session, counts, namespace, args.seconds)
     listed = announced.announced() if announced is not None else {}
+    unannounced = announced.unannounced() if announced is not None else []
     left_out = {k: v for k, v in listed.items() if is_raw_frame(k)}
     silent = {k: v for k, v in listed.items() if k not in left_out and k not in counts.keys}
     if announced is not None:
@@ -145,29 +137,62 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
     session.close()
     if not counts.keys and not left_out:
         print(f"no messages under {namespace}/** in {args.seconds:.1f} s")
+        _unannounced_note(unannounced, time.monotonic() - started)
         return 1
     print("\n".join(counts.table()))
-    _topics_notes(counts, left_out, silent, args.seconds)
+    _topics_notes(counts, left_out, silent, args.seconds, listened_s)
+    _unannounced_note(unannounced, time.monotonic() - started)
     return 0
 
 
-def _follow_announcements(announced: PublishedKeys | None, subs: dict[str, Any], session: zenoh.Session,
+def _unannounced_note(nodes: list[str], waited_s: float) -> None:
+    """Nodes up by their liveliness tokens whose status never came: their keys are missing from the table, and a
+    user reading it must not take them for nodes that publish nothing."""
+    if nodes:
+        print(f"no status from {', '.join(nodes)} in {waited_s:.1f} s over this link, though their liveliness "
+              "tokens say they are up: their keys are not listed (a link too full for the statuses, or nodes still "
+              "starting; `followbus nodes` shows their health)")
+
+
+def _listen(announced: PublishedKeys | None, session: zenoh.Session, counts: TopicCounts, namespace: str,
+            seconds: float) -> dict[str, float]:
+    """Count what arrives for ``seconds``: the announced keys, each subscribed to as it is announced, or (nothing
+    announced: the local bus) the whole namespace. Returns the seconds each key was listened to."""
+    subs: dict[str, tuple[Any, float]] = {}  # key -> its subscriber and when it was declared (time.monotonic)
+    if announced is None:
+        subs[f"{namespace}/**"] = (declare_subscriber(session, f"{namespace}/**", counts.on_sample), time.monotonic())
+    else:
+        # Each node announces once a status period, so the window opens once every one of them could have: a key
+        # announced late in it (a loaded robot, a slow link) would show nothing.
+        _follow_announcements(announced, subs, session, counts, time.monotonic() + STATUS_PERIOD_S + 0.25)
+    # A node that starts during the window announces its keys then.
+    _follow_announcements(announced, subs, session, counts, time.monotonic() + seconds)
+    listened_s = {key: min(seconds, time.monotonic() - since) for key, (_sub, since) in subs.items()}
+    for sub, _since in subs.values():
+        sub.undeclare()
+    return listened_s
+
+
+def _follow_announcements(announced: PublishedKeys | None, subs: dict[str, tuple[Any, float]], session: zenoh.Session,
                           counts: TopicCounts, until: float) -> None:
     """Subscribe to each key as the nodes announce it (raw frames left out) until ``until`` (time.monotonic); with
     nothing announced (the local bus, subscribed whole) only wait."""
     while time.monotonic() < until:
         for key in announced.announced() if announced is not None else ():
             if key not in subs and not is_raw_frame(key):
-                subs[key] = declare_subscriber(session, key, counts.on_sample)
+                subs[key] = (declare_subscriber(session, key, counts.on_sample), time.monotonic())
         time.sleep(0.05)
 
 
-def _topics_notes(counts: TopicCounts, left_out: dict[str, Any], silent: dict[str, Any], seconds: float) -> None:
-    """What the table's figures mean where it matters: keys announced but silent here, keys not subscribed, rates
-    not measured, losses."""
+def _topics_notes(counts: TopicCounts, left_out: dict[str, Any], silent: dict[str, Any], seconds: float,
+                  listened_s: dict[str, float]) -> None:
+    """What the table's figures mean where it matters: keys announced but silent here (for as long as they were
+    listened to: a key announced late in the window had less), keys not subscribed, rates not measured, losses."""
     for key, info in sorted(silent.items()):
-        print(f"nothing arrived: {key} ({info.rate_hz:.1f} Hz by {info.node}'s status) in {seconds:g} s over this "
-              "link")
+        listened = listened_s.get(key, 0.0)
+        span = f"in {seconds:g} s" if listened >= seconds - 0.05 else (
+            f"in the {listened:.1f} s since {info.node}'s status announced it")
+        print(f"nothing arrived: {key} ({info.rate_hz:.1f} Hz by {info.node}'s status) {span} over this link")
     for key, info in sorted(left_out.items()):
         size = f"{info.mean_bytes / 1e3:.1f} KB a message" if info.mean_bytes else "no message yet"
         print(f"not subscribed: {key} (raw frames, {size}, {info.rate_hz:.1f} Hz by {info.node}'s status; "

@@ -649,6 +649,10 @@ class AnnouncedKeys:
             self.recorder.add_subscription(self.session, key)
         self.subscribed.update(new)
 
+    def unannounced(self) -> list[str]:
+        """Nodes up by their liveliness tokens whose status never came: none of their keys was recorded."""
+        return self.published.unannounced() if self.published is not None else []
+
     def close(self) -> None:
         if self.published is not None:
             self.published.close()
@@ -723,6 +727,7 @@ def cmd_record(args, settings, graph) -> int:
                 log.info("%d messages received, queue %.1f MB", recorder.report.received,
                          recorder.queued_bytes() / 1e6)
     finally:
+        unannounced = announced.unannounced()
         announced.close()
         report = recorder.stop()
         with contextlib.suppress(Exception):
@@ -730,6 +735,10 @@ def cmd_record(args, settings, graph) -> int:
         with contextlib.suppress(Exception):
             session.close()
     print_report(report)
+    if unannounced:
+        print(f"not recorded: every key of {', '.join(unannounced)}: no status of theirs came over this link, though "
+              "their liveliness tokens say they are up (their statuses name the keys a recording without the graph "
+              "file subscribes to; --graph lists them instead)", flush=True)
     if report.write_error:
         print(report.failure_line(), file=sys.stderr, flush=True)
         return EXIT_WRITE_FAILED
