@@ -760,6 +760,7 @@ class ReIdentifier:
         self.state = TrackState.TRACKING
         self._t_last_accept_ns, self._unseen_since_accept_ns = t_ns, 0
         self._reacquired_count = 0
+        self._lone_merged_frames = 0  # the new prior's extent is this box's
         logger.info("target initialised at %s (%s)", tuple(round(v, 1) for v in box), source)
         chosen = Candidate(box, source, hist=hs_histogram(frame_bgr, box, p.bins_h, p.bins_s))
         return measurement(t_ns, self.state, chosen, accepted=True, init_box=box)
