@@ -185,6 +185,13 @@ class Candidate:
     scored_at: Box | None = None
 
     @property
+    def merged_view(self) -> bool:
+        """Whether the box merges the target with someone (trim_merged_view): trimmed to the target, or measured
+        whole once that extent became the target's own. Completion only lengthens a box, trimming only shortens it."""
+        w = self.whole
+        return self.scored_at is not None or (w is not None and (w[2] < self.box[2] or w[3] < self.box[3]))
+
+    @property
     def located(self) -> Box:
         """Where the candidate puts the whole target."""
         return self.whole if self.whole is not None else self.box
@@ -396,7 +403,7 @@ class ReIdentifier:
             match = self._motion_stage(frame_bgr, prev_grey, grey, prior, template_hist)
         match = self._reacquire_on_evidence(frame_bgr, match)
         self._advance_state(match.accepted, t_ns)
-        self._note_lone_merged_view(match, prior, gated_people)
+        self._note_lone_merged_view(match, gated_people)
         if match.accepted and match.best is not None:
             scored = {"detection": dets.rows, "redetection": dets.rows, "low-score": dets.low_rows}.get(
                 match.best.source)
@@ -811,23 +818,18 @@ class ReIdentifier:
             whole = complete_partial_view(box, prior.box, p.partial_max_extent_ratio, p.partial_edge_tolerance,
                                           p.partial_view_keeps_wider_whole)
         if whole == as_is and p.merged_view_trimming:
-            whole = self._trimmed(box, prior)
+            whole = trim_merged_view(box, prior.box, p.merged_min_extent_ratio, p.partial_edge_tolerance)
             if whole != as_is and self._own_extent_settled():
                 return None, whole
         return (whole if whole != as_is else None), None
 
-    def _trimmed(self, box: Box, prior: Prior) -> Box:
-        p = self.params
-        return trim_merged_view(box, prior.box, p.merged_min_extent_ratio, p.partial_edge_tolerance)
-
-    def _note_lone_merged_view(self, match: _Match, prior: Prior, gated_people: int) -> None:
+    def _note_lone_merged_view(self, match: _Match, gated_people: int) -> None:
         """Count the accepted frames on end whose box is a merged view (trimmed or, once settled, not) while no one
         else shares the gate; any other accepted box ends the count, a frame without one leaves it."""
-        best = match.best
-        if not match.accepted or best is None or best.source == "motion":
-            return
-        merged = self._trimmed(best.box, prior) != tuple(float(v) for v in best.box)
-        self._lone_merged_frames = self._lone_merged_frames + 1 if merged and gated_people <= 1 else 0
+        if not match.accepted or match.best is None or match.best.source == "motion":
+            return  # a motion blob is never reshaped: it says nothing of the extent
+        lone_merged = match.best.merged_view and gated_people <= 1
+        self._lone_merged_frames = self._lone_merged_frames + 1 if lone_merged else 0
 
     def _own_extent_settled(self) -> bool:
         """A merged view alone in the gate for merged_view_own_extent_after_ms: the extent is the target's own."""
