@@ -65,6 +65,9 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o the motion-blob size floor": {"motion_min_area_fraction": 0.0},
     # a box merging the target with someone in line with it taken whole, not trimmed to the target's height
     "followbus w/o merged-view trimming": {"merged_view_trimming": False},
+    # a person seen beside the target never re-acquired on evidence, even after their track went through a merge
+    # (two people in one box) and may have resumed on the target's own box
+    "followbus w/o unsure bystanders after a merge": {"unsure_bystanders_after_merge": False},
     # a merged view trimmed for as long as it lasts, even alone in the gate for over 0.5 s (a turn, a changed pose)
     "followbus w/o settling a lasting merged view": {"merged_view_own_extent": False},
     # what the camera-motion estimate knows it does not know, one part at a time (each switch goes to the node that

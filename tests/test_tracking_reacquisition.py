@@ -128,3 +128,78 @@ def test_a_look_alike_seen_beside_the_target_is_never_reacquired_on_evidence():
         frame = _frame_with([(twin, (0, 0, 200))], legs=(200, 0, 0))
         assert not reid.step(frame, np.array([[*twin, 0.9]], np.float32), far_prior, template, t).accepted
         t += 33_000_000
+
+
+def test_a_bystander_hidden_with_someone_in_one_box_is_unsure_of_whom_it_follows_after():
+    """Two people in one box too tall for the bystander alone: the track may come out of it on either, so the box it
+    continues on is unsure; a track that is merely not detected for a frame stays sure."""
+    def tracks_after(middle: list[tuple[float, float, float, float]], merges_unsure: bool = True) -> BystanderTracks:
+        tracks = BystanderTracks(max_age_frames=5, max_step_heights=0.5, merges_unsure=merges_unsure)
+        target, other = (100.0, 100.0, 40.0, 100.0), (300.0, 100.0, 40.0, 100.0)
+        tracks.adopt([target, other], tracks.link([target, other], 1), target, 1)
+        tracks.link(middle, 2)
+        return tracks
+
+    merged = [(250.0, 0.0, 120.0, 210.0)]  # covers the bystander's place, twice their height
+    came_out = [(320.0, 100.0, 40.0, 100.0)]
+    after_merge = tracks_after(merged)
+    assert after_merge.link(came_out, 3) == [True] and after_merge.unsure == [True]
+    missed = tracks_after([])  # not detected on frame 2: nothing says whom it follows changed
+    assert missed.link(came_out, 3) == [True] and missed.unsure == [False]
+    elsewhere = tracks_after([(500.0, 0.0, 120.0, 210.0)])  # two people in one box, but not where the bystander is
+    assert elsewhere.link(came_out, 3) == [True] and elsewhere.unsure == [False]
+    switched_off = tracks_after(merged, merges_unsure=False)
+    assert switched_off.link(came_out, 3) == [True] and switched_off.unsure == [False]
+
+
+def test_evidence_on_an_unsure_bystander_needs_twice_the_frames():
+    evidence = ReacquisitionEvidence(frames_needed=3, window_frames=4, max_step_heights=0.5)
+    assert not any(evidence.observe((100.0 + 5 * k, 100.0, 40.0, 100.0), k, scale=2) for k in range(1, 6))
+    assert evidence.observe((130.0, 100.0, 40.0, 100.0), 6, scale=2)  # 6 of 8 frames
+    evidence.reset()
+    counted = [evidence.observe((100.0 + 5 * k, 100.0, 40.0, 100.0), k, scale=2) for k in (1, 3, 5, 7, 9, 11, 13)]
+    assert not any(counted)  # one frame in two: never 6 within 8
+
+
+def _lost_beside_a_bystander_who_then_merges_with_it(params: ReidParams) -> tuple[ReIdentifier, np.ndarray, int]:
+    """A red target tracked beside a grey bystander; then both hidden, and one box too tall for either covers the
+    bystander's place (the two in one box); then only the target comes out, where the bystander's track resumes."""
+    reid = ReIdentifier(params)
+    red, grey = (200.0, 200.0, 40.0, 100.0), (300.0, 200.0, 40.0, 100.0)
+    frame = _frame_with([(red, (0, 0, 200)), (grey, (60, 60, 60))])
+    dets = np.array([[*red, 0.9], [*grey, 0.9]], np.float32)
+    template = reid.step(frame, dets, None, None, 0, init_box=red).candidate_hist
+    t = 33_000_000
+    for _ in range(3):
+        assert reid.step(frame, dets, _prior(red, 10.0), template, t).accepted
+        t += 33_000_000
+    both = (195.0, 100.0, 150.0, 210.0)
+    frame = _frame_with([(both, (0, 0, 120))])
+    reid.step(frame, np.array([[*both, 0.9]], np.float32), _prior(red, 10.0), template, t)
+    return reid, template, t + 33_000_000
+
+
+def test_the_target_taken_for_a_bystander_after_a_merge_is_reacquired_on_twice_the_evidence():
+    params = ReidParams(learned_appearance=False, reacquire_frames=4)
+    reid, template, t = _lost_beside_a_bystander_who_then_merges_with_it(params)
+    far_prior = _prior((200.0, 200.0, 40.0, 100.0), 400.0)
+    accepted_at = None
+    for k in range(12):  # the target comes out where the bystander was; its legs changed (below T_reid)
+        red = (300.0 + 3 * k, 200.0, 40.0, 100.0)
+        frame = _frame_with([(red, (0, 0, 200))], legs=(200, 0, 0))
+        if reid.step(frame, np.array([[*red, 0.9]], np.float32), far_prior, template, t).accepted:
+            accepted_at = k
+            break
+        t += 33_000_000
+    assert accepted_at == 2 * params.reacquire_frames  # the first frame finds the target gone, then twice the evidence
+
+
+def test_without_unsure_bystanders_the_target_taken_for_one_is_never_reacquired():
+    params = ReidParams(learned_appearance=False, reacquire_frames=4, unsure_bystanders_after_merge=False)
+    reid, template, t = _lost_beside_a_bystander_who_then_merges_with_it(params)
+    far_prior = _prior((200.0, 200.0, 40.0, 100.0), 400.0)
+    for k in range(12):
+        red = (300.0 + 3 * k, 200.0, 40.0, 100.0)
+        frame = _frame_with([(red, (0, 0, 200))], legs=(200, 0, 0))
+        assert not reid.step(frame, np.array([[*red, 0.9]], np.float32), far_prior, template, t).accepted
+        t += 33_000_000

@@ -226,6 +226,11 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     reacquire_frames: int = 5
     reacquire_window_frames: int = 10
     reacquire_max_step_heights: float = 0.5
+    # A person seen beside the target is never re-acquired on evidence, unless their track went through a merge
+    # (hidden with someone in one box too tall for them alone; it may resume on the target's own box): their box then
+    # needs twice reacquire_frames within twice reacquire_window_frames, and blocks no one else's evidence. False: a
+    # bystander's track stays sure whatever it went through.
+    unsure_bystanders_after_merge: bool = True
     # While TRACKING, colour + geometry's choice stands when the classifier scores every contender below δ_switch,
     # and a lone contender is not even scored. Both fail in a crossing or a group: the target hides behind another
     # person of the same colours, the detector drops or merges it, and the lone (or best) detection in the gate is

@@ -11,10 +11,16 @@ So a re-lock is also confirmed by evidence that accumulates: one candidate that 
 within ``window_frames``, the best one and clear of every other, with the target's colours and not rejected by the
 classifier, and whose boxes move consistently with one another (one person, not a different winner each frame).
 Each condition is checked by the re-ID step (tracking/reid.py); this module keeps the one hypothesis and counts.
+
+People seen beside the target are followed (:class:`BystanderTracks`) and never re-acquired this way, except one
+whose track went through a merge: hidden with someone else in one box, it may resume on the wrong one of the two,
+the target's own box included. Its box then needs twice the evidence, rather than being barred for good (a robot
+that stops for good while the person it follows is the clear best thing it sees).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -30,6 +36,7 @@ class PersonTrack:
     frame: int
     velocity: tuple[float, float] = (0.0, 0.0)
     moved: bool = False  # velocity measured (two boxes seen)
+    merged: bool = False  # since hidden in one box with someone else: which of the two it follows now is unsure
 
     def continues(self, box: Box, frame: int, max_step_heights: float) -> bool:
         """Whether ``box`` on ``frame`` can be this person: its height within a factor 1.5 of the last, its centre
@@ -47,7 +54,17 @@ class PersonTrack:
     def moved_to(self, box: Box, frame: int) -> PersonTrack:
         gap = max(frame - self.frame, 1)
         (cx, cy), (px, py) = box_centre(box), box_centre(self.box)
-        return PersonTrack(tuple(float(v) for v in box), frame, ((cx - px) / gap, (cy - py) / gap), True)
+        return PersonTrack(tuple(float(v) for v in box), frame, ((cx - px) / gap, (cy - py) / gap), True, self.merged)
+
+    def merged_into(self, boxes: list[Box], frame: int) -> bool:
+        """Whether one of ``boxes`` covers where the velocity carries this person on ``frame`` and is too tall to be
+        them alone (over 1.5 times their height, which :meth:`continues` refuses): two people in one box."""
+        gap = max(frame - self.frame, 1)
+        cx, cy = box_centre(self.box)
+        cx, cy = cx + self.velocity[0] * gap, cy + self.velocity[1] * gap
+        height = max(float(self.box[3]), 1.0)
+        return any(b[0] <= cx <= b[0] + b[2] and b[1] <= cy <= b[1] + b[3] and float(b[3]) > 1.5 * height
+                   for b in boxes)
 
 
 class ReacquisitionEvidence:
@@ -68,9 +85,10 @@ class ReacquisitionEvidence:
     def count(self) -> int:
         return len(self.counted)
 
-    def observe(self, box: Box, frame: int) -> bool:
+    def observe(self, box: Box, frame: int, scale: int = 1) -> bool:
         """``box`` was the clear best candidate on ``frame``: count it for its person (a new count if it is
-        someone else) and say whether the re-lock is now confirmed."""
+        someone else) and say whether the re-lock is now confirmed: ``scale`` times the frames needed within
+        ``scale`` times the window (2 for the box of an unsure bystander)."""
         person = self.person
         if person is None or frame - person.frame > self.window_frames \
                 or not person.continues(box, frame, self.max_step_heights):
@@ -78,21 +96,25 @@ class ReacquisitionEvidence:
         else:
             self.person = person.moved_to(box, frame)
         self.counted.append(frame)
-        while self.counted and self.counted[0] <= frame - self.window_frames:
+        while self.counted and self.counted[0] <= frame - scale * self.window_frames:
             self.counted.popleft()
-        return len(self.counted) >= self.frames_needed
+        return len(self.counted) >= scale * self.frames_needed
 
 
 class BystanderTracks:
     """The people seen beside the target, followed from frame to frame (:class:`PersonTrack`), so that none of them
     is re-acquired as the target by accumulated evidence: whoever was in view at the same time as the target is
     someone else. Only a detection seen while the target is tracked starts such a track; one that first appears
-    while the target is hidden may be the target coming back. A track not seen for ``max_age_frames`` ends."""
+    while the target is hidden may be the target coming back. A track not seen for ``max_age_frames`` ends. With
+    ``merges_unsure``, a track missing on a frame where a box too tall for its person covers where it should be
+    (:meth:`PersonTrack.merged_into`) is unsure from then on, and so are the boxes it continues on (:attr:`unsure`)."""
 
-    def __init__(self, max_age_frames: int, max_step_heights: float) -> None:
+    def __init__(self, max_age_frames: int, max_step_heights: float, merges_unsure: bool = True) -> None:
         self.max_age_frames = int(max_age_frames)
         self.max_step_heights = float(max_step_heights)
+        self.merges_unsure = bool(merges_unsure)
         self.tracks: list[PersonTrack] = []
+        self.unsure: list[bool] = []  # per box of the last link(): continued by a track that went through a merge
 
     def reset(self) -> None:
         self.tracks = []
@@ -100,6 +122,7 @@ class BystanderTracks:
     def link(self, boxes: list[Box], frame: int) -> list[bool]:
         """Continue each track with the nearest unclaimed box that can be its person; which boxes are bystanders."""
         claimed = [False] * len(boxes)
+        self.unsure = [False] * len(boxes)
         kept: list[PersonTrack] = []
         for track in sorted(self.tracks, key=lambda t: -t.frame):
             if frame - track.frame > self.max_age_frames:
@@ -107,11 +130,13 @@ class BystanderTracks:
             options = [i for i, box in enumerate(boxes)
                        if not claimed[i] and track.continues(box, frame, self.max_step_heights)]
             if not options:
+                if self.merges_unsure and not track.merged and track.merged_into(boxes, frame):
+                    track = dataclasses.replace(track, merged=True)
                 kept.append(track)
                 continue
             lx, ly = box_centre(track.box)
             i = min(options, key=lambda j: math.hypot(box_centre(boxes[j])[0] - lx, box_centre(boxes[j])[1] - ly))
-            claimed[i] = True
+            claimed[i], self.unsure[i] = True, track.merged
             kept.append(track.moved_to(boxes[i], frame))
         self.tracks = kept
         return claimed

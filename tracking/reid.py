@@ -327,7 +327,8 @@ class ReIdentifier:
         self._frame = 0  # frames stepped: the clock of the re-acquisition evidence
         self._evidence = ReacquisitionEvidence(p.reacquire_frames, p.reacquire_window_frames,
                                                p.reacquire_max_step_heights)
-        self._bystanders = BystanderTracks(p.reacquire_window_frames, p.reacquire_max_step_heights)
+        self._bystanders = BystanderTracks(p.reacquire_window_frames, p.reacquire_max_step_heights,
+                                           p.unsure_bystanders_after_merge)
         self._frame_boxes: list[Box] = []  # this frame's detections and which of them are bystanders
         self._frame_bystanders: list[bool] = []
         self.candidates: list[Candidate] = []  # the last frame's scored candidates (step)
@@ -483,30 +484,34 @@ class ReIdentifier:
         if self._rejected_by_classifier(frame_bgr, best):
             self._evidence.reset()  # whoever the evidence was on, this frame's best is someone else
             return match
-        if self._evidence.observe(best.located, self._frame):
+        if self._evidence.observe(best.located, self._frame, 2 if self._bystander(best.box, unsure=True) else 1):
             logger.info("re-acquired on %d frames of evidence at %s", self._evidence.count,
                         tuple(round(v, 1) for v in best.located))
             return dataclasses.replace(match, best=best, accepted=True)
         return match
 
     def _clear_best(self, match: _Match) -> Candidate | None:
-        """The frame's best plausible detection (none of the people seen beside the target: BystanderTracks) when it
-        has the target's colours (S_color >= τ_occ) and leads every other plausible detection by identity_margin in
-        M_fuse; else None."""
+        """The frame's best plausible detection (none of the people seen beside the target, BystanderTracks, but for
+        an unsure one) when it has the target's colours (S_color >= τ_occ) and leads every other detection that is no
+        bystander by identity_margin in M_fuse; else None."""
         p = self.params
-        plausible = [c for c in match.candidates if c.source in DETECTOR_SOURCES and not self._bystander(c.box)]
+        detections = [c for c in match.candidates if c.source in DETECTOR_SOURCES]
+        plausible = [c for c in detections if not self._bystander(c.box) or self._bystander(c.box, unsure=True)]
         if not plausible:
             return None
         best = max(plausible, key=lambda c: c.m_fuse)
         if best.s_color < p.tau_occ:
             return None
-        if any(c is not best and c.m_fuse > best.m_fuse - p.identity_margin for c in plausible):
+        if any(c is not best and c.m_fuse > best.m_fuse - p.identity_margin and not self._bystander(c.box)
+               for c in detections):
             return None
         return best
 
-    def _bystander(self, box: Box) -> bool:
-        """Whether ``box`` is one of this frame's detections that continues a bystander track."""
-        return any(flag and b == tuple(box) for b, flag in zip(self._frame_boxes, self._frame_bystanders, strict=True))
+    def _bystander(self, box: Box, unsure: bool = False) -> bool:
+        """Whether ``box`` is one of this frame's detections that continues a bystander track (``unsure``: one that
+        went through a merge)."""
+        flags = self._bystanders.unsure if unsure else self._frame_bystanders
+        return any(flag and b == tuple(box) for b, flag in zip(self._frame_boxes, flags, strict=True))
 
     def _rejected_by_classifier(self, frame_bgr: np.ndarray, candidate: Candidate) -> bool:
         """The classifier, when it has learnt the target, takes ``candidate`` for someone else (below δ_switch)."""
