@@ -98,6 +98,8 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o re-acquisition on evidence": {"reacquire_on_evidence": False},
     # a far re-lock on δ_switch alone (no δ_id / N_id confirmation)
     "followbus w/o identity-confirmed far re-lock": {"far_relock_needs_identity": False},
+    # a far re-lock needs δ_id on n_id_frames frames even onto the only person in view
+    "followbus w/o far re-lock of a person alone in view": {"far_relock_alone_in_view": False},
     # after a crossing, colour's choice (a lone detection unscored) even when the classifier, which just told
     # the people apart, scores every contender below δ_switch
     "followbus w/o identity veto after a crossing": {"identity_veto_after_crowd_frames": 0},

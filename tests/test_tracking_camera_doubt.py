@@ -58,3 +58,13 @@ def test_a_far_relock_needs_delta_id_on_n_id_consecutive_frames() -> None:
     assert not reid._confirmed(box, 0.7)  # one confirmation
     assert reid._confirmed((102.0, 101.0, 40.0, 100.0), 0.72)  # the same person again: the second
     assert not reid._confirmed((300.0, 100.0, 40.0, 100.0), 0.9)  # someone else starts again from one
+
+
+def test_a_person_is_alone_in_view_when_every_other_confident_box_is_them() -> None:
+    from followbus.tracking.reid import alone_in_view
+
+    person = (100.0, 100.0, 40.0, 100.0)
+    assert alone_in_view(person, [])
+    assert alone_in_view(person, [person, (102.0, 98.0, 40.0, 104.0)])  # the whole frame's box and its region's
+    assert not alone_in_view(person, [person, (400.0, 100.0, 40.0, 100.0)])  # someone else in view
+    assert not alone_in_view(person, [(120.0, 100.0, 40.0, 100.0)])  # half overlapping: another person beside

@@ -209,6 +209,11 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # evidence: the classifier's score at δ_id or above on n_id_frames consecutive frames (seed 001's N_id), not
     # δ_switch.
     far_relock_needs_identity: bool = True
+    # ... except for a person alone in view (no other confident detection in the frame): who else could it be? The
+    # classifier still vetoes them below δ_switch, and T_reid still wants the target's colours. Without it a target
+    # that comes back after a long coast, far from where the stale velocity carried the prior, waits for a δ_id the
+    # classifier rarely gives a changed pose (a tumbling diver: one frame in ten).
+    far_relock_alone_in_view: bool = True
     relock_far_height_fraction: float = 0.5
     n_id_frames: int = dataclasses.field(default=2, metadata={"was": "n_id"})
     # Re-acquisition on accumulated evidence (tracking/reacquisition.py): while OCCLUDED or LOST, a detection that

@@ -270,6 +270,12 @@ class _FrameBoxes:
         return self.frame + self.region
 
 
+def alone_in_view(box: Sequence[float], frame_boxes: Sequence[Sequence[float]]) -> bool:
+    """Whether ``box`` is the only confident person detection of the frame (a box overlapping it by IoU 0.5 or more
+    is the same person, seen by the whole-frame pass and by the re-detection of its region)."""
+    return all(box_iou(other, box) >= 0.5 for other in frame_boxes)
+
+
 def _rows(detections: np.ndarray | None) -> np.ndarray:
     return np.zeros((0, 5), np.float32) if detections is None else np.asarray(detections, np.float32).reshape(-1, 5)
 
@@ -633,7 +639,8 @@ class ReIdentifier:
         §III-D): among the contenders within ``identity_margin`` of it, the one it scores highest, if that
         one clears δ_switch; on a re-lock after an occlusion, a lone contender scoring below δ_switch is taken
         for someone else and rejected (the target stays occluded), and a contender far from the prior
-        must score δ_id on ``n_id_frames`` consecutive frames (seed 001's Re-ID state). Returns (chosen, accepted)."""
+        must score δ_id on ``n_id_frames`` consecutive frames (seed 001's Re-ID state), unless it is alone in view
+        (far_relock_alone_in_view). Returns (chosen, accepted)."""
         p = self.params
         relock = self.state in (TrackState.OCCLUDED, TrackState.LOST)
         if not relock:
@@ -647,7 +654,8 @@ class ReIdentifier:
             # Nobody here looks like the target: on a re-lock, wait; while tracking, keep colour's choice, unless
             # the classifier just told these people apart (a crossing: the target is hidden behind them): wait.
             return best, not (relock or self._crowded_recently())
-        if relock and p.far_relock_needs_identity and self._far(contenders[i].located, prior):
+        alone = p.far_relock_alone_in_view and alone_in_view(contenders[i].box, self._frame_boxes)
+        if relock and p.far_relock_needs_identity and self._far(contenders[i].located, prior) and not alone:
             return contenders[i], self._confirmed(contenders[i].located, float(scores[i]))
         return contenders[i], True
 
