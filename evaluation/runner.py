@@ -86,6 +86,8 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o the image motion model": {"image_motion_model": False},
     # a lone box centred in the predicted box, nobody else near, still judged by T_reid on its colours
     "followbus w/o taking an uncontested lone box": {"uncontested_lone_candidate": False},
+    # the uncontested lone box only inside the predicted box itself, not grown by the prior's uncertainty
+    "followbus w/o the prior's doubt around a lone box": {"uncontested_within_prior_std": False},
     # Eq. 3's ω as the seed has it when colours tie (geometry does not decide between look-alikes)
     "followbus w/o geometry deciding colour ties": {"colour_ties_to_geometry": False},
     # the coasting box output or withheld by the prediction's uncertainty alone, whatever its colours say

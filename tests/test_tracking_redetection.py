@@ -278,6 +278,27 @@ def test_a_lone_uncontested_box_where_the_target_is_predicted_is_taken_whatever_
         assert reid.state is (TrackState.TRACKING if uncontested else TrackState.OCCLUDED)
 
 
+def test_a_lone_box_just_past_the_predicted_box_is_uncontested_within_the_priors_doubt() -> None:
+    """A small person moving fast, seen first without a velocity: on the next frame their box is centred past the
+    predicted box, within one standard deviation of the prior's centre."""
+    target = (300.0, 100.0, 30.0, 26.0)
+    for within_std in (True, False):
+        reid = ReIdentifier(ReidParams(learned_appearance=False, uncontested_within_prior_std=within_std))
+        template = reid.step(_frame((target, (0, 0, 200))), np.array([[*target, 0.9]], np.float32), None, None, 0,
+                             init_box=target).candidate_hist
+        moved = (300.0, 84.0, 30.0, 26.0)  # 16 px up: past the predicted box's half height (13), within 13 + 10
+        frame = _frame((moved, (200, 120, 0)))
+        frame[84:94, 300:330] = (0, 0, 200)  # a little of the template's red: M_fuse under T_reid
+        res = reid.step(frame, np.array([[*moved, 0.9]], np.float32), prior_at(target, std_px=10.0), template, 33 * MS)
+        assert res.accepted == within_std, res.m_fuse
+        # Farther than the doubt too: never taken this way.
+        far = (300.0, 70.0, 30.0, 26.0)  # 30 px up: past 13 + 10
+        frame = _frame((far, (200, 120, 0)))
+        frame[70:80, 300:330] = (0, 0, 200)
+        res = reid.step(frame, np.array([[*far, 0.9]], np.float32), prior_at(target, std_px=10.0), template, 66 * MS)
+        assert not res.accepted
+
+
 # --------------------------------------------------------------------------- missed re-acquisitions
 
 

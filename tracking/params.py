@@ -228,6 +228,11 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # no other detection has shared the gate for identity_veto_after_crowd_frames, is accepted below T_reid: the
     # target alone, whose colours changed (reid.ReIdentifier._uncontested). False: T_reid decides.
     uncontested_lone_candidate: bool = True
+    # ... the predicted box grown by one standard deviation of the prior's centre on each axis (to twice its size
+    # at most): where the prediction puts the person, as sure as it is. A small person moving fast (a skier 26 px
+    # tall moving 9 px a frame, seen first with no velocity) leaves the predicted box itself within two frames.
+    # False: the predicted box alone.
+    uncontested_within_prior_std: bool = True
     reacquire_frames: int = 5
     reacquire_window_frames: int = 10
     reacquire_max_step_heights: float = 0.5

@@ -441,10 +441,11 @@ class ReIdentifier:
         return _Match(candidates, best, accepted, c_t, omega)
 
     def _uncontested(self, candidates: list[Candidate], best: Candidate, prior: Prior) -> bool:
-        """A lone detector box centred inside the predicted box, with nobody else near it: the target, whatever its
-        colours now say (it turned, the light changed, spray hides it). ByteTrack's caution, widened to the coast:
-        only while the prediction still locates the person (matched on the last frame, or OCCLUDED with a prior that
-        still locates them, Prior.locates_person); and only while no other detection has shared the gate for
+        """A lone detector box centred inside the predicted box (grown by the prior centre's standard deviation, to
+        twice its size at most), with nobody else near it: the target, whatever its colours now say (it turned, the
+        light changed, spray hides it). ByteTrack's caution, widened to the coast: only while the prediction still
+        locates the person (matched on the last frame, or OCCLUDED with a prior that still locates them,
+        Prior.locates_person); and only while no other detection has shared the gate for
         identity_veto_after_crowd_frames (an occluder walking in front is such a detection before it hides the
         target)."""
         p = self.params
@@ -454,9 +455,17 @@ class ReIdentifier:
             return False
         detections = [c for c in candidates if c.source in DETECTOR_SOURCES]
         alone = self._frames_since_crowd is None or self._frames_since_crowd > p.identity_veto_after_crowd_frames
-        (cx, cy), (px, py) = box_centre(best.located), prior.centre
-        inside = abs(cx - px) <= prior.size[0] / 2.0 and abs(cy - py) <= prior.size[1] / 2.0
-        return detections == [best] and alone and inside
+        return detections == [best] and alone and self._where_predicted(best.located, prior)
+
+    def _where_predicted(self, box: Box, prior: Prior) -> bool:
+        """Whether ``box`` is centred inside the predicted box, grown by the prior centre's standard deviation on
+        each axis (uncontested_within_prior_std) to twice its size at most: a prior that unsure no longer says where
+        the person is."""
+        (cx, cy), (px, py) = box_centre(box), prior.centre
+        half_w, half_h = prior.size[0] / 2.0, prior.size[1] / 2.0
+        sx, sy = (min(math.sqrt(max(float(prior.covariance[i, i]), 0.0)), half)
+                  if self.params.uncontested_within_prior_std else 0.0 for i, half in ((0, half_w), (1, half_h)))
+        return abs(cx - px) <= half_w + sx and abs(cy - py) <= half_h + sy
 
     def _second_stage(self, frame_bgr: np.ndarray, low_detections: np.ndarray | None, prior: Prior,
                       template_hist: np.ndarray, first: _Match) -> _Match:
