@@ -68,6 +68,10 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     # a person seen beside the target never re-acquired on evidence, even after their track went through a merge
     # (two people in one box) and may have resumed on the target's own box
     "followbus w/o unsure bystanders after a merge": {"unsure_bystanders_after_merge": False},
+    # re-acquisition evidence counted only where M_fuse alone makes the best clear, never the classifier
+    "followbus w/o the classifier breaking evidence ties": {"reacquire_classifier_breaks_ties": False},
+    # T_reid from the frame after a re-acquisition on evidence, whatever the evidence followed
+    "followbus w/o holding a re-acquisition on evidence": {"reacquire_hold_on_evidence": False},
     # a merged view trimmed for as long as it lasts, even alone in the gate for over 0.5 s (a turn, a changed pose)
     "followbus w/o settling a lasting merged view": {"merged_view_own_extent": False},
     # what the camera-motion estimate knows it does not know, one part at a time (each switch goes to the node that

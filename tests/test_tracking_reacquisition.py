@@ -203,3 +203,68 @@ def test_without_unsure_bystanders_the_target_taken_for_one_is_never_reacquired(
         frame = _frame_with([(red, (0, 0, 200))], legs=(200, 0, 0))
         assert not reid.step(frame, np.array([[*red, 0.9]], np.float32), far_prior, template, t).accepted
         t += 33_000_000
+
+
+def test_just_reacquired_on_evidence_the_person_it_followed_is_held_under_t_reid():
+    """The frame after a re-acquisition on evidence the prior has one measurement: the returning target's next box,
+    still under T_reid, is taken while it continues the person the evidence followed; without the hold it is not."""
+    for hold in (True, False):
+        params = ReidParams(learned_appearance=False, reacquire_frames=4, reacquire_hold_on_evidence=hold)
+        reid, template = _reid_lost_in_a_wide_gate(params)
+        far_prior = _prior((60.0, 200.0, 40.0, 100.0), 400.0)
+        results = []
+        for k in range(params.reacquire_frames + 1):
+            red, grey = (300.0 + 5 * k, 150.0, 40.0, 100.0), (520.0 + 5 * k, 200.0, 40.0, 100.0)
+            frame = _frame_with([(red, (0, 0, 200)), (grey, (60, 60, 60))], legs=(200, 0, 0))
+            results.append(reid.step(frame, np.array([[*red, 0.9], [*grey, 0.9]], np.float32), far_prior, template,
+                                     (8 + k) * 33_000_000))
+        assert results[-2].accepted  # re-acquired on evidence
+        assert results[-1].accepted == hold
+        if hold:
+            assert box_tuple(results[-1].box) == red
+
+
+def test_the_classifier_makes_the_best_clear_where_colours_tie():
+    """Two people in the target's colours come back far from the prior, within identity_margin of each other in
+    M_fuse: evidence is never clear on colour alone. The classifier, trained on the target and on the other one
+    (real OSNet descriptors of these crops), tells them apart: the target is re-acquired."""
+    from followbus.tracking.learned_appearance import load_embedder
+
+    if load_embedder() is None:
+        raise AssertionError("models/osnet_x0_25_msmt17.onnx ships with the repository")
+    for breaks_ties in (True, False):
+        params = ReidParams(reacquire_frames=4, reacquire_classifier_breaks_ties=breaks_ties)
+        reid = ReIdentifier(params)
+        red = (60.0, 200.0, 40.0, 100.0)
+        frame = _frame_with([(red, (0, 0, 200))])
+        template = reid.step(frame, np.array([[*red, 0.9]], np.float32), None, None, 0, init_box=red).candidate_hist
+        for k in range(1, 4):  # tracked alone: nobody seen beside it (no bystander)
+            assert reid.step(frame, np.array([[*red, 0.9]], np.float32), _prior(red, 10.0), template,
+                             k * 33_000_000).accepted
+        for k in range(4, 7):  # then hidden
+            reid.step(frame, np.zeros((0, 5), np.float32), _prior(red, 10.0), template, k * 33_000_000)
+        far_prior = _prior(red, 400.0)
+
+        def scene(k: int) -> tuple[np.ndarray, tuple[float, ...], tuple[float, ...]]:
+            target, other = (200.0 + 5 * k, 150.0, 40.0, 100.0), (420.0 + 5 * k, 150.0, 40.0, 100.0)
+            # Both in the target's red with other (blue) legs now: S_color ~0.7, M_fuse under T_reid, a tie.
+            frame = _frame_with([(target, (0, 0, 200)), (other, (0, 0, 200))], legs=(200, 0, 0))
+            frame[200:250, int(other[0]):int(other[0] + 40)] = (200, 0, 0)
+            frame[160:170, int(target[0]):int(target[0] + 40)] = (0, 200, 200)  # the target's yellow cap
+            frame[160:170, int(other[0]):int(other[0] + 40)] = (200, 200, 0)  # the other one's cyan cap
+            return frame, target, other
+
+        frame, target, other = scene(0)
+        embs = reid._embed(frame, [target, other])
+        reid.identity.reset()
+        for _ in range(5):
+            reid.identity.add(embs[0], embs[1:])
+        accepted = None
+        for k in range(8):
+            frame, target, other = scene(k)
+            result = reid.step(frame, np.array([[*target, 0.9], [*other, 0.9]], np.float32), far_prior, template,
+                               (8 + k) * 33_000_000)
+            if result.accepted:
+                accepted = box_tuple(result.box)
+                break
+        assert accepted == (target if breaks_ties else None)

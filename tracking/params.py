@@ -241,6 +241,14 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # needs twice reacquire_frames within twice reacquire_window_frames, and blocks no one else's evidence. False: a
     # bystander's track stays sure whatever it went through.
     unsure_bystanders_after_merge: bool = True
+    # Where other people come within identity_margin of the best in M_fuse (colour alone decides far from the prior:
+    # S_geo is 0), the classifier may still tell the best apart: δ_switch or more, ahead of each of them by
+    # identity_margin (seed 001). False: M_fuse alone says which candidate is clear.
+    reacquire_classifier_breaks_ties: bool = True
+    # Just re-acquired on evidence, the prior has one measurement and no velocity: a frame whose best falls under
+    # T_reid still takes it while it is the clear best and continues the person the evidence followed, until the
+    # state is TRACKING (reacquired_hold_frames). False: T_reid from the next frame on.
+    reacquire_hold_on_evidence: bool = True
     # While TRACKING, colour + geometry's choice stands when the classifier scores every contender below δ_switch,
     # and a lone contender is not even scored. Both fail in a crossing or a group: the target hides behind another
     # person of the same colours, the detector drops or merges it, and the lone (or best) detection in the gate is

@@ -339,6 +339,7 @@ class ReIdentifier:
         self._frame_bystanders: list[bool] = []
         self.candidates: list[Candidate] = []  # the last frame's scored candidates (step)
         self._lone_merged_frames = 0  # accepted frames on end whose box was a merged view with no one else gated
+        self._evidence_hold = False  # re-acquired on evidence and REACQUIRED since: see _reacquire_on_evidence
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
              template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None,
@@ -488,27 +489,46 @@ class ReIdentifier:
 
     def _reacquire_on_evidence(self, frame_bgr: np.ndarray, match: _Match) -> _Match:
         """While OCCLUDED or LOST, count the frames on which one detection is the clear best candidate
-        (tracking/reacquisition.py) and re-acquire it once they are enough; any accepted match ends the count."""
+        (tracking/reacquisition.py) and re-acquire it once they are enough; any accepted match ends the count. Just
+        re-acquired that way (REACQUIRED), a frame whose best is refused still takes it if it is the clear best and
+        continues the person the evidence followed (reacquire_hold_on_evidence): the prior has one measurement and no
+        velocity yet, and a moving person's next box falls just under T_reid."""
         p = self.params
-        if match.accepted or self.state not in (TrackState.OCCLUDED, TrackState.LOST):
+        holding = p.reacquire_hold_on_evidence and self.state is TrackState.REACQUIRED and self._evidence_hold
+        if match.accepted or (self.state not in (TrackState.OCCLUDED, TrackState.LOST) and not holding):
             self._evidence.reset()
+            self._evidence_hold = False
             return match
-        best = self._clear_best(match) if p.reacquire_on_evidence else None
+        best = self._clear_best(frame_bgr, match) if p.reacquire_on_evidence else None
         if best is None:
             return match
         if self._rejected_by_classifier(frame_bgr, best):
             self._evidence.reset()  # whoever the evidence was on, this frame's best is someone else
             return match
+        if holding:
+            return self._hold_on_evidence(match, best)
         if self._evidence.observe(best.located, self._frame, 2 if self._bystander(best.box, unsure=True) else 1):
+            self._evidence_hold = True
             logger.info("re-acquired on %d frames of evidence at %s", self._evidence.count,
                         tuple(round(v, 1) for v in best.located))
             return dataclasses.replace(match, best=best, accepted=True)
         return match
 
-    def _clear_best(self, match: _Match) -> Candidate | None:
+    def _hold_on_evidence(self, match: _Match, best: Candidate) -> _Match:
+        """Accept ``best`` if it continues the person the evidence followed; else the hold ends."""
+        person = self._evidence.person
+        if person is not None and person.continues(best.located, self._frame, self._evidence.max_step_heights):
+            self._evidence.observe(best.located, self._frame)
+            return dataclasses.replace(match, best=best, accepted=True)
+        self._evidence.reset()
+        self._evidence_hold = False
+        return match
+
+    def _clear_best(self, frame_bgr: np.ndarray, match: _Match) -> Candidate | None:
         """The frame's best plausible detection (none of the people seen beside the target, BystanderTracks, but for
         an unsure one) when it has the target's colours (S_color >= τ_occ) and leads every other detection that is no
-        bystander by identity_margin in M_fuse; else None."""
+        bystander by identity_margin in M_fuse, or, failing that, in the classifier's score
+        (reacquire_classifier_breaks_ties); else None."""
         p = self.params
         detections = [c for c in match.candidates if c.source in DETECTOR_SOURCES]
         plausible = [c for c in detections if not self._bystander(c.box) or self._bystander(c.box, unsure=True)]
@@ -517,10 +537,23 @@ class ReIdentifier:
         best = max(plausible, key=lambda c: c.m_fuse)
         if best.s_color < p.tau_occ:
             return None
-        if any(c is not best and c.m_fuse > best.m_fuse - p.identity_margin and not self._bystander(c.box)
-               for c in detections):
+        close = [c for c in detections
+                 if c is not best and c.m_fuse > best.m_fuse - p.identity_margin and not self._bystander(c.box)]
+        if close and not (p.reacquire_classifier_breaks_ties and self._classifier_prefers(frame_bgr, best, close)):
             return None
         return best
+
+    def _classifier_prefers(self, frame_bgr: np.ndarray, best: Candidate, close: list[Candidate]) -> bool:
+        """Whether the classifier, when it has learnt the target, scores ``best`` δ_switch or more and ahead of each
+        of ``close`` by identity_margin (seed 001: it decides where colour and geometry do not)."""
+        p = self.params
+        if not (p.learned_appearance and self.identity.ready):
+            return False
+        embs = self._embed(frame_bgr, [best.box] + [c.box for c in close])
+        if embs is None or len(embs) != 1 + len(close):
+            return False
+        scores = self.identity.score(embs)
+        return float(scores[0]) >= p.delta_switch and float(scores[0]) - float(np.max(scores[1:])) >= p.identity_margin
 
     def _bystander(self, box: Box, unsure: bool = False) -> bool:
         """Whether ``box`` is one of this frame's detections that continues a bystander track (``unsure``: one that
