@@ -499,10 +499,10 @@ class ReIdentifier:
             self._evidence.reset()
             self._evidence_hold = False
             return match
-        best = self._clear_best(frame_bgr, match) if p.reacquire_on_evidence else None
+        best, vetted = self._clear_best(frame_bgr, match) if p.reacquire_on_evidence else (None, False)
         if best is None:
             return match
-        if self._rejected_by_classifier(frame_bgr, best):
+        if not vetted and self._rejected_by_classifier(frame_bgr, best):
             self._evidence.reset()  # whoever the evidence was on, this frame's best is someone else
             return match
         if holding:
@@ -524,24 +524,27 @@ class ReIdentifier:
         self._evidence_hold = False
         return match
 
-    def _clear_best(self, frame_bgr: np.ndarray, match: _Match) -> Candidate | None:
+    def _clear_best(self, frame_bgr: np.ndarray, match: _Match) -> tuple[Candidate | None, bool]:
         """The frame's best plausible detection (none of the people seen beside the target, BystanderTracks, but for
         an unsure one) when it has the target's colours (S_color >= τ_occ) and leads every other detection that is no
         bystander by identity_margin in M_fuse, or, failing that, in the classifier's score
-        (reacquire_classifier_breaks_ties); else None."""
+        (reacquire_classifier_breaks_ties); else None. And whether the classifier already scored it δ_switch or more
+        (no need to ask it again)."""
         p = self.params
         detections = [c for c in match.candidates if c.source in DETECTOR_SOURCES]
         plausible = [c for c in detections if not self._bystander(c.box) or self._bystander(c.box, unsure=True)]
         if not plausible:
-            return None
+            return None, False
         best = max(plausible, key=lambda c: c.m_fuse)
         if best.s_color < p.tau_occ:
-            return None
+            return None, False
         close = [c for c in detections
                  if c is not best and c.m_fuse > best.m_fuse - p.identity_margin and not self._bystander(c.box)]
-        if close and not (p.reacquire_classifier_breaks_ties and self._classifier_prefers(frame_bgr, best, close)):
-            return None
-        return best
+        if not close:
+            return best, False
+        if p.reacquire_classifier_breaks_ties and self._classifier_prefers(frame_bgr, best, close):
+            return best, True
+        return None, False
 
     def _classifier_prefers(self, frame_bgr: np.ndarray, best: Candidate, close: list[Candidate]) -> bool:
         """Whether the classifier, when it has learnt the target, scores ``best`` δ_switch or more and ahead of each
