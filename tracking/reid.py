@@ -550,12 +550,9 @@ class ReIdentifier:
         """Whether the classifier, when it has learnt the target, scores ``best`` δ_switch or more and ahead of each
         of ``close`` by identity_margin (seed 001: it decides where colour and geometry do not)."""
         p = self.params
-        if not (p.learned_appearance and self.identity.ready):
+        scores = self._identity_scores(frame_bgr, [best.box] + [c.box for c in close])
+        if scores is None or len(scores) != 1 + len(close):
             return False
-        embs = self._embed(frame_bgr, [best.box] + [c.box for c in close])
-        if embs is None or len(embs) != 1 + len(close):
-            return False
-        scores = self.identity.score(embs)
         return float(scores[0]) >= p.delta_switch and float(scores[0]) - float(np.max(scores[1:])) >= p.identity_margin
 
     def _bystander(self, box: Box, unsure: bool = False) -> bool:
@@ -566,13 +563,16 @@ class ReIdentifier:
 
     def _rejected_by_classifier(self, frame_bgr: np.ndarray, candidate: Candidate) -> bool:
         """The classifier, when it has learnt the target, takes ``candidate`` for someone else (below δ_switch)."""
-        p = self.params
-        if not (p.learned_appearance and self.identity.ready):
-            return False
-        embs = self._embed(frame_bgr, [candidate.box])
-        if embs is None or not len(embs):
-            return False
-        return float(self.identity.score(embs)[0]) < p.delta_switch
+        scores = self._identity_scores(frame_bgr, [candidate.box])
+        return scores is not None and float(scores[0]) < self.params.delta_switch
+
+    def _identity_scores(self, frame_bgr: np.ndarray, boxes: list[Box]) -> np.ndarray | None:
+        """The classifier's scores of ``boxes`` (the first identity_max_crops), or None when it has no say: off, not
+        trained on the target and someone else yet, or no descriptor."""
+        if not (self.params.learned_appearance and self.identity.ready):
+            return None
+        embs = self._embed(frame_bgr, boxes)
+        return self.identity.score(embs) if embs is not None and len(embs) else None
 
     def _background_still(self, prev_grey: np.ndarray | None, grey: np.ndarray) -> bool:
         """Alg. 1 line 2's background subtraction presumes a still background: see
@@ -710,17 +710,14 @@ class ReIdentifier:
         when it has no say: not ready or off, a lone contender while tracking outside a crowd's aftermath, no
         descriptor. Notes a crowd the classifier told apart (its choice among several at δ_id or more)."""
         p = self.params
-        if not (p.learned_appearance and self.identity.ready):
-            return None
         contenders = sorted((c for c in candidates if c.m_fuse > p.reid_threshold
                              and c.m_fuse >= best.m_fuse - p.identity_margin), key=lambda c: -c.m_fuse)
         lone_check = len(contenders) < 2 and not relock
         if lone_check and not self._crowded_recently():  # a lone contender is scored only just after a crowd
             return None
-        embs = self._embed(frame_bgr, [c.box for c in contenders])
-        if embs is None or not len(embs):
+        scores = self._identity_scores(frame_bgr, [c.box for c in contenders])
+        if scores is None:
             return None
-        scores = self.identity.score(embs)
         self.identity_decisions += 1
         if not relock and not lone_check and scores[int(np.argmax(scores))] >= p.delta_id:
             self._crowd_told_apart = True
