@@ -46,10 +46,15 @@ class PersonTrack:
         height = max(float(self.box[3]), 1.0)
         if not 1 / 1.5 <= float(box[3]) / height <= 1.5:
             return False
-        (cx, cy), (px, py) = box_centre(box), box_centre(self.box)
-        px, py = px + self.velocity[0] * gap, py + self.velocity[1] * gap
+        (cx, cy), (px, py) = box_centre(box), self.carried_to(frame)
         tolerance = max_step_heights * height * gap * (1.0 if self.moved else 2.0)
         return math.hypot(cx - px, cy - py) <= tolerance
+
+    def carried_to(self, frame: int) -> tuple[float, float]:
+        """Where the velocity carries the last box's centre by ``frame`` (at least one frame on)."""
+        gap = max(frame - self.frame, 1)
+        cx, cy = box_centre(self.box)
+        return cx + self.velocity[0] * gap, cy + self.velocity[1] * gap
 
     def moved_to(self, box: Box, frame: int) -> PersonTrack:
         gap = max(frame - self.frame, 1)
@@ -59,9 +64,7 @@ class PersonTrack:
     def merged_into(self, boxes: list[Box], frame: int) -> bool:
         """Whether one of ``boxes`` covers where the velocity carries this person on ``frame`` and is too tall to be
         them alone (over 1.5 times their height, which :meth:`continues` refuses): two people in one box."""
-        gap = max(frame - self.frame, 1)
-        cx, cy = box_centre(self.box)
-        cx, cy = cx + self.velocity[0] * gap, cy + self.velocity[1] * gap
+        cx, cy = self.carried_to(frame)
         height = max(float(self.box[3]), 1.0)
         return any(b[0] <= cx <= b[0] + b[2] and b[1] <= cy <= b[1] + b[3] and float(b[3]) > 1.5 * height
                    for b in boxes)
