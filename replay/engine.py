@@ -29,8 +29,9 @@ log = logging.getLogger("followbus.replay")
 
 MAX_REPORTED = 1000  # mismatch details kept in the report (the count is always exact)
 # After a frame the recording lacks inputs of, the nodes' outputs may differ for a while (re-ID compares each frame
-# with the previous one; the filter took that frame's measurement): differences are forgiven for this many frames,
-# on each output until it matches again. A second at 30 Hz; what still differs after it is a mismatch.
+# with the previous one; the filter took that frame's measurement): differences are forgiven for this many frames.
+# An output that matches once may differ again inside them: re-ID's re-acquisition evidence spans 20 frames, so one
+# frame fewer of it moves a state change a frame later. A second at 30 Hz; what differs after it is a mismatch.
 RESYNC_FRAMES = 30
 
 
@@ -173,8 +174,6 @@ class Replayer:
             for data in items:
                 by_frame[(topic, frame_and_stamp(data)[0])].append(data)
         gaps = sorted(incomplete)
-        resync: dict[str, int] = {}  # topic -> last frame of its open re-convergence window (-1: none open)
-        opened: dict[str, int] = {}  # topic -> the gap whose window it opened last
         for (topic, fs), recorded in sorted(expected.items()):
             if fs < 0 and topic in self.plan.timer_topics:
                 self.report.timer_outputs += len(recorded)
@@ -182,13 +181,9 @@ class Replayer:
             if self.opts.max_frames and fs not in done_frames:  # beyond --max-frames
                 continue
             before = bisect.bisect_right(gaps, fs)
-            gap = gaps[before - 1] if before else None  # the latest gap at or before this frame
-            if gap is not None and gap + RESYNC_FRAMES >= fs and opened.get(topic, -1) < gap:
-                resync[topic], opened[topic] = gap + RESYNC_FRAMES, gap  # a gap new to this output opens its window
-            forgive = "incomplete" if fs in incomplete else "after_gap" if resync.get(topic, -1) >= fs else ""
-            matched = self._compare_frame(topic, fs, recorded, by_frame.get((topic, fs), []), forgive)
-            if matched and fs not in incomplete:
-                resync[topic] = -1  # matched again: later differences are mismatches
+            re_converging = bool(before) and fs <= gaps[before - 1] + RESYNC_FRAMES  # the latest gap is recent
+            forgive = "incomplete" if fs in incomplete else "after_gap" if re_converging else ""
+            self._compare_frame(topic, fs, recorded, by_frame.get((topic, fs), []), forgive)
         self._list_extra(expected, by_frame)
 
     def _compare_frame(self, topic: str, fs: int, recorded: list[bytes], replayed: list[bytes],

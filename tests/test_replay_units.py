@@ -118,9 +118,10 @@ def test_a_replay_keeps_off_the_live_graphs_state_file(tmp_path):
     assert given.params["template"]["state_file"] == "mine.npz"
 
 
-def test_differences_after_a_gap_are_forgiven_until_the_output_matches_again():
+def test_differences_after_a_gap_are_forgiven_for_resync_frames():
     """A frame the recording lacks inputs of (frame 10) also shapes the next ones: differences there count as
-    re-converging, not as mismatches, but only until the output matches once, and only for RESYNC_FRAMES."""
+    re-converging, not as mismatches, for RESYNC_FRAMES, also after an output that matched (a CI run: re-ID's
+    evidence window, one frame short, moved REACQUIRED -> TRACKING a frame later, after matching states)."""
     from types import SimpleNamespace
 
     from followbus.bus.schemas import encode
@@ -131,7 +132,7 @@ def test_differences_after_a_gap_are_forgiven_until_the_output_matches_again():
         return encode(_stamped(Measurement(state="TRACKING", accepted=accepted), k))
 
     topic = "reid/measurement"
-    differs = {11, 13, 10 + RESYNC_FRAMES + 5}  # 11: re-converging; 13: after a match; the last: past the window
+    differs = {11, 13, 10 + RESYNC_FRAMES + 5}  # 11: re-converging; 13: after a match, still; the last: past it
     expected = {(topic, k): [measurement(k, True)] for k in range(10, 10 + RESYNC_FRAMES + 10)}
     produced = {topic: [measurement(k, k not in differs) for k in range(11, 10 + RESYNC_FRAMES + 10)]}
     replayer = Replayer.__new__(Replayer)
@@ -140,8 +141,8 @@ def test_differences_after_a_gap_are_forgiven_until_the_output_matches_again():
     replayer.report = ReplayReport(file="-", node="reid")
     replayer._compare(expected, produced, set(), incomplete={10})
     report = replayer.report
-    assert report.unverifiable == 1 and report.after_gap == 1  # frame 10 itself, then frame 11
-    assert report.mismatch_count == 2 and {m["frame_seq"] for m in report.mismatches} == differs - {11}
+    assert report.unverifiable == 1 and report.after_gap == 2  # frame 10 itself, then frames 11 and 13
+    assert report.mismatch_count == 1 and {m["frame_seq"] for m in report.mismatches} == {10 + RESYNC_FRAMES + 5}
 
 
 def test_a_node_sampling_odometry_by_stamp_replays_the_sample_it_took_live(tmp_path):

@@ -83,7 +83,7 @@ def _print_notes(report: ReplayReport) -> None:
               "could not handle (an input missing from the recording)")
     if report.after_gap:
         print(f"re-converging: {report.after_gap} outputs differed within {RESYNC_FRAMES} frames after a frame the "
-              "recording lacks inputs of, before matching again (the node's state missed that frame); not failures")
+              "recording lacks inputs of (the node's state missed that frame); not failures")
     if report.hints:
         print(f"live fallbacks reproduced: {report.hints} frames skipped or joined older feedback live "
               "(a late feedback, a skipped backlog), and were replayed the same way")
