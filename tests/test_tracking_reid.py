@@ -329,6 +329,32 @@ def test_after_a_prediction_restart_reid_reinitialises_where_its_target_just_was
     assert box_tuple(res.box) == moved and res.source == "last"
 
 
+
+@pytest.mark.parametrize("only_on_the_target", [True, False])
+def test_a_reinitialisation_waits_for_the_target_it_follows(only_on_the_target: bool) -> None:
+    """Prediction reset mid-run (a flood of frames made the stamps go back): no prior, the target hidden, a passer-by
+    nearer the image bottom-centre. A re-ID that followed the target and has its template waits for it (LOST, the
+    motor holds still) instead of starting to follow the passer-by, and re-locks when the target shows again away
+    from where it was lost. A re-ID that never followed anyone still starts on the nearest person (§2.1)."""
+    params = ReidParams(lost_after_ms=500.0, reinitialise_only_on_the_target=only_on_the_target)
+    template = hs_histogram(draw((TARGET, RED)), TARGET)
+    passer = (145.0, 175.0, 30.0, 60.0)
+    reid = ReIdentifier(params)
+    assert reid.step(draw((TARGET, RED)), dets(TARGET), None, template, 0, init_box=TARGET).accepted
+    for t_ms in range(33, 700, 33):  # the target hidden: its last box goes stale
+        reid.step(draw(), dets(), None, template, t_ms * MS)
+    res = reid.step(draw((passer, BLUE)), dets(passer), None, template, 700 * MS)
+    if not only_on_the_target:
+        assert res.accepted and box_tuple(res.box) == passer
+        return
+    assert not res.accepted and res.state == TrackState.LOST
+    back = (60.0, 40.0, 30.0, 60.0)  # the target again, away from its last box
+    res = reid.step(draw((back, RED), (passer, BLUE)), dets(back, passer), None, template, 733 * MS)
+    assert res.accepted and box_tuple(res.box) == back and res.source == "template"
+    # Starting up, with a template restored from an earlier run: the §2.1 rule as before.
+    fresh = ReIdentifier(params).step(draw((passer, BLUE)), dets(passer), None, template, 0)
+    assert box_tuple(fresh.box) == passer and fresh.source == "init"
+
 def test_adaptive_gate_grows_for_fast_or_weakly_detected_targets() -> None:
     """Seed 002 §3.2: k = 1 for a slow target last seen on a confident detection, up to 1.5 (the gate's χ²
     × 2.25) when it moves fast in the image or its last detection was weak; a candidate just outside the base

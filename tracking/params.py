@@ -165,6 +165,10 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # IoU 0.5): without that caution a stranger's weak box in the gate of an occluded target is taken for it.
     low_score_stage: bool = True
     low_score_min_iou: float = 0.5
+    # A re-initialisation of a target this re-ID has followed (a prediction reset or restart) takes the detection
+    # matching its template or lying where it just was, else waits (LOST); never the person nearest the image
+    # bottom-centre, the start-up rule (ReIdentifier._follows_someone).
+    reinitialise_only_on_the_target: bool = True
     # Partial views (reid.complete_partial_view): a detector box under partial_max_extent_ratio of the predicted
     # height, its top or bottom within partial_edge_tolerance (of the predicted height) of the prediction's and
     # the other edge short of it, is the visible part of the target: it is scored, measured and output as the

@@ -340,6 +340,7 @@ class ReIdentifier:
         self.candidates: list[Candidate] = []  # the last frame's scored candidates (step)
         self._lone_merged_frames = 0  # accepted frames on end whose box was a merged view with no one else gated
         self._evidence_hold = False  # re-acquired on evidence and REACQUIRED since: see _reacquire_on_evidence
+        self._waiting = False  # re-initialising, and waiting for the target it follows (_wait_for_target)
 
     def step(self, frame_bgr: np.ndarray, detections: np.ndarray | None, prior: Prior | None,
              template_hist: np.ndarray | None, t_ns: int, init_box: Sequence[float] | None = None,
@@ -806,6 +807,8 @@ class ReIdentifier:
                 and max(box_iou(b, last) for b in boxes) > 0.0:
             # Not the nearest-to-bottom person (a passer-by may be nearer): the one where the target just was.
             box, source = max(boxes, key=lambda b: box_iou(b, last)), "last"
+        elif self._follows_someone(template_hist):
+            return self._wait_for_target(t_ns)
         elif boxes:
             box = nearest_to_centre_bottom(np.array(boxes), width, height)
         elif prev_grey is not None:
@@ -814,6 +817,7 @@ class ReIdentifier:
         if box is None:
             self.state = TrackState.UNINITIALISED
             return measurement(t_ns, self.state)
+        self._waiting = False
         self._last_score = None
         if source == "init":  # a new target: what the classifier learnt was someone else
             self.identity.reset()
@@ -826,6 +830,23 @@ class ReIdentifier:
         logger.info("target initialised at %s (%s)", tuple(round(v, 1) for v in box), source)
         chosen = Candidate(box, source, hist=hs_histogram(frame_bgr, box, p.bins_h, p.bins_s))
         return measurement(t_ns, self.state, chosen, accepted=True, init_box=box)
+
+    def _follows_someone(self, template_hist: np.ndarray | None) -> bool:
+        """This re-ID has followed a target and has its template: a re-initialisation (prediction reset or
+        restarted) is about that person. The §2.1 start-up rules (the person nearest the image bottom-centre, a
+        motion blob) choose a stranger then: once, after a flood of frames reset prediction at a load of 14,
+        re-ID re-initialised on whoever stood nearest and the robot followed them (RELIABILITY.md)."""
+        return self.params.reinitialise_only_on_the_target and template_hist is not None \
+            and self._last_box is not None
+
+    def _wait_for_target(self, t_ns: int) -> Measurement:
+        """LOST until a detection matches the template or lies where the target just was: the motor holds still."""
+        if not self._waiting:
+            logger.warning("re-initialising: no detection looks like the target or lies where it just was; "
+                           "waiting for it instead of taking whoever is nearest")
+        self._waiting = True
+        self.state = TrackState.LOST
+        return measurement(t_ns, self.state)
 
     def _recent_last_box(self, t_ns: int) -> Box | None:
         """The last accepted box, if accepted within lost_after_ms of the frames this re-ID was shown: a gap in
