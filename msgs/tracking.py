@@ -123,8 +123,9 @@ class Measurement(Message):
     box: np.ndarray | None = None  # the accepted box (Alg. 1 line 11)
     best_box: np.ndarray | None = None  # argmax M_fuse, even when rejected
     # Where the chosen box came from: "detection", "redetection", "low-score" or "motion"; on an initialisation frame
-    # "init" (a new target: the template restarts from it), "template" (the detection matching a kept template),
-    # "prior" (the gated detection nearest a kept prior) or "last" (the detection on re-ID's last accepted box).
+    # "init" (a new target, the given box or a motion blob: the template restarts from it), "nearest" (a new target:
+    # the detection nearest the image bottom-centre), "template" (the detection matching a kept template), "prior"
+    # (the gated detection nearest a kept prior) or "last" (the detection on re-ID's last accepted box).
     source: str = ""
     m_fuse: float = 0.0
     s_color: float = 0.0

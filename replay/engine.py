@@ -30,8 +30,9 @@ log = logging.getLogger("followbus.replay")
 MAX_REPORTED = 1000  # mismatch details kept in the report (the count is always exact)
 # After a frame the recording lacks inputs of, the nodes' outputs may differ for a while (re-ID compares each frame
 # with the previous one; the filter took that frame's measurement): differences are forgiven for this many frames.
-# An output that matches once may differ again inside them: re-ID's re-acquisition evidence spans 20 frames, so one
-# frame fewer of it moves a state change a frame later. A second at 30 Hz; what differs after it is a mismatch.
+# An output that matches once may differ again inside them: a node's state can carry the missing frame longer than
+# its outputs show (re-ID's re-acquisition evidence spans 20 frames). A second at 30 Hz; what differs after it is a
+# mismatch.
 RESYNC_FRAMES = 30
 
 

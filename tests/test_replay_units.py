@@ -121,7 +121,7 @@ def test_a_replay_keeps_off_the_live_graphs_state_file(tmp_path):
 def test_differences_after_a_gap_are_forgiven_for_resync_frames():
     """A frame the recording lacks inputs of (frame 10) also shapes the next ones: differences there count as
     re-converging, not as mismatches, for RESYNC_FRAMES, also after an output that matched (a CI run: re-ID's
-    evidence window, one frame short, moved REACQUIRED -> TRACKING a frame later, after matching states)."""
+    state, TRACKING live, was REACQUIRED in the replay a few frames after matching states)."""
     from types import SimpleNamespace
 
     from followbus.bus.schemas import encode

@@ -265,7 +265,7 @@ def test_restored_template_relocks_onto_matching_detection() -> None:
     assert box_tuple(res.init_box) == TARGET and res.source == "template"
     # Nobody matches the template: fall back to the §2.1 rule (nearest bottom-centre).
     res = ReIdentifier(params).step(draw((near, BLUE)), dets(near), None, template, 0)
-    assert box_tuple(res.init_box) == near and res.source == "init"
+    assert box_tuple(res.init_box) == near and res.source == "nearest"
 
 
 @pytest.mark.parametrize("global_search", [True, False])
@@ -329,7 +329,6 @@ def test_after_a_prediction_restart_reid_reinitialises_where_its_target_just_was
     assert box_tuple(res.box) == moved and res.source == "last"
 
 
-
 @pytest.mark.parametrize("only_on_the_target", [True, False])
 def test_a_reinitialisation_waits_for_the_target_it_follows(only_on_the_target: bool) -> None:
     """Prediction reset mid-run (a flood of frames made the stamps go back): no prior, the target hidden, a passer-by
@@ -353,7 +352,8 @@ def test_a_reinitialisation_waits_for_the_target_it_follows(only_on_the_target: 
     assert res.accepted and box_tuple(res.box) == back and res.source == "template"
     # Starting up, with a template restored from an earlier run: the §2.1 rule as before.
     fresh = ReIdentifier(params).step(draw((passer, BLUE)), dets(passer), None, template, 0)
-    assert box_tuple(fresh.box) == passer and fresh.source == "init"
+    assert box_tuple(fresh.box) == passer and fresh.source == "nearest"
+
 
 def test_adaptive_gate_grows_for_fast_or_weakly_detected_targets() -> None:
     """Seed 002 §3.2: k = 1 for a slow target last seen on a confident detection, up to 1.5 (the gate's χ²

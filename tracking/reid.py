@@ -167,7 +167,7 @@ def fuse(s_color: float, s_geo: float, omega: float) -> float:
 @dataclass
 class Candidate:
     """A box re-ID weighs for the target, with its scores once scored; the box an initialisation chose is one too
-    (source "init", "template", "prior" or "last", no scores)."""
+    (source "init", "template", "prior", "last" or "nearest", no scores)."""
 
     box: Box
     source: str  # "detection", "redetection" (seed 002 §3.2's region), "low-score" or "motion"
@@ -810,7 +810,7 @@ class ReIdentifier:
         elif self._follows_someone(template_hist):
             return self._wait_for_target(t_ns)
         elif boxes:
-            box = nearest_to_centre_bottom(np.array(boxes), width, height)
+            box, source = nearest_to_centre_bottom(np.array(boxes), width, height), "nearest"
         elif prev_grey is not None:
             blobs = motion_blobs(prev_grey, grey, p.diff_threshold, p.morph_kernel_px, p.min_blob_area_px)
             box = blobs[0][0] if blobs else None
@@ -819,7 +819,7 @@ class ReIdentifier:
             return measurement(t_ns, self.state)
         self._waiting = False
         self._last_score = None
-        if source == "init":  # a new target: what the classifier learnt was someone else
+        if source in ("init", "nearest"):  # a new target: what the classifier learnt was someone else
             self.identity.reset()
             self._secure_frames = 0
             self._frames_since_crowd, self._crowd_told_apart = None, False
@@ -833,9 +833,8 @@ class ReIdentifier:
 
     def _follows_someone(self, template_hist: np.ndarray | None) -> bool:
         """This re-ID has followed a target and has its template: a re-initialisation (prediction reset or
-        restarted) is about that person. The §2.1 start-up rules (the person nearest the image bottom-centre, a
-        motion blob) choose a stranger then: once, after a flood of frames reset prediction at a load of 14,
-        re-ID re-initialised on whoever stood nearest and the robot followed them (RELIABILITY.md)."""
+        restarted) is about that person, and the §2.1 start-up rules (the person nearest the image bottom-centre, a
+        motion blob) would choose whoever stands nearest instead."""
         return self.params.reinitialise_only_on_the_target and template_hist is not None \
             and self._last_box is not None
 
