@@ -40,7 +40,9 @@ from ..tracking.redetection import RegionBoxes
 from ..tracking.reid import ReIdentifier, measurement
 
 # init_box describes the target at the start of the source: a re-ID node (re)started later in the run, or
-# joining a capture that restarted long ago, re-acquires the target from its template instead.
+# joining a capture that restarted long ago, re-acquires the target from its template instead. A capture that
+# restarts (a new session) offers it again, and a re-ID that follows someone takes it only if the target stands
+# there (ReIdentifier._init_box_holds_the_target): after a live camera's restart a passer-by may.
 INIT_BOX_MAX_FRAME = 10
 
 

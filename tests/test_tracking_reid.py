@@ -355,6 +355,30 @@ def test_a_reinitialisation_waits_for_the_target_it_follows(only_on_the_target: 
     assert box_tuple(fresh.box) == passer and fresh.source == "nearest"
 
 
+@pytest.mark.parametrize("only_on_the_target", [True, False])
+def test_a_restarted_camera_takes_init_box_only_where_the_target_stands(only_on_the_target: bool) -> None:
+    """A live camera restarted mid-run with init_box set: the source starts again, so init_box is offered again,
+    but it says where the target stood when the run began. A re-ID that followed the target takes it only when
+    what stands there looks like the target; a passer-by there is not followed, the target is re-acquired by its
+    template where it now is. Where the target does stand at init_box (a scene or recording started again), it is
+    taken as before."""
+    params = ReidParams(reinitialise_only_on_the_target=only_on_the_target)
+    template = hs_histogram(draw((TARGET, RED)), TARGET)
+    reid = ReIdentifier(params)
+    assert reid.step(draw((TARGET, RED)), dets(TARGET), None, template, 0, init_box=TARGET).accepted
+    elsewhere = (220.0, 60.0, 30.0, 60.0)
+    res = reid.step(draw((TARGET, BLUE), (elsewhere, RED)), dets(TARGET, elsewhere), None, template, 33 * MS,
+                    init_box=TARGET)
+    if not only_on_the_target:
+        assert res.accepted and box_tuple(res.box) == TARGET and res.source == "init"
+        return
+    assert res.accepted and box_tuple(res.box) == elsewhere and res.source == "template"
+    res = reid.step(draw((TARGET, BLUE)), dets(TARGET), None, template, 66 * MS, init_box=TARGET)
+    assert not res.accepted and res.state == TrackState.LOST  # the target out of view: it waits
+    res = reid.step(draw((TARGET, RED)), dets(TARGET), None, template, 99 * MS, init_box=TARGET)
+    assert res.accepted and res.source == "init"  # the source started again with the target where it began
+
+
 def test_adaptive_gate_grows_for_fast_or_weakly_detected_targets() -> None:
     """Seed 002 §3.2: k = 1 for a slow target last seen on a confident detection, up to 1.5 (the gate's χ²
     × 2.25) when it moves fast in the image or its last detection was weak; a candidate just outside the base

@@ -167,7 +167,8 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     low_score_min_iou: float = 0.5
     # A re-initialisation of a target this re-ID has followed (a prediction reset or restart) takes the detection
     # matching its template or lying where it just was, else waits (LOST); never the person nearest the image
-    # bottom-centre, the start-up rule (ReIdentifier._follows_someone).
+    # bottom-centre, the start-up rule (ReIdentifier._follows_someone); nor the configured init_box when someone
+    # else stands there (a camera restarted mid-run: ReIdentifier._init_box_holds_the_target).
     reinitialise_only_on_the_target: bool = True
     # Partial views (reid.complete_partial_view): a detector box under partial_max_extent_ratio of the predicted
     # height, its top or bottom within partial_edge_tolerance (of the predicted height) of the prediction's and
