@@ -72,6 +72,9 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o the classifier breaking evidence ties": {"reacquire_classifier_breaks_ties": False},
     # T_reid from the frame after a re-acquisition on evidence, whatever the evidence followed
     "followbus w/o holding a re-acquisition on evidence": {"reacquire_hold_on_evidence": False},
+    # a re-lock after a coast of over 0.5 s keeps the velocity the filter carried through the coast, instead of the
+    # displacement between the two measurements (OC-SORT's observation-centric velocity)
+    "followbus w/o the re-lock's velocity from its observations": {"relock_velocity_after_coast_ms": 0.0},
     # a merged view trimmed for as long as it lasts, even alone in the gate for over 0.5 s (a turn, a changed pose)
     "followbus w/o settling a lasting merged view": {"merged_view_own_extent": False},
     # what the camera-motion estimate knows it does not know, one part at a time (each switch goes to the node that

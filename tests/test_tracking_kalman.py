@@ -177,3 +177,36 @@ def test_predictor_uses_stamp_gaps_and_learns_size_only_from_detections() -> Non
     pred.apply(measurement(533_000_000, TrackState.TRACKING, Candidate(det, "detection"), accepted=True))
     a = params.size_smoothing
     assert pred.kf.size == pytest.approx(((1 - a) * 20.0 + a * 30.0, 40.0))
+
+
+@pytest.mark.parametrize("after_ms", [500.0, 0.0])
+def test_a_relock_after_a_long_coast_takes_the_velocity_its_measurements_show(after_ms: float) -> None:
+    """A person walking right at 300 px/s is lost for a second, in which they stop: the velocity the filter carried
+    through the coast is a second old. The re-lock's velocity is the displacement between the two measurements
+    over the gap (10 px in 1 s), not the old velocity barely corrected, which would carry the next coast away;
+    after one missed frame the filter's own velocity stands (there the displacement is mostly detector jitter)."""
+    pred = Predictor(KalmanParams(relock_velocity_after_coast_ms=after_ms))
+    box = (90.0, 40.0, 20.0, 40.0)  # centre (100, 60)
+    pred.apply(measurement(0, TrackState.TRACKING, Candidate(box, "init"), accepted=True, init_box=box))
+    t_ns = 0
+    for k in range(1, 11):
+        t_ns = k * 33_000_000
+        pred.predict(t_ns)
+        moved = (90.0 + 10.0 * k, 40.0, 20.0, 40.0)
+        pred.apply(measurement(t_ns, TrackState.TRACKING, Candidate(moved, "detection"), accepted=True))
+    assert pred.kf.x[2] > 200.0  # walking right
+    velocity_before = float(pred.kf.x[2])
+    t_ns += 66_000_000  # one frame missed
+    last = (90.0 + 10.0 * 12, 40.0, 20.0, 40.0)
+    pred.predict(t_ns)
+    pred.apply(measurement(t_ns, TrackState.TRACKING, Candidate(last, "detection"), accepted=True))
+    assert pred.kf.x[2] == pytest.approx(velocity_before, rel=0.1)
+    relock_ns = t_ns + 1_000_000_000  # a second unseen, in which they walked 10 px and stopped
+    pred.predict(relock_ns)
+    relocked = (last[0] + 10.0, *last[1:])
+    pred.apply(measurement(relock_ns, TrackState.REACQUIRED, Candidate(relocked, "detection"), accepted=True))
+    if after_ms > 0.0:
+        for kf in pred.filters.values():
+            assert kf.x[2] == pytest.approx(10.0) and kf.x[3] == pytest.approx(0.0)
+    else:
+        assert abs(pred.kf.x[2] - 10.0) > 50.0

@@ -262,6 +262,10 @@ class Predictor:
         self._coasting = False  # no detection matched on the last applied frame
         self.recent_shift_px2 = 0.0  # running mean of the camera's squared displacement at the target (px²)
         self.motion_unfitted = 0  # frames whose camera motion could not be measured: the prior widened instead
+        # Per model, the last measured centre in the current frame's pixels (the "scene" model's carried by the
+        # camera's motion), and its stamp: a re-lock's velocity after a long coast (_relock_velocity).
+        self._last_measured: dict[str, np.ndarray] = {}
+        self._last_measured_t_ns: int | None = None
 
     @property
     def initialised(self) -> bool:
@@ -286,6 +290,7 @@ class Predictor:
     def reset(self) -> None:
         self.filters = {m: KalmanCV.from_params(self.params) for m in self.models}
         self.mode = np.full(len(self.models), 1.0 / len(self.models))
+        self._last_measured, self._last_measured_t_ns = {}, None
 
     def initialise(self, box: Sequence[float], t_ns: int | None = None) -> None:
         """Every model starts at ``box`` (no velocity), both equally likely."""
@@ -293,6 +298,8 @@ class Predictor:
             kf.initialise(box, t_ns)
         self.mode = np.full(len(self.models), 1.0 / len(self.models))
         self._motion_t_ns = None if t_ns is None else int(t_ns)
+        self._last_measured = {m: np.asarray(box_centre(box), dtype=np.float64) for m in self.models}
+        self._last_measured_t_ns = None if t_ns is None else int(t_ns)
 
     def _combined(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The moment-matched mixture of the filters' states: mean, and covariance including their spread."""
@@ -385,6 +392,8 @@ class Predictor:
         centre = kf.x[:2].copy()
         shift = motion.matrix[:, :2] @ centre + motion.matrix[:, 2] - centre
         self.recent_shift_px2 = 0.9 * self.recent_shift_px2 + 0.1 * float(shift @ shift)
+        if SCENE in self._last_measured:  # where the last measured centre lies in this frame's pixels
+            self._last_measured[SCENE] = motion.matrix[:, :2] @ self._last_measured[SCENE] + motion.matrix[:, 2]
         if not p.camera_motion_uncertainty:
             kf.warp(motion.matrix)
             self.warped += 1
@@ -419,12 +428,27 @@ class Predictor:
         wh = (box[2], box[3]) if reid.source in DETECTOR_SOURCES else None
         R = self.filters[self.models[0]].measurement_noise(v_ego_mps)
         likelihood = np.array([self._likelihood(self.filters[m], box_centre(box), R) for m in self.models])
+        z = np.asarray(box_centre(box), dtype=np.float64)
         for m in self.models:
-            self.filters[m].update(box_centre(box), wh, R)
+            self.filters[m].update(z, wh, R)
+        self._relock_velocity(z, t_ns)
         weighted = self.mode * likelihood
         if weighted.sum() > 0.0 and np.isfinite(weighted).all():
             self.mode = weighted / weighted.sum()
         return self._posterior(reid, measured=True)
+
+    def _relock_velocity(self, z: np.ndarray, t_ns: int) -> None:
+        """After a coast of relock_velocity_after_coast_ms or more, each model's velocity is the displacement from
+        its last measured centre to ``z`` over the gap (KalmanParams.relock_velocity_after_coast_ms); ``z`` is then
+        the last measured centre."""
+        limit_ms = self.params.relock_velocity_after_coast_ms
+        gap_s = None if self._last_measured_t_ns is None else (t_ns - self._last_measured_t_ns) / 1e9
+        for m in self.models:
+            last = self._last_measured.get(m)
+            if last is not None and gap_s is not None and 0.0 < limit_ms <= gap_s * 1e3:
+                self.filters[m].x[2:] = (z - last) / gap_s
+            self._last_measured[m] = z.copy()
+        self._last_measured_t_ns = int(t_ns)
 
     @staticmethod
     def _likelihood(kf: KalmanCV, z: Sequence[float], R: np.ndarray) -> float:

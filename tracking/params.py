@@ -112,6 +112,13 @@ class KalmanParams(_FramePeriod, _UpdateSuspension):
     # the person, a drone tracking a boat). The models' probabilities switch by model_switch_probability a frame.
     image_motion_model: bool = True
     model_switch_probability: float = 0.05
+    # A re-lock after a coast of at least relock_velocity_after_coast_ms takes as each model's velocity the
+    # displacement between the last measured centre (carried by the camera's motion in the "scene" model) and the
+    # new one over the time between them (OC-SORT's observation-centric re-update, seed 002 ref. 32): the velocity
+    # the filter carried through the coast is that of a second ago, and one re-lock corrects it by only a little.
+    # Shorter gaps keep the filter's velocity: over one missed frame the displacement is mostly detector jitter.
+    # 0: never.
+    relock_velocity_after_coast_ms: float = 500.0
     # Issue 22: the camera motion's uncertainty (egomotion's std_px) widens the prior's position covariance by
     # std² (and so the gate); a fit more doubtful than camera_motion_doubt_px does not move a coasting prior
     # (no detection matched on the previous frame), it widens it by the displacement it would have applied.
@@ -127,7 +134,8 @@ class KalmanParams(_FramePeriod, _UpdateSuspension):
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("dt_ms", "gate_chi2", "r0_px2", "camera_motion_doubt_px"),
-                     non_negative=("accel_std_px_s2", "kappa_px2_per_mps2", "init_velocity_std_px_s"),
+                     non_negative=("accel_std_px_s2", "kappa_px2_per_mps2", "init_velocity_std_px_s",
+                                   "relock_velocity_after_coast_ms"),
                      unit_interval=("size_smoothing", "model_switch_probability",
                                     "occluded_output_min_overlap_probability"))
 
