@@ -4,9 +4,12 @@ commands that operate graphs in the background (up, ps, logs, down, graph)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import socket
 import subprocess
+from collections.abc import Iterator
 
 import pytest
 
@@ -81,6 +84,37 @@ def test_up_ps_logs_down_and_a_launch_into_a_live_graph_is_refused(graph_file, t
     assert run_followbus("ps").stdout.startswith("no graph is running")
     gone = run_followbus("down", "test")
     assert gone.returncode == 2 and gone.stderr.startswith("followbus: no graph is running")
+
+
+@contextlib.contextmanager
+def held_by_a_connection(port: int) -> Iterator[None]:
+    """``port`` as the local port of an open connection, as the kernel gives ports of its ephemeral range to
+    outgoing connections (no SO_REUSEADDR: a listener cannot bind it)."""
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen(1)
+        with socket.socket() as client:
+            client.bind(("127.0.0.1", port))
+            client.connect(server.getsockname())
+            accepted, _ = server.accept()
+            with accepted:
+                yield
+
+
+@pytest.mark.slow
+def test_a_port_held_by_a_connection_is_named_and_auto_moves_past_it(graph_file, port):
+    """Another process's connection holds the graph's port and nothing listens there: the graph's peers could not
+    meet on it, and each node would run alone until the launch timed out saying only that no node came up. A launch
+    says why in one line (exit 2); --domain auto moves on to the next domain."""
+    graph = graph_file(NODES, namespace="o1held")
+    with held_by_a_connection(port):
+        refused = run_followbus("launch", str(graph), "--duration", "1")
+        assert refused.returncode == 2
+        line = refused.stderr.strip()
+        assert "\n" not in line and f"port {port}" in line and "held by another process's connection" in line, line
+        moved = run_followbus("launch", str(graph), "--domain", "auto", "--duration", "1", timeout=60)
+        assert moved.returncode == 0, moved.stderr
+        assert f"running in domain 1: tcp/127.0.0.1:{port + 1}, namespace o1held-d1" in moved.stdout
 
 
 def run_followbus_env(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:

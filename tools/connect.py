@@ -14,6 +14,7 @@ password.
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
 import secrets
@@ -75,6 +76,32 @@ def endpoint_listening(endpoint: str, timeout_s: float = PROBE_TIMEOUT_S) -> boo
             return True
     except OSError:
         return False
+
+
+def endpoint_held_without_listener(endpoint: str) -> bool:
+    """Whether a TCP ``endpoint`` of this machine cannot be listened on although nothing listens there: another
+    process's connection holds its port (the kernel hands ports of its ephemeral range to outgoing connections).
+    A graph whose peers meet on that port would never form: each node ends up alone."""
+    target = _host_port(endpoint)
+    if target is None or target[1] == 0:
+        return False
+    family = socket.AF_INET6 if ":" in target[0] else socket.AF_INET
+    with contextlib.closing(socket.socket(family, socket.SOCK_STREAM)) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as a listener binds: TIME_WAIT is no obstacle
+        try:
+            probe.bind(target)
+        except OSError as exc:
+            return exc.errno == errno.EADDRINUSE and not endpoint_listening(endpoint)
+    return False
+
+
+def ephemeral_port_range() -> tuple[int, int] | None:
+    """The ports the kernel gives outgoing connections (Linux: ip_local_port_range); None when unknown."""
+    try:
+        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(low), int(high)
+    except (OSError, ValueError):
+        return None
 
 
 def tls_ca(config: dict[str, Any]) -> str | None:

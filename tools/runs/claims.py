@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import json
+import logging
 import os
 import re
 import time
@@ -25,6 +26,8 @@ from typing import Any
 
 from ..domains import AUTO, MAX_DOMAIN, endpoint, parse_domain, well_known_port
 from ..errors import UsageError
+
+log = logging.getLogger(__name__)
 
 RUNS_ENV = "FOLLOWBUS_RUNS"
 CLAIM_RETRY_S = 0.5  # a `ps` holds a shared lock for a moment: a launch retries this long before it concludes
@@ -247,6 +250,24 @@ def refusal(graph: Any, who: str) -> str:
             "another domain (--domain N, FOLLOWBUS_DOMAIN=N, or --domain auto for the first free one)")
 
 
+def _check_port_free(graph: Any) -> None:
+    """UsageError when another process's connection holds the graph's well-known port: its peers could not meet
+    there (each node would run alone, and the launch time out). A port in the kernel's ephemeral range is said once:
+    an outgoing connection may take it at any start."""
+    from ..connect import endpoint_held_without_listener, ephemeral_port_range
+
+    port = well_known_port(graph.zenoh)
+    for ep in graph.zenoh.listen:
+        if endpoint_held_without_listener(ep):
+            raise UsageError(f"port {port} ({ep}) is held by another process's connection and nothing listens there, "
+                             "so this graph's nodes could not meet on it: start it in another domain (--domain N, or "
+                             "--domain auto for the first free one) or on another --port")
+    span = ephemeral_port_range()
+    if port is not None and span is not None and span[0] <= port <= span[1]:
+        log.warning("port %d lies in this machine's ephemeral port range (%d-%d): an outgoing connection may hold it "
+                    "when the graph starts; a port below %d cannot be taken so", port, span[0], span[1], span[0])
+
+
 def claim(graph: Any, command: str, log_dir: str = "", domain: int = 0, only: list[str] | None = None) -> Claim:
     """Hold the graph's (port, namespace) for the nodes this process starts, or raise UsageError naming who runs
     one of them already."""
@@ -260,6 +281,7 @@ def claim(graph: Any, command: str, log_dir: str = "", domain: int = 0, only: li
         who = holder(graph, starting)
         if who is not None:
             raise UsageError(refusal(graph, who))
+        _check_port_free(graph)
         path = _claim_path(port, graph.namespace, os.getpid())
         handle = _try_lock(path)
         if handle is None:  # this very process claimed it already
