@@ -43,7 +43,9 @@ class Files:
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory) -> Files:
-    """One graph, recorded both ways at once for about 4 s: a chunk a second, each file several chunks."""
+    """One graph, recorded both ways at once: a chunk a second, each file several chunks. The recorder runs past the
+    launch's 6 s: on a loaded machine the graph may take seconds to come up, and a recorder of fixed length that
+    ended first held nothing (seen once in the suite beside two burners)."""
     tmp = tmp_path_factory.mktemp("salvage")
     port = free_port()
     graph = tmp / "graph.yaml"
@@ -54,7 +56,7 @@ def recordings(tmp_path_factory) -> Files:
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, stdin=subprocess.DEVNULL)
     try:
         time.sleep(1.0)
-        record = run_followbus("record", "--graph", str(graph), "-o", str(files.record), "--duration", "4",
+        record = run_followbus("record", "--graph", str(graph), "-o", str(files.record), "--duration", "9",
                                "--connect-timeout", "30", timeout=90)
         assert record.returncode == 0, record.stdout + record.stderr
         out, _ = launch.communicate(timeout=90)
