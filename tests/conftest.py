@@ -39,9 +39,9 @@ def free_port(span: int = 4) -> int:
     """A loopback port P with P..P+span-1 free (a graph's domains 1.. move its port up by one each), below the
     kernel's ephemeral range: there no outgoing connection (another test's graph forming its mesh) can take the port
     of a graph about to start, which then never forms (RELIABILITY.md, "A split graph")."""
-    low = 32768
-    with contextlib.suppress(OSError, ValueError):
-        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    from followbus.tools.connect import ephemeral_port_range
+
+    low = (ephemeral_port_range() or (32768, 60999))[0]
     rng = random.SystemRandom()
     for _ in range(1000):
         port = rng.randrange(max(low // 2, 1024), low - span)

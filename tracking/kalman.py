@@ -427,8 +427,8 @@ class Predictor:
         # not measure its extent: only detector boxes update the size.
         wh = (box[2], box[3]) if reid.source in DETECTOR_SOURCES else None
         R = self.filters[self.models[0]].measurement_noise(v_ego_mps)
-        likelihood = np.array([self._likelihood(self.filters[m], box_centre(box), R) for m in self.models])
         z = np.asarray(box_centre(box), dtype=np.float64)
+        likelihood = np.array([self._likelihood(self.filters[m], z, R) for m in self.models])
         for m in self.models:
             self.filters[m].update(z, wh, R)
         self._relock_velocity(z, t_ns)

@@ -797,8 +797,9 @@ class ReIdentifier:
         height, width = grey.shape[:2]
         box: Box | None = None
         source = "init"
-        if init_box is not None and self._init_box_holds_the_target(frame_bgr, init_box, template_hist):
-            box = (float(init_box[0]), float(init_box[1]), float(init_box[2]), float(init_box[3]))
+        given = box_tuple(init_box)
+        if given is not None and self._init_box_holds_the_target(frame_bgr, given, template_hist):
+            box = given
         elif template_hist is not None and (match := self._template_match(frame_bgr, boxes, template_hist)):
             box, source = match, "template"
         elif prior is not None and (gated := self._gate_candidates(boxes, prior, "detection")):
@@ -838,18 +839,17 @@ class ReIdentifier:
         return self.params.reinitialise_only_on_the_target and template_hist is not None \
             and self._last_box is not None
 
-    def _init_box_holds_the_target(self, frame_bgr: np.ndarray, init_box: Sequence[float],
+    def _init_box_holds_the_target(self, frame_bgr: np.ndarray, init_box: Box,
                                    template_hist: np.ndarray | None) -> bool:
         """Whether to take ``init_box``: always at start-up; once this re-ID follows someone (a camera restarted
         with init_box set), only when what stands there matches the template, for init_box says where the target
         stood when the source started, and after a live camera's restart a passer-by may stand there."""
         if not self._follows_someone(template_hist):
             return True
-        box: Box = (float(init_box[0]), float(init_box[1]), float(init_box[2]), float(init_box[3]))
-        if template_hist is not None and self._template_match(frame_bgr, [box], template_hist) is not None:
+        if template_hist is not None and self._template_match(frame_bgr, [init_box], template_hist) is not None:
             return True
         logger.warning("init_box %s does not look like the target followed so far: re-acquiring it by its template",
-                       tuple(round(v, 1) for v in box))
+                       tuple(round(v, 1) for v in init_box))
         return False
 
     def _wait_for_target(self, t_ns: int) -> Measurement:
