@@ -5,6 +5,7 @@ command as a subprocess, against real Zenoh sessions on loopback where a bus is 
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import fcntl
 import json
@@ -510,10 +511,52 @@ def test_a_reader_that_stops_early_ends_the_command_quietly():
     assert "Traceback" not in err and "BrokenPipe" not in err, err
 
 
-@pytest.mark.parametrize("value", ["-1", "nan", "inf"])
-def test_eval_jitter_that_is_no_jitter_is_one_line(tmp_path, value):
-    line = one_error_line(run_followbus("eval", "scene:overlay", "--jitter-px", value, "--out", str(tmp_path)))
-    assert line.startswith("followbus: --jitter-px must be a finite number >= 0"), line
+@pytest.mark.parametrize("argv, option", [
+    (["hz", "fb/capture/frame", "--seconds", "-1"], "--seconds"),  # hz said nothing and exited 1
+    (["topics", "--seconds", "0"], "--seconds"),  # "no messages in 0.0 s", exit 1
+    (["echo", "fb/**", "-n", "0"], "-n/--count"),
+    (["record", "--duration", "nan"], "--duration"),
+    (["play", "x.mcap", "--rate", "0"], "--rate"),
+    (["replay", "x.mcap", "--node", "relay", "--timeout", "0"], "--timeout"),
+    (["eval", "scene:overlay", "--jitter-px", "-1"], "--jitter-px"),
+    (["eval", "scene:overlay", "--jitter-px", "inf"], "--jitter-px"),
+    (["eval", "scene:overlay", "--max-frames", "1.5"], "--max-frames"),
+    (["monitor", "--web", "70000"], "--web"),
+    (["launch", "graph.yaml", "--grace", "-1"], "--grace"),
+    (["bench", "chaos", "--repeat", "0"], "--repeat"),
+])
+def test_a_number_that_makes_no_sense_is_one_line_before_anything_starts(argv, option):
+    """Nothing joins the bus or loads a graph: a negative duration, a count of 0, a NaN or a port past 65535 is
+    said at once, naming the option (not a command that ends at once, or waits forever, in silence)."""
+    result = run_followbus(*argv, timeout=30)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert f"error: argument {option}: " in result.stderr.strip().splitlines()[-1], result.stderr
+
+
+def test_every_number_a_command_takes_is_checked_by_its_type():
+    """Every float option of every command is a checked amount (tools/command.py: positive, non_negative), every
+    int option a checked count or port, but for the few whose every value means something."""
+    from followbus.tools import command as checked
+    from followbus.tools.cli import COMMANDS, build_parser
+
+    unchecked_ints = {"--seed", "--laptop-nice", "--drop-wait-us", "--jpeg-quality"}
+    types = {checked.positive, checked.non_negative, checked.count, checked.count_or_zero, checked.port}
+
+    def leaves(commands, prefix=()):
+        for c in commands:
+            yield from leaves(c.subcommands, (*prefix, c.name)) if c.subcommands else [(*prefix, c.name)]
+
+    seen = set()
+    for words in leaves(COMMANDS):
+        parser = build_parser(list(words))
+        for sub in words:
+            parser = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[sub]
+        for action in parser._actions:
+            name = max(action.option_strings, key=len, default=action.dest)
+            if action.type in (float, int) and name not in unchecked_ints:
+                pytest.fail(f"followbus {' '.join(words)} {name}: type={action.type.__name__}, unchecked")
+            seen |= {action.type} & types
+    assert seen == types
 
 
 def test_bench_egomotion_refuses_a_scene_without_a_known_camera_shift():

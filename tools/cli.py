@@ -20,7 +20,18 @@ from typing import Any
 
 from . import __version__
 from .bench.commands import COMMANDS as BENCH_COMMANDS
-from .command import Command, Lazy, add_commands, describe, domain_args, graph_arg, load_graph, settings
+from .command import (
+    Command,
+    Lazy,
+    add_commands,
+    describe,
+    domain_args,
+    graph_arg,
+    load_graph,
+    non_negative,
+    positive,
+    settings,
+)
 from .live.commands import COMMANDS as LIVE_COMMANDS
 from .recording.commands import COMMANDS as RECORDING_COMMANDS
 from .runs.commands import COMMANDS as RUNS_COMMANDS
@@ -69,12 +80,12 @@ def _launch_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", help="the machine this is: launch the nodes whose host: is this name, and those "
                                   "without one when it is the graph's default_host (default $FOLLOWBUS_HOST, else "
                                   "the hostname; needed only by a graph spread over several hosts)")
-    p.add_argument("--duration", type=float, metavar="S",
+    p.add_argument("--duration", type=positive, metavar="S",
                    help="stop S seconds after every node is up (start-up does not count)")
     p.add_argument("--record", metavar="FILE", help="also record the bus to this MCAP file")
-    p.add_argument("--startup-timeout", type=float, default=30.0, metavar="S",
+    p.add_argument("--startup-timeout", type=positive, default=30.0, metavar="S",
                    help="seconds to wait for every node's liveliness token (default 30)")
-    p.add_argument("--grace", type=float, default=5.0, metavar="S",
+    p.add_argument("--grace", type=non_negative, default=5.0, metavar="S",
                    help="seconds between SIGTERM and SIGKILL at shutdown (default 5)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter (YAML value), e.g. --set capture.source=camera:0; repeatable")
@@ -90,7 +101,7 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
              "and the capture-to-motor-command latency.",
              "example: followbus demo --scene lookalike --duration 10")
     graph_arg(p)
-    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds to run (default 20)")
+    p.add_argument("--duration", type=positive, default=20.0, metavar="S", help="seconds to run (default 20)")
     p.add_argument("--scene", default=None,
                    help="synthetic scene (corridor-occlusion, lookalike, wall-occlusion, night-puddles, sun-shadow, "
                         "ego-motion, lost-target); default: the graph's capture source")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,6 +80,57 @@ def describe(p: argparse.ArgumentParser, description: str | None = None, epilog:
 
 # --- arguments several commands take -----------------------------------------------------------------
 
+def _number(text: str, kind: type) -> float:
+    try:
+        value = kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a {'whole ' if kind is int else ''}number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, not {text}")
+    return value
+
+
+def positive(text: str) -> float:
+    """argparse type of an amount above 0 (seconds, megabytes, a rate): a negative or zero duration is a mistake,
+    said at once (exit 2), not a command that ends at once in silence."""
+    value = _number(text, float)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be above 0, not {text}")
+    return value
+
+
+def non_negative(text: str) -> float:
+    """argparse type of an amount of 0 or more (a tolerance, a grace period, jitter in pixels)."""
+    value = _number(text, float)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, not {text}")
+    return value
+
+
+def count(text: str) -> int:
+    """argparse type of a number of things, 1 or more (messages, rounds, repeats)."""
+    value = int(_number(text, int))
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be 1 or more, not {text}")
+    return value
+
+
+def count_or_zero(text: str) -> int:
+    """argparse type of a number of things where 0 has a meaning (no limit, none)."""
+    value = int(_number(text, int))
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, not {text}")
+    return value
+
+
+def port(text: str) -> int:
+    """argparse type of a TCP port (0: any free one, where the command says so)."""
+    value = int(_number(text, int))
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 0..65535, not {text}")
+    return value
+
+
 def graph_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--graph", default="graph.yaml", help="graph file (default: ./graph.yaml)")
 
@@ -91,7 +143,7 @@ def connect_args(p: argparse.ArgumentParser, timeout: bool = True) -> None:
                    help="join as a client via this endpoint (e.g. tcp/192.0.2.10:7447) instead of the graph's "
                         "zenoh settings; repeatable")
     if timeout:
-        p.add_argument("--connect-timeout", type=float, metavar="S",
+        p.add_argument("--connect-timeout", type=positive, metavar="S",
                        help="give up joining the graph after S seconds (default: the graph's connect_timeout_ms, "
                             "10 s; monitor: 3 s)")
     p.add_argument("--user", help="zenoh user name (transport/auth/usrpwd), e.g. monitor (default: "

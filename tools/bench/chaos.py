@@ -99,8 +99,6 @@ def _options(args: Any) -> ChaosOptions | str:
     """The runner's options from the command line, or what is wrong with it (one line)."""
     from ...vision.scenes import SCENES
 
-    if args.repeat < 1 or args.burners < 0 or args.load_seconds <= 0 or args.malformed_per_key < 1:
-        return "--repeat and --malformed-per-key must be >= 1, --burners >= 0, --load-seconds > 0"
     if args.detector == "yolox416":
         from ...vision.models import find_model
 

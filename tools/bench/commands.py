@@ -8,7 +8,7 @@ import argparse
 from pathlib import Path
 
 from ...vision.detector_presets import DETECTOR_PRESETS
-from ..command import Command, Lazy, describe
+from ..command import Command, Lazy, count, count_or_zero, describe, non_negative, port, positive
 
 
 def _bus_args(p: argparse.ArgumentParser) -> None:
@@ -19,8 +19,9 @@ def _bus_args(p: argparse.ArgumentParser) -> None:
              "examples:\n  followbus bench bus\n"
              "  followbus bench bus --against dora --rounds 5 --count 100 --json bus.json\n"
              "  followbus bench bus --sizes 921KB,2.76MB --rates 30", raw=True)
-    p.add_argument("--count", type=int, default=100, help="counted messages per size and rate per round (default 100)")
-    p.add_argument("--rounds", type=int, default=3, help="rounds; each runs every path once, in turn (default 3)")
+    p.add_argument("--count", type=count, default=100,
+                   help="counted messages per size and rate per round (default 100)")
+    p.add_argument("--rounds", type=count, default=3, help="rounds; each runs every path once, in turn (default 3)")
     p.add_argument("--sizes", metavar="LIST", help="comma-separated, of 1KB,100KB,921KB,2.76MB (default: all)")
     p.add_argument("--rates", metavar="HZ,...", help="comma-separated message rates (default 30,100)")
     p.add_argument("--against", choices=("dora",),
@@ -35,7 +36,7 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
              "examples: followbus bench pipeline --duration 20 --detector yolox\n"
              "  followbus bench pipeline --set redetection.local_redetection=false   the loop without seed 002's "
              "second look")
-    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds of measurement (default 20)")
+    p.add_argument("--duration", type=positive, default=20.0, metavar="S", help="seconds of measurement (default 20)")
     p.add_argument("--detector", default="graph", choices=tuple(DETECTOR_PRESETS),
                    help="detector (default graph: graph.yaml's own detection params; yolox = YOLOX-nano@416, "
                         "yolox512, yolox640, yolox640-int8, *-openvino: the same ONNX on OpenVINO; falls back to "
@@ -45,7 +46,7 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
                    help="the scene's frame size (default 640x480; e.g. 1280x720, 1920x1080)")
     p.add_argument("--lane", choices=("on", "off"), default="off",
                    help="the same-host shared-memory lane (zenoh: shm_lane; default off, as graph.yaml)")
-    p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
+    p.add_argument("--port", type=port, default=0, help="loopback port (default: a free one)")
     p.add_argument("--namespace", default="", help="graph namespace (default bench<port>)")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
@@ -61,12 +62,12 @@ def _soak_args(p: argparse.ArgumentParser) -> None:
              "of the first (RELIABILITY.md): it judges drift, not the machine's speed. "
              "Exit status 0 when clean, 1 otherwise.",
              "example: followbus bench soak --minutes 10 --json soak.json")
-    p.add_argument("--minutes", type=float, default=10.0, help="how long to follow (default 10)")
-    p.add_argument("--window", type=float, default=60.0, metavar="S", help="seconds per row (default 60)")
+    p.add_argument("--minutes", type=positive, default=10.0, help="how long to follow (default 10)")
+    p.add_argument("--window", type=positive, default=60.0, metavar="S", help="seconds per row (default 60)")
     p.add_argument("--detector", default="graph", choices=tuple(DETECTOR_PRESETS),
                    help="detector (default graph: graph.yaml's own detection params)")
     p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
-    p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
+    p.add_argument("--port", type=port, default=0, help="loopback port (default: a free one)")
     p.add_argument("--namespace", default="", help="graph namespace (default bench<port>)")
     p.add_argument("--json", metavar="FILE", help="also write every window as JSON")
 
@@ -92,8 +93,8 @@ def _detector_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--detectors", default="yolox,yolox512,yolox640,yolox640-int8,yolox416-openvino,"
                    "yolox512-openvino,yolox640-openvino", metavar="LIST",
                    help="comma-separated --detector names (default: every YOLOX variant; the first is the unit)")
-    p.add_argument("--rounds", type=int, default=4, help="rounds (default 4)")
-    p.add_argument("--frames", type=int, default=7, metavar="N", help="frames per scene, 3 scenes (default 7)")
+    p.add_argument("--rounds", type=count, default=4, help="rounds (default 4)")
+    p.add_argument("--frames", type=count, default=7, metavar="N", help="frames per scene, 3 scenes (default 7)")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
 
 
@@ -115,7 +116,7 @@ def _record_views_args(p: argparse.ArgumentParser) -> None:
              "example: followbus launch graph.yaml --duration 20 --record run.mcap --set detection.backend=simulated\n"
              "         followbus bench record-views run.mcap --rounds 3", raw=True)
     p.add_argument("file", help="a recording (followbus record / launch --record)")
-    p.add_argument("--rounds", type=int, default=3, help="rounds of before, now (default 3)")
+    p.add_argument("--rounds", type=count, default=3, help="rounds of before, now (default 3)")
     p.add_argument("--frame-output", default="frame", metavar="NAME",
                    help="frames are counted on the keys <node>/NAME (default frame)")
 
@@ -158,19 +159,19 @@ def _chaos_args(p: argparse.ArgumentParser) -> None:
                    help="detection backend (default yolox416: the real detector, models/yolox_nano_416.onnx; "
                         "simulated: deterministic and light, adds detector-delay-80ms)")
     p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
-    p.add_argument("--burners", type=int, default=0, metavar="N",
+    p.add_argument("--burners", type=count_or_zero, default=0, metavar="N",
                    help="processes spinning a CPU each for the whole run: every fault under that load (default 0)")
-    p.add_argument("--load-seconds", type=float, default=10.0, metavar="S",
+    p.add_argument("--load-seconds", type=positive, default=10.0, metavar="S",
                    help="how long the load fault and the detector delay are measured (default 10)")
-    p.add_argument("--repeat", type=int, default=1, metavar="N", help="run the fault list N times (default 1)")
+    p.add_argument("--repeat", type=count, default=1, metavar="N", help="run the fault list N times (default 1)")
     p.add_argument("--record", action="store_true", help="run a recorder with the graph (adds kill-recorder)")
-    p.add_argument("--recovery-bound", type=float, default=2.0, metavar="S",
+    p.add_argument("--recovery-bound", type=positive, default=2.0, metavar="S",
                    help="seconds from the fault's end to following again (default 2)")
-    p.add_argument("--hold", type=float, default=3.0, metavar="S",
+    p.add_argument("--hold", type=positive, default=3.0, metavar="S",
                    help="after recovery, seconds that must be tracked most of the time (default 3)")
-    p.add_argument("--malformed-per-key", type=int, default=10_000, metavar="N",
+    p.add_argument("--malformed-per-key", type=count, default=10_000, metavar="N",
                    help="malformed payloads per input key (default 10000)")
-    p.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
+    p.add_argument("--port", type=port, default=0, help="loopback port (default: a free one)")
     p.add_argument("--namespace", default="", help="the graph's namespace (default chaos<port>)")
     p.add_argument("--log", default="state/chaos.log", help="where node logs go (default state/chaos.log)")
     p.add_argument("--json", metavar="FILE", help="also write every run's checks and figures as JSON")
@@ -190,8 +191,8 @@ def _link_args(p: argparse.ArgumentParser) -> None:
              "  followbus bench link --rate-mbit 2,20,100 --cases none,watch,frames --rounds 2", raw=True)
     p.add_argument("--rate-mbit", default="2", metavar="R[,R...]",
                    help="link rate each way, or several comma-separated (a robot launch each; default 2)")
-    p.add_argument("--seconds", type=float, default=20.0, metavar="S", help="measured seconds per case (default 20)")
-    p.add_argument("--rounds", type=int, default=3, help="rounds of every case, alternated (default 3)")
+    p.add_argument("--seconds", type=positive, default=20.0, metavar="S", help="measured seconds per case (default 20)")
+    p.add_argument("--rounds", type=count, default=3, help="rounds of every case, alternated (default 3)")
     p.add_argument("--cases", metavar="LIST",
                    help="comma-separated, of none,monitor,record-all,record,watch,frames (default all)")
     p.add_argument("--large-rule", choices=("block_first", "drop"), default="block_first",
@@ -199,7 +200,7 @@ def _link_args(p: argparse.ArgumentParser) -> None:
                         "at data_low (bus/netif.py, the default), or DROP as every other message (as before)")
     p.add_argument("--detector", default="simulated", choices=("simulated", "hog", "yolox"),
                    help="detection backend of the robot graph (default simulated)")
-    p.add_argument("--port", type=int, default=21650, help="the robot's port, inside its namespace (default 21650)")
+    p.add_argument("--port", type=port, default=21650, help="the robot's port, inside its namespace (default 21650)")
     p.add_argument("--unprotected", action="store_true",
                    help="the robot's links to the laptop keep BLOCK congestion control (bus/netif.py off): "
                         "shows what a laptop recording raw frames does to an unprotected robot")
@@ -221,11 +222,13 @@ def _flood_args(p: argparse.ArgumentParser) -> None:
              "leaves. Per phase (before, declaring, held, left): the robot's capture->command p99, frames answered,\n"
              "the motor's watchdog stops, and the RSS of the launcher (the hub) and of each node against before.",
              "example: followbus bench flood --subscribers 10000 --seconds 10", raw=True)
-    p.add_argument("--subscribers", type=int, default=10_000, metavar="N", help="subscribers declared (default 10000)")
-    p.add_argument("--seconds", type=float, default=10.0, metavar="S", help="seconds per measured window (default 10)")
+    p.add_argument("--subscribers", type=count, default=10_000, metavar="N",
+                   help="subscribers declared (default 10000)")
+    p.add_argument("--seconds", type=positive, default=10.0, metavar="S",
+                   help="seconds per measured window (default 10)")
     p.add_argument("--detector", default="simulated", choices=("simulated", "hog", "yolox"),
                    help="detection backend of the robot graph (default simulated)")
-    p.add_argument("--port", type=int, default=21680, help="the robot's port on loopback (default 21680)")
+    p.add_argument("--port", type=port, default=21680, help="the robot's port on loopback (default 21680)")
     p.add_argument("--log", default="state/flood.log", help="the robot graph's log (default state/flood.log)")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
 
@@ -277,10 +280,11 @@ def _eval_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--video", action="store_true",
                    help="also write videos/<seq>-<method>.mp4 of the first method's run: ground truth (green), "
                         "output (red), gate (cyan), candidates with their fused scores (implies the trace data)")
-    p.add_argument("--max-frames", type=int, default=0, metavar="N", help="only the first N frames per sequence")
+    p.add_argument("--max-frames", type=count_or_zero, default=0, metavar="N",
+                   help="only the first N frames per sequence")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the simulated detector and of --jitter-px (default 0)")
-    p.add_argument("--jitter-px", type=float, default=0.0, metavar="PX",
+    p.add_argument("--jitter-px", type=non_negative, default=0.0, metavar="PX",
                    help="move every detection's x, y, w, h by Gaussian noise of PX px (1 sigma; its score by PX/200) "
                         "before any method sees it: does a result survive the last-digit differences of another "
                         "CPU's detector? Run several --seed values (default 0: the detections as they are)")

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import shlex
 import sys
 import tempfile
@@ -136,11 +135,8 @@ def _no_model(exc: Exception, detector: str) -> int:
     return 2
 
 
-def _jitter_notes(args) -> list[str] | None:
-    """The report's note on --jitter-px (none without it); None, after one line, for a value that is no jitter."""
-    if not (args.jitter_px >= 0.0 and math.isfinite(args.jitter_px)):
-        print(f"followbus: --jitter-px must be a finite number >= 0, not {args.jitter_px}", file=sys.stderr)
-        return None
+def _jitter_notes(args) -> list[str]:
+    """The report's note on --jitter-px (none without it; the option is a finite number >= 0: tools/command.py)."""
     if args.jitter_px == 0:
         return []
     return [f"detections jittered: x, y, w, h + N(0, {args.jitter_px:g} px), score + N(0, {args.jitter_px / 200:g}), "
@@ -164,8 +160,6 @@ def cmd_eval(args) -> int:
         return _cmd_graph_check(args)
     args.detector = args.detector or DEFAULT_DETECTOR
     notes = _jitter_notes(args)
-    if notes is None:
-        return 2
     try:
         seqs = expand_sequences(args.sequences)
         factories = _methods(args, notes)

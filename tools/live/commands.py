@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..command import Command, Lazy, connect_args, describe, namespace, settings
+from ..command import Command, Lazy, connect_args, count, describe, namespace, port, positive, settings
 
 
 def _router_args(p: argparse.ArgumentParser) -> None:
@@ -16,7 +16,7 @@ def _router_args(p: argparse.ArgumentParser) -> None:
              "example: followbus router --listen tcp/127.0.0.1:7447")
     p.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
                    help="endpoint to listen on (default tcp/127.0.0.1:7447); repeatable")
-    p.add_argument("--duration", type=float, metavar="S")
+    p.add_argument("--duration", type=positive, metavar="S")
 
 
 def _topics_args(p: argparse.ArgumentParser) -> None:
@@ -28,7 +28,7 @@ def _topics_args(p: argparse.ArgumentParser) -> None:
              "and they would crowd out the rest), naming them; --raw-frames subscribes to every key.",
              "example: followbus topics --connect tcp/192.0.2.10:7447 --user monitor")
     connect_args(p)
-    p.add_argument("--seconds", type=float, default=2.0, help="how long to listen (default 2)")
+    p.add_argument("--seconds", type=positive, default=2.0, help="how long to listen (default 2)")
     p.add_argument("--raw-frames", action="store_true",
                    help="over a network, subscribe to every key under <ns>/**, the raw frames too")
 
@@ -39,17 +39,17 @@ def _echo_args(p: argparse.ArgumentParser) -> None:
              "example: followbus echo 'fb/prediction/track' -n 5")
     p.add_argument("key", help="key or key expression (e.g. fb/prediction/track, fb/**)")
     connect_args(p)
-    p.add_argument("-n", "--count", type=int, help="stop after N messages")
-    p.add_argument("--seconds", type=float, help="stop after S seconds")
-    p.add_argument("--timeout", type=float, metavar="S",
+    p.add_argument("-n", "--count", type=count, help="stop after N messages")
+    p.add_argument("--seconds", type=positive, help="stop after S seconds")
+    p.add_argument("--timeout", type=positive, metavar="S",
                    help="give up (exit status 1) when no message arrived within S seconds (default: wait)")
 
 
 def _hz_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("key")
     connect_args(p)
-    p.add_argument("--seconds", type=float, help="stop after S seconds (default: until Ctrl-C)")
-    p.add_argument("--timeout", type=float, metavar="S",
+    p.add_argument("--seconds", type=positive, help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--timeout", type=positive, metavar="S",
                    help="give up (exit status 1) when no message arrived within S seconds (default: wait)")
 
 
@@ -60,7 +60,7 @@ def _nodes_args(p: argparse.ArgumentParser) -> None:
              "messages or deliver nothing are listed; --links lists every one.",
              "example: followbus nodes --connect tcp/192.0.2.10:7447 --user monitor --links")
     connect_args(p)
-    p.add_argument("--seconds", type=float, default=1.5, help="how long to listen (default 1.5)")
+    p.add_argument("--seconds", type=positive, default=1.5, help="how long to listen (default 1.5)")
     p.add_argument("--links", action="store_true", help="list every link, not only those that cross hosts, lose "
                                                         "messages or deliver nothing")
 
@@ -71,9 +71,9 @@ def _foxglove_args(p: argparse.ArgumentParser) -> None:
              "foxglove.ImageAnnotations, motor command and node status as JSON. Read-only.",
              "example: followbus foxglove --connect tcp/192.0.2.10:7447 --user monitor --port 8765")
     connect_args(p, timeout=False)
-    p.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765)")
+    p.add_argument("--port", type=port, default=8765, help="WebSocket port (default 8765)")
     p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
-    p.add_argument("--seconds", type=float, help="stop after S seconds")
+    p.add_argument("--seconds", type=positive, help="stop after S seconds")
 
 
 def _monitor_args(p: argparse.ArgumentParser) -> None:
@@ -85,8 +85,8 @@ def _monitor_args(p: argparse.ArgumentParser) -> None:
     connect_args(p)
     p.add_argument("--once", action="store_true", help="print one snapshot once every node is up (or --seconds) "
                                                        "and exit: 0 when all are up")
-    p.add_argument("--seconds", type=float, help="stop after S seconds (--once: wait at most S, default 5)")
-    p.add_argument("--web", type=int, nargs="?", const=8080, metavar="PORT",
+    p.add_argument("--seconds", type=positive, help="stop after S seconds (--once: wait at most S, default 5)")
+    p.add_argument("--web", type=port, nargs="?", const=8080, metavar="PORT",
                    help="serve the web view on PORT (default 8080) instead of the terminal dashboard")
     p.add_argument("--bind", default="127.0.0.1", help="address the web view listens on (default 127.0.0.1; "
                                                         "any other address requires a token)")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..command import Command, Lazy, connect_args, describe, load_graph, settings
+from ..command import Command, Lazy, connect_args, count_or_zero, describe, load_graph, non_negative, positive, settings
 
 
 def _record_args(p: argparse.ArgumentParser) -> None:
@@ -36,13 +36,14 @@ def _record_args(p: argparse.ArgumentParser) -> None:
                    help="over a network (an endpoint beyond loopback) record the raw frames too; by default a "
                         "remote recording leaves every <node>/frame out (a Wi-Fi link cannot carry them) and "
                         "keeps the JPEG preview")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=positive, metavar="S", help="stop after S seconds")
     p.add_argument("--status", action="store_true", help="also record the @status keys (node statistics)")
     p.add_argument("--compression", choices=("lz4", "zstd", "none"), default="none",
                    help="chunk compression (default none: raw frames do not compress with lz4, and uncompressed "
                         "chunks are read 3x faster by replay; zstd for archives at low rates)")
-    p.add_argument("--chunk-mb", type=float, default=4.0, metavar="MB", help="close a chunk at this size (default 4)")
-    p.add_argument("--chunk-seconds", type=float, default=1.0, metavar="S",
+    p.add_argument("--chunk-mb", type=positive, default=4.0, metavar="MB",
+                   help="close a chunk at this size (default 4)")
+    p.add_argument("--chunk-seconds", type=positive, default=1.0, metavar="S",
                    help="close and flush a chunk at least this often: all a SIGKILL can lose (default 1)")
     p.add_argument("--jpeg-quality", type=int, default=80, metavar="Q",
                    help="JPEG quality of the image views of bgr8 frames (default 80)")
@@ -54,11 +55,11 @@ def _record_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-ros2-file", action="store_true",
                    help="no <name>.ros2.mcap beside the recording (its ROS 2 channels again, in a file of profile "
                         "ros2 that rosbags and `ros2 bag` open; the main file's other encodings stop them)")
-    p.add_argument("--split-size", type=float, metavar="MB",
+    p.add_argument("--split-size", type=positive, metavar="MB",
                    help="start a new file when this one reaches MB megabytes (<name>_0.mcap, <name>_1.mcap, ...)")
-    p.add_argument("--split-duration", type=float, metavar="S",
+    p.add_argument("--split-duration", type=positive, metavar="S",
                    help="start a new file every S seconds of recording")
-    p.add_argument("--max-queue-mb", type=float, default=256.0, metavar="MB",
+    p.add_argument("--max-queue-mb", type=positive, default=256.0, metavar="MB",
                    help="memory the writer queue may hold before the recorder drops, counted per key (default 256)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="parameter overrides the graph runs with (as given to launch), stored in the metadata")
@@ -76,7 +77,7 @@ def _play_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--topics", nargs="+", metavar="PATTERN", help="only keys matching these key expressions")
     p.add_argument("--remap", action="append", metavar="FROM=TO", help="key prefix remap, e.g. fb=fb2; repeatable")
     speed = p.add_mutually_exclusive_group()
-    speed.add_argument("--rate", type=float, default=1.0, metavar="R", help="speed factor (default 1)")
+    speed.add_argument("--rate", type=positive, default=1.0, metavar="R", help="speed factor (default 1)")
     speed.add_argument("--fast", action="store_true", help="as fast as the bus takes them")
     p.add_argument("--loop", action="store_true", help="start again at the end")
     p.add_argument("--start-paused", action="store_true", help="wait for space (or s) before the first message")
@@ -108,13 +109,13 @@ def _replay_args(p: argparse.ArgumentParser) -> None:
                    help="override a parameter (YAML value); with several nodes NODE.KEY=VALUE")
     p.add_argument("--verify", action="store_true", help="compare outputs with the recording; exit 1 on a mismatch")
     p.add_argument("--report", metavar="FILE", help="write a JSON summary")
-    p.add_argument("--rtol", type=float, default=1e-6, help="relative tolerance for floats (default 1e-6)")
-    p.add_argument("--atol", type=float, default=1e-6, help="absolute tolerance for floats (default 1e-6)")
-    p.add_argument("--timeout", type=float, default=5.0, metavar="S",
+    p.add_argument("--rtol", type=non_negative, default=1e-6, help="relative tolerance for floats (default 1e-6)")
+    p.add_argument("--atol", type=non_negative, default=1e-6, help="absolute tolerance for floats (default 1e-6)")
+    p.add_argument("--timeout", type=positive, default=5.0, metavar="S",
                    help="--isolated: seconds to wait for a frame's outputs (default 5)")
-    p.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
+    p.add_argument("--startup-timeout", type=positive, default=60.0, metavar="S",
                    help="--isolated: seconds to wait for the node to come up (default 60)")
-    p.add_argument("--max-frames", type=int, default=0, metavar="N", help="only the first N frames")
+    p.add_argument("--max-frames", type=count_or_zero, default=0, metavar="N", help="only the first N frames")
     _on_corrupt_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 

@@ -193,9 +193,6 @@ def cmd_play(args, settings) -> int:
         print(f"followbus: {path}: no bus channel matches", file=sys.stderr)
         return 2
     rate = None if args.fast else args.rate
-    if rate is not None and rate <= 0:
-        print("followbus: --rate must be > 0", file=sys.stderr)
-        return 2
     if args.start_paused and not sys.stdin.isatty():
         print("followbus: --start-paused needs a terminal (space resumes)", file=sys.stderr)
         return 2

@@ -591,10 +591,6 @@ def record_options(args, namespace: str, graph_name: str) -> RecordOptions | str
         ros2_file=not args.no_ros2_file,
         max_queue_bytes=int(args.max_queue_mb * 1024 * 1024), exclude=list(getattr(args, "exclude", None) or []),
     )
-    if options.max_queue_bytes <= 0:
-        return "--max-queue-mb must be positive"
-    if options.split_bytes < 0 or options.split_seconds < 0:
-        return "--split-size and --split-duration must be positive"
     for pattern in [*options.patterns, *options.exclude]:
         try:
             zenoh.KeyExpr(pattern)

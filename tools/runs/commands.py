@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..command import Command, Lazy, connect_args, describe, domain_args
+from ..command import Command, Lazy, connect_args, describe, domain_args, positive
 
 
 def _up_args(p: argparse.ArgumentParser) -> None:
@@ -16,7 +16,7 @@ def _up_args(p: argparse.ArgumentParser) -> None:
              "example: followbus up graph.yaml --domain auto && followbus ps")
     p.add_argument("graph", nargs="?", default="graph.yaml", help="graph file (default: ./graph.yaml)")
     p.add_argument("--only", help="comma-separated node names to launch (default: all)")
-    p.add_argument("--startup-timeout", type=float, default=30.0, metavar="S",
+    p.add_argument("--startup-timeout", type=positive, default=30.0, metavar="S",
                    help="seconds to wait for every node to be up (default 30)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter (YAML value); repeatable")
