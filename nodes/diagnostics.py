@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..bus.node import In, Node, Out
+from ..bus.node_params import ParamError
 from ..bus.schemas import Message, Tick
 
 
@@ -30,6 +31,13 @@ class TickerParams:
     raise_once_at: int = -1
     raise_from: int = -1
     silent_from: int = -1
+
+    def __post_init__(self) -> None:
+        if not self.rate_hz > 0:
+            raise ParamError("rate_hz", f"rate_hz must be > 0, not {self.rate_hz!r}")
+        for name in ("payload_bytes", "count", "fail_after_s", "wait_for_consumers_s"):
+            if getattr(self, name) < 0:
+                raise ParamError(name, f"{name} must be >= 0, not {getattr(self, name)!r}")
 
 
 class Ticker(Node):

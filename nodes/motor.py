@@ -51,6 +51,9 @@ class MotorParams:
             raise ParamError("driver", f"driver must be 'sim' or 'serial', not {self.driver!r}")
         if self.driver == "serial" and not self.port:
             raise ParamError("driver", "driver 'serial' needs a port")
+        if not self.max_track_age_ms >= 0:  # a negative age would refuse every track: a robot that never follows
+            raise ParamError("max_track_age_ms", f"max_track_age_ms must be >= 0 (0: no limit), "
+                                                 f"not {self.max_track_age_ms!r}")
         if not 0 < self.mcu_stop_ms <= 200:
             raise ParamError("mcu_stop_ms", f"mcu_stop_ms must be in (0, 200] (the stop promise), "
                                             f"not {self.mcu_stop_ms!r}")

@@ -144,6 +144,9 @@ def test_set_errors_name_the_option_not_a_line(graph_file):
     assert line.startswith("followbus: --set capture.sourc=x: unknown parameter 'sourc' (known: "), line
     line = one_error_line(run_followbus("check", str(graph), "--set", "capture.source"))
     assert line == f"followbus: {graph}: --set capture.source: must look like node.param=value"
+    # The robot's graph: a track age limit below 0 would refuse every track (a robot that never follows).
+    line = one_error_line(run_followbus("check", str(REPO / "graph.yaml"), "--set", "motor.max_track_age_ms=-5"))
+    assert "max_track_age_ms must be >= 0 (0: no limit), not -5.0" in line, line
 
 
 # ----------------------------------------------------------------------------- launch --duration
@@ -524,10 +527,15 @@ def test_a_reader_that_stops_early_ends_the_command_quietly():
     (["monitor", "--web", "70000"], "--web"),
     (["launch", "graph.yaml", "--grace", "-1"], "--grace"),
     (["bench", "chaos", "--repeat", "0"], "--repeat"),
+    (["echo", "fb/*a*", "-n", "1"], "key"),  # a traceback from the subscriber, exit 1
+    (["hz", "fb//frame"], "key"),
+    (["play", "x.mcap", "--topics", "fb/**", "fb/"], "--topics"),
+    (["record", "--exclude", "*frame"], "--exclude"),
 ])
-def test_a_number_that_makes_no_sense_is_one_line_before_anything_starts(argv, option):
-    """Nothing joins the bus or loads a graph: a negative duration, a count of 0, a NaN or a port past 65535 is
-    said at once, naming the option (not a command that ends at once, or waits forever, in silence)."""
+def test_a_number_or_key_that_makes_no_sense_is_one_line_before_anything_starts(argv, option):
+    """Nothing joins the bus or loads a graph: a negative duration, a count of 0, a NaN, a port past 65535 or a
+    malformed key expression is said at once, naming the option (not a command that ends at once, or waits
+    forever, in silence, nor a traceback)."""
     result = run_followbus(*argv, timeout=30)
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     assert f"error: argument {option}: " in result.stderr.strip().splitlines()[-1], result.stderr

@@ -48,7 +48,7 @@ def test_param_get_set_on_a_running_node(graph_file):
         assert event["state"] == "param_set" and event["extra"]["param"] == "rate_hz"
         assert event["extra"]["value"] == 5.0
         # Validated as at launch; a parameter the node does not declare live is refused; each one line, exit 2.
-        for value, param, said in (("abc", "rate_hz", "must be float"),
+        for value, param, said in (("abc", "rate_hz", "must be float"), ("-1", "rate_hz", "rate_hz must be > 0"),
                                    ("3", "payload_bytes", "is not live-tunable (live: rate_hz)")):
             refused = run_followbus("param", "set", f"ticker.{param}", value, "--graph", graph)
             assert refused.returncode == 2 and said in refused.stderr and len(refused.stderr.splitlines()) == 1

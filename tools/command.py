@@ -123,6 +123,18 @@ def count_or_zero(text: str) -> int:
     return value
 
 
+def key_expression(text: str) -> str:
+    """argparse type of a Zenoh key expression (echo, hz, record and play --topics): a malformed one is said at once,
+    in Zenoh's words without its source path, not as a traceback from the subscriber."""
+    import zenoh  # only when a command with a key runs: the table of commands imports no work
+
+    try:
+        zenoh.KeyExpr(text)
+    except zenoh.ZError as exc:
+        raise argparse.ArgumentTypeError(f"not a key expression: {str(exc).split(' at /')[0]}") from None
+    return text
+
+
 def port(text: str) -> int:
     """argparse type of a TCP port (0: any free one, where the command says so)."""
     value = int(_number(text, int))

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..command import Command, Lazy, connect_args, count, describe, namespace, port, positive, settings
+from ..command import Command, Lazy, connect_args, count, describe, key_expression, namespace, port, positive, settings
 
 
 def _router_args(p: argparse.ArgumentParser) -> None:
@@ -37,7 +37,7 @@ def _echo_args(p: argparse.ArgumentParser) -> None:
     describe(p,
              None,
              "example: followbus echo 'fb/prediction/track' -n 5")
-    p.add_argument("key", help="key or key expression (e.g. fb/prediction/track, fb/**)")
+    p.add_argument("key", type=key_expression, help="key or key expression (e.g. fb/prediction/track, fb/**)")
     connect_args(p)
     p.add_argument("-n", "--count", type=count, help="stop after N messages")
     p.add_argument("--seconds", type=positive, help="stop after S seconds")
@@ -46,7 +46,7 @@ def _echo_args(p: argparse.ArgumentParser) -> None:
 
 
 def _hz_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("key")
+    p.add_argument("key", type=key_expression)
     connect_args(p)
     p.add_argument("--seconds", type=positive, help="stop after S seconds (default: until Ctrl-C)")
     p.add_argument("--timeout", type=positive, metavar="S",

@@ -7,7 +7,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..command import Command, Lazy, connect_args, count_or_zero, describe, load_graph, non_negative, positive, settings
+from ..command import (
+    Command,
+    Lazy,
+    connect_args,
+    count_or_zero,
+    describe,
+    key_expression,
+    load_graph,
+    non_negative,
+    positive,
+    settings,
+)
 
 
 def _record_args(p: argparse.ArgumentParser) -> None:
@@ -28,8 +39,9 @@ def _record_args(p: argparse.ArgumentParser) -> None:
              "  followbus record -o recordings/day.mcap --split-size 1000    # day_0.mcap, day_1.mcap, ... of 1 GB",
              raw=True)
     p.add_argument("-o", "--output", metavar="FILE", help="output file (default recordings/<graph>-<time>.mcap)")
-    p.add_argument("--topics", nargs="+", metavar="PATTERN", help="key expressions to record (default <ns>/**)")
-    p.add_argument("--exclude", action="append", metavar="PATTERN",
+    p.add_argument("--topics", nargs="+", type=key_expression, metavar="PATTERN",
+                   help="key expressions to record (default <ns>/**)")
+    p.add_argument("--exclude", action="append", type=key_expression, metavar="PATTERN",
                    help="leave out keys matching this key expression, e.g. 'fb/capture/frame' (raw frames; the "
                         "JPEG preview stays); repeatable")
     p.add_argument("--raw-frames", action="store_true",
@@ -74,7 +86,8 @@ def _play_args(p: argparse.ArgumentParser) -> None:
              "  followbus play recordings/run1.mcap --remap fb=fb2 --fast --loop",
              raw=True)
     p.add_argument("file", help="MCAP recording")
-    p.add_argument("--topics", nargs="+", metavar="PATTERN", help="only keys matching these key expressions")
+    p.add_argument("--topics", nargs="+", type=key_expression, metavar="PATTERN",
+                   help="only keys matching these key expressions")
     p.add_argument("--remap", action="append", metavar="FROM=TO", help="key prefix remap, e.g. fb=fb2; repeatable")
     speed = p.add_mutually_exclusive_group()
     speed.add_argument("--rate", type=positive, default=1.0, metavar="R", help="speed factor (default 1)")
