@@ -57,13 +57,15 @@ class CaptureParams:
             raise ParamError("pace", f"pace must be 'realtime' or 'fast', not {self.pace!r}")
         for key, low in (("width_px", 16), ("height_px", 16), ("preview_width_px", 16), ("max_in_flight", 1),
                          ("jpeg_quality", 1), ("fps", 0), ("max_frames", 0), ("wait_for_consumers_s", 0),
-                         ("start_delay_s", 0)):
+                         ("start_delay_s", 0), ("ros2_domain_id", 0)):
             if getattr(self, key) < low:
                 raise ParamError(key, f"{key} must be >= {low}, not {getattr(self, key)!r}")
         for key in ("width_px", "height_px", "preview_width_px"):
             if getattr(self, key) > MAX_SIDE_PX:
                 raise ParamError(key, f"{key} must be at most {MAX_SIDE_PX} (an 8K frame's side), "
                                       f"not {getattr(self, key)!r}")
+        if self.ros2_domain_id > 232:  # ROS 2's own bound on ROS_DOMAIN_ID
+            raise ParamError("ros2_domain_id", f"ros2_domain_id must be in 0..232, not {self.ros2_domain_id!r}")
         if self.jpeg_quality > 100:
             raise ParamError("jpeg_quality", f"jpeg_quality must be in 1..100, not {self.jpeg_quality!r}")
 

@@ -76,13 +76,22 @@ class DetectionParams:
                                             f"only), not {self.input_shape!r}")
         if self.runtime not in RUNTIMES:
             raise ParamError("runtime", f"runtime must be one of {', '.join(RUNTIMES)}, not {self.runtime!r}")
-        if not self.sim_delay_ms >= 0:
-            raise ParamError("sim_delay_ms", f"sim_delay_ms must be >= 0, not {self.sim_delay_ms!r}")
+        _check_amounts(self)
         if not 0.0 <= self.low_score_threshold <= self.score_threshold:
             raise ParamError("low_score_threshold", "low_score_threshold must be in [0, score_threshold] "
                              f"(= score_threshold: no low-score boxes), not {self.low_score_threshold!r}")
         if self.sim_delay_ms and self.backend != "simulated":
             raise ParamError("sim_delay_ms", "sim_delay_ms only applies to backend 'simulated'")
+
+
+def _check_amounts(p: DetectionParams) -> None:
+    for name, low, high in (("auto_budget_ms", 1e-9, None), ("sim_delay_ms", 0, None), ("threads", 0, None),
+                            ("sim_noise_px", 0, None), ("nms_iou", 0, 1), ("sim_miss_rate", 0, 1),
+                            ("sim_false_positive_rate", 0, 1)):
+        value = getattr(p, name)
+        if value < low or (high is not None and value > high):
+            bound = f"in [{low}, {high}]" if high is not None else ("> 0" if low > 0 else ">= 0")
+            raise ParamError(name, f"{name} must be {bound}, not {value!r}")
 
 
 def detection_params(raw: dict[str, Any]) -> DetectionParams:

@@ -51,6 +51,8 @@ class MotorParams:
             raise ParamError("driver", f"driver must be 'sim' or 'serial', not {self.driver!r}")
         if self.driver == "serial" and not self.port:
             raise ParamError("driver", "driver 'serial' needs a port")
+        if not self.baud > 0:
+            raise ParamError("baud", f"baud must be > 0, not {self.baud!r}")
         if not self.max_track_age_ms >= 0:  # a negative age would refuse every track: a robot that never follows
             raise ParamError("max_track_age_ms", f"max_track_age_ms must be >= 0 (0: no limit), "
                                                  f"not {self.max_track_age_ms!r}")

@@ -29,13 +29,16 @@ from ..msgs.perception import CameraMotion, Detections
 from ..msgs.robot import Odometry
 from ..msgs.tracking import Measurement, Prior, Track
 from ..tracking.kalman import Predictor, output_box
-from ..tracking.params import KalmanParams
+from ..tracking.params import KalmanParams, check_ranges
 
 
 @dataclass
 class PredictionNodeParams:
     use_odometry: bool = True  # False: R_k = R0 (the ablation without ego-motion-aware noise)
     max_predict_gap_ms: float = 5000.0  # a longer jump between frame stamps re-initialises the filter
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("max_predict_gap_ms",))
 
 
 class Prediction(Node):

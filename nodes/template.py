@@ -26,7 +26,7 @@ from ..bus.node import In, Node, Out
 from ..bus.node_runtime import LAUNCH_ID_ENV
 from ..bus.schemas import Frame, Message
 from ..msgs.tracking import Measurement, Template
-from ..tracking.params import TemplateParams
+from ..tracking.params import TemplateParams, check_ranges
 from ..tracking.template import TemplateUpdater
 
 
@@ -38,6 +38,9 @@ class TemplateNodeParams:
     # A template saved by another launch (not this launch's earlier process) is restored only if at most this
     # old; 0: never (a new launch learns its target afresh).
     restore_other_launch_max_age_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("save_every_s",), non_negative=("restore_other_launch_max_age_s",))
 
 
 def state_path(state_file: str, namespace: str) -> Path | None:

@@ -329,3 +329,34 @@ def test_every_node_of_a_shipped_graph_has_a_reader(name):
     graph = load_graph(REPO / name)
     read = {spec.source_node for node in graph.nodes.values() for spec in node.inputs.values()}
     assert not [n for n in graph.nodes if n not in read], f"{name}: nodes nobody reads"
+
+
+# Numbers where a negative value means something: a random seed, and the camera's pose on the robot.
+SIGNED_PARAMS = {"seed", "camera_tilt_rad", "camera_forward_m", "camera_left_m"}
+
+
+@pytest.mark.parametrize("graph_name", ["graph.yaml", "graph.group.yaml", "graph.robot.yaml"])
+def test_every_number_of_the_shipped_graphs_refuses_a_negative_value(graph_name):
+    """A duration, rate, threshold or count below 0 is a mistake `check`, `launch` and `param set` name, not a node
+    that runs with it (a negative track age refused every track; a negative score gate let everything through)."""
+    import importlib
+    import typing
+
+    from followbus.bus.node_params import params_classes, parse_params
+    from followbus.tools.domains import load_graph
+
+    graph = load_graph(str(REPO / graph_name))
+    accepted = []
+    for name, spec in graph.nodes.items():
+        params_spec = importlib.import_module(spec.run).NODE.Params
+        for cls in params_classes(params_spec):
+            hints = typing.get_type_hints(cls)
+            for field in dataclasses.fields(cls):
+                if hints[field.name] not in (int, float) or field.name in SIGNED_PARAMS:
+                    continue
+                try:
+                    parse_params(params_spec, {**(spec.params or {}), field.name: -1})
+                except ValueError:
+                    continue
+                accepted.append(f"{name}.{field.name}")
+    assert not accepted, f"{graph_name}: -1 accepted by {', '.join(accepted)}"

@@ -114,8 +114,9 @@ class EgoMotionParams:
     def __post_init__(self) -> None:
         check_ranges(self, positive=("corner_quality", "min_corner_distance_px", "ransac_reproj_px",
                                      "max_scale_change", "phase_std_px", "smeared_ransac_reproj_px"),
-                     non_negative=("lk_levels", "box_margin", "phase_std_fraction"),
-                     unit_interval=("min_inlier_fraction", "phase_min_response"))
+                     non_negative=("lk_levels", "box_margin", "phase_std_fraction", "static_still_px",
+                                   "static_min_motion_px", "static_evidence_min", "max_reference_age_frames"),
+                     unit_interval=("min_inlier_fraction", "phase_min_response", "rival_cover_ratio"))
         if self.min_work_width_px < 32:
             raise InvalidParam("min_work_width_px", f"EgoMotionParams.min_work_width_px must be >= 32, got "
                                                     f"{self.min_work_width_px!r}")

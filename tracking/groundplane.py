@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..msgs.group import GroundPoints
-from .params import InvalidParam
+from .params import InvalidParam, check_ranges
 
 
 @dataclass
@@ -82,6 +82,7 @@ class GroundPlaneParams:
                 raise InvalidParam(name, f"{name} must be finite and > 0, got {value!r}")
         if not (math.isfinite(self.body_std_m) and self.body_std_m >= 0):
             raise InvalidParam("body_std_m", f"body_std_m must be finite and >= 0, got {self.body_std_m!r}")
+        check_ranges(self, non_negative=("border_margin_px",), unit_interval=("min_score",))
 
 
 def boxes_to_ground(boxes: np.ndarray, cam: CameraGeometry, params: GroundPlaneParams,

@@ -306,9 +306,11 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
                       "n_id_frames", "reacquire_frames", "reacquire_window_frames", "reacquire_max_step_heights",
                       "merged_view_own_extent_after_ms"),
             non_negative=("diff_threshold", "geo_scale", "ambiguity_margin", "min_blob_area_px",
-                          "reacquired_hold_frames", "identity_margin", "identity_veto_after_crowd_frames"),
-            unit_interval=("reid_threshold", "tau_occ", "delta_iou", "delta_id", "delta_switch", "low_score_min_iou",
-                           "partial_max_extent_ratio", "partial_edge_tolerance", "motion_min_area_fraction"))
+                          "reacquired_hold_frames", "identity_margin", "identity_veto_after_crowd_frames",
+                          "coasting_colour_margin"),
+            unit_interval=("reid_threshold", "tau_occ", "gate_high_score", "gate_low_score", "delta_iou", "delta_id",
+                           "delta_switch", "low_score_min_iou", "partial_max_extent_ratio", "partial_edge_tolerance",
+                           "motion_min_area_fraction"))
         if not self.merged_min_extent_ratio > 1.0:  # at 1 or under, every box taller than predicted would be cut
             raise InvalidParam("merged_min_extent_ratio", "ReidParams.merged_min_extent_ratio must be > 1, "
                                f"got {self.merged_min_extent_ratio!r}")
@@ -334,7 +336,8 @@ class RedetectionParams(_FramePeriod, SearchScaleParams):
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("dt_ms", "gate_scale_max", "gate_fast_height_fraction"),
-                     non_negative=("min_resolvable_px",), unit_interval=("region_budget_fraction",))
+                     non_negative=("min_resolvable_px",),
+                     unit_interval=("region_budget_fraction", "gate_high_score", "gate_low_score"))
 
 
 # --- template ------------------------------------------------------------------------------------
@@ -355,4 +358,7 @@ class TemplateParams(_ColourHistogram, _UpdateSuspension):
     def __post_init__(self) -> None:
         check_ranges(self, positive=("bins_h", "bins_s"), non_negative=("eta_base", "lambda_specular"),
                      unit_interval=("eta_base",))
+        for name in ("tau_v", "tau_s"):  # thresholds on 8-bit HSV channels
+            if not 0 <= getattr(self, name) <= 255:
+                raise InvalidParam(name, f"TemplateParams.{name} must be in [0, 255], got {getattr(self, name)!r}")
 
