@@ -531,6 +531,9 @@ def test_a_reader_that_stops_early_ends_the_command_quietly():
     (["hz", "fb//frame"], "key"),
     (["play", "x.mcap", "--topics", "fb/**", "fb/"], "--topics"),
     (["record", "--exclude", "*frame"], "--exclude"),
+    (["bench", "bus", "--json", "/proc/bus.json"], "--json"),  # written after the benchmark's minutes
+    (["launch", "graph.yaml", "--record", "/proc/run.mcap"], "--record"),  # the recorder failed once the graph ran
+    (["record", "-o", "/"], "-o/--output"),
 ])
 def test_a_number_or_key_that_makes_no_sense_is_one_line_before_anything_starts(argv, option):
     """Nothing joins the bus or loads a graph: a negative duration, a count of 0, a NaN, a port past 65535 or a
@@ -539,6 +542,17 @@ def test_a_number_or_key_that_makes_no_sense_is_one_line_before_anything_starts(
     result = run_followbus(*argv, timeout=30)
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     assert f"error: argument {option}: " in result.stderr.strip().splitlines()[-1], result.stderr
+
+
+@pytest.mark.parametrize("argv, option", [(["launch", "graph.yaml", "--log-dir", "/proc/logs", "--duration", "2"],
+                                            "--log-dir"),  # a traceback per node in the launcher's threads
+                                           (["eval", "scene:overlay", "--out", "/proc/results"], "--out")])
+def test_an_output_directory_that_cannot_be_made_is_one_line_before_anything_starts(argv, option):
+    result = run_followbus(*argv, timeout=60)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    path = argv[argv.index(option) + 1]
+    assert result.stderr.strip() == f"followbus: {option} {path}: cannot create {path}: No such file or directory"
+    assert "started" not in result.stdout + result.stderr
 
 
 def test_every_number_a_command_takes_is_checked_by_its_type():

@@ -29,6 +29,7 @@ from .command import (
     graph_arg,
     load_graph,
     non_negative,
+    output_file,
     positive,
     settings,
 )
@@ -82,7 +83,7 @@ def _launch_args(p: argparse.ArgumentParser) -> None:
                                   "the hostname; needed only by a graph spread over several hosts)")
     p.add_argument("--duration", type=positive, metavar="S",
                    help="stop S seconds after every node is up (start-up does not count)")
-    p.add_argument("--record", metavar="FILE", help="also record the bus to this MCAP file")
+    p.add_argument("--record", type=output_file, metavar="FILE", help="also record the bus to this MCAP file")
     p.add_argument("--startup-timeout", type=positive, default=30.0, metavar="S",
                    help="seconds to wait for every node's liveliness token (default 30)")
     p.add_argument("--grace", type=non_negative, default=5.0, metavar="S",
@@ -105,7 +106,7 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", default=None,
                    help="synthetic scene (corridor-occlusion, lookalike, wall-occlusion, night-puddles, sun-shadow, "
                         "ego-motion, lost-target); default: the graph's capture source")
-    p.add_argument("--log", default=None, metavar="FILE",
+    p.add_argument("--log", type=output_file, default=None, metavar="FILE",
                    help="where this run's node logs go (default: a new state/demo-YYYYmmdd-HHMMSS.log per run)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node parameter, e.g. --set detection.backend=hog; repeatable")
@@ -144,7 +145,7 @@ def _schema_args(p: argparse.ArgumentParser) -> None:
              "yaml-language-server (VS Code's YAML extension, yamlls) pick it up from the "
              "file's first line: # yaml-language-server: $schema=docs/graph.schema.json",
              "example: followbus schema -o docs/graph.schema.json")
-    p.add_argument("-o", "--output", metavar="FILE", help="write to FILE instead of standard output")
+    p.add_argument("-o", "--output", type=output_file, metavar="FILE", help="write to FILE instead of standard output")
 
 
 def _models_args(p: argparse.ArgumentParser) -> None:
@@ -276,6 +277,15 @@ def _first_truth_box(graph: Any, spec: Any) -> tuple[float, ...] | None:
     return None
 
 
+def _check_outputs(args) -> None:
+    """The node logs' directory can be written: said before anything starts (UsageError), not by a thread's
+    traceback while the node's output is lost (--record is checked by its argparse type)."""
+    from .errors import writable_directory
+
+    if args.log_dir:
+        writable_directory(args.log_dir, "--log-dir")
+
+
 def cmd_launch(args) -> int:
     from ..bus.barrier import RECORDER_NAME
     from ..bus.graph import apply_overrides
@@ -295,6 +305,7 @@ def cmd_launch(args) -> int:
     # Every node is validated; what a node would open (the capture source) only for the nodes started here. The
     # file first, then the bus: a mistake in it is said before whether another graph holds this domain.
     _validate(graph, args.overrides, opened={n for n in on_host if not only or n in only})
+    _check_outputs(args)
     held = claim_from_args(args, "up" if args.log_dir else "launch", args.log_dir or "")
     apply_domain(graph)
     extra = []

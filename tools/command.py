@@ -135,6 +135,17 @@ def key_expression(text: str) -> str:
     return text
 
 
+def output_file(text: str) -> str:
+    """argparse type of a file a command writes (--json, --report, --log, -o): one it could not write is said before
+    the command runs, not after a benchmark's minutes are lost. Nothing is created to find out."""
+    from .errors import output_file_problem
+
+    problem = output_file_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(f"{text}: {problem}")
+    return text
+
+
 def port(text: str) -> int:
     """argparse type of a TCP port (0: any free one, where the command says so)."""
     value = int(_number(text, int))

@@ -8,7 +8,7 @@ import argparse
 from pathlib import Path
 
 from ...vision.detector_presets import DETECTOR_PRESETS
-from ..command import Command, Lazy, count, count_or_zero, describe, non_negative, port, positive
+from ..command import Command, Lazy, count, count_or_zero, describe, non_negative, output_file, port, positive
 
 
 def _bus_args(p: argparse.ArgumentParser) -> None:
@@ -26,7 +26,7 @@ def _bus_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rates", metavar="HZ,...", help="comma-separated message rates (default 30,100)")
     p.add_argument("--against", choices=("dora",),
                    help="also measure dora-rs 1.1.0 (its own dataflow; pip install 'followbus[bench]')")
-    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    p.add_argument("--json", type=output_file, metavar="FILE", help="also write the figures as JSON")
 
 
 def _pipeline_args(p: argparse.ArgumentParser) -> None:
@@ -48,7 +48,7 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
                    help="the same-host shared-memory lane (zenoh: shm_lane; default off, as graph.yaml)")
     p.add_argument("--port", type=port, default=0, help="loopback port (default: a free one)")
     p.add_argument("--namespace", default="", help="graph namespace (default bench<port>)")
-    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    p.add_argument("--json", type=output_file, metavar="FILE", help="also write the figures as JSON")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node's parameter for this run (repeatable), as `followbus launch --set`")
 
@@ -69,7 +69,7 @@ def _soak_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
     p.add_argument("--port", type=port, default=0, help="loopback port (default: a free one)")
     p.add_argument("--namespace", default="", help="graph namespace (default bench<port>)")
-    p.add_argument("--json", metavar="FILE", help="also write every window as JSON")
+    p.add_argument("--json", type=output_file, metavar="FILE", help="also write every window as JSON")
 
 
 def _egomotion_args(p: argparse.ArgumentParser) -> None:
@@ -81,7 +81,7 @@ def _egomotion_args(p: argparse.ArgumentParser) -> None:
              "refit (BENCHMARKS.md, \"Camera motion on smeared frames\").",
              "example: followbus bench egomotion --scenes shaky,bumpy --json egomotion.json")
     p.add_argument("--scenes", metavar="LIST", help="comma-separated, of bumpy,shaky,overlay (default: all)")
-    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    p.add_argument("--json", type=output_file, metavar="FILE", help="also write the figures as JSON")
 
 
 def _detector_args(p: argparse.ArgumentParser) -> None:
@@ -95,7 +95,7 @@ def _detector_args(p: argparse.ArgumentParser) -> None:
                    help="comma-separated --detector names (default: every YOLOX variant; the first is the unit)")
     p.add_argument("--rounds", type=count, default=4, help="rounds (default 4)")
     p.add_argument("--frames", type=count, default=7, metavar="N", help="frames per scene, 3 scenes (default 7)")
-    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    p.add_argument("--json", type=output_file, metavar="FILE", help="also write the figures as JSON")
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -173,8 +173,9 @@ def _chaos_args(p: argparse.ArgumentParser) -> None:
                    help="malformed payloads per input key (default 10000)")
     p.add_argument("--port", type=port, default=0, help="loopback port (default: a free one)")
     p.add_argument("--namespace", default="", help="the graph's namespace (default chaos<port>)")
-    p.add_argument("--log", default="state/chaos.log", help="where node logs go (default state/chaos.log)")
-    p.add_argument("--json", metavar="FILE", help="also write every run's checks and figures as JSON")
+    p.add_argument("--log", type=output_file, default="state/chaos.log",
+                   help="where node logs go (default state/chaos.log)")
+    p.add_argument("--json", type=output_file, metavar="FILE", help="also write every run's checks and figures as JSON")
 
 
 def _link_args(p: argparse.ArgumentParser) -> None:
@@ -204,7 +205,8 @@ def _link_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--unprotected", action="store_true",
                    help="the robot's links to the laptop keep BLOCK congestion control (bus/netif.py off): "
                         "shows what a laptop recording raw frames does to an unprotected robot")
-    p.add_argument("--log", default="state/link.log", help="the robot graph's log (default state/link.log)")
+    p.add_argument("--log", type=output_file, default="state/link.log",
+                   help="the robot graph's log (default state/link.log)")
     p.add_argument("--drop-wait-us", type=int, metavar="US",
                    help="the robot's zenoh wait_before_drop and max_wait_before_drop_fragments (default "
                         "graph.robot.yaml's: 1000 us both; zenoh's own: 1000 and 50000): how long its router waits "
@@ -212,7 +214,7 @@ def _link_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--laptop-nice", type=int, default=19, metavar="N",
                    help="CPU priority of the laptop's processes (default 19: on this one machine they take only "
                         "the CPU the robot leaves, as a separate laptop would; 0: the robot's equal)")
-    p.add_argument("--json", metavar="FILE", help="also write every run's figures as JSON")
+    p.add_argument("--json", type=output_file, metavar="FILE", help="also write every run's figures as JSON")
 
 
 def _flood_args(p: argparse.ArgumentParser) -> None:
@@ -229,8 +231,9 @@ def _flood_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--detector", default="simulated", choices=("simulated", "hog", "yolox"),
                    help="detection backend of the robot graph (default simulated)")
     p.add_argument("--port", type=port, default=21680, help="the robot's port on loopback (default 21680)")
-    p.add_argument("--log", default="state/flood.log", help="the robot graph's log (default state/flood.log)")
-    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    p.add_argument("--log", type=output_file, default="state/flood.log",
+                   help="the robot graph's log (default state/flood.log)")
+    p.add_argument("--json", type=output_file, metavar="FILE", help="also write the figures as JSON")
 
 
 def _eval_args(p: argparse.ArgumentParser) -> None:

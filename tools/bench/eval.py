@@ -24,6 +24,7 @@ from ...evaluation.campaign import campaign_notes, expand_sequences, run_campaig
 from ...evaluation.report import write_report
 from ...evaluation.runner import DEFAULT_DETECTOR, SequenceRun, detector_key
 from ...vision.detector_presets import apply_detector_preset
+from ..errors import writable_directory
 
 log = logging.getLogger("followbus.eval")
 
@@ -147,6 +148,7 @@ def cmd_eval(args) -> int:
     from ...vision.models import ModelError
 
     command = "followbus " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if args.argv is None else args.argv
+    writable_directory(args.out, "--out")
     if getattr(args, "group", False):
         return _cmd_group(args, command)
     if getattr(args, "camera", False):

@@ -16,6 +16,7 @@ from ..command import (
     key_expression,
     load_graph,
     non_negative,
+    output_file,
     positive,
     settings,
 )
@@ -38,7 +39,8 @@ def _record_args(p: argparse.ArgumentParser) -> None:
              "  followbus record --topics 'fb/capture/**' 'fb/prediction/**' --status\n"
              "  followbus record -o recordings/day.mcap --split-size 1000    # day_0.mcap, day_1.mcap, ... of 1 GB",
              raw=True)
-    p.add_argument("-o", "--output", metavar="FILE", help="output file (default recordings/<graph>-<time>.mcap)")
+    p.add_argument("-o", "--output", type=output_file, metavar="FILE",
+                   help="output file (default recordings/<graph>-<time>.mcap)")
     p.add_argument("--topics", nargs="+", type=key_expression, metavar="PATTERN",
                    help="key expressions to record (default <ns>/**)")
     p.add_argument("--exclude", action="append", type=key_expression, metavar="PATTERN",
@@ -121,7 +123,7 @@ def _replay_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--param", action="append", metavar="KEY=VALUE",
                    help="override a parameter (YAML value); with several nodes NODE.KEY=VALUE")
     p.add_argument("--verify", action="store_true", help="compare outputs with the recording; exit 1 on a mismatch")
-    p.add_argument("--report", metavar="FILE", help="write a JSON summary")
+    p.add_argument("--report", type=output_file, metavar="FILE", help="write a JSON summary")
     p.add_argument("--rtol", type=non_negative, default=1e-6, help="relative tolerance for floats (default 1e-6)")
     p.add_argument("--atol", type=non_negative, default=1e-6, help="absolute tolerance for floats (default 1e-6)")
     p.add_argument("--timeout", type=positive, default=5.0, metavar="S",
@@ -154,7 +156,8 @@ def _recover_args(p: argparse.ArgumentParser) -> None:
              "recorder killed with SIGKILL, a full disk) into a new, finalised file.",
              "example: followbus recover recordings/run1.mcap -o recordings/run1-fixed.mcap")
     p.add_argument("file", help="truncated MCAP file")
-    p.add_argument("-o", "--output", metavar="FILE", help="output (default: FILE with .recovered.mcap)")
+    p.add_argument("-o", "--output", type=output_file, metavar="FILE",
+                   help="output (default: FILE with .recovered.mcap)")
     p.add_argument("--compression", choices=("lz4", "zstd", "none"), help="default: the input's")
 
 def _record(args: argparse.Namespace) -> int:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..command import Command, Lazy, connect_args, describe, domain_args, positive
+from ..command import Command, Lazy, connect_args, describe, domain_args, output_file, positive
 
 
 def _up_args(p: argparse.ArgumentParser) -> None:
@@ -56,7 +56,7 @@ def _graph_args(p: argparse.ArgumentParser) -> None:
     form = p.add_mutually_exclusive_group()
     form.add_argument("--dot", action="store_true", help="Graphviz DOT (the default)")
     form.add_argument("--svg", action="store_true", help="SVG")
-    p.add_argument("-o", "--output", metavar="FILE", help="write to FILE instead of standard output")
+    p.add_argument("-o", "--output", type=output_file, metavar="FILE", help="write to FILE instead of standard output")
 
 
 def _param_get_args(p: argparse.ArgumentParser) -> None:
