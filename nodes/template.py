@@ -57,6 +57,7 @@ class TemplateNode(Node):
         self.node_params, template_params = self.params
         self.updater = TemplateUpdater(template_params)
         self.last_save = time.monotonic()
+        self.save_failures = 0
         self.eta = 0.0
         self.p_specular = 0.0
         self.launch_id = os.environ.get(LAUNCH_ID_ENV, "")
@@ -97,17 +98,23 @@ class TemplateNode(Node):
         self.last_save = time.monotonic()
         if path is None or not self.updater.initialised:
             return
-        path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.stem + ".tmp.npz")
-        self.updater.save(tmp, saved_by=self.launch_id)
-        os.replace(tmp, path)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.updater.save(tmp, saved_by=self.launch_id)
+            os.replace(tmp, path)
+        except OSError as exc:  # a full disk or a file made read-only: the robot follows on; a restart learns afresh
+            self.save_failures += 1
+            if self.save_failures == 1 or self.save_failures % 100 == 0:
+                self.log.warning("cannot save the template to %s (%s; %d failures so far): a restarted template node "
+                                 "will learn the target afresh", path, exc.strerror or exc, self.save_failures)
 
     def teardown(self) -> None:
         self._save()
 
     def status(self) -> dict[str, Any]:
         return {"eta": round(self.eta, 5), "p_specular": round(self.p_specular, 4),
-                "initialised": self.updater.initialised}
+                "initialised": self.updater.initialised, "save_failures": self.save_failures}
 
 
 NODE = TemplateNode

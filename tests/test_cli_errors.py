@@ -147,6 +147,10 @@ def test_set_errors_name_the_option_not_a_line(graph_file):
     # The robot's graph: a track age limit below 0 would refuse every track (a robot that never follows).
     line = one_error_line(run_followbus("check", str(REPO / "graph.yaml"), "--set", "motor.max_track_age_ms=-5"))
     assert "max_track_age_ms must be >= 0 (0: no limit), not -5.0" in line, line
+    # A state file the node could not write is said by check and launch, not by the node on every save.
+    line = one_error_line(run_followbus("check", str(REPO / "graph.yaml"), "--set", "template.state_file=/proc/t.npz"))
+    assert line == ("followbus: --set template.state_file=/proc/t.npz: state_file /proc/t.npz: cannot write in /proc: "
+                    "No such file or directory (the node could not keep its state there)"), line
 
 
 # ----------------------------------------------------------------------------- launch --duration

@@ -3,6 +3,7 @@ published messages out, on a simulated clock. No processes, no Zenoh."""
 
 from __future__ import annotations
 
+import logging
 import threading
 
 import numpy as np
@@ -389,6 +390,29 @@ def test_template_restores_only_its_own_launch_by_default(tmp_path, monkeypatch,
     assert len(out) == 1 and out[0].initialised is restored
     if restored:
         np.testing.assert_allclose(out[0].hist, saved.hist, atol=1e-6)
+
+
+def test_a_template_that_cannot_be_saved_is_said_once_and_still_goes_out(tmp_path, caplog):
+    """A state file that cannot be written (a full disk, a file where its directory should be) costs the restart
+    its learnt template, never the frame's: the template is published, the failure counted and logged once
+    (it raised in on_frame: a traceback on every save)."""
+    blocked = tmp_path / "state"
+    blocked.write_text("a file where the state directory should be")
+    box = (150.0, 120.0, 24.0, 80.0)
+    graph = tracking_graph(f"template.state_file={blocked}/template.npz", "template.save_every_s=1e-9")
+    with caplog.at_level(logging.WARNING), InProcessGraph(graph, nodes=["template"]) as g:
+        t0 = g.now_ns
+        for k in range(3):
+            stamp = t0 + k * DT_NS
+            g.inject("capture/frame", frame_msg(k, stamp, person_frame((150, 120, 24, 80))))
+            g.inject("reid/measurement", measurement(k, stamp, "TRACKING", box, init=k == 0))
+            g.run_until(stamp + DT_NS)
+        out = g.outputs("template", "template")
+        status = g.status("template")["extra"]
+    assert [t.header.frame_seq for t in out] == [0, 1, 2] and all(t.initialised for t in out)
+    assert status["save_failures"] == 3 and status["handler_errors"] == 0, status
+    said = [r for r in caplog.records if "cannot save the template" in r.getMessage()]
+    assert len(said) == 1 and str(blocked) in said[0].getMessage()
 
 
 # --------------------------------------------------------------------------- motor

@@ -359,6 +359,24 @@ def _warn_unfed(graph, started: list[str], partial: bool, left_out: set[str]) ->
                   file=sys.stderr, flush=True)
 
 
+def _check_what_it_opens(graph, cls, params) -> None:
+    """What a node started here would open: its params' own ``check()`` (the capture source), and the files it keeps
+    its state in (a ``state_file`` field, {namespace} filled in), which it must be able to write (ParamError)."""
+    from ..bus.node_params import ParamError, marked
+    from .errors import output_file_problem
+
+    parts = params if isinstance(params, tuple) else (params,)
+    for part in parts:
+        if hasattr(part, "check"):
+            part.check()
+    for key in marked(cls.Params, "state_file"):
+        value = next(getattr(p, key) for p in parts if hasattr(p, key))
+        path = value.replace("{namespace}", graph.namespace)
+        problem = output_file_problem(path) if value else None
+        if problem:
+            raise ParamError(key, f"{key} {path}: {problem} (the node could not keep its state there)")
+
+
 def _validate(graph, overrides: list[str] | None = None, *, opened: set[str] | None = None,
               labels: dict[str, str] | None = None, nodes: list[str] | None = None) -> None:
     """Validate every node (or ``nodes``) against its class, and check what the nodes in ``opened`` (default:
@@ -374,11 +392,9 @@ def _validate(graph, overrides: list[str] | None = None, *, opened: set[str] | N
     for name in nodes if nodes is not None else list(graph.nodes):
         spec = graph.nodes[name]
         try:
-            _, params = validate_node(graph, spec)
+            cls, params = validate_node(graph, spec)
             if opened is None or name in opened:
-                for part in params if isinstance(params, tuple) else (params,):
-                    if hasattr(part, "check"):
-                        part.check()
+                _check_what_it_opens(graph, cls, params)
         except Exception as exc:
             param = exc if isinstance(exc, ParamError) else exc.__cause__
             key = f"{name}.{param.key}" if isinstance(param, ParamError) else ""
