@@ -29,6 +29,7 @@ from ..vision.detectors import (
     SimulatedDetector,
     largest_size_within,
     make_detector,
+    resolve_detector_model,
     split_by_score,
 )
 
@@ -82,6 +83,17 @@ class DetectionParams:
                              f"(= score_threshold: no low-score boxes), not {self.low_score_threshold!r}")
         if self.sim_delay_ms and self.backend != "simulated":
             raise ParamError("sim_delay_ms", "sim_delay_ms only applies to backend 'simulated'")
+
+    def check(self) -> None:
+        """The model this node would load is on the search path and intact (SHA-256, no onnxruntime): run by
+        `followbus check`, `launch` and `demo` before anything starts, so a missing or corrupt model is one line
+        instead of detection and redetection crash-looping until their restart budget is spent."""
+        size = AUTO_SIZES_PX[0] if self.input_size_px == AUTO else int(self.input_size_px)
+        try:
+            resolve_detector_model(self.backend, model_dir=self.model_dir or None, model_file=self.model_file or None,
+                                   input_size=size, input_shape=self.input_shape)
+        except DetectorUnavailable as exc:
+            raise ParamError("backend", str(exc)) from exc
 
 
 def _check_amounts(p: DetectionParams) -> None:

@@ -192,13 +192,14 @@ def test_demo_refuses_to_start_without_a_model_and_node_exits_with_one_line(tmp_
     assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
     assert f"backend 'auto' needs the YOLOX model {GRAPH_MODEL}" in lines[0] and "backend: hog" in lines[0]
     assert "launching" not in res.stdout  # nothing was started
-    # The detection node itself, as a real process: one error line, exit status 1.
+    # The detection node itself, as a real process: checked before it starts (DetectionParams.check), one line,
+    # exit status 2.
     g = graph_file("  detection:\n    run: followbus.nodes.detection\n    inputs:\n"
                    "      frame: {from: capture/frame}\n    outputs: [detections]\n    params: {backend: auto}\n"
                    "  capture:\n    run: followbus.nodes.capture\n    outputs: [frame]\n")
     res = _run_without_models(tmp_path, "node", "detection", "--graph", str(g))
-    assert res.returncode == 1, res.stdout + res.stderr
-    errors = [ln for ln in res.stderr.splitlines() if "ERROR" in ln]
+    assert res.returncode == 2, res.stdout + res.stderr
+    errors = res.stderr.strip().splitlines()
     assert len(errors) == 1 and "Traceback" not in res.stderr, res.stderr
     assert "backend 'auto' needs the YOLOX model" in errors[0] and str(tmp_path / "repo" / "models") in errors[0]
 
@@ -208,6 +209,13 @@ def test_demo_refuses_a_corrupt_model_before_launching(tmp_path: Path) -> None:
     res = run_followbus("demo", "--set", f"detection.model_dir={bad.parent}", "--duration", "1", timeout=60)
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stdout + res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and str(bad) in res.stderr and "corrupt" in res.stderr
+    # check and launch too, before any node starts (detection and redetection crash-looped on it until their
+    # restart budget was spent, and `check` said ok).
+    for argv in (["check", str(REPO / "graph.yaml")], ["launch", str(REPO / "graph.yaml"), "--duration", "5"]):
+        res = run_followbus(*argv, "--set", f"detection.model_dir={bad.parent}", timeout=60)
+        assert res.returncode == 2 and "Traceback" not in res.stderr, res.stdout + res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1 and str(bad) in res.stderr and "corrupt" in res.stderr
+        assert "started" not in res.stdout + res.stderr
 
 
 # ----------------------------------------------------------------------------- followbus models
