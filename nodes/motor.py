@@ -25,6 +25,7 @@ import numpy as np
 
 from ..bus.node import In, Node, Out
 from ..bus.node_params import ParamError
+from ..bus.pubsub import RateLimitedLog
 from ..bus.schemas import Message
 from ..control.drivers import SerialDriver, SimDriver
 from ..control.follow import FollowCommand, FollowController, FollowParams
@@ -90,6 +91,7 @@ class Motor(Node):
         self.last_odom_ns = 0
         self.last_command_ns = 0  # when the last command went out (node clock)
         self.too_old = 0  # tracks not acted on: captured longer than max_track_age_ms ago
+        self._too_old_warn = RateLimitedLog(self.log, 10.0)
         self.clock = self.runtime.clock
         self.live = self.clock.live  # wall time, or the in-process runtime's simulated time
 
@@ -108,8 +110,15 @@ class Motor(Node):
         if not self.live:
             return True, None
         max_age_ms = self.motor_params.max_track_age_ms
-        if max_age_ms and (self.clock.wall_ns() - msg.header.stamp_ns) > max_age_ms * 1e6:
+        age_ms = (self.clock.wall_ns() - msg.header.stamp_ns) / 1e6
+        if max_age_ms and age_ms > max_age_ms:
             self.too_old += 1
+            # Said, not only counted: a robot that holds still because its tracks come late (an overloaded
+            # machine) or seem to (a camera host whose clock is behind this one's) is not left to be guessed at.
+            self._too_old_warn.warning(
+                "not acting on a track captured %.0f ms ago (max_track_age_ms %.0f; %d so far): the graph is "
+                "behind, or the capturing host's clock is behind this one's (check NTP)", age_ms, max_age_ms,
+                self.too_old)
             return False, None
         return True, self.clock.monotonic_ns()
 

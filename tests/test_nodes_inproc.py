@@ -449,6 +449,24 @@ def test_motor_watchdog_stops_within_200ms_of_simulated_time_after_the_last_trac
     assert all(_is_zero(c) for c in cmds if c.header.pub_ns >= first.header.pub_ns)
 
 
+def test_motor_does_not_act_on_stale_tracks_and_says_why(caplog):
+    """Tracks captured longer than max_track_age_ms (500) ago steer nothing: the motor never moves on them, counts
+    them and says, once, that the graph is behind or the capturing host's clock is (they were only counted)."""
+    with caplog.at_level(logging.WARNING), InProcessGraph(tracking_graph(), nodes=["motor"]) as g:
+        t0 = g.now_ns
+        for k in range(5):
+            g.run_until(t0 + k * DT_NS)
+            g.inject("prediction/track", _track(k, g.now_ns - 600 * MS))
+            g.deliver()
+        g.run_until(t0 + 300 * MS)
+        cmds = g.outputs("motor", "command")
+        status = g.status("motor")["extra"]
+    assert cmds and all(_is_zero(c) for c in cmds)
+    assert status["too_old"] == 5, status
+    said = [r.getMessage() for r in caplog.records if "not acting on a track" in r.getMessage()]
+    assert len(said) == 1 and "captured 600 ms ago (max_track_age_ms 500" in said[0] and "NTP" in said[0], said
+
+
 def test_motor_stops_at_once_on_a_lost_target():
     with InProcessGraph(tracking_graph(), nodes=["motor"]) as g:
         t0 = g.now_ns
