@@ -23,6 +23,7 @@ from .bench.commands import COMMANDS as BENCH_COMMANDS
 from .command import (
     Command,
     Lazy,
+    OneLineParser,
     add_commands,
     describe,
     domain_args,
@@ -427,7 +428,7 @@ COMMANDS: tuple[Command, ...] = (
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The parser of ``argv`` (only its command gets its arguments); None: every command's, complete."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="followbus", description="Perception and control of a person-following robot over Eclipse Zenoh.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"followbus {__version__}")
