@@ -20,6 +20,7 @@ from ..bus.node import In, Node, Out
 from ..bus.node_params import ParamError, parse_params
 from ..bus.schemas import Frame, Message
 from ..msgs.perception import Detections, GroundTruth
+from ..tracking.params import check_ranges
 from ..vision.detectors import (
     AUTO_SIZES_PX,
     BACKENDS,
@@ -77,7 +78,8 @@ class DetectionParams:
                                             f"only), not {self.input_shape!r}")
         if self.runtime not in RUNTIMES:
             raise ParamError("runtime", f"runtime must be one of {', '.join(RUNTIMES)}, not {self.runtime!r}")
-        _check_amounts(self)
+        check_ranges(self, positive=("auto_budget_ms",), non_negative=("sim_delay_ms", "threads", "sim_noise_px"),
+                     unit_interval=("nms_iou", "sim_miss_rate", "sim_false_positive_rate"))
         if not 0.0 <= self.low_score_threshold <= self.score_threshold:
             raise ParamError("low_score_threshold", "low_score_threshold must be in [0, score_threshold] "
                              f"(= score_threshold: no low-score boxes), not {self.low_score_threshold!r}")
@@ -94,16 +96,6 @@ class DetectionParams:
                                    input_size=size, input_shape=self.input_shape)
         except DetectorUnavailable as exc:
             raise ParamError("backend", str(exc)) from exc
-
-
-def _check_amounts(p: DetectionParams) -> None:
-    for name, low, high in (("auto_budget_ms", 1e-9, None), ("sim_delay_ms", 0, None), ("threads", 0, None),
-                            ("sim_noise_px", 0, None), ("nms_iou", 0, 1), ("sim_miss_rate", 0, 1),
-                            ("sim_false_positive_rate", 0, 1)):
-        value = getattr(p, name)
-        if value < low or (high is not None and value > high):
-            bound = f"in [{low}, {high}]" if high is not None else ("> 0" if low > 0 else ">= 0")
-            raise ParamError(name, f"{name} must be {bound}, not {value!r}")
 
 
 def detection_params(raw: dict[str, Any]) -> DetectionParams:
