@@ -478,15 +478,17 @@ def test_help_builds_the_table_without_importing_the_work():
     assert result.returncode == 0 and result.stdout.strip() == "[]", result.stdout + result.stderr
 
 
+def _leaves(commands, prefix=()):
+    """(words, command) of every runnable command: `bench chaos` is ("bench", "chaos")."""
+    for c in commands:
+        yield from _leaves(c.subcommands, (*prefix, c.name)) if c.subcommands else [((*prefix, c.name), c)]
+
+
 def test_every_command_has_a_help_and_a_handler():
     from followbus.tools.cli import COMMANDS, build_parser
     from followbus.tools.command import Lazy
 
-    def leaves(commands, prefix=()):
-        for c in commands:
-            yield from leaves(c.subcommands, (*prefix, c.name)) if c.subcommands else [((*prefix, c.name), c)]
-
-    for words, command in leaves(COMMANDS):
+    for words, command in _leaves(COMMANDS):
         parser = build_parser(list(words))
         with pytest.raises(SystemExit) as done:
             parser.parse_args([*words, "--help"])
@@ -568,12 +570,8 @@ def test_every_number_a_command_takes_is_checked_by_its_type():
     unchecked_ints = {"--seed", "--laptop-nice", "--drop-wait-us", "--jpeg-quality"}
     types = {checked.positive, checked.non_negative, checked.count, checked.count_or_zero, checked.port}
 
-    def leaves(commands, prefix=()):
-        for c in commands:
-            yield from leaves(c.subcommands, (*prefix, c.name)) if c.subcommands else [(*prefix, c.name)]
-
     seen = set()
-    for words in leaves(COMMANDS):
+    for words, _command in _leaves(COMMANDS):
         parser = build_parser(list(words))
         for sub in words:
             parser = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[sub]
