@@ -203,20 +203,15 @@ def cmd_schema(args) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from ..vision.detectors import DetectorUnavailable
     from .demo import default_graph_path, demo_detector, run_demo
     from .domains import apply_domain
     from .runs.claims import claim_from_args
 
     args.graph = default_graph_path(args.graph)
-    # The graph file and the model first, then the bus: a mistake in the file or a missing model is said before
-    # whether another graph holds this domain.
+    # The graph file and the model first (its validation: DetectionParams.check), then the bus: a mistake in the
+    # file or a missing model is said before whether another graph holds this domain.
     graph, overrides = demo_graph(args.graph, args.scene, args.overrides)
-    try:
-        detector = demo_detector(graph)
-    except DetectorUnavailable as exc:
-        print(f"followbus demo: {exc}", file=sys.stderr, flush=True)
-        return EXIT_BAD_INPUT
+    detector = demo_detector(graph)
     held = claim_from_args(args, "demo")
     apply_domain(graph)
     try:

@@ -188,8 +188,8 @@ def print_summary(summary: dict) -> None:
 
 
 def demo_detector(graph: Graph) -> str | None:
-    """What the graph's detection node will run, said before anything is launched (it would refuse to start
-    anyway); raises DetectorUnavailable (a missing or corrupt model) with the one line to print."""
+    """What the graph's detection node will run, said before anything is launched. Its model was already checked by
+    the graph's validation (DetectionParams.check: a missing or corrupt one is refused there)."""
     detection = graph.nodes.get("detection")
     params = detection.params if detection else {}
     backend = str(params.get("backend", "auto"))
