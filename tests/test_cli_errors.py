@@ -540,6 +540,8 @@ def test_a_reader_that_stops_early_ends_the_command_quietly():
     (["bench", "bus", "--json", "/proc/bus.json"], "--json"),  # written after the benchmark's minutes
     (["launch", "graph.yaml", "--record", "/proc/run.mcap"], "--record"),  # the recorder failed once the graph ran
     (["record", "-o", "/"], "-o/--output"),
+    (["topics", "--namespace", "fb*x"], "--namespace"),  # waited on keys no graph can publish
+    (["bench", "chaos", "--namespace", "a/b/"], "--namespace"),
 ])
 def test_a_number_or_key_that_makes_no_sense_is_one_line_before_anything_starts(argv, option):
     """Nothing joins the bus or loads a graph: a negative duration, a count of 0, a NaN, a port past 65535 or a
@@ -563,12 +565,14 @@ def test_an_output_directory_that_cannot_be_made_is_one_line_before_anything_sta
 
 def test_every_number_a_command_takes_is_checked_by_its_type():
     """Every float option of every command is a checked amount (tools/command.py: positive, non_negative), every
-    int option a checked count or port, but for the few whose every value means something."""
+    int option a checked count or port, but for the few whose every value means something; every --namespace a
+    checked key prefix."""
     from followbus.tools import command as checked
     from followbus.tools.cli import COMMANDS, build_parser
 
     unchecked_ints = {"--seed", "--laptop-nice", "--drop-wait-us", "--jpeg-quality"}
-    types = {checked.positive, checked.non_negative, checked.count, checked.count_or_zero, checked.port}
+    types = {checked.positive, checked.non_negative, checked.count, checked.count_or_zero, checked.port,
+             checked.bus_namespace}
 
     seen = set()
     for words, _command in _leaves(COMMANDS):
@@ -579,6 +583,8 @@ def test_every_number_a_command_takes_is_checked_by_its_type():
             name = max(action.option_strings, key=len, default=action.dest)
             if action.type in (float, int) and name not in unchecked_ints:
                 pytest.fail(f"followbus {' '.join(words)} {name}: type={action.type.__name__}, unchecked")
+            if name == "--namespace" and action.type is not checked.bus_namespace:
+                pytest.fail(f"followbus {' '.join(words)} --namespace: not checked as a key prefix")
             seen |= {action.type} & types
     assert seen == types
 

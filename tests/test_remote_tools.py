@@ -72,6 +72,7 @@ def test_laptop_as_monitor_uses_every_bus_command(robot, tmp_path):
         # The graph's namespace is t; the laptop's default is fb: it names the one that is alive.
         "empty": _start(tmp_path, env, "nodes", "--connect", robot),
         "monitor-empty": _start(tmp_path, env, "monitor", "--connect", robot, "--once", "--seconds", "6"),
+        "topics-empty": _start(tmp_path, env, "topics", "--connect", robot, "--seconds", "2"),
     }
     done = {name: _finish(proc) for name, proc in procs.items()}
     for name in ("echo", "hz", "topics", "nodes", "record", "monitor"):
@@ -86,6 +87,8 @@ def test_laptop_as_monitor_uses_every_bus_command(robot, tmp_path):
     assert "relay" in out and "(pick one with --namespace)" in out
     status, out, _ = done["monitor-empty"]
     assert status == 1 and "monitor  no node under fb/@health; nodes are alive in: t (" in out, out
+    status, out, _ = done["topics-empty"]
+    assert status == 1 and "nodes are alive in: t (" in out and "(pick one with --namespace)" in out, out
     # A remote link (here loopback: nothing to leave out) records every key and says what it lost.
     assert "recorded " in done["record"][1] and "lost on the way" in done["record"][1]
     keys = {msg.key for msg in iter_bus_messages(tmp_path / "laptop.mcap")}

@@ -143,6 +143,16 @@ def key_expression(text: str) -> str:
     return text
 
 
+def bus_namespace(text: str) -> str:
+    """argparse type of --namespace: a prefix of keys (letters, digits, _ - and /, as graph.yaml's). One that is not
+    is said at once: a bus command would otherwise wait on keys no graph can publish, in silence."""
+    from ..bus.graph import NAMESPACE_RE
+
+    if text and not NAMESPACE_RE.match(text):
+        raise argparse.ArgumentTypeError(f"not a key prefix (letters, digits, _ - and /): {text!r}")
+    return text
+
+
 def output_file(text: str) -> str:
     """argparse type of a file a command writes (--json, --report, --log, -o): one it could not write is said before
     the command runs, not after a benchmark's minutes are lost. Nothing is created to find out."""
@@ -181,7 +191,7 @@ def connect_args(p: argparse.ArgumentParser, timeout: bool = True) -> None:
                                   "$FOLLOWBUS_ZENOH_USER; without either and without --connect, the graph's own)")
     p.add_argument("--password", help="zenoh password (default: $FOLLOWBUS_ZENOH_PASSWORD; asked on a terminal)")
     p.add_argument("--ca", metavar="FILE", help="CA certificate for a tls/ endpoint")
-    p.add_argument("--namespace", help="bus namespace (default: the graph's, else fb)")
+    p.add_argument("--namespace", type=bus_namespace, help="bus namespace (default: the graph's, else fb)")
 
 
 # --- what commands that join the bus need --------------------------------------------------------------
@@ -209,5 +219,6 @@ def domain_args(p: argparse.ArgumentParser, auto: bool = False) -> None:
                    help="run in domain N: the graph's port + N and namespace <namespace>-dN, apart from every other "
                         "domain (default: $FOLLOWBUS_DOMAIN, else 0: the graph as written)"
                         + ("; auto: the first domain where no graph runs" if auto else ""))
-    p.add_argument("--namespace", help="bus namespace (default: the graph's, or $FOLLOWBUS_NAMESPACE)")
+    p.add_argument("--namespace", type=bus_namespace,
+                   help="bus namespace (default: the graph's, or $FOLLOWBUS_NAMESPACE)")
     p.add_argument("--port", help="the well-known port peers meet on (default: the graph's, or $FOLLOWBUS_PORT)")

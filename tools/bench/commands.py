@@ -8,7 +8,18 @@ import argparse
 from pathlib import Path
 
 from ...vision.detector_presets import DETECTOR_PRESETS
-from ..command import Command, Lazy, count, count_or_zero, describe, non_negative, output_file, port, positive
+from ..command import (
+    Command,
+    Lazy,
+    bus_namespace,
+    count,
+    count_or_zero,
+    describe,
+    non_negative,
+    output_file,
+    port,
+    positive,
+)
 
 
 def _bus_args(p: argparse.ArgumentParser) -> None:
@@ -47,7 +58,7 @@ def _pipeline_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lane", choices=("on", "off"), default="off",
                    help="the same-host shared-memory lane (zenoh: shm_lane; default off, as graph.yaml)")
     p.add_argument("--port", type=port, default=0, help="loopback port (default: a free one)")
-    p.add_argument("--namespace", default="", help="graph namespace (default bench<port>)")
+    p.add_argument("--namespace", type=bus_namespace, default="", help="graph namespace (default bench<port>)")
     p.add_argument("--json", type=output_file, metavar="FILE", help="also write the figures as JSON")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", dest="overrides",
                    help="override a node's parameter for this run (repeatable), as `followbus launch --set`")
@@ -68,7 +79,7 @@ def _soak_args(p: argparse.ArgumentParser) -> None:
                    help="detector (default graph: graph.yaml's own detection params)")
     p.add_argument("--scene", default="corridor-occlusion", help="synthetic scene (default corridor-occlusion)")
     p.add_argument("--port", type=port, default=0, help="loopback port (default: a free one)")
-    p.add_argument("--namespace", default="", help="graph namespace (default bench<port>)")
+    p.add_argument("--namespace", type=bus_namespace, default="", help="graph namespace (default bench<port>)")
     p.add_argument("--json", type=output_file, metavar="FILE", help="also write every window as JSON")
 
 
@@ -172,7 +183,7 @@ def _chaos_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--malformed-per-key", type=count, default=10_000, metavar="N",
                    help="malformed payloads per input key (default 10000)")
     p.add_argument("--port", type=port, default=0, help="loopback port (default: a free one)")
-    p.add_argument("--namespace", default="", help="the graph's namespace (default chaos<port>)")
+    p.add_argument("--namespace", type=bus_namespace, default="", help="the graph's namespace (default chaos<port>)")
     p.add_argument("--log", type=output_file, default="state/chaos.log",
                    help="where node logs go (default state/chaos.log)")
     p.add_argument("--json", type=output_file, metavar="FILE", help="also write every run's checks and figures as JSON")

@@ -123,9 +123,10 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
     announced = PublishedKeys(session, namespace) if is_remote(settings) and not args.raw_frames else None
     if announced is not None and not announced.wait(STATUS_WAIT_S):
         announced.close()
-        session.close()
         print(f"no node status under {namespace}/@status in {STATUS_WAIT_S:g} s: no graph there to list "
               f"(--raw-frames subscribes to every key under {namespace}/**)")
+        _say_where_graphs_are(session, namespace)
+        session.close()
         return 1
     listened_s = _listen(announced, session, counts, namespace, args.seconds)
     listed = announced.announced() if announced is not None else {}
@@ -134,15 +135,25 @@ def cmd_topics(args, settings: ZenohSettings, namespace: str) -> int:
     silent = {k: v for k, v in listed.items() if k not in left_out and k not in counts.keys}
     if announced is not None:
         announced.close()
-    session.close()
     if not counts.keys and not left_out:
         print(f"no messages under {namespace}/** in {args.seconds:.1f} s")
+        _say_where_graphs_are(session, namespace)
+        session.close()
         _unannounced_note(unannounced, time.monotonic() - started)
         return 1
+    session.close()
     print("\n".join(counts.table()))
     _topics_notes(counts, left_out, silent, args.seconds, listened_s)
     _unannounced_note(unannounced, time.monotonic() - started)
     return 0
+
+
+def _say_where_graphs_are(session: zenoh.Session, namespace: str) -> None:
+    """Nothing under ``namespace``: the namespaces whose nodes are alive, if any (a mistyped or defaulted
+    --namespace), as `nodes` and `monitor` say."""
+    found = live_namespaces(session)
+    if any(ns != namespace for ns in found):
+        print(namespaces_hint(namespace, found))
 
 
 def _unannounced_note(nodes: list[str], waited_s: float) -> None:
