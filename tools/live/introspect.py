@@ -152,7 +152,7 @@ def _say_where_graphs_are(session: zenoh.Session, namespace: str) -> None:
     """Nothing under ``namespace``: the namespaces whose nodes are alive, if any (a mistyped or defaulted
     --namespace), as `nodes` and `monitor` say."""
     found = live_namespaces(session)
-    if any(ns != namespace for ns in found):
+    if found and namespace not in found:  # nodes alive here but silent: the notes below say so
         print(namespaces_hint(namespace, found))
 
 
