@@ -100,7 +100,7 @@ def test_laptop_recording_over_2mbit_never_stops_the_robot(tmp_path):
             tools = _laptop_tools(bench, laptop_dir)
             everything = bench.run_case("record-all", 20.0, until_answered=True)
             default = bench.run_case("record", 2.0)
-            frames = bench.run_case("frames", 20.0)
+            frames = bench.run_case("frames", 10.0)
         finally:
             bench.close()
     assert all(status == 0 for status, _ in tools.values()), tools
