@@ -144,7 +144,7 @@ def _shown(pair: NetnsPair, step: Step) -> bool:
     out, words = step.output(), step.argv
     if words[0] == "monitor" and "--web" in words:
         return '"capture"' in _web_state(pair, words[words.index("--web") + 1])
-    if words[0] == "monitor":
+    if words[0] == "monitor" and "--once" not in words:  # --once ends by itself, however slowly on a loaded machine
         return "connected" in out and any(line.split()[:2] == ["motor", "up"] for line in out.splitlines())
     if words[0] == "foxglove":
         return "ws://" in out
