@@ -151,8 +151,9 @@ class Replayer:
     def _incomplete(self, feed: Feed, sent: dict[int, set[str]]) -> set[int]:
         """Frames the node cannot reproduce from this recording: a required input of the frame is not in it, the
         feedback the frame joined live is not, nor the message of a sampled input it chose (the odometry
-        sample prediction took, dropped by the recorder), or an input's stream ends before the frame (the
-        recorder stopped first: prediction's track k comes from re-ID's measurement k, say)."""
+        sample prediction took, dropped by the recorder), a frame input's message of it was lost by the recorder
+        (a header.seq gap, Feed.lost_frames), or an input's stream ends before the frame (the recorder stopped
+        first: prediction's track k comes from re-ID's measurement k, say)."""
         required = self.plan.required_inputs
         stream_end: dict[str, int] = {}
         for fs, keys in sent.items():
@@ -160,7 +161,8 @@ class Replayer:
                 stream_end[key] = max(stream_end.get(key, -1), fs)
         last_end = min(stream_end.values(), default=None)
         return {fs for _topic, fs in feed.expected if fs >= 0 and (
-            (required and not required <= sent.get(fs, set()))
+            fs in feed.lost_frames
+            or (required and not required <= sent.get(fs, set()))
             or any(key not in sent.get(joined, set()) for key, joined in feed.joined.get(fs, ()))
             or any(stamp not in feed.stamps_recorded[key] for key, stamp in feed.noted.get(fs, ()))
             or (last_end is not None and last_end < fs))}

@@ -166,6 +166,10 @@ class Feed:
         self.noted: dict[int, set[tuple[str, int]]] = defaultdict(set)
         self.stamps_recorded: dict[str, set[int]] = defaultdict(set)
         self._noted_keys = set(plan.sampled_keys.values())
+        # Frames a message of a frame input of which the recorder lost (a header.seq gap between two recorded
+        # ones of the same publisher): the live node had it, the replay cannot.
+        self.lost_frames: set[int] = set()
+        self._last_input: dict[str, tuple[int, int, int]] = {}  # key -> (epoch_ns, seq, frame_seq) last read
 
     # outputs -> expected and hints
     def _read(self, messages: Iterable[BusMessage]) -> Iterator[Input]:
@@ -177,6 +181,8 @@ class Feed:
             frame_seq = head.header.frame_seq if head is not None else -1
             if msg.key in self._noted_keys and head is not None:
                 self.stamps_recorded[msg.key].add(head.header.stamp_ns)
+            if msg.key in self.plan.frame_inputs and head is not None:
+                self._note_seq(msg.key, head.header)
             if msg.key not in self.plan.outputs:
                 yield (Input(msg, frame_seq, head.header.stamp_ns, head.header.pub_ns) if head is not None
                        else Input(msg, -1, 0, 0))
@@ -189,6 +195,16 @@ class Feed:
         for node, open_ in list(self._open.items()):
             self._finish(node, *open_)
         self._open.clear()
+
+    def _note_seq(self, key: str, header: Any) -> None:
+        """A gap in a frame input's header.seq lost the messages of the frames between the two read (all of them:
+        which ones a node skipped live is not known), or of the later one's frame when none lies between."""
+        last = self._last_input.get(key)
+        self._last_input[key] = (header.epoch_ns, header.seq, header.frame_seq)
+        restarted = last is None or last[0] != header.epoch_ns
+        if restarted or header.seq <= last[1] + 1 or min(last[2], header.frame_seq) < 0:
+            return
+        self.lost_frames.update(range(last[2] + 1, header.frame_seq) or (header.frame_seq,))
 
     def _output_seen(self, node: str, frame_seq: int, head: Any) -> None:
         """A recorded output of ``node``: it opens the frame's hint, or adds its notes to the open one."""

@@ -102,6 +102,31 @@ def test_feed_hands_each_hint_over_before_its_frame(tmp_path):
     assert feed.outputs_expected == 5
 
 
+def test_a_frame_input_the_recorder_lost_makes_its_frames_not_verifiable(tmp_path):
+    """Beside a second graph the recorder dropped five of re-ID's measurements (header.seq 241-245) whose frames'
+    tracks it kept: the replay called those tracks missing. A gap in a frame input's header.seq names the frames
+    between the two messages read as lost; a publisher that restarted (another epoch) starts its seq again."""
+    path = tmp_path / "p.mcap"
+    writer = RecordingWriter(path)
+    writer.metadata("graph", {"yaml": (REPO / "graph.yaml").read_text()})
+    writer.metadata("followbus", {"namespace": "fb"})
+    meas = writer.bus_channel("fb/reid/measurement", "Measurement")
+    for seq, k in enumerate((0, 1, 2, 3, 4, 5, 6, 9, 10)):
+        if k in (3, 4):  # lost by the recorder; re-ID skipped 7 and 8 live
+            continue
+        msg = _stamped(Measurement(state="TRACKING"), k)
+        msg.header.seq = seq
+        if k == 10:  # re-ID restarted: a new epoch, its seq from 0
+            msg.header.seq, msg.header.epoch_ns = 0, T0 + 1
+        writer.write(meas, T0 + k * DT, msg.encode())
+    writer.finish()
+
+    feed = Feed(ReplayPlan(path, ReplayOptions(nodes=["prediction"])))
+    for _group in feed.groups():
+        pass
+    assert feed.lost_frames == {3, 4}
+
+
 def test_a_replay_keeps_off_the_live_graphs_state_file(tmp_path):
     """graph.yaml's template persists its state in state/{namespace}/template.npz: a replay of it neither starts
     from that file nor overwrites it (issue 23), unless --param names a state file."""
