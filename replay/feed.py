@@ -166,8 +166,8 @@ class Feed:
         self.noted: dict[int, set[tuple[str, int]]] = defaultdict(set)
         self.stamps_recorded: dict[str, set[int]] = defaultdict(set)
         self._noted_keys = set(plan.sampled_keys.values())
-        # Frames a message of a frame input of which the recorder lost (a header.seq gap between two recorded
-        # ones of the same publisher): the live node had it, the replay cannot.
+        # Frames for which the recorder lost a frame input's message (a header.seq gap between two recorded
+        # messages of one publisher): the live node had it, the replay cannot have it.
         self.lost_frames: set[int] = set()
         self._last_input: dict[str, tuple[int, int, int]] = {}  # key -> (epoch_ns, seq, frame_seq) last read
 
