@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 from ..bus.codec import DecodeError, Peeked, peek
 from ..bus.recording import BusMessage, iter_bus_messages
 from ..bus.schemas import ReplayHint
+from ..bus.stats import SequenceGaps
 
 if TYPE_CHECKING:
     from .plan import ReplayPlan
@@ -169,7 +170,8 @@ class Feed:
         # Frames for which the recorder lost a frame input's message (a header.seq gap between two recorded
         # messages of one publisher): the live node had it, the replay cannot have it.
         self.lost_frames: set[int] = set()
-        self._last_input: dict[str, tuple[int, int, int]] = {}  # key -> (epoch_ns, seq, frame_seq) last read
+        self._seq_gaps = SequenceGaps()
+        self._last_frame: dict[str, int] = {}  # key -> frame_seq of the last message read
 
     # outputs -> expected and hints
     def _read(self, messages: Iterable[BusMessage]) -> Iterator[Input]:
@@ -199,12 +201,11 @@ class Feed:
     def _note_seq(self, key: str, header: Any) -> None:
         """A gap in a frame input's header.seq lost the messages of the frames between the two read (all of them:
         which ones a node skipped live is not known), or of the later one's frame when none lies between."""
-        last = self._last_input.get(key)
-        self._last_input[key] = (header.epoch_ns, header.seq, header.frame_seq)
-        restarted = last is None or last[0] != header.epoch_ns
-        if restarted or header.seq <= last[1] + 1 or min(last[2], header.frame_seq) < 0:
-            return
-        self.lost_frames.update(range(last[2] + 1, header.frame_seq) or (header.frame_seq,))
+        last_frame = self._last_frame.get(key, -1)
+        self._last_frame[key] = header.frame_seq
+        lost = self._seq_gaps.see((key, header.source, header.epoch_ns), header.seq)
+        if lost > 0 and min(last_frame, header.frame_seq) >= 0:
+            self.lost_frames.update(range(last_frame + 1, header.frame_seq) or (header.frame_seq,))
 
     def _output_seen(self, node: str, frame_seq: int, head: Any) -> None:
         """A recorded output of ``node``: it opens the frame's hint, or adds its notes to the open one."""

@@ -236,11 +236,11 @@ def _verify_prediction_without(recording, tmp_path, keep, library: str) -> tuple
 
 def _steady_frames(path, count: int) -> list[int]:
     """``count`` consecutive frames, from the middle of the recording on (else before it), on which the live loop
-    kept pace: each
-    prior joined the measurement of the frame before. On a loaded machine a live run also has stretches in which
-    priors joined an older measurement while re-ID fell behind (test_a_live_fallback_is_replayed_exactly). Here the
-    detections alone are late: delayed inside such a stretch they can reorder prediction's inputs against the live
-    run's, and its outputs then differ in the last digits (a known limitation: docs/recording-and-replay.md)."""
+    kept pace: each prior joined the measurement of the frame before. On a loaded machine a live run also has
+    stretches in which priors joined an older measurement while re-ID fell behind
+    (test_a_live_fallback_is_replayed_exactly). Here the detections alone are late: delayed inside such a stretch
+    they can reorder prediction's inputs against the live run's, and its outputs then differ in the last digits (a
+    known limitation: docs/recording-and-replay.md)."""
     import followbus.msgs.tracking  # noqa: F401  (Prior decodes)
     from followbus.bus.codec import record_to_frame
     from followbus.bus.schemas import decode
