@@ -109,6 +109,11 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "followbus w/o identity-confirmed far re-lock": {"far_relock_needs_identity": False},
     # a far re-lock needs δ_id on n_id_frames frames even onto the only person in view
     "followbus w/o far re-lock of a person alone in view": {"far_relock_alone_in_view": False},
+    # a far re-lock the classifier cannot judge taken on colour even when another candidate comes within
+    # identity_margin of it in M_fuse
+    "followbus w/o waiting on a far tie": {"far_relock_tie_waits": False},
+    # the IMM's models mixed on every frame, also while coasting with no measurement (the textbook IMM)
+    "followbus w/o unmixed coasting": {"mix_models_while_coasting": True},
     # after a crossing, colour's choice (a lone detection unscored) even when the classifier, which just told
     # the people apart, scores every contender below δ_switch
     "followbus w/o identity veto after a crossing": {"identity_veto_after_crowd_frames": 0},

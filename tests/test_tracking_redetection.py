@@ -179,6 +179,30 @@ def test_before_any_measurement_the_coasting_output_stays_where_the_person_was_s
     assert pred.filters[SCENE].box[0] < 275.0  # the scene model was warped by the 30 px all along
 
 
+def _coast_still(pred: Predictor, first_k: int, frames: int) -> None:
+    """``frames`` frames with no measurement and a still camera."""
+    for k in range(first_k, first_k + frames):
+        t = k * 33 * MS
+        pred.predict(t, camera_motion=_motion(0.0, (k - 1) * 33 * MS, t))
+        miss = Measurement(state="OCCLUDED", accepted=False, source="")
+        miss.header.stamp_ns = t
+        pred.apply(miss)
+
+
+@pytest.mark.parametrize("mix", [False, True])
+def test_a_coast_keeps_each_models_velocity_unless_mixed(mix: bool) -> None:
+    """The two models disagree on the person's velocity (the camera followed them: still in the image, 300 px/s
+    against the scene). A 1 s coast with no measurement says nothing of which is right: unmixed, the image model
+    keeps its own velocity; the textbook IMM mixes the scene model's into it frame by frame."""
+    pred = _follow(person_moves_with_camera=True)
+    pred.params.mix_models_while_coasting = mix
+    pred.filters[SCENE].x[2:] = (-300.0, 0.0)
+    before = pred.filters[IMAGE].x[2:].copy()
+    _coast_still(pred, 21, 30)
+    drift = float(np.linalg.norm(pred.filters[IMAGE].x[2:] - before))
+    assert (drift > 5.0) if mix else (drift < 1.0)  # mixed: 8 px/s, and growing as the models even out
+
+
 # --------------------------------------------------------------------------- a smeared frame: phase correlation
 
 

@@ -229,6 +229,25 @@ def test_gate_excludes_far_detection_unless_disabled() -> None:
     assert reid.candidates[0].maha_sq > 9.488
 
 
+def test_a_far_relock_between_look_alikes_nothing_tells_apart_waits() -> None:
+    """Re-locking far from the prior onto one of two boxes with the target's colours, 45 px either side of it (S_geo
+    alike), with no classifier to ask: colour alone would toss a coin, so the target stays occluded. One such box
+    alone is taken."""
+    left, right = (55.0, 100.0, 30.0, 60.0), (145.0, 100.0, 30.0, 60.0)  # 45 px from the prior, 30 px is far
+
+    def relock(params: ReidParams, *boxes: tuple[float, float, float, float]) -> list:
+        reid, template = started(params)
+        assert reid.step(draw(), dets(), prior_at(TARGET, 33 * MS), template, 33 * MS).state == TrackState.OCCLUDED
+        frame = draw(*((b, RED) for b in boxes))
+        return [reid.step(frame, dets(*boxes), prior_at(TARGET, t * MS), template, t * MS) for t in (66, 99, 132)]
+
+    params = ReidParams(learned_appearance=False)
+    assert not any(r.accepted for r in relock(params, left, right))
+    assert relock(params, right)[0].accepted
+    taken = relock(ReidParams(learned_appearance=False, far_relock_tie_waits=False), left, right)
+    assert taken[0].accepted and box_tuple(taken[0].box) in (left, right)
+
+
 def test_two_equal_matches_are_ambiguous() -> None:
     params = ReidParams()
     reid, template = started(params)

@@ -314,16 +314,24 @@ class Predictor:
         w, h = (weights[:, None] * sizes).sum(axis=0)
         return float(w), float(h)
 
+    def _switch_matrix(self) -> np.ndarray:
+        """The models' Markov switching probabilities [from, to]: model_switch_probability a frame."""
+        n = len(self.models)
+        q = self.params.model_switch_probability
+        switch = np.full((n, n), q / (n - 1))
+        np.fill_diagonal(switch, 1.0 - q)
+        return switch
+
     def _mix(self) -> np.ndarray:
         """IMM step 1: each filter restarts from the mixture of all, weighted by how likely the system was in
         each model given it is now in this one. Returns the predicted model probabilities."""
         n = len(self.models)
         if n == 1:
             return self.mode
-        q = self.params.model_switch_probability
-        switch = np.full((n, n), q / (n - 1))
-        np.fill_diagonal(switch, 1.0 - q)
+        switch = self._switch_matrix()
         predicted = switch.T @ self.mode
+        if self._coasting and not self.params.mix_models_while_coasting:
+            return predicted  # no measurement to say which model is right: their states stay apart
         mixing = switch * self.mode[:, None] / np.maximum(predicted[None, :], 1e-300)  # [from, to]
         states = [(self.filters[m].x.copy(), self.filters[m].P.copy(), self.filters[m].size) for m in self.models]
         for j, m in enumerate(self.models):

@@ -112,6 +112,12 @@ class KalmanParams(_FramePeriod, _UpdateSuspension):
     # the person, a drone tracking a boat). The models' probabilities switch by model_switch_probability a frame.
     image_motion_model: bool = True
     model_switch_probability: float = 0.05
+    # The IMM's mixing (each model restarting from the mixture of all) on frames with no measurement. Mixing moves
+    # each model's state some 5 % a frame towards the other's, so after a second of coasting the "image" model
+    # carries the "scene" model's velocity (otb-diving 93-125: -25 px/s became -47, and the next coast rose 20-50 px
+    # off the tumbling diver). With no measurement nothing says which model is right: False keeps their states
+    # apart while coasting (the probabilities still relax towards even, and the prior is still their mixture).
+    mix_models_while_coasting: bool = False
     # A re-lock after a coast of at least relock_velocity_after_coast_ms takes as each model's velocity the
     # displacement between the last measured centre (carried by the camera's motion in the "scene" model) and the
     # new one over the time between them (OC-SORT's observation-centric re-update, seed 002 ref. 32): the velocity
@@ -228,6 +234,12 @@ class ReidParams(_FramePeriod, _ColourHistogram, SearchScaleParams):
     # classifier rarely gives a changed pose (a tumbling diver: one frame in ten).
     far_relock_alone_in_view: bool = True
     relock_far_height_fraction: float = 0.5
+    # A far re-lock the classifier cannot judge (not trained yet, or off) waits while another candidate comes within
+    # identity_margin of the best in M_fuse: far from the prior S_geo is 0 and colour alone would choose between
+    # look-alikes (otb-skiing 42: a pine tree, and the skier merged with it, at S_color 0.84 and 0.83). Seed 001
+    # leaves such contenders to the classifier; with none to ask, nothing tells them apart. Re-acquisition on
+    # evidence asks the same lead (_clear_best). False: colour's choice is taken.
+    far_relock_tie_waits: bool = True
     n_id_frames: int = dataclasses.field(default=2, metadata={"was": "n_id"})
     # Re-acquisition on accumulated evidence (tracking/reacquisition.py): while OCCLUDED or LOST, a detection that
     # is, on reacquire_frames frames (seed 001's N_id = 5) within reacquire_window_frames, re-ID's best candidate

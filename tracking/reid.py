@@ -686,14 +686,15 @@ class ReIdentifier:
         one clears δ_switch; on a re-lock after an occlusion, a lone contender scoring below δ_switch is taken
         for someone else and rejected (the target stays occluded), and a contender far from the prior
         must score δ_id on ``n_id_frames`` consecutive frames (seed 001's Re-ID state), unless it is alone in view
-        (far_relock_alone_in_view). Returns (chosen, accepted)."""
+        (far_relock_alone_in_view); with no classifier to ask, a far re-lock among candidates M_fuse does not tell
+        apart waits (far_relock_tie_waits). Returns (chosen, accepted)."""
         p = self.params
         relock = self.state in (TrackState.OCCLUDED, TrackState.LOST)
         if not relock:
             self._confirming = None
         scored = self._score_contenders(frame_bgr, candidates, best, relock)
         if scored is None:
-            return best, True
+            return best, not (relock and self._far_tie(candidates, best, prior))
         contenders, scores = scored
         i = int(np.argmax(scores))
         if scores[i] < p.delta_switch:
@@ -740,6 +741,13 @@ class ReIdentifier:
         between look-alikes it has not learnt, it scores everyone alike, the target too)."""
         return (self.params.identity_veto_after_crowd_frames > 0 and self._frames_since_crowd is not None
                 and self._crowd_told_apart)
+
+    def _far_tie(self, candidates: list[Candidate], best: Candidate, prior: Prior) -> bool:
+        """A far re-lock (_far) with another candidate within identity_margin of ``best`` in M_fuse, which only
+        the classifier could decide (far_relock_tie_waits)."""
+        p = self.params
+        return (p.far_relock_tie_waits and self._far(best.located, prior)
+                and any(c is not best and c.m_fuse >= best.m_fuse - p.identity_margin for c in candidates))
 
     def _far(self, box: Box, prior: Prior) -> bool:
         """A re-lock candidate farther than relock_far_height_fraction of the target's height from where the prior
