@@ -172,6 +172,15 @@ class Feed:
         self.lost_frames: set[int] = set()
         self._seq_gaps = SequenceGaps()
         self._last_frame: dict[str, int] = {}  # key -> frame_seq of the last message read
+        # The frames of each outside feedback key's messages read so far; a hint to join one the recording lacks
+        # joins none instead (waiting for it would hold the node's sets back until they are pushed out).
+        self._feedback_read: dict[str, set[int]] = defaultdict(set)
+        self._outside_feedback = set(plan.feedback_keys.values())
+        self.feedback_lost = 0
+        # node -> frames between two of its recorded outputs that a header.seq gap says it may have handled live
+        # (the recorder lost the outputs): not hinted as skipped, and not verifiable.
+        self._unsure: dict[str, set[int]] = defaultdict(set)
+        self._last_output: dict[str, int] = {}  # output key -> frame_seq of the last message read
 
     # outputs -> expected and hints
     def _read(self, messages: Iterable[BusMessage]) -> Iterator[Input]:
@@ -185,6 +194,8 @@ class Feed:
                 self.stamps_recorded[msg.key].add(head.header.stamp_ns)
             if msg.key in self.plan.frame_inputs and head is not None:
                 self._note_seq(msg.key, head.header)
+            if msg.key in self._outside_feedback:
+                self._feedback_read[msg.key].add(frame_seq)
             if msg.key not in self.plan.outputs:
                 yield (Input(msg, frame_seq, head.header.stamp_ns, head.header.pub_ns) if head is not None
                        else Input(msg, -1, 0, 0))
@@ -192,6 +203,7 @@ class Feed:
             self.expected[(self.plan.outputs[msg.key], frame_seq)].append(msg.data)
             self.outputs_expected += 1
             if head is not None:
+                self._note_output_seq(self.plan.output_node(msg.key), msg.key, head.header)
                 self._output_seen(self.plan.output_node(msg.key), frame_seq, head)
         self.eof = True
         for node, open_ in list(self._open.items()):
@@ -206,6 +218,18 @@ class Feed:
         lost = self._seq_gaps.see((key, header.source, header.epoch_ns), header.seq)
         if lost > 0 and min(last_frame, header.frame_seq) >= 0:
             self.lost_frames.update(range(last_frame + 1, header.frame_seq) or (header.frame_seq,))
+
+    def _note_output_seq(self, node: str, key: str, header: Any) -> None:
+        """A gap in an output's header.seq between two frames apart: the node handled one or more of the frames
+        between live and the recorder lost what it published (re-ID's measurement k: a two-node replay told to
+        skip k would leave prediction waiting for it). Which of them it handled is not known."""
+        last_frame = self._last_output.get(key, -1)
+        self._last_output[key] = header.frame_seq
+        lost = self._seq_gaps.see((key, header.source, header.epoch_ns), header.seq)
+        if lost > 0 and 0 <= last_frame < header.frame_seq - 1:
+            between = range(last_frame + 1, header.frame_seq)
+            self._unsure[node].update(between)
+            self.lost_frames.update(between)
 
     def _output_seen(self, node: str, frame_seq: int, head: Any) -> None:
         """A recorded output of ``node``: it opens the frame's hint, or adds its notes to the open one."""
@@ -232,14 +256,15 @@ class Feed:
         last = self._handled.get(node)
         if last is not None:
             for skipped in range(last + 1, frame_seq):
-                self._hint(node, skipped, True, None)
+                if skipped not in self._unsure[node]:
+                    self._hint(node, skipped, True, None)
         self._hint(node, frame_seq, False, used)
         self._handled[node] = frame_seq
 
     def _hint(self, node: str, frame_seq: int, skip: bool, used: dict[str, int] | None) -> None:
         if not (skip or used):
             return
-        hint = ReplayHint(skip=skip, feedback=dict(used or {}))
+        hint = ReplayHint(skip=skip, feedback=self._recorded_feedback(node, used or {}))
         hint.header.frame_seq = frame_seq
         self.hints.append((node, hint))
         previous = self._previous.get(node)
@@ -255,6 +280,18 @@ class Feed:
                 noted_key = self.plan.noted_key(node, name)
                 if noted_key is not None and joined >= 0:
                     self.noted[frame_seq].add((noted_key, joined))
+
+    def _recorded_feedback(self, node: str, used: dict[str, int]) -> dict[str, int]:
+        """``used`` (the feedback frames a handled frame joined live), with -1 (none) for an outside feedback message
+        the recording lacks: the recorder dropped it, and a frame's hint comes once the reader is past that frame's
+        stamp, so past the feedback's own. The frame is not verifiable (Replayer._incomplete, from ``joined``)."""
+        out = dict(used)
+        for name, joined in used.items():
+            key = self.plan.feedback_keys.get((node, name))
+            if key is not None and joined >= 0 and joined not in self._feedback_read[key]:
+                out[name] = -1
+                self.feedback_lost += 1
+        return out
 
     def _known(self, frame_seq: int) -> bool:
         """Does the reader know what each node did up to the next frame after ``frame_seq`` it handled?"""

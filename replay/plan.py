@@ -59,8 +59,9 @@ class ReplayReport:
     # recorded outputs of frames whose required same-frame inputs are not all in the recording (a recorder that
     # joined late): the replayed node cannot have produced them; not verifiable, so neither compared nor missing
     unverifiable: int = 0
-    # differing outputs while the nodes re-converged after such a frame (replay/engine.py RESYNC_FRAMES): a frame's
-    # missing input also shapes the next frames (re-ID compares each frame with the one before); not failures
+    # differing outputs while the nodes re-converged after such a frame (replay/engine.py RESYNC_FRAMES and
+    # RESYNC_MAX_FRAMES): a frame's missing input also shapes the next frames (re-ID compares each frame with the one
+    # before); not failures
     after_gap: int = 0
     # recorded outputs handed to the next replayed node in place of those a node could not make (such a frame)
     stand_ins: int = 0

@@ -32,7 +32,7 @@ from pathlib import Path
 from ...bus.graph import GraphError, parse_assignments
 from ...bus.recording import RecordingError
 from ...replay.diff import Tolerance
-from ...replay.engine import RESYNC_FRAMES, Replayer
+from ...replay.engine import RESYNC_FRAMES, RESYNC_MAX_FRAMES, RESYNC_SETTLE_FRAMES, Replayer
 from ...replay.plan import ReplayOptions, ReplayReport
 
 # --- command ---------------------------------------------------------------------------------------
@@ -82,8 +82,9 @@ def _print_notes(report: ReplayReport) -> None:
         print(f"stood in: {report.stand_ins} recorded outputs handed to the next replayed node for frames a node "
               "could not handle (an input missing from the recording)")
     if report.after_gap:
-        print(f"re-converging: {report.after_gap} outputs differed within {RESYNC_FRAMES} frames after a frame the "
-              "recording lacks inputs of (the node's state missed that frame); not failures")
+        print(f"re-converging: {report.after_gap} outputs differed after a frame the recording lacks inputs of, "
+              f"within {RESYNC_FRAMES} frames, or until they matched on {RESYNC_SETTLE_FRAMES} in a row (at most "
+              f"{RESYNC_MAX_FRAMES}): the node's state missed that frame; not failures")
     if report.hints:
         print(f"live fallbacks reproduced: {report.hints} frames skipped or joined older feedback live "
               "(a late feedback, a skipped backlog), and were replayed the same way")
