@@ -68,13 +68,40 @@ def _stamped(msg, k: int, feedback: dict[str, int] | None = None):
     return msg
 
 
+def _graph_recording(path) -> RecordingWriter:
+    """A recording of graph.yaml's graph in namespace fb, to be written to."""
+    writer = RecordingWriter(path)
+    writer.metadata("graph", {"yaml": (REPO / "graph.yaml").read_text()})
+    writer.metadata("followbus", {"namespace": "fb"})
+    return writer
+
+
+def _measurement(k: int, accepted: bool) -> bytes:
+    from followbus.bus.schemas import encode
+
+    return encode(_stamped(Measurement(state="TRACKING", accepted=accepted), k))
+
+
+def _compared(node: str, expected: dict, produced: dict, incomplete: set[int]):
+    """The report of the replay's comparison of ``node``'s ``expected`` and ``produced`` outputs alone."""
+    from types import SimpleNamespace
+
+    from followbus.replay.engine import Replayer
+    from followbus.replay.plan import ReplayReport
+
+    replayer = Replayer.__new__(Replayer)
+    replayer.plan = SimpleNamespace(timer_topics=set(), key=lambda t: f"rt/{t}")
+    replayer.opts = ReplayOptions(nodes=[node])
+    replayer.report = ReplayReport(file="-", node=node)
+    replayer._compare(expected, produced, set(), incomplete=incomplete)
+    return replayer.report
+
+
 def test_feed_hands_each_hint_over_before_its_frame(tmp_path):
     """prediction live: frame 2 skipped (no output), frame 4 joined the measurement of frame 1 (a late one).
     The feed says so before the inputs of those frames, and counts both as live fallbacks."""
     path = tmp_path / "p.mcap"
-    writer = RecordingWriter(path)
-    writer.metadata("graph", {"yaml": (REPO / "graph.yaml").read_text()})
-    writer.metadata("followbus", {"namespace": "fb"})
+    writer = _graph_recording(path)
     dets = writer.bus_channel("fb/detection/detections", "Detections")
     meas = writer.bus_channel("fb/reid/measurement", "Measurement")
     prior = writer.bus_channel("fb/prediction/prior", "Prior")
@@ -108,9 +135,7 @@ def test_a_hint_to_join_a_measurement_the_recorder_lost_joins_none(tmp_path):
     until they are pushed out (a demo recording, measurements 300-304 removed: 65 outputs never made). Frame 3 joins
     none instead; the feed still notes what it joined live, so the frame is not verifiable."""
     path = tmp_path / "p.mcap"
-    writer = RecordingWriter(path)
-    writer.metadata("graph", {"yaml": (REPO / "graph.yaml").read_text()})
-    writer.metadata("followbus", {"namespace": "fb"})
+    writer = _graph_recording(path)
     dets = writer.bus_channel("fb/detection/detections", "Detections")
     meas = writer.bus_channel("fb/reid/measurement", "Measurement")
     prior = writer.bus_channel("fb/prediction/prior", "Prior")
@@ -135,9 +160,7 @@ def test_an_output_the_recorder_lost_is_not_taken_for_a_skipped_frame(tmp_path):
     would leave prediction waiting for that measurement (a demo recording: 638 outputs missing from there on). It is
     not hinted, and not verifiable."""
     path = tmp_path / "r.mcap"
-    writer = RecordingWriter(path)
-    writer.metadata("graph", {"yaml": (REPO / "graph.yaml").read_text()})
-    writer.metadata("followbus", {"namespace": "fb"})
+    writer = _graph_recording(path)
     meas = writer.bus_channel("fb/reid/measurement", "Measurement")
     dets = writer.bus_channel("fb/detection/detections", "Detections")
     for seq, k in enumerate((0, 1, 2, 3, 5, 6)):
@@ -161,9 +184,7 @@ def test_a_frame_input_the_recorder_lost_makes_its_frames_not_verifiable(tmp_pat
     tracks it kept: the replay called those tracks missing. A gap in a frame input's header.seq names the frames
     between the two messages read as lost; a publisher that restarted (another epoch) starts its seq again."""
     path = tmp_path / "p.mcap"
-    writer = RecordingWriter(path)
-    writer.metadata("graph", {"yaml": (REPO / "graph.yaml").read_text()})
-    writer.metadata("followbus", {"namespace": "fb"})
+    writer = _graph_recording(path)
     meas = writer.bus_channel("fb/reid/measurement", "Measurement")
     for seq, k in enumerate((0, 1, 2, 3, 4, 5, 6, 9, 10)):
         if k in (3, 4):  # lost by the recorder; re-ID skipped 7 and 8 live
@@ -185,9 +206,7 @@ def test_a_replay_keeps_off_the_live_graphs_state_file(tmp_path):
     """graph.yaml's template persists its state in state/{namespace}/template.npz: a replay of it neither starts
     from that file nor overwrites it (issue 23), unless --param names a state file."""
     path = tmp_path / "t.mcap"
-    writer = RecordingWriter(path)
-    writer.metadata("graph", {"yaml": (REPO / "graph.yaml").read_text()})
-    writer.metadata("followbus", {"namespace": "fb"})
+    writer = _graph_recording(path)
     meas = writer.bus_channel("fb/reid/measurement", "Measurement")
     writer.write(meas, T0, _stamped(Measurement(state="TRACKING"), 0).encode())
     writer.finish()
@@ -201,25 +220,14 @@ def test_differences_after_a_gap_are_forgiven_for_resync_frames():
     """A frame the recording lacks inputs of (frame 10) also shapes the next ones: differences there count as
     re-converging, not as mismatches, for RESYNC_FRAMES, also after an output that matched (a CI run: re-ID's
     state, TRACKING live, was REACQUIRED in the replay a few frames after matching states)."""
-    from types import SimpleNamespace
 
-    from followbus.bus.schemas import encode
-    from followbus.replay.engine import RESYNC_FRAMES, Replayer
-    from followbus.replay.plan import ReplayReport
-
-    def measurement(k: int, accepted: bool) -> bytes:
-        return encode(_stamped(Measurement(state="TRACKING", accepted=accepted), k))
+    from followbus.replay.engine import RESYNC_FRAMES
 
     topic = "reid/measurement"
     differs = {11, 13, 10 + RESYNC_FRAMES + 5}  # 11: re-converging; 13: after a match, still; the last: past it
-    expected = {(topic, k): [measurement(k, True)] for k in range(10, 10 + RESYNC_FRAMES + 10)}
-    produced = {topic: [measurement(k, k not in differs) for k in range(11, 10 + RESYNC_FRAMES + 10)]}
-    replayer = Replayer.__new__(Replayer)
-    replayer.plan = SimpleNamespace(timer_topics=set(), key=lambda t: f"rt/{t}")
-    replayer.opts = ReplayOptions(nodes=["reid"])
-    replayer.report = ReplayReport(file="-", node="reid")
-    replayer._compare(expected, produced, set(), incomplete={10})
-    report = replayer.report
+    expected = {(topic, k): [_measurement(k, True)] for k in range(10, 10 + RESYNC_FRAMES + 10)}
+    produced = {topic: [_measurement(k, k not in differs) for k in range(11, 10 + RESYNC_FRAMES + 10)]}
+    report = _compared("reid", expected, produced, {10})
     assert report.unverifiable == 1 and report.after_gap == 2  # frame 10 itself, then frames 11 and 13
     assert report.mismatch_count == 1 and {m["frame_seq"] for m in report.mismatches} == {10 + RESYNC_FRAMES + 5}
 
@@ -229,25 +237,15 @@ def test_past_resync_frames_an_output_that_never_matched_since_the_gap_is_still_
     difference by a tenth a frame, so its outputs differ by 1e-4 px for some 100 frames, matching on a frame here and
     there. They re-converge until the key has matched on RESYNC_SETTLE_FRAMES frames in a row (at most
     RESYNC_MAX_FRAMES); a difference after that is a mismatch, and so is one past RESYNC_MAX_FRAMES."""
-    from types import SimpleNamespace
 
-    from followbus.bus.schemas import encode
-    from followbus.replay.engine import RESYNC_FRAMES, RESYNC_MAX_FRAMES, RESYNC_SETTLE_FRAMES, Replayer
+    from followbus.replay.engine import RESYNC_FRAMES, RESYNC_MAX_FRAMES, RESYNC_SETTLE_FRAMES
     from followbus.replay.plan import ReplayReport
-
-    def measurement(k: int, accepted: bool) -> bytes:
-        return encode(_stamped(Measurement(state="TRACKING", accepted=accepted), k))
 
     def compare(differs: set[int], last: int) -> ReplayReport:
         topic = "reid/measurement"
-        expected = {(topic, k): [measurement(k, True)] for k in range(10, last)}
-        produced = {topic: [measurement(k, k not in differs) for k in range(11, last)]}
-        replayer = Replayer.__new__(Replayer)
-        replayer.plan = SimpleNamespace(timer_topics=set(), key=lambda t: f"rt/{t}")
-        replayer.opts = ReplayOptions(nodes=["prediction"])
-        replayer.report = ReplayReport(file="-", node="prediction")
-        replayer._compare(expected, produced, set(), incomplete={10})
-        return replayer.report
+        expected = {(topic, k): [_measurement(k, True)] for k in range(10, last)}
+        produced = {topic: [_measurement(k, k not in differs) for k in range(11, last)]}
+        return _compared("prediction", expected, produced, {10})
 
     settles = 10 + 4 * RESYNC_FRAMES  # every frame before it differs but one
     after = settles + RESYNC_SETTLE_FRAMES + 2
