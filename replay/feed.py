@@ -176,7 +176,6 @@ class Feed:
         # joins none instead (waiting for it would hold the node's sets back until they are pushed out).
         self._feedback_read: dict[str, set[int]] = defaultdict(set)
         self._outside_feedback = set(plan.feedback_keys.values())
-        self.feedback_lost = 0
         # node -> frames between two of its recorded outputs that a header.seq gap says it may have handled live
         # (the recorder lost the outputs): not hinted as skipped, and not verifiable.
         self._unsure: dict[str, set[int]] = defaultdict(set)
@@ -290,7 +289,6 @@ class Feed:
             key = self.plan.feedback_keys.get((node, name))
             if key is not None and joined >= 0 and joined not in self._feedback_read[key]:
                 out[name] = -1
-                self.feedback_lost += 1
         return out
 
     def _known(self, frame_seq: int) -> bool:

@@ -151,7 +151,7 @@ def test_a_hint_to_join_a_measurement_the_recorder_lost_joins_none(tmp_path):
     for hints, _frame_seq, _messages in feed.groups():
         told.update({h.header.frame_seq: dict(h.feedback) for _node, h in hints})
     assert told[3] == {"measurement": -1} and told[4] == {"measurement": 3} and told[2] == {"measurement": 1}
-    assert feed.feedback_lost == 1 and ("fb/reid/measurement", 2) in feed.joined[3]
+    assert ("fb/reid/measurement", 2) in feed.joined[3]  # what it joined live: the frame is not verifiable
 
 
 def test_an_output_the_recorder_lost_is_not_taken_for_a_skipped_frame(tmp_path):
