@@ -171,7 +171,7 @@ class Feed:
         # messages of one publisher): the live node had it, the replay cannot have it.
         self.lost_frames: set[int] = set()
         self._seq_gaps = SequenceGaps()
-        self._last_frame: dict[str, int] = {}  # key -> frame_seq of the last message read
+        self._last_frame: dict[str, int] = {}  # frame input or output key -> frame_seq of the last message read
         # The frames of each outside feedback key's messages read so far; a hint to join one the recording lacks
         # joins none instead (waiting for it would hold the node's sets back until they are pushed out).
         self._feedback_read: dict[str, set[int]] = defaultdict(set)
@@ -179,7 +179,6 @@ class Feed:
         # node -> frames between two of its recorded outputs that a header.seq gap says it may have handled live
         # (the recorder lost the outputs): not hinted as skipped, and not verifiable.
         self._unsure: dict[str, set[int]] = defaultdict(set)
-        self._last_output: dict[str, int] = {}  # output key -> frame_seq of the last message read
 
     # outputs -> expected and hints
     def _read(self, messages: Iterable[BusMessage]) -> Iterator[Input]:
@@ -209,24 +208,27 @@ class Feed:
             self._finish(node, *open_)
         self._open.clear()
 
-    def _note_seq(self, key: str, header: Any) -> None:
-        """A gap in a frame input's header.seq lost the messages of the frames between the two read (all of them:
-        which ones a node skipped live is not known), or of the later one's frame when none lies between."""
+    def _seq_gap(self, key: str, header: Any) -> range | None:
+        """The frames between this message of ``key`` and the last one read, when a gap in header.seq (one publisher:
+        source and epoch) says the recorder lost messages there (an empty range: none lies between); else None."""
         last_frame = self._last_frame.get(key, -1)
         self._last_frame[key] = header.frame_seq
         lost = self._seq_gaps.see((key, header.source, header.epoch_ns), header.seq)
-        if lost > 0 and min(last_frame, header.frame_seq) >= 0:
-            self.lost_frames.update(range(last_frame + 1, header.frame_seq) or (header.frame_seq,))
+        return range(last_frame + 1, header.frame_seq) if lost > 0 and min(last_frame, header.frame_seq) >= 0 else None
+
+    def _note_seq(self, key: str, header: Any) -> None:
+        """A gap in a frame input's header.seq lost the messages of the frames between the two read (all of them:
+        which ones a node skipped live is not known), or of the later one's frame when none lies between."""
+        between = self._seq_gap(key, header)
+        if between is not None:
+            self.lost_frames.update(between or (header.frame_seq,))
 
     def _note_output_seq(self, node: str, key: str, header: Any) -> None:
         """A gap in an output's header.seq between two frames apart: the node handled one or more of the frames
         between live and the recorder lost what it published (re-ID's measurement k: a two-node replay told to
         skip k would leave prediction waiting for it). Which of them it handled is not known."""
-        last_frame = self._last_output.get(key, -1)
-        self._last_output[key] = header.frame_seq
-        lost = self._seq_gaps.see((key, header.source, header.epoch_ns), header.seq)
-        if lost > 0 and 0 <= last_frame < header.frame_seq - 1:
-            between = range(last_frame + 1, header.frame_seq)
+        between = self._seq_gap(key, header)
+        if between:
             self._unsure[node].update(between)
             self.lost_frames.update(between)
 
